@@ -1,0 +1,1 @@
+"""Configuration: YAML groups under this folder, merged into the dataclass schemas of :mod:`conf.schema`."""

@@ -1,0 +1,238 @@
+"""Structured (dataclass) schemas for every config group.
+
+Hydra merges the YAML files under ``conf/`` into these schemas, so an unknown key or a value of the wrong
+type is an error naming the key.  All physical quantities are SI: metres, seconds, pascals, kilograms.
+Range checks that the type system cannot express live in :func:`validate` and run before any task.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from omegaconf import MISSING
+
+FINGERS: tuple[str, ...] = ("thumb", "index", "middle", "ring", "pinky")
+
+
+# ----------------------------------------------------------------------------------------------- object
+@dataclass
+class GeometryConfig:
+    """Shape of an object.
+
+    ``kind`` selects a procedural signed-distance shape (``can``, ``cup``, ``sphere``, ``ellipsoid``, ``duck``,
+    ``plush``, ``block``) or a user file (``ply`` = 3DGS PLY in the Inria layout, ``mesh`` = OBJ/PLY/STL/GLB).
+    ``size`` is the shape's bounding box in metres (x, y, z); z is up.  ``wall_thickness`` is the real shell
+    thickness in metres (0 = solid body).
+    """
+
+    kind: str = MISSING
+    size: list[float] = field(default_factory=lambda: [0.05, 0.05, 0.05])
+    wall_thickness: float = 0.0
+    path: Optional[str] = None
+
+
+@dataclass
+class AppearanceConfig:
+    """Colours (linear RGB in [0, 1]) and a procedural pattern for the surface Gaussians."""
+
+    base_color: list[float] = field(default_factory=lambda: [0.8, 0.8, 0.8])
+    accent_color: list[float] = field(default_factory=lambda: [0.2, 0.2, 0.2])
+    pattern: str = "solid"  # solid | bands | label | speckle | dimples | stripes | fur
+    opacity: float = 0.98
+
+
+@dataclass
+class MaterialOverrides:
+    """Explicit material values; any value given here wins over the material oracle (SI units)."""
+
+    model: Optional[str] = None
+    youngs_modulus: Optional[float] = None  # Pa
+    poisson_ratio: Optional[float] = None  # 1
+    density: Optional[float] = None  # kg/m^3
+    yield_stress: Optional[float] = None  # Pa (uniaxial)
+    squeeze_threshold: Optional[float] = None  # 1 (compressive engineering strain at the contact)
+
+
+@dataclass
+class ObjectConfig:
+    """One squeezable object: geometry, look, what it is made of, and its default squeeze session."""
+
+    name: str = MISSING
+    display_name: str = MISSING
+    description: str = MISSING  # free text read by the material oracle
+    geometry: GeometryConfig = field(default_factory=GeometryConfig)
+    appearance: AppearanceConfig = field(default_factory=AppearanceConfig)
+    filled: bool = False  # True: the shell material fills the whole body (clay, rubber ball core)
+    interior: Optional[str] = None  # interior material (juice, cola, stuffing, pulp ...) or None
+    material: MaterialOverrides = field(default_factory=MaterialOverrides)
+    session: str = "ramp_hold_release"  # default synthetic squeeze session (see SignalConfig.session)
+
+
+# ----------------------------------------------------------------------------------------------- signal
+@dataclass
+class SignalConfig:
+    """Where the squeezing control signals come from and how they are sampled.
+
+    ``source``: ``synthetic`` (generator below) or ``csv`` (a SenseGlove recording at ``path``).
+    """
+
+    source: str = "synthetic"
+    path: Optional[str] = None
+    session: Optional[str] = None  # None: the object's own default session
+    duration: float = 3.0  # s, synthetic sessions
+    sensor_rate: float = 200.0  # Hz, synthetic sessions (SenseGlove streams at 100-1000 Hz)
+    tremor_amplitude: float = 0.01  # flexion units (physiological tremor, 8-12 Hz)
+    noise_std: float = 0.005  # flexion units (sensor noise)
+    position_noise_std: float = 0.0005  # m
+    peak_flexion: float = 0.85  # 1, maximum normalised flexion reached in the session
+    seed: int = 0
+
+
+# ----------------------------------------------------------------------------------------------- control
+@dataclass
+class SmoothingConfig:
+    """Preprocessing (paper sec. 3.1): resampling, EMA, de-biasing."""
+
+    frame_rate: float = 30.0  # Hz, the simulation's output frame rate
+    ema_alpha: float = 0.35  # 1, EMA weight of the newest sample at the frame rate
+    rest_window: float = 0.2  # s, leading window whose mean flexion is the rest pose (de-bias)
+
+
+@dataclass
+class ForceConfig:
+    """Force coefficients, eq. 1: c = w_k max(u - beta, 0)^gamma, with bidirectional activation."""
+
+    weights: list[float] = field(default_factory=lambda: [1.2, 1.1, 1.0, 0.8, 0.6])  # thumb..pinky
+    beta: float = 0.05  # 1, activation threshold on de-biased flexion
+    gamma: float = 1.5  # 1, nonlinearity index
+    release_gamma: float = 2.0  # 1, nonlinearity on the release phase (bidirectional activation)
+    release_rate_threshold: float = 0.05  # 1/s, flexion rate below -this counts as releasing
+
+
+@dataclass
+class ContactConfig:
+    """SC-CAE contact estimation, eq. 2 (weights of the composite objective)."""
+
+    lambda_area: float = 1.0
+    lambda_align: float = 0.2
+    lambda_curvature: float = 0.05
+    lambda_scale: float = 1.0
+    lambda_overlap: float = 2.0
+    sigma_min: float = 0.004  # m, patch radius at zero force
+    sigma_max: float = 0.015  # m, patch radius at force coefficient 1
+    candidates: int = 64  # surface candidates searched per finger and frame
+    activation: float = 1e-3  # force coefficient above which a patch is active
+
+
+@dataclass
+class DisplacementConfig:
+    """Displacement field, eq. 3: dx = sum_k eta c_k phi_k(x) n_k."""
+
+    eta: float = 0.01  # m per unit force coefficient (global scaling factor)
+    support: float = 2.5  # patch support in units of sigma (phi_k = 0 beyond)
+    min_weight: float = 0.05  # surface points with phi below this are not constrained
+
+
+@dataclass
+class ControlConfig:
+    smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
+    force: ForceConfig = field(default_factory=ForceConfig)
+    contact: ContactConfig = field(default_factory=ContactConfig)
+    displacement: DisplacementConfig = field(default_factory=DisplacementConfig)
+
+
+# ----------------------------------------------------------------------------------------------- object sampling
+@dataclass
+class SamplingConfig:
+    """How an object is discretised: surface Gaussians for rendering/contact, volume particles for MPM."""
+
+    surface_points: int = 3000  # surface samples = 3D Gaussians
+    particle_spacing: float = 0.004  # m, volume particle spacing (MPM issue derives it from the grid)
+    seed: int = 0
+
+
+# ----------------------------------------------------------------------------------------------- runner
+@dataclass
+class RunnerConfig:
+    """Prefect task runner: ``sequential``, ``threads`` or ``dask`` (local cluster or ``address``)."""
+
+    kind: str = "threads"
+    max_workers: int = 2
+    address: Optional[str] = None  # dask scheduler address, e.g. tcp://10.0.0.5:8786
+    n_workers: int = 2
+    threads_per_worker: int = 1
+
+
+@dataclass
+class PathsConfig:
+    artifacts: str = "artifacts"  # zarr artifacts and Prefect's cache records
+    reports: str = "reports"
+
+
+@dataclass
+class GridConfig:
+    """The evaluation grid: objects evaluated when no single ``object`` is selected."""
+
+    objects: list[str] = field(
+        default_factory=lambda: [
+            "can", "plush_toy", "rubber_duck", "clay", "tomato", "orange", "rubber_ball", "paper_cup"]
+    )
+
+
+@dataclass
+class Config:
+    object: Optional[ObjectConfig] = None
+    catalog: dict[str, ObjectConfig] = field(default_factory=dict)
+    grid: GridConfig = field(default_factory=GridConfig)
+    signal: SignalConfig = field(default_factory=SignalConfig)
+    control: ControlConfig = field(default_factory=ControlConfig)
+    sampling: SamplingConfig = field(default_factory=SamplingConfig)
+    runner: RunnerConfig = field(default_factory=RunnerConfig)
+    paths: PathsConfig = field(default_factory=PathsConfig)
+    # later stages plug in here (issues 3-5): they declare their own dataclasses
+    mpm: dict[str, Any] = field(default_factory=dict)
+    render: dict[str, Any] = field(default_factory=dict)
+    generation: dict[str, Any] = field(default_factory=dict)
+    metrics: dict[str, Any] = field(default_factory=dict)
+    run_name: Optional[str] = None  # report folder name; default: flow name + time stamp
+
+
+def register_configs() -> None:
+    """Register the root schema with Hydra's ConfigStore (``config_schema`` in the defaults lists)."""
+    from hydra.core.config_store import ConfigStore
+
+    ConfigStore.instance().store(name="config_schema", node=Config)
+
+
+class ConfigError(ValueError):
+    """A config value is out of its valid range; the message names the key and the fix."""
+
+
+def validate(cfg: Any) -> None:
+    """Range checks the type system cannot express.  Raises :class:`ConfigError` naming the key."""
+    def need(ok: bool, key: str, msg: str) -> None:
+        if not ok:
+            raise ConfigError(f"{key} {msg}")
+
+    s, c = cfg.signal, cfg.control
+    need(s.source in ("synthetic", "csv"), "signal.source", f"must be synthetic or csv, got {s.source!r}")
+    need(s.source != "csv" or bool(s.path), "signal.path", "is required with signal=csv: signal.path=/abs/rec.csv")
+    need(s.duration > 0, "signal.duration", f"must be > 0 s, got {s.duration}")
+    need(s.sensor_rate > 0, "signal.sensor_rate", f"must be > 0 Hz, got {s.sensor_rate}")
+    need(0 < s.peak_flexion <= 1, "signal.peak_flexion", f"must be in (0, 1], got {s.peak_flexion}")
+    need(c.smoothing.frame_rate > 0, "control.smoothing.frame_rate", f"must be > 0 Hz, got {c.smoothing.frame_rate}")
+    need(0 < c.smoothing.ema_alpha <= 1, "control.smoothing.ema_alpha", f"must be in (0, 1], got {c.smoothing.ema_alpha}")
+    need(len(c.force.weights) == len(FINGERS), "control.force.weights",
+         f"needs one weight per finger {list(FINGERS)}, got {len(c.force.weights)}")
+    need(0 <= c.force.beta < 1, "control.force.beta", f"must be in [0, 1), got {c.force.beta}")
+    need(c.force.gamma > 0, "control.force.gamma", f"must be > 0, got {c.force.gamma}")
+    need(c.force.release_gamma > 0, "control.force.release_gamma", f"must be > 0, got {c.force.release_gamma}")
+    need(0 < c.contact.sigma_min <= c.contact.sigma_max, "control.contact.sigma_min",
+         f"must satisfy 0 < sigma_min <= sigma_max, got {c.contact.sigma_min}, {c.contact.sigma_max}")
+    need(c.contact.candidates >= 1, "control.contact.candidates", f"must be >= 1, got {c.contact.candidates}")
+    need(c.displacement.eta >= 0, "control.displacement.eta", f"must be >= 0 m, got {c.displacement.eta}")
+    need(cfg.sampling.surface_points >= 100, "sampling.surface_points", f"must be >= 100, got {cfg.sampling.surface_points}")
+    need(cfg.sampling.particle_spacing > 0, "sampling.particle_spacing", f"must be > 0 m, got {cfg.sampling.particle_spacing}")
+    for name in cfg.grid.objects:
+        need(name in cfg.catalog or (cfg.object is not None and cfg.object.name == name) or not cfg.catalog,
+             "grid.objects", f"names unknown object {name!r}: known {sorted(cfg.catalog)}")

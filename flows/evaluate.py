@@ -1,0 +1,18 @@
+"""The eight-object evaluation grid:  ``python -m flows.evaluate``  (``-m`` for sweeps)."""
+import hydra
+from omegaconf import DictConfig
+
+from conf.schema import register_configs
+
+register_configs()
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
+def main(cfg: DictConfig) -> None:
+    from flows.pipeline import run
+
+    run(cfg, "evaluate")
+
+
+if __name__ == "__main__":
+    main()

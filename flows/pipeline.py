@@ -1,0 +1,138 @@
+"""The VirSqueezer flow: wires the method steps per object.  No computation lives here.
+
+Per object (paper sec. "Squeezing Control Mapping"):
+  object_model -> squeeze_signals -> signal_smoothing -> force_coefficients -> contact_patches -> dirichlet_field
+Each call below submits a cached Prefect task (tasks.step) with exactly the config values the step reads.
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+
+from prefect.logging import get_logger
+import time
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from omegaconf import DictConfig, OmegaConf
+from prefect import flow
+
+from flows.runtime import RunTable, make_task_runner, result_storage_settings
+from tasks.contact_patches import contact_patches_step
+from tasks.dirichlet_field import dirichlet_field_step
+from tasks.force_coefficients import force_coefficients_step
+from tasks.object_model import object_model_step
+from tasks.report import write_run_report
+from tasks.signal_smoothing import signal_smoothing_step
+from tasks.squeeze_signals import squeeze_signals_step
+
+log = get_logger("virsqueezer")
+
+
+def file_sha256(path: str) -> str:
+    """Content digest of a user input file, so that editing the file invalidates the steps reading it."""
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise SystemExit(f"input file {p} does not exist: check the path in your config")
+    return hashlib.sha256(p.read_bytes()).hexdigest()
+
+
+def selected_objects(cfg: DictConfig) -> list[DictConfig]:
+    """``object=NAME`` selects one object; otherwise every name in ``grid.objects`` from the catalog."""
+    if cfg.object is not None:
+        return [cfg.object]
+    missing = [n for n in cfg.grid.objects if n not in cfg.catalog]
+    if missing:
+        raise SystemExit(f"grid.objects names unknown objects {missing}: known {sorted(cfg.catalog)}")
+    return [cfg.catalog[n] for n in cfg.grid.objects]
+
+
+def _plain(node: Any) -> Any:
+    return OmegaConf.to_container(node, resolve=True)
+
+
+def step_params(cfg: DictConfig, obj: DictConfig) -> dict[str, dict]:
+    """Exactly the config values each step reads (its cache key), per object."""
+    plain_obj = _plain(obj)
+    shape = {k: plain_obj[k] for k in ("name", "geometry", "appearance", "filled", "interior")}
+    object_params = {"object": shape, "sampling": _plain(cfg.sampling)}
+    if obj.geometry.kind in ("ply", "mesh"):
+        object_params["file_sha256"] = file_sha256(obj.geometry.path)
+    signal = _plain(cfg.signal)
+    signal["session"] = cfg.signal.session or obj.session
+    signal_params = {"signal": signal, "frame_rate": cfg.control.smoothing.frame_rate}
+    if cfg.signal.source == "csv":
+        signal_params["file_sha256"] = file_sha256(cfg.signal.path)
+        # a recording does not depend on the generator's knobs
+        signal_params["signal"] = {"source": "csv", "path": cfg.signal.path}
+    return {
+        "object_model": object_params,
+        "squeeze_signals": signal_params,
+        "signal_smoothing": {"smoothing": _plain(cfg.control.smoothing)},
+        "force_coefficients": {"force": _plain(cfg.control.force), "frame_rate": cfg.control.smoothing.frame_rate},
+        "contact_patches": {"contact": _plain(cfg.control.contact)},
+        "dirichlet_field": {"displacement": _plain(cfg.control.displacement)},
+    }
+
+
+def submit_object(cfg: DictConfig, obj: DictConfig) -> dict[str, Any]:
+    """Submit one object's chain of steps; returns the futures by step name."""
+    root, scope = cfg.paths.artifacts, obj.name
+    p = step_params(cfg, obj)
+    kw = dict(root=root, scope=scope)
+    f: dict[str, Any] = {}
+    f["object_model"] = object_model_step.submit(params=p["object_model"], **kw)
+    f["squeeze_signals"] = squeeze_signals_step.submit(
+        params=p["squeeze_signals"], inputs={"object": f["object_model"]}, **kw)
+    f["signal_smoothing"] = signal_smoothing_step.submit(
+        params=p["signal_smoothing"], inputs={"signals": f["squeeze_signals"]}, **kw)
+    f["force_coefficients"] = force_coefficients_step.submit(
+        params=p["force_coefficients"], inputs={"frames": f["signal_smoothing"]}, **kw)
+    f["contact_patches"] = contact_patches_step.submit(
+        params=p["contact_patches"],
+        inputs={"object": f["object_model"], "frames": f["signal_smoothing"], "forces": f["force_coefficients"]}, **kw)
+    f["dirichlet_field"] = dirichlet_field_step.submit(
+        params=p["dirichlet_field"],
+        inputs={"object": f["object_model"], "contacts": f["contact_patches"], "forces": f["force_coefficients"]}, **kw)
+    return f
+
+
+@flow(name="virsqueezer", log_prints=True, validate_parameters=False, persist_result=False)
+def virsqueezer_flow(config: dict, flow_label: str = "evaluate") -> dict:
+    """Run the selected objects through the method steps, then write the run report.
+
+    Returns the report folder and the per-task table (as records).
+    """
+    cfg = OmegaConf.create(config)
+    t0 = time.perf_counter()
+    objects = selected_objects(cfg)
+    futures = {obj.name: submit_object(cfg, obj) for obj in objects}
+    table = RunTable()
+    refs: dict[str, dict[str, Any]] = {}
+    for name, steps in futures.items():
+        refs[name] = {step: table.add_future(name, step, fut) for step, fut in steps.items()}
+    run_name = cfg.run_name or f"{flow_label}-{datetime.now():%Y%m%d-%H%M%S}"
+    report_dir = Path(cfg.paths.reports) / run_name
+    write_run_report(report_dir, cfg=config, table=table, refs=refs, wall_seconds=time.perf_counter() - t0)
+    print(f"\nper-task table ({table.summary()}), wall {time.perf_counter() - t0:.1f} s\n{table.to_text()}")
+    print(f"report: {report_dir.resolve() / 'report.md'}")
+    failed = [r for r in table.rows if r.status == "failed"]
+    if failed:
+        first = failed[0]
+        raise RuntimeError(f"{len(failed)} step(s) failed; first: {first.object}/{first.step}: {first.note}")
+    return {"report": str(report_dir.resolve()), "tasks": table.frame().to_dict("records")}
+
+
+def run(cfg: DictConfig, flow_label: str) -> dict:
+    """Entry used by the Hydra mains: validate the config, pick the runner, run the flow."""
+    from conf.schema import ConfigError, validate
+
+    try:
+        validate(cfg)
+    except ConfigError as exc:
+        raise SystemExit(f"config error: {exc}") from None
+    runner = make_task_runner(cfg.runner)
+    config = OmegaConf.to_container(cfg, resolve=True)
+    with result_storage_settings(cfg.paths.artifacts):
+        return virsqueezer_flow.with_options(task_runner=runner, name=f"virsqueezer-{flow_label}")(config, flow_label)

@@ -1,0 +1,77 @@
+"""Hydra configuration: structured schemas catch typos, ranges are validated, the catalog is complete."""
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra.errors import ConfigCompositionException
+from omegaconf.errors import ConfigKeyError, ValidationError
+
+from conf.schema import ConfigError, validate
+
+REPO = Path(__file__).resolve().parents[1]
+EIGHT = ["can", "plush_toy", "rubber_duck", "clay", "tomato", "orange", "rubber_ball", "paper_cup"]
+
+
+def test_evaluate_has_the_eight_objects_and_validates(compose_cfg):
+    cfg = compose_cfg("evaluate", [])
+    assert list(cfg.grid.objects) == EIGHT
+    assert sorted(cfg.catalog) == sorted(EIGHT)
+    assert cfg.object is None
+    validate(cfg)
+    for name in EIGHT:
+        obj = cfg.catalog[name]
+        assert obj.name == name and obj.description and obj.geometry.kind
+
+
+def test_object_override_restricts_the_grid(compose_cfg):
+    from flows.pipeline import selected_objects
+
+    cfg = compose_cfg("evaluate", ["object=orange"])
+    assert [o.name for o in selected_objects(cfg)] == ["orange"]
+    assert [o.name for o in selected_objects(compose_cfg("evaluate", ["grid.objects=[can,clay]"]))] == ["can", "clay"]
+
+
+@pytest.mark.parametrize("override", ["control.force.gama=2.0", "signal.rate=3", "sampling.surface_point=5"])
+def test_typo_in_override_is_an_error(compose_cfg, override):
+    with pytest.raises((ConfigCompositionException, ConfigKeyError)) as exc:
+        compose_cfg("squeeze", [override])
+    assert override.split("=")[0].split(".")[-1] in str(exc.value) + str(exc.value.__cause__)
+
+
+def test_wrong_type_is_an_error(compose_cfg):
+    with pytest.raises((ConfigCompositionException, ValidationError)):
+        compose_cfg("squeeze", ["control.force.gamma=steep"])
+
+
+def test_unknown_object_is_an_error(compose_cfg):
+    with pytest.raises(ConfigCompositionException, match="banana"):
+        compose_cfg("squeeze", ["object=banana"])
+
+
+@pytest.mark.parametrize("override,key", [
+    ("control.force.gamma=-1", "control.force.gamma"),
+    ("control.force.beta=1.5", "control.force.beta"),
+    ("control.force.weights=[1,1]", "control.force.weights"),
+    ("signal.duration=0", "signal.duration"),
+    ("control.smoothing.ema_alpha=0", "control.smoothing.ema_alpha"),
+])
+def test_out_of_range_values_name_the_key(compose_cfg, override, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        validate(compose_cfg("squeeze", [override]))
+
+
+def test_step_params_hold_exactly_what_each_step_reads(compose_cfg):
+    from flows.pipeline import step_params
+
+    base = compose_cfg("squeeze", ["object=tomato"])
+    other = compose_cfg("squeeze", ["object=tomato", "control.force.gamma=2.5"])
+    a, b = step_params(base, base.object), step_params(other, other.object)
+    assert [k for k in a if a[k] != b[k]] == ["force_coefficients"]
+
+
+def test_cfg_job_prints_the_config():
+    out = subprocess.run([sys.executable, "-m", "flows.evaluate", "--cfg", "job"], cwd=REPO,
+                         capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert "catalog:" in out.stdout and "gamma: 1.5" in out.stdout and "rubber_duck" in out.stdout

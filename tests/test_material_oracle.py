@@ -1,0 +1,430 @@
+"""Tests of the material oracle (tasks/material_oracle.py).
+
+The LLM backend is exercised against a REAL HTTP server on 127.0.0.1 (http.server in a thread); nothing else
+is contacted.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+import traceback
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+from conf.oracle_schema import OracleConfig  # noqa: E402
+from conf.schema import MaterialOverrides  # noqa: E402
+from tasks.material_oracle import (  # noqa: E402
+    INTERIORS, TABLE, LLMAnswer, MaterialOracleError, MaterialProperties, ObjectMaterials, material_oracle,
+    materials_from_dict, materials_to_dict, match_entry, mpm_material_kwargs, oracle_for_object,
+    validate_material)
+
+# the eight evaluation objects: (name, description, interior) -> intended table entry
+OBJECTS = {
+    "can": ("an aluminium beverage can filled with carbonated cola", "cola", "aluminium_can"),
+    "plush_toy": ("a plush toy with polyester stuffing", "stuffing", "plush_toy"),
+    "rubber_duck": ("a hollow yellow rubber duck", None, "rubber_duck"),
+    "clay": ("a block of soft modelling clay", None, "modelling_clay"),
+    "tomato": ("a ripe tomato with thin skin and juicy pulp", "juice", "tomato"),
+    "orange": ("an orange with thick peel and juicy segments", "juice", "orange"),
+    "rubber_ball": ("a hollow rubber ball", None, "rubber_ball"),
+    "paper_cup": ("a paper cup of thin paperboard", None, "paper_cup"),
+}
+EXPECTED_EFFECT = {"aluminium_can": "cola_spray", "plush_toy": "stuffing_spill", "rubber_duck": "rebound",
+                   "modelling_clay": "dent", "tomato": "juice", "orange": "juice", "rubber_ball": "rebound",
+                   "paper_cup": "buckle"}
+SECRET = "sk-test-SECRET-0123456789abcdef"
+KEY_ENV = "VIRSQUEEZER_TEST_LLM_KEY"
+
+
+# ----------------------------------------------------------------------------------------------- schema
+def test_every_table_entry_validates():
+    assert len({e.key for e in TABLE}) == len(TABLE)
+    for entry in TABLE:
+        assert entry.shell.source.strip() and entry.threshold_source.strip()
+        again = MaterialProperties.model_validate(entry.shell.model_dump())  # re-validation round trip
+        assert again == entry.shell
+        interior = INTERIORS[entry.interior].material if entry.interior else None
+        om = ObjectMaterials(shell=entry.shell, interior=interior, squeeze_threshold=entry.squeeze_threshold,
+                             threshold_source=entry.threshold_source, effect=entry.effect,
+                             matched_entry=entry.key, backend="table")
+        assert materials_from_dict(json.loads(json.dumps(materials_to_dict(om)))) == om
+        for m in (entry.shell, interior):
+            if m is not None:
+                assert 0 <= m.poisson_ratio <= 0.49 and m.youngs_modulus > 0 and m.density > 0
+                assert m.wave_speed > 0
+    for item in INTERIORS.values():
+        assert MaterialProperties.model_validate(item.material.model_dump()) == item.material
+        if item.material.model == "fluid":
+            assert item.material.bulk_modulus == pytest.approx(2.2e9)  # physical value, scaled by the simulator
+            assert item.material.viscosity and item.material.viscosity > 0
+
+
+def test_table_materials_build_mpm_materials():
+    try:
+        from tasks.mpm.materials import material_from_dict
+    except Exception as exc:  # noqa: BLE001 - the solver package is another module's work
+        pytest.skip(f"tasks.mpm.materials not importable: {exc}")
+    mats = [e.shell for e in TABLE] + [i.material for i in INTERIORS.values()]
+    for m in mats:
+        mpm = material_from_dict(mpm_material_kwargs(m))
+        assert mpm.p_wave_speed() == pytest.approx(m.wave_speed, rel=1e-9)
+        if m.model == "fluid":
+            assert mpm.bulk == pytest.approx(2.2e9)
+
+
+def test_key_values_are_physical():
+    can = material_oracle(*OBJECTS["can"][:1], "can", None, "cola")
+    assert can.shell.youngs_modulus == pytest.approx(69e9) and can.shell.poisson_ratio == pytest.approx(0.33)
+    assert 2650 <= can.shell.density <= 2750 and 250e6 <= can.shell.yield_stress <= 290e6
+    assert can.interior.model == "fluid" and 1030 <= can.interior.density <= 1050
+    assert can.interior.viscosity == pytest.approx(1.3e-3)
+    cup = material_oracle(OBJECTS["paper_cup"][0], "paper_cup")
+    assert 3e9 <= cup.shell.youngs_modulus <= 5e9 and 700 <= cup.shell.density <= 800
+    assert 20e6 <= cup.shell.yield_stress <= 40e6
+
+
+@pytest.mark.parametrize("name", sorted(OBJECTS))
+def test_eight_objects_match_their_entries(name):
+    description, interior, key = OBJECTS[name]
+    assert match_entry(description, name).key == key
+    assert match_entry(description).key == key  # the description alone is enough
+    m = material_oracle(description, name, MaterialOverrides(), interior, OracleConfig())
+    assert m.matched_entry == key and m.backend == "table" and m.effect == EXPECTED_EFFECT[key]
+    if key in ("aluminium_can", "tomato", "orange", "plush_toy"):
+        assert m.interior is not None and m.squeeze_threshold is not None and 0 < m.squeeze_threshold < 1
+    else:
+        assert m.interior is None and m.squeeze_threshold is None
+    assert m == material_oracle(description, name, None, interior)  # deterministic
+
+
+def test_interior_resolution():
+    tomato = material_oracle(OBJECTS["tomato"][0], "tomato", None, "juice")
+    orange = material_oracle(OBJECTS["orange"][0], "orange", None, "juice")
+    assert tomato.interior.name.startswith("tomato") and orange.interior.name.startswith("orange")
+    assert material_oracle(OBJECTS["can"][0], "can", None, "soda").interior.name == "regular cola"
+    # interior None in the object config: no interior even though the entry has one
+    dry = material_oracle(OBJECTS["tomato"][0], "tomato", None, None)
+    assert dry.interior is None and any("dropped" in n for n in dry.notes)
+    hollow = material_oracle(OBJECTS["rubber_duck"][0], "rubber_duck", None, "air")
+    assert hollow.interior is None and "not simulated" in hollow.notes[0]
+    with pytest.raises(MaterialOracleError, match="matches no known interior"):
+        material_oracle(OBJECTS["rubber_duck"][0], "rubber_duck", None, "helium")
+    with pytest.raises(MaterialOracleError, match="equally"):
+        material_oracle(OBJECTS["paper_cup"][0], "paper_cup", None, "juice")  # tomato or orange juice?
+
+
+def test_unmatched_description_is_a_clear_error():
+    with pytest.raises(MaterialOracleError) as info:
+        material_oracle("a shiny mysterious thing", "thing")
+    msg = str(info.value)
+    assert "\n" not in msg and "aluminium_can" in msg and "paper_cup" in msg
+    assert "youngs_modulus" in msg and "backend=llm" in msg
+    with pytest.raises(MaterialOracleError, match="equally"):
+        material_oracle("a rubber toy", "toy")
+    # explicit values make an unmatched description usable
+    m = material_oracle("a shiny mysterious thing", "thing",
+                        {"model": "neo_hookean", "youngs_modulus": 1e6, "poisson_ratio": 0.4, "density": 1000.0,
+                         "squeeze_threshold": 0.3})
+    assert m.backend == "explicit" and m.shell.youngs_modulus == 1e6 and m.squeeze_threshold == 0.3
+
+
+def test_overrides_win_and_are_revalidated():
+    desc, interior, _ = OBJECTS["tomato"]
+    ov = MaterialOverrides(youngs_modulus=3.0e6, poisson_ratio=0.4, density=1010.0, squeeze_threshold=0.12)
+    m = material_oracle(desc, "tomato", ov, interior)
+    assert (m.shell.youngs_modulus, m.shell.poisson_ratio, m.shell.density) == (3.0e6, 0.4, 1010.0)
+    assert m.squeeze_threshold == 0.12 and "explicit" in m.threshold_source
+    assert "overridden" in m.shell.source and m.notes
+    # model + yield: an elastic shell made plastic
+    m = material_oracle(OBJECTS["rubber_duck"][0], "rubber_duck", {"model": "stvk_hencky_von_mises",
+                                                                   "yield_stress": 2e5})
+    assert m.shell.model == "stvk_hencky_von_mises" and m.shell.yield_stress == 2e5
+    # a plastic model without a yield stress fails after merging, naming the field
+    with pytest.raises(MaterialOracleError, match="yield_stress is required"):
+        material_oracle(OBJECTS["rubber_duck"][0], "rubber_duck", {"model": "foam"})
+    # OmegaConf structured config works as overrides too
+    from omegaconf import OmegaConf
+    oc = OmegaConf.structured(MaterialOverrides(density=1500.0))
+    assert material_oracle(OBJECTS["clay"][0], "clay", oc).shell.density == 1500.0
+    with pytest.raises(MaterialOracleError, match="unknown material override"):
+        material_oracle(OBJECTS["clay"][0], "clay", {"youngs": 1e6})
+    with pytest.raises(MaterialOracleError, match="squeeze_threshold 1.5 must be in"):
+        material_oracle(OBJECTS["clay"][0], "clay", {"squeeze_threshold": 1.5})
+
+
+def test_oracle_for_object_config():
+    from conf.schema import ObjectConfig
+    obj = ObjectConfig(name="can", display_name="Can", description=OBJECTS["can"][0], interior="cola",
+                       material=MaterialOverrides(yield_stress=250e6))
+    m = oracle_for_object(obj)
+    assert m.matched_entry == "aluminium_can" and m.shell.yield_stress == 250e6
+
+
+@pytest.mark.parametrize("bad,fragment", [
+    ({"poisson_ratio": 0.5},
+     "poisson_ratio 0.5 >= 0.5 makes the material incompressible (infinite lambda): use <= 0.49"),
+    ({"poisson_ratio": 0.7}, "poisson_ratio 0.7 >= 0.5"),
+    ({"poisson_ratio": -0.1}, "poisson_ratio -0.1 < 0"),
+    ({"youngs_modulus": -5.0}, "youngs_modulus -5 must be > 0 Pa"),
+    ({"youngs_modulus": 0.0}, "youngs_modulus 0 must be > 0 Pa"),
+    ({"density": 2.7}, "not g/cm^3"),
+    ({"density": -1.0}, "density -1 must be > 0"),
+    ({"yield_stress": -3.0}, "yield_stress -3 must be > 0"),
+])
+def test_invalid_values_rejected_with_one_line_message(bad, fragment):
+    base = {"model": "neo_hookean", "youngs_modulus": 1e6, "poisson_ratio": 0.45, "density": 1100.0,
+            "source": "test"}
+    with pytest.raises(MaterialOracleError) as info:
+        validate_material({**base, **bad})
+    assert fragment in str(info.value) and "\n" not in str(info.value)
+    # the same message comes out of the oracle when an override carries the bad value
+    if set(bad) <= {"poisson_ratio", "youngs_modulus", "density", "yield_stress"}:
+        with pytest.raises(MaterialOracleError) as info:
+            material_oracle(OBJECTS["rubber_ball"][0], "rubber_ball", bad)
+        assert fragment in str(info.value) and "\n" not in str(info.value)
+
+
+def test_model_and_effect_constraints():
+    with pytest.raises(MaterialOracleError, match="model 'metal' is not a known model"):
+        validate_material({"model": "metal", "youngs_modulus": 1e9, "poisson_ratio": 0.3, "density": 2000.0,
+                           "source": "x"})
+    with pytest.raises(MaterialOracleError, match="viscosity is required"):
+        validate_material({"model": "fluid", "youngs_modulus": 1e8, "poisson_ratio": 0.49, "density": 1000.0,
+                           "source": "x"})
+    with pytest.raises(MaterialOracleError, match="yield_stress 2e\\+06 >= youngs_modulus"):
+        validate_material({"model": "foam", "youngs_modulus": 1e6, "poisson_ratio": 0.3, "density": 30.0,
+                           "yield_stress": 2e6, "source": "x"})
+    shell = TABLE[0].shell
+    with pytest.raises(Exception, match="needs a squeeze_threshold"):
+        ObjectMaterials(shell=shell, effect="juice", squeeze_threshold=None)
+    with pytest.raises(Exception, match="effect 'explode' is not a known effect"):
+        ObjectMaterials(shell=shell, effect="explode")
+
+
+# ----------------------------------------------------------------------------------------------- YAML objects
+def _yaml_objects():
+    files = sorted((ROOT / "conf" / "object").glob("*.yaml"))
+    return [pytest.param(f, id=f.stem) for f in files]
+
+
+@pytest.mark.parametrize("path", _yaml_objects() or [pytest.param(None, marks=pytest.mark.skip("no YAMLs yet"))])
+def test_object_yaml_matches_intended_entry(path):
+    from omegaconf import OmegaConf
+    from conf.schema import ObjectConfig
+    raw = OmegaConf.load(path)
+    obj = OmegaConf.merge(OmegaConf.structured(ObjectConfig), raw)
+    name = obj.name if obj.name in OBJECTS else path.stem
+    if name not in OBJECTS:
+        pytest.skip(f"{obj.name} is not one of the eight evaluation objects")
+    m = oracle_for_object(obj)
+    assert m.matched_entry == OBJECTS[name][2]
+    assert m.effect == EXPECTED_EFFECT[m.matched_entry] or obj.interior is None
+
+
+# ----------------------------------------------------------------------------------------------- LLM backend
+VALID_ANSWER = {
+    "shell": {"name": "tomato skin", "model": "fixed_corotated", "youngs_modulus": 2.0e6, "poisson_ratio": 0.45,
+              "density": 1000.0, "yield_stress": None, "viscosity": None, "hardening": None,
+              "source": "test server", "note": ""},
+    "interior": {"name": "tomato juice", "model": "fluid", "youngs_modulus": 1.32e8, "poisson_ratio": 0.49,
+                 "density": 1020.0, "viscosity": 0.005, "source": "test server"},
+    "squeeze_threshold": 0.15, "threshold_source": "test server", "effect": "juice",
+}
+
+
+class _Server:
+    """A real OpenAI-compatible test endpoint; the first path segment selects the behaviour."""
+
+    def __init__(self) -> None:
+        self.hits: dict[str, int] = {}
+        self.requests: list[dict] = []
+        outer = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *args):  # keep test output clean
+                pass
+
+            def do_POST(self):  # noqa: N802
+                mode = self.path.strip("/").split("/")[0]
+                body = self.rfile.read(int(self.headers.get("Content-Length", 0)))
+                outer.hits[mode] = outer.hits.get(mode, 0) + 1
+                auth = self.headers.get("Authorization", "")
+                outer.requests.append({"path": self.path, "auth": auth, "json": json.loads(body)})
+                status, content = 200, None
+                if mode in ("good", "good2"):
+                    content = json.dumps(VALID_ANSWER)
+                elif mode == "fenced":
+                    content = "```json\n" + json.dumps(VALID_ANSWER) + "\n```"
+                elif mode == "badjson":
+                    content = "Sure! Here are the properties: {shell: rubber, key " + auth
+                elif mode == "schema":
+                    bad = json.loads(json.dumps(VALID_ANSWER))
+                    bad["shell"]["poisson_ratio"] = 0.5
+                    bad["colour"] = "red"
+                    content = json.dumps(bad)
+                elif mode == "slow":
+                    time.sleep(1.5)
+                    content = json.dumps(VALID_ANSWER)
+                elif mode == "unauthorized":
+                    status = 401
+                if status == 200:
+                    payload = json.dumps({"id": "x", "object": "chat.completion", "choices": [
+                        {"index": 0, "message": {"role": "assistant", "content": content},
+                         "finish_reason": "stop"}]}).encode()
+                else:
+                    payload = json.dumps({"error": f"invalid key {auth}"}).encode()
+                try:
+                    self.send_response(status)
+                    self.send_header("Content-Type", "application/json")
+                    self.send_header("Content-Length", str(len(payload)))
+                    self.end_headers()
+                    self.wfile.write(payload)
+                except OSError:  # the client gave up (timeout test)
+                    pass
+
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.httpd.daemon_threads = True
+        self.port = self.httpd.server_address[1]
+        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
+        self.thread.start()
+
+    def url(self, mode: str) -> str:
+        return f"http://127.0.0.1:{self.port}/{mode}/v1"
+
+    def close(self) -> None:
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+@pytest.fixture(scope="module")
+def server():
+    s = _Server()
+    yield s
+    s.close()
+
+
+@pytest.fixture
+def key_env(monkeypatch):
+    monkeypatch.setenv(KEY_ENV, SECRET)
+    return KEY_ENV
+
+
+def _cfg(server, mode, tmp_path, **kw):
+    return OracleConfig(backend="llm", llm_url=server.url(mode), llm_model="test-model", api_key_env=KEY_ENV,
+                        timeout_s=kw.pop("timeout_s", 5.0), cache_dir=str(tmp_path / "cache"), **kw)
+
+
+def _no_secret(exc: BaseException) -> None:
+    text = str(exc) + repr(exc) + "".join(traceback.format_exception(exc))
+    assert SECRET not in text
+
+
+def test_llm_valid_answer_and_cache(server, tmp_path, key_env):
+    cfg = _cfg(server, "good", tmp_path)
+    desc = OBJECTS["tomato"][0]
+    m1 = material_oracle(desc, "tomato", None, "juice", cfg)
+    assert m1.backend == "llm" and m1.matched_entry == "llm:test-model"
+    assert m1.shell.youngs_modulus == 2.0e6 and m1.interior.model == "fluid" and m1.effect == "juice"
+    assert server.hits["good"] == 1
+    req = server.requests[-1]
+    assert req["path"] == "/good/v1/chat/completions" and req["auth"] == f"Bearer {SECRET}"
+    assert req["json"]["model"] == "test-model" and req["json"]["response_format"] == {"type": "json_object"}
+    assert desc in req["json"]["messages"][-1]["content"]
+    # second identical call: served from the disk cache, the server is not hit again
+    m2 = material_oracle(desc, "tomato", None, "juice", cfg)
+    assert m2 == m1 and server.hits["good"] == 1
+    # the cache is JSON, keyed by the request, and holds no API key
+    files = list((tmp_path / "cache").glob("*.json"))
+    assert len(files) == 1
+    record = json.loads(files[0].read_text())
+    assert record["key"]["description"] == desc and record["key"]["model"] == "test-model"
+    assert SECRET not in files[0].read_text()
+    assert SECRET not in json.dumps(materials_to_dict(m1))
+    # a different description, model or url is a new request
+    material_oracle(desc + " (cherry)", "tomato", None, "juice", cfg)
+    assert server.hits["good"] == 2
+    material_oracle(desc, "tomato", None, "juice", _cfg(server, "good2", tmp_path))
+    assert server.hits["good2"] == 1
+    # overrides still win over the LLM, and interior None drops the LLM's interior
+    m3 = material_oracle(desc, "tomato", {"youngs_modulus": 4e6, "squeeze_threshold": 0.2}, None, cfg)
+    assert m3.shell.youngs_modulus == 4e6 and m3.squeeze_threshold == 0.2 and m3.interior is None
+    assert any("dropped" in n for n in m3.notes)
+    # a corrupted cache file is ignored and rewritten
+    hits = server.hits["good"]
+    path = (tmp_path / "cache" / files[0].name)
+    path.write_text("{not json")
+    assert material_oracle(desc, "tomato", None, "juice", cfg) == m1
+    assert server.hits["good"] == hits + 1
+    LLMAnswer.model_validate(json.loads(path.read_text())["answer"])
+
+
+def test_llm_no_cache_dir_asks_every_time(server, tmp_path, key_env):
+    cfg = _cfg(server, "fenced", tmp_path)
+    cfg.cache_dir = None
+    material_oracle("a fenced tomato", "tomato", None, "juice", cfg)
+    material_oracle("a fenced tomato", "tomato", None, "juice", cfg)
+    assert server.hits["fenced"] == 2  # (a ```json fence around the answer is accepted)
+
+
+def test_llm_invalid_json(server, tmp_path, key_env):
+    cfg = _cfg(server, "badjson", tmp_path)
+    for _ in range(2):
+        with pytest.raises(MaterialOracleError) as info:
+            material_oracle("a tomato", "tomato", None, "juice", cfg)
+        msg = str(info.value)
+        assert server.url("badjson") + "/chat/completions" in msg and "invalid JSON" in msg
+        assert "***" in msg  # the echoed key was redacted
+        _no_secret(info.value)
+    assert server.hits["badjson"] == 2  # failures are not cached
+    assert not list((tmp_path / "cache").glob("*.json"))
+
+
+def test_llm_schema_violation(server, tmp_path, key_env):
+    with pytest.raises(MaterialOracleError) as info:
+        material_oracle("a tomato", "tomato", None, "juice", _cfg(server, "schema", tmp_path))
+    msg = str(info.value)
+    assert server.url("schema") in msg and "violates the material schema" in msg
+    assert "shell.poisson_ratio 0.5 >= 0.5" in msg and "colour" in msg and "\n" not in msg
+    _no_secret(info.value)
+
+
+def test_llm_timeout(server, tmp_path, key_env):
+    t0 = time.monotonic()
+    with pytest.raises(MaterialOracleError) as info:
+        material_oracle("a slow tomato", "tomato", None, "juice", _cfg(server, "slow", tmp_path, timeout_s=0.3))
+    assert time.monotonic() - t0 < 1.4
+    assert str(info.value) == (f"LLM endpoint {server.url('slow')}/chat/completions timed out after 0.3 s: "
+                               "raise material.oracle.timeout_s or use backend=table")
+    _no_secret(info.value)
+
+
+def test_llm_http_error_redacts_key(server, tmp_path, key_env):
+    with pytest.raises(MaterialOracleError) as info:
+        material_oracle("a tomato", "tomato", None, "juice", _cfg(server, "unauthorized", tmp_path))
+    msg = str(info.value)
+    assert "HTTP 401" in msg and KEY_ENV in msg and "***" in msg
+    _no_secret(info.value)
+
+
+def test_llm_config_errors(tmp_path, key_env):
+    with pytest.raises(MaterialOracleError, match="llm_url is not set"):
+        material_oracle("a tomato", "tomato", None, None, OracleConfig(backend="llm"))
+    with pytest.raises(MaterialOracleError, match="backend 'gpt' must be"):
+        material_oracle("a tomato", "tomato", None, None, OracleConfig(backend="gpt"))
+    # a closed port on 127.0.0.1: unreachable, clear message, no key
+    import socket
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    cfg = OracleConfig(backend="llm", llm_url=f"http://127.0.0.1:{port}/v1", api_key_env=KEY_ENV, timeout_s=2)
+    with pytest.raises(MaterialOracleError, match="unreachable") as info:
+        material_oracle("a tomato", "tomato", None, None, cfg)
+    _no_secret(info.value)
