@@ -11,6 +11,9 @@ from typing import Any, Optional
 
 from omegaconf import MISSING
 
+from conf.mpm_schema import MPMConfig
+from conf.oracle_schema import OracleConfig
+
 FINGERS: tuple[str, ...] = ("thumb", "index", "middle", "ring", "pinky")
 
 
@@ -66,6 +69,7 @@ class ObjectConfig:
     interior: Optional[str] = None  # interior material (juice, cola, stuffing, pulp ...) or None
     material: MaterialOverrides = field(default_factory=MaterialOverrides)
     session: str = "ramp_hold_release"  # default synthetic squeeze session (see SignalConfig.session)
+    eta: Optional[float] = None  # m per unit force coefficient: this object's eq. 3 scaling (None: control.displacement.eta)
 
 
 # ----------------------------------------------------------------------------------------------- signal
@@ -151,6 +155,45 @@ class SamplingConfig:
     seed: int = 0
 
 
+# ----------------------------------------------------------------------------------------------- simulation
+@dataclass
+class VariantConfig:
+    """A method variant (paper Table 2): ``full`` imposes the displacement field as Dirichlet boundary
+    conditions; ``no_dirichlet`` ("VirSqueezer w/o Dirichlet Boundary Constraint", PhysGaussian-style) pushes
+    with a per-finger force estimated from the flexion instead."""
+
+    name: str = "full"
+    boundary: str = "dirichlet"  # dirichlet | force
+
+
+@dataclass
+class SimulationConfig:
+    """How the squeeze drives the MPM (paper sec. "Squeezing-Driven Deformation").
+
+    target_substeps_per_frame: explicit substeps per output frame the time (mass) scaling aims at; the mass
+        scale s = max(1, (c_p dt_target / (C dx))^2) slows the stiffest material's P wave to fit, and gravity
+        is divided by s so weights stay physical (quasi-static squeeze; KE/IE is reported per frame).  0 = off.
+    fluid_reference_speed: m/s; a weakly compressible interior fluid gets the bulk modulus that makes its sound
+        speed 10 v after mass scaling (K = s rho (10 v)^2; Mach 0.1: density error ~1 %) instead of water's 2.2
+        GPa.  Keep max_release_speed <= this speed.
+    force_per_coefficient: N per unit force coefficient c (force mode, the no_dirichlet variant).
+    release_radius: m; interior particles this close to a finger's patch centre are released at the
+        threshold crossing, and shell particles this close rupture (become ``ruptured_softening`` x softer).
+    release_speed_per_pascal: m/s per Pa of local finger pressure (initial speed of released particles).
+    max_release_speed: m/s cap of that speed.
+    feedback_max_force: N, the glove's per-finger force-feedback range (resistive force is clipped to it).
+    """
+
+    target_substeps_per_frame: int = 100
+    fluid_reference_speed: float = 1.0
+    force_per_coefficient: float = 8.0
+    release_radius: float = 0.012
+    release_speed_per_pascal: float = 1.0e-4
+    max_release_speed: float = 1.0
+    ruptured_softening: float = 1.0e-3
+    feedback_max_force: float = 20.0
+
+
 # ----------------------------------------------------------------------------------------------- runner
 @dataclass
 class RunnerConfig:
@@ -189,8 +232,11 @@ class Config:
     sampling: SamplingConfig = field(default_factory=SamplingConfig)
     runner: RunnerConfig = field(default_factory=RunnerConfig)
     paths: PathsConfig = field(default_factory=PathsConfig)
-    # later stages plug in here (issues 3-5): they declare their own dataclasses
-    mpm: dict[str, Any] = field(default_factory=dict)
+    oracle: OracleConfig = field(default_factory=OracleConfig)
+    mpm: MPMConfig = field(default_factory=MPMConfig)
+    simulation: SimulationConfig = field(default_factory=SimulationConfig)
+    variant: VariantConfig = field(default_factory=VariantConfig)
+    # later stages plug in here: they declare their own dataclasses
     render: dict[str, Any] = field(default_factory=dict)
     generation: dict[str, Any] = field(default_factory=dict)
     metrics: dict[str, Any] = field(default_factory=dict)

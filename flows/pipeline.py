@@ -2,6 +2,7 @@
 
 Per object (paper sec. "Squeezing Control Mapping"):
   object_model -> squeeze_signals -> signal_smoothing -> force_coefficients -> contact_patches -> dirichlet_field
+  material_oracle ----------------------------------------------------------------------------------> mpm_rollout
 Each call below submits a cached Prefect task (tasks.step) with exactly the config values the step reads.
 """
 from __future__ import annotations
@@ -22,6 +23,8 @@ from flows.runtime import RunTable, make_task_runner, result_storage_settings
 from tasks.contact_patches import contact_patches_step
 from tasks.dirichlet_field import dirichlet_field_step
 from tasks.force_coefficients import force_coefficients_step
+from tasks.material_oracle import material_oracle_step
+from tasks.mpm_rollout import mpm_rollout_step
 from tasks.object_model import object_model_step
 from tasks.report import write_run_report
 from tasks.signal_smoothing import signal_smoothing_step
@@ -72,7 +75,12 @@ def step_params(cfg: DictConfig, obj: DictConfig) -> dict[str, dict]:
         "signal_smoothing": {"smoothing": _plain(cfg.control.smoothing)},
         "force_coefficients": {"force": _plain(cfg.control.force), "frame_rate": cfg.control.smoothing.frame_rate},
         "contact_patches": {"contact": _plain(cfg.control.contact)},
-        "dirichlet_field": {"displacement": _plain(cfg.control.displacement)},
+        "dirichlet_field": {"displacement": {**_plain(cfg.control.displacement),
+                                             "eta": obj.eta if obj.eta is not None else cfg.control.displacement.eta}},
+        "material_oracle": {"description": obj.description, "name": obj.name, "overrides": plain_obj["material"],
+                            "interior": obj.interior, "oracle": _plain(cfg.oracle)},
+        "mpm_rollout": {"mpm": _plain(cfg.mpm), "simulation": _plain(cfg.simulation),
+                        "boundary": cfg.variant.boundary},
     }
 
 
@@ -95,6 +103,12 @@ def submit_object(cfg: DictConfig, obj: DictConfig) -> dict[str, Any]:
     f["dirichlet_field"] = dirichlet_field_step.submit(
         params=p["dirichlet_field"],
         inputs={"object": f["object_model"], "contacts": f["contact_patches"], "forces": f["force_coefficients"]}, **kw)
+    f["material_oracle"] = material_oracle_step.submit(params=p["material_oracle"], **kw)
+    f["mpm_rollout"] = mpm_rollout_step.submit(
+        params=p["mpm_rollout"],
+        inputs={"object": f["object_model"], "frames": f["signal_smoothing"], "forces": f["force_coefficients"],
+                "contacts": f["contact_patches"], "field": f["dirichlet_field"], "materials": f["material_oracle"]},
+        **kw)
     return f
 
 
@@ -124,6 +138,16 @@ def virsqueezer_flow(config: dict, flow_label: str = "evaluate") -> dict:
     return {"report": str(report_dir.resolve()), "tasks": table.frame().to_dict("records")}
 
 
+def sweep_job_number() -> int | None:
+    """Hydra's job number inside a ``-m`` sweep (so each job's report has its own folder), else None."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+        return None
+    return int(HydraConfig.get().job.num)
+
+
 def run(cfg: DictConfig, flow_label: str) -> dict:
     """Entry used by the Hydra mains: validate the config, pick the runner, run the flow."""
     from conf.schema import ConfigError, validate
@@ -134,5 +158,8 @@ def run(cfg: DictConfig, flow_label: str) -> dict:
         raise SystemExit(f"config error: {exc}") from None
     runner = make_task_runner(cfg.runner)
     config = OmegaConf.to_container(cfg, resolve=True)
+    job = sweep_job_number()
+    if config.get("run_name") is None and job is not None:
+        config["run_name"] = f"{flow_label}-{datetime.now():%Y%m%d-%H%M%S}-job{job}"
     with result_storage_settings(cfg.paths.artifacts):
         return virsqueezer_flow.with_options(task_runner=runner, name=f"virsqueezer-{flow_label}")(config, flow_label)

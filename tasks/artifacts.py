@@ -64,6 +64,20 @@ class Array:
             raise ValueError(f"array with shape {data.shape} needs {data.ndim} dimension names, got {list(self.dims)}")
 
 
+def as_numpy(value: Any, dtype=np.float64) -> np.ndarray:
+    """An input as a numpy array (accepts :class:`Array` or array-likes)."""
+    if isinstance(value, Array):
+        value = value.data
+    return np.asarray(value, dtype=dtype)
+
+
+def config_value(cfg: Any, name: str) -> Any:
+    """Read ``name`` from a dataclass, an OmegaConf node or a plain mapping (step params are plain dicts)."""
+    if isinstance(cfg, Mapping):
+        return cfg[name]
+    return getattr(cfg, name)
+
+
 def canonical_json(value: Any) -> str:
     """JSON with sorted keys and no whitespace: the input of every digest."""
     return json.dumps(value, sort_keys=True, separators=(",", ":"), default=_json_default)

@@ -83,7 +83,7 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from tasks.artifacts import Array
+from tasks.artifacts import Array, as_numpy, config_value
 
 DEFAULT_PAD_RADIUS = 0.01  # m, fingertip pad radius of curvature (Hertz aspect of the force prior)
 DEFAULT_STANDOFF = 0.005  # m, reach = 2 sigma_max + standoff
@@ -99,18 +99,6 @@ _TINY = 1e-12
 
 
 # ----------------------------------------------------------------------------------------------- helpers
-def _np(value: Any, dtype=np.float64) -> np.ndarray:
-    """An input as a numpy array (accepts :class:`Array` or array-likes)."""
-    if isinstance(value, Array):
-        value = value.data
-    return np.asarray(value, dtype=dtype)
-
-
-def _cfg(cfg: Any, name: str) -> Any:
-    """Read ``name`` from a dataclass / DictConfig / plain mapping."""
-    if isinstance(cfg, Mapping):
-        return cfg[name]
-    return getattr(cfg, name)
 
 
 def _normalise(v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -143,15 +131,15 @@ class _Problem:
     """Constants of one call: weights, length scales and per-sample precomputations."""
 
     def __init__(self, cfg: Any, pad_radius: float, standoff: float):
-        self.la = float(_cfg(cfg, "lambda_area"))
-        self.lal = float(_cfg(cfg, "lambda_align"))
-        self.lc = float(_cfg(cfg, "lambda_curvature"))
-        self.ls = float(_cfg(cfg, "lambda_scale"))
-        self.lo = float(_cfg(cfg, "lambda_overlap"))
-        self.sigma_min = float(_cfg(cfg, "sigma_min"))
-        self.sigma_max = float(_cfg(cfg, "sigma_max"))
-        self.activation = float(_cfg(cfg, "activation"))
-        self.n_candidates = int(_cfg(cfg, "candidates"))
+        self.la = float(config_value(cfg, "lambda_area"))
+        self.lal = float(config_value(cfg, "lambda_align"))
+        self.lc = float(config_value(cfg, "lambda_curvature"))
+        self.ls = float(config_value(cfg, "lambda_scale"))
+        self.lo = float(config_value(cfg, "lambda_overlap"))
+        self.sigma_min = float(config_value(cfg, "sigma_min"))
+        self.sigma_max = float(config_value(cfg, "sigma_max"))
+        self.activation = float(config_value(cfg, "activation"))
+        self.n_candidates = int(config_value(cfg, "candidates"))
         if not (0.0 < self.sigma_min <= self.sigma_max):
             raise ValueError(f"need 0 < sigma_min <= sigma_max, got {self.sigma_min}, {self.sigma_max}")
         if pad_radius <= 0:
@@ -340,14 +328,14 @@ def contact_patches(
         (frame, finger) m^2 (pi sigma1 sigma2, 0 when inactive), ``patch_active`` (frame, finger) bool,
         ``patch_cost`` (frame, finger) 1 (value of the eq. 2 objective at the solution).
     """
-    X = _np(surface_points)
-    N_in = _np(surface_normals)
-    K = _np(surface_curvature).copy()
-    D = _np(surface_principal_dirs).copy()
-    A = _np(surface_area)
-    P = _np(fingertip_positions)
-    a_raw = _np(squeeze_directions)
-    c = _np(force_coefficients)
+    X = as_numpy(surface_points)
+    N_in = as_numpy(surface_normals)
+    K = as_numpy(surface_curvature).copy()
+    D = as_numpy(surface_principal_dirs).copy()
+    A = as_numpy(surface_area)
+    P = as_numpy(fingertip_positions)
+    a_raw = as_numpy(squeeze_directions)
+    c = as_numpy(force_coefficients)
 
     S = X.shape[0]
     if X.ndim != 2 or X.shape[1] != 3 or S == 0:

@@ -31,19 +31,9 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from tasks.artifacts import Array
+from tasks.artifacts import Array, as_numpy, config_value
 
 
-def _np(value: Any, dtype=np.float64) -> np.ndarray:
-    if isinstance(value, Array):
-        value = value.data
-    return np.asarray(value, dtype=dtype)
-
-
-def _cfg(cfg: Any, name: str) -> Any:
-    if isinstance(cfg, Mapping):
-        return cfg[name]
-    return getattr(cfg, name)
 
 
 def patch_weight(points, center, normal, axes, radii, support: float, point_normals=None) -> np.ndarray:
@@ -51,14 +41,14 @@ def patch_weight(points, center, normal, axes, radii, support: float, point_norm
 
     ``center`` (3,) m, ``normal`` (3,) outward unit, ``axes`` (2, 3) unit tangents, ``radii`` (2,) m.
     """
-    r = _np(points) - _np(center)
-    axes = _np(axes)
-    radii = _np(radii)
-    normal = _np(normal)
+    r = as_numpy(points) - as_numpy(center)
+    axes = as_numpy(axes)
+    radii = as_numpy(radii)
+    normal = as_numpy(normal)
     q = (r @ axes[0] / radii[0]) ** 2 + (r @ axes[1] / radii[1]) ** 2 + (r @ normal / radii.min()) ** 2
     phi = np.where(q <= support ** 2, np.exp(-0.5 * q), 0.0)
     if point_normals is not None:
-        phi = np.where(_np(point_normals) @ normal > 0.0, phi, 0.0)
+        phi = np.where(as_numpy(point_normals) @ normal > 0.0, phi, 0.0)
     return phi
 
 
@@ -90,16 +80,16 @@ def dirichlet_field(
         = argmax_k phi_k on constrained points, else -1; ``surface_points`` (point, xyz) m, the rest positions
         (so :func:`constrained_points` can build targets from the field alone).
     """
-    X = _np(surface_points)
-    C = _np(patch_centers)
-    Nn = _np(patch_normals)
-    U = _np(patch_axes)
-    R = _np(patch_radii)
+    X = as_numpy(surface_points)
+    C = as_numpy(patch_centers)
+    Nn = as_numpy(patch_normals)
+    U = as_numpy(patch_axes)
+    R = as_numpy(patch_radii)
     act = np.asarray(patch_active.data if isinstance(patch_active, Array) else patch_active, dtype=bool)
-    c = _np(force_coefficients)
-    eta = float(_cfg(cfg, "eta"))
-    support = float(_cfg(cfg, "support"))
-    min_weight = float(_cfg(cfg, "min_weight"))
+    c = as_numpy(force_coefficients)
+    eta = float(config_value(cfg, "eta"))
+    support = float(config_value(cfg, "support"))
+    min_weight = float(config_value(cfg, "min_weight"))
     if X.ndim != 2 or X.shape[1] != 3:
         raise ValueError(f"surface_points must be (S, 3), got {X.shape}")
     T, F = c.shape
@@ -110,7 +100,7 @@ def dirichlet_field(
             raise ValueError(f"{name} must have shape {shape}, got {arr.shape}")
     Xn = None
     if surface_normals is not None:
-        Xn = _np(surface_normals)
+        Xn = as_numpy(surface_normals)
         if Xn.shape != X.shape:
             raise ValueError(f"surface_normals must have shape {X.shape}, got {Xn.shape}")
     S = X.shape[0]
@@ -167,8 +157,8 @@ def constrained_points(field: Mapping[str, Any], frame: int, surface_points=None
 
     mask = np.asarray(get("constrained")[frame], dtype=bool)
     idx = np.flatnonzero(mask).astype(np.int64)
-    X = _np(surface_points) if surface_points is not None else _np(get("surface_points"))
-    targets = X[idx] + _np(get("displacement")[frame][idx])
+    X = as_numpy(surface_points) if surface_points is not None else as_numpy(get("surface_points"))
+    targets = X[idx] + as_numpy(get("displacement")[frame][idx])
     return idx, targets
 
 

@@ -432,9 +432,11 @@ TABLE: tuple[TableEntry, ...] = (
                    "the yarns); 0.3 MPa and nu 0.3 are choices, not measured for a specific toy",
             note="A fabric has almost no bending or compressive stiffness; an isotropic solid shell "
                  "over-estimates both, so the low end of the range is used."),
-        interior="polyester_fibrefill", squeeze_threshold=0.6, effect="stuffing_spill",
-        threshold_source="engineering choice: a sewn plush toy does not burst under normal hand squeezing; "
-                         "a seam is assumed to open only at 60 % compression"),
+        interior="polyester_fibrefill", squeeze_threshold=0.3, effect="stuffing_spill",
+        threshold_source="engineering choice: a sewn plush toy does not burst under light hand squeezing; "
+                         "a seam is assumed to open at 30 % mean compression under the fingers (strain = mean "
+                         "inward displacement of the finger's contact region / the toy's half-width; 60 % was "
+                         "unreachable without pushing a finger through the toy)"),
     TableEntry(
         key="rubber_duck", title="hollow bath duck of plasticised PVC vinyl",
         keywords=(("duck", 3), ("rubber", 2), ("vinyl", 2), ("pvc", 2), ("bath toy", 1), ("bath", 1),
@@ -454,14 +456,17 @@ TABLE: tuple[TableEntry, ...] = (
         keywords=(("clay", 3), ("plasticine", 3), ("modelling clay", 2), ("modelling", 1), ("putty", 2),
                   ("play doh", 2), ("playdoh", 2), ("dough", 1)),
         shell=MaterialProperties(
-            name="soft modelling clay (plasticine)", model="stvk_hencky_von_mises", youngs_modulus=0.5e6,
+            name="soft modelling clay (plasticine)", model="stvk_hencky_von_mises", youngs_modulus=4.0e6,
             poisson_ratio=0.45, density=1700.0, yield_stress=4e4,
             source="oil/wax-based modelling clay filled with chalk/clay: density 1.6-1.8 g/cm^3; small-strain "
                    "modulus of order 0.1-1 MPa and flow stress of order 10-100 kPa at room temperature and hand "
                    "strain rates (plasticine compression tests, e.g. Green, 'The behaviour of plasticine when "
                    "permanently deformed', and analogue-modelling rheology, Zulauf & Zulauf 2004, J. Struct. "
-                   "Geol. 26:725); E 0.5 MPa and yield 40 kPa are choices inside these ranges for a SOFT clay, "
-                   "not verified against those papers' tables; nu 0.45: nearly incompressible paste (assumed)",
+                   "Geol. 26:725); yield 40 kPa is a choice inside that range for a SOFT clay, not verified against "
+                   "those papers' tables; E 4 MPa is an engineering choice that makes the yield strain "
+                   "tau_y/E = 1 %: plasticine flows almost rigid-plastically and keeps nearly all of a dent (with "
+                   "E 0.5 MPa the 8 % yield strain made a hand squeeze mostly spring back, which plasticine does "
+                   "not do); nu 0.45: nearly incompressible paste (assumed)",
             note="Real plasticine is strain-rate and temperature sensitive (viscoplastic)."),
         interior=None, squeeze_threshold=None, effect="dent",
         threshold_source="perfectly plastic paste: dents permanently, no rupture or overflow"),
@@ -606,7 +611,7 @@ def match_entry(description: str, name: str = "") -> TableEntry:
             f"no material table entry matches object {name!r} (description {description!r}): known materials "
             f"are {_known_materials()}; add a distinguishing word to the description, give explicit values "
             "under the object's material: (model, youngs_modulus, poisson_ratio, density, yield_stress for "
-            "plastic models, squeeze_threshold), or use material.oracle.backend=llm")
+            "plastic models, squeeze_threshold), or use oracle.backend=llm")
     tied = [k for s, k in scores if s == best_score]
     if len(tied) > 1:
         raise MaterialOracleError(
@@ -699,14 +704,14 @@ class _Cfg:
 def _read_cfg(cfg: Any) -> _Cfg:
     backend = str(_get(cfg, "backend", "table"))
     if backend not in ("table", "llm"):
-        raise MaterialOracleError(f"material.oracle.backend {backend!r} must be 'table' or 'llm'")
+        raise MaterialOracleError(f"oracle.backend {backend!r} must be 'table' or 'llm'")
     timeout_s = _get(cfg, "timeout_s", 20.0)
     try:
         timeout_s = float(timeout_s)
     except (TypeError, ValueError):
-        raise MaterialOracleError(f"material.oracle.timeout_s {timeout_s!r} is not a number of seconds") from None
+        raise MaterialOracleError(f"oracle.timeout_s {timeout_s!r} is not a number of seconds") from None
     if not (math.isfinite(timeout_s) and timeout_s > 0):
-        raise MaterialOracleError(f"material.oracle.timeout_s {timeout_s:g} must be > 0 s")
+        raise MaterialOracleError(f"oracle.timeout_s {timeout_s:g} must be > 0 s")
     url = _get(cfg, "llm_url")
     cache_dir = _get(cfg, "cache_dir")
     return _Cfg(backend=backend, llm_url=None if url is None else str(url),
@@ -952,10 +957,10 @@ def _cache_write(path: Path, key_display: dict[str, Any], answer: LLMAnswer) -> 
 
 def _llm_answer(description: str, name: str, interior: Optional[str], conf: _Cfg) -> LLMAnswer:
     if not conf.llm_url:
-        raise MaterialOracleError("material.oracle.llm_url is not set: give the base URL of an OpenAI-compatible "
+        raise MaterialOracleError("oracle.llm_url is not set: give the base URL of an OpenAI-compatible "
                                   "API (e.g. http://127.0.0.1:8000/v1) or use backend=table")
     if not conf.llm_url.startswith(("http://", "https://")):
-        raise MaterialOracleError(f"material.oracle.llm_url {_display_url(conf.llm_url)!r} must start with "
+        raise MaterialOracleError(f"oracle.llm_url {_display_url(conf.llm_url)!r} must start with "
                                   "http:// or https://")
     digest, key = _cache_key(conf, description, name, interior)
     key_display = dict(key, url=_display_url(conf.llm_url), url_sha256=hashlib.sha256(
@@ -987,7 +992,7 @@ def _ask_llm(description: str, name: str, interior: Optional[str], conf: _Cfg) -
     def fail(msg: str) -> MaterialOracleError:
         return MaterialOracleError(redact(msg))
 
-    timeout_msg = (f"LLM endpoint {shown} timed out after {conf.timeout_s:g} s: raise material.oracle.timeout_s "
+    timeout_msg = (f"LLM endpoint {shown} timed out after {conf.timeout_s:g} s: raise oracle.timeout_s "
                    "or use backend=table")
     log.info("material oracle: asking %s (model %s) about %r", shown, conf.llm_model, name)
     deadline = time.monotonic() + conf.timeout_s
@@ -1010,7 +1015,7 @@ def _ask_llm(description: str, name: str, interior: Optional[str], conf: _Cfg) -
         raise fail(timeout_msg) from None
     except httpx.HTTPError as exc:
         raise fail(f"LLM endpoint {shown} is unreachable ({type(exc).__name__}): start the server, fix "
-                   "material.oracle.llm_url or use backend=table") from None
+                   "oracle.llm_url or use backend=table") from None
     text = body.decode("utf-8", errors="replace")
     if status != 200:
         hint = f" (check the API key in ${conf.api_key_env})" if status in (401, 403) else ""
@@ -1055,3 +1060,17 @@ def _ask_llm(description: str, name: str, interior: Optional[str], conf: _Cfg) -
 def _snippet(text: str, limit: int = 160) -> str:
     text = " ".join(text.split())
     return repr(text[:limit] + ("..." if len(text) > limit else ""))
+
+
+# ----------------------------------------------------------------------------------------------- Prefect step
+from tasks.step import artifact_step  # noqa: E402
+
+
+@artifact_step("material_oracle")
+def material_oracle_step(inputs, params):
+    """Physical properties of one object from its description (sec. 3.2).  params: ``description``,
+    ``name``, ``overrides`` (MaterialOverrides values), ``interior``, ``oracle`` (OracleConfig values).
+    The result is small: it lives in the artifact's attributes (``materials``)."""
+    mats = material_oracle(params["description"], params["name"], params["overrides"], params["interior"],
+                           params["oracle"])
+    return {}, {"materials": materials_to_dict(mats)}

@@ -63,6 +63,118 @@ def control_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pa
     return path
 
 
+def rollout_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Path) -> Optional[Path]:
+    """Deformation over time (squeeze strain per finger: simulated vs prescribed by eq. 3, volume change),
+    reaction and resistive feedback force per finger, and the solver's substeps per frame."""
+    try:
+        r = read_artifact(refs["mpm_rollout"], names=[
+            "time", "squeeze_strain", "predicted_squeeze_strain", "reaction_force", "applied_force",
+            "feedback_force", "substeps", "particle_J"])
+    except (KeyError, TypeError, ArtifactError, AttributeError):
+        return None
+    t = r["time"]
+    fig, axes = plt.subplots(4, 1, figsize=(7.5, 8.4), sharex=True)
+    for k, finger in enumerate(FINGERS):
+        axes[0].plot(t, r["squeeze_strain"][:, k], color=f"C{k}", label=finger)
+        axes[0].plot(t, r["predicted_squeeze_strain"][:, k], color=f"C{k}", ls=":", lw=1)
+        force = r["reaction_force"] if r.attrs["boundary"] == "dirichlet" else r["applied_force"]
+        axes[1].plot(t, np.linalg.norm(force[:, k], axis=-1), color=f"C{k}")
+        axes[1].plot(t, r["feedback_force"][:, k], color=f"C{k}", ls="--", lw=1)
+    event = r.attrs.get("threshold_event", {})
+    if event.get("threshold") is not None:
+        axes[0].axhline(event["threshold"], color="k", lw=0.8, ls="--", label="threshold")
+    if event.get("crossed"):
+        for ax in axes:
+            ax.axvline(event["time"], color="r", lw=0.8)
+    axes[0].set_ylabel("squeeze strain (1)\ndotted: prescribed")
+    axes[0].legend(ncol=6, fontsize=7, loc="upper right")
+    axes[1].set_ylabel("contact force (N)\ndashed: feedback")
+    vol = r["particle_J"].mean(axis=1) - 1.0
+    axes[2].plot(t, 100 * vol, color="k")
+    axes[2].set_ylabel("mean volume\nchange (%)")
+    axes[3].plot(t, r["substeps"], color="k")
+    axes[3].set_ylabel("substeps / frame")
+    axes[3].set_xlabel("time (s)")
+    axes[0].set_title(f"{obj}: MPM rollout ({r.attrs['boundary']}, mass scale x{r.attrs['mass_scale']:.3g})")
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def snapshot_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Path) -> Optional[Path]:
+    """Particles at rest, at peak squeeze and at the end, seen from the side (x-z) and from above (x-y),
+    coloured by von Mises stress; interior particles in blue, released ones in orange."""
+    try:
+        r = read_artifact(refs["mpm_rollout"], names=[
+            "particle_positions", "particle_von_mises", "particle_material", "squeeze_strain", "released", "time"])
+    except (KeyError, TypeError, ArtifactError, AttributeError):
+        return None
+    eps = r["squeeze_strain"].max(axis=1)
+    frames = [("rest", 0), ("peak squeeze", int(np.argmax(eps))), ("end", len(eps) - 1)]
+    x_all = r["particle_positions"]
+    lo, hi = x_all.reshape(-1, 3).min(axis=0), x_all.reshape(-1, 3).max(axis=0)
+    mat = r["particle_material"]
+    released = r["released"] if "released" in r else np.zeros(len(mat), bool)
+    vmax = max(float(np.percentile(r["particle_von_mises"], 99)), 1e-9)
+    fig, axes = plt.subplots(2, 3, figsize=(9, 6))
+    for col, (label, f) in enumerate(frames):
+        x = x_all[f]
+        shell = mat != 1
+        for row, (a, b, names) in enumerate(((0, 2, "x-z"), (0, 1, "x-y"))):
+            ax = axes[row, col]
+            ax.scatter(x[shell, a], x[shell, b], c=r["particle_von_mises"][f][shell], s=2, cmap="viridis",
+                       vmin=0, vmax=vmax)
+            inner = ~shell & ~released
+            ax.scatter(x[inner, a], x[inner, b], s=1, color="tab:blue", alpha=0.3)
+            ax.scatter(x[released, a], x[released, b], s=2, color="tab:orange")
+            ax.set_xlim(lo[a], hi[a])
+            ax.set_ylim(lo[b], hi[b])
+            ax.set_aspect("equal")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if row == 0:
+                ax.set_title(f"{label}, t={r['time'][f]:.2f} s", fontsize=9)
+            if col == 0:
+                ax.set_ylabel(names)
+    fig.suptitle(f"{obj}: particles (colour: von Mises stress up to {vmax:.3g} Pa)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def rollout_summary(refs: Mapping[str, Mapping[str, Any]]) -> Optional[str]:
+    """One markdown row per object: particles, substeps, time scaling, threshold event, what was left out."""
+    rows = []
+    for obj, obj_refs in refs.items():
+        ref = obj_refs.get("mpm_rollout")
+        if ref is None:
+            continue
+        try:
+            r = read_artifact(ref, names=["squeeze_strain", "dirichlet_tracking_error", "ke_ie_ratio", "feedback_force"])
+        except ArtifactError:
+            continue
+        a = r.attrs
+        ev = a["threshold_event"]
+        event = (f"crossed at {ev['time']:.2f} s (strain {ev['strain']:.3f} >= {ev['threshold']}), "
+                 f"{ev['released_particles']} released" if ev.get("crossed")
+                 else ("never crossed" if ev.get("threshold") is not None else "no threshold"))
+        eps = r["squeeze_strain"].max(axis=1)
+        rows.append(f"| {obj} | {a['boundary']} | {a['n_particles']} | {a['substeps_total']} | x{a['mass_scale']:.3g} | "
+                    f"{eps.max():.3f} / {eps[-1]:.3f} | {1e3 * r['dirichlet_tracking_error'].max():.2f} | "
+                    f"{r['feedback_force'].max():.1f} | {event} | {ref.compute_seconds:.1f} | "
+                    f"{'; '.join(a['notes']) or '-'} |")
+    if not rows:
+        return None
+    head = ("| object | boundary | particles | substeps | mass scale | squeeze strain peak / end | "
+            "max tracking error (mm) | peak feedback (N) | threshold | sim wall (s) | left out / notes |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|")
+    return head + "\n" + "\n".join(rows)
+
+
 def _embed(png: Path) -> str:
     return "data:image/png;base64," + base64.b64encode(png.read_bytes()).decode()
 
@@ -79,23 +191,26 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     df.to_csv(report_dir / "tasks.csv", index=False)
     (report_dir / "config.json").write_text(json.dumps(cfg, indent=2, default=str))
     revision = code_revision()
-    figures: dict[str, Path] = {}
+    figures: dict[str, list[Path]] = {}
     for obj, obj_refs in refs.items():
-        png = control_figure(obj, obj_refs, report_dir / f"{obj}_control.png")
-        if png:
-            figures[obj] = png
+        pngs = [control_figure(obj, obj_refs, report_dir / f"{obj}_control.png"),
+                rollout_figure(obj, obj_refs, report_dir / f"{obj}_rollout.png"),
+                snapshot_figure(obj, obj_refs, report_dir / f"{obj}_snapshots.png")]
+        figures[obj] = [p for p in pngs if p]
 
     md = [f"# VirSqueezer run `{report_dir.name}`", "",
           f"- wall time: {wall_seconds:.1f} s; tasks: {table.summary()}",
           f"- code revision: `{revision}`; config: `config.json`", "",
           "## Per-task table", "", "```", table.to_text(), "```", ""]
-    for title, body in sections or []:
+    summary = rollout_summary(refs)
+    sections = ([("Squeeze simulation (MPM)", summary)] if summary else []) + list(sections or [])
+    for title, body in sections:
         md += [f"## {title}", "", body, ""]
     md += ["## Objects", ""]
     for obj in refs:
         md.append(f"### {obj}")
-        if obj in figures:
-            md.append(f"![{obj} control]({figures[obj].name})")
+        for png in figures.get(obj, []):
+            md.append(f"![{png.stem}]({png.name})")
         md.append("")
         md.append("| step | artifact |")
         md.append("|---|---|")
@@ -108,13 +223,13 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
             f"<p>wall time {wall_seconds:.1f} s; tasks: {html.escape(table.summary())}; code revision "
             f"<code>{html.escape(revision)}</code></p>",
             "<h2>Per-task table</h2>", df.drop(columns=["artifact"]).to_html(index=False, float_format="%.2f")]
-    for title, text in sections or []:
+    for title, text in sections:
         body += [f"<h2>{html.escape(title)}</h2>", f"<pre>{html.escape(text)}</pre>"]
     body.append("<h2>Objects</h2>")
     for obj in refs:
         body.append(f"<h3>{html.escape(obj)}</h3>")
-        if obj in figures:
-            body.append(f'<img alt="{html.escape(obj)}" src="{_embed(figures[obj])}" style="max-width:800px">')
+        for png in figures.get(obj, []):
+            body.append(f'<img alt="{html.escape(png.stem)}" src="{_embed(png)}" style="max-width:800px">')
         body.append("<ul>" + "".join(
             f"<li>{html.escape(step)}: <code>{html.escape(ref.path if ref else '(not produced)')}</code></li>"
             for step, ref in refs[obj].items()) + "</ul>")

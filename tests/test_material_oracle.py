@@ -402,7 +402,7 @@ def test_llm_timeout(server, tmp_path, key_env):
         material_oracle("a slow tomato", "tomato", None, "juice", _cfg(server, "slow", tmp_path, timeout_s=0.3))
     assert time.monotonic() - t0 < 1.4
     assert str(info.value) == (f"LLM endpoint {server.url('slow')}/chat/completions timed out after 0.3 s: "
-                               "raise material.oracle.timeout_s or use backend=table")
+                               "raise oracle.timeout_s or use backend=table")
     _no_secret(info.value)
 
 

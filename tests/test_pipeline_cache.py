@@ -17,9 +17,9 @@ import pytest
 from tasks.artifacts import read_group_attrs
 
 STEPS = ["object_model", "squeeze_signals", "signal_smoothing", "force_coefficients", "contact_patches",
-         "dirichlet_field"]
-SMALL = ["sampling.surface_points=600", "sampling.particle_spacing=0.006", "signal.duration=1.5",
-         "runner=sequential"]
+         "dirichlet_field", "mpm_rollout"]
+SMALL = ["sampling.surface_points=600", "sampling.particle_spacing=0.004", "signal.duration=1.5",
+         "control.smoothing.frame_rate=15", "simulation.target_substeps_per_frame=10", "runner=sequential"]
 
 
 def run_grid(compose_cfg, tmp_path: Path, objects: list[str], extra: list[str] = ()) -> dict:
@@ -37,18 +37,19 @@ def artifact_of(root: Path, obj: str, step: str) -> list[Path]:
 
 def test_rerun_is_all_cached_and_one_parameter_recomputes_only_downstream(prefect_server, tmp_path, compose_cfg):
     first = run_grid(compose_cfg, tmp_path, ["tomato", "clay"])
-    assert set(first.values()) == {"ran"} and len(first) == 2 * len(STEPS)
+    assert set(first.values()) == {"ran"} and len(first) == 2 * (len(STEPS) + 1)  # + material_oracle
     assert run_grid(compose_cfg, tmp_path, ["tomato", "clay"]) == {k: "cached" for k in first}
 
     # gamma (eq. 1) is read by force_coefficients: it and everything downstream reruns, for both objects
     changed = run_grid(compose_cfg, tmp_path, ["tomato", "clay"], ["control.force.gamma=2.0"])
     for obj in ("tomato", "clay"):
-        assert [changed[(obj, s)] for s in STEPS] == ["cached"] * 3 + ["ran"] * 3
+        assert [changed[(obj, s)] for s in STEPS] == ["cached"] * 3 + ["ran"] * 4
+        assert changed[(obj, "material_oracle")] == "cached"
 
     # a per-object change (the clay's session) reruns the clay's signal chain only
     per_object = run_grid(compose_cfg, tmp_path, ["tomato", "clay"], ["control.force.gamma=2.0", "catalog.clay.session=pulses"])
     assert all(per_object[("tomato", s)] == "cached" for s in STEPS)
-    assert [per_object[("clay", s)] for s in STEPS] == ["cached"] + ["ran"] * 5
+    assert [per_object[("clay", s)] for s in STEPS] == ["cached"] + ["ran"] * 6
 
 
 def test_deleted_or_half_written_artifact_is_recomputed(prefect_server, tmp_path, compose_cfg):
@@ -94,7 +95,7 @@ def test_sigkill_mid_run_resumes_only_unfinished_steps(prefect_server, tmp_path,
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     before = _digests(killed)
-    assert 0 < len(before) < len(objects) * len(STEPS), "kill did not land mid-run"
+    assert 0 < len(before) < len(objects) * (len(STEPS) + 1), "kill did not land mid-run"
 
     status = run_grid(compose_cfg, killed, objects)
     for key, st in status.items():

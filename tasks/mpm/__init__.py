@@ -1,0 +1,14 @@
+"""MLS-MPM physics core (NVIDIA Warp): materials, constitutive models, kernels and the solver driver."""
+from .materials import Material, MaterialError, MODEL_CODES, canonical_model, material_from_dict  # noqa: F401
+from .solver import (  # noqa: F401
+    DirichletNodes,
+    DirichletPoints,
+    ForcePatch,
+    FrameStats,
+    MPMSolver,
+    SimulationError,
+    deform_covariances,
+    polar_rotation,
+    resolve_device,
+    rotate_quaternions,
+)

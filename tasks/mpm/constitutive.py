@@ -1,0 +1,300 @@
+"""Constitutive models as Warp functions (paper eqs. 4-5).
+
+Every model provides
+  * the Kirchhoff stress  tau = J sigma = dPsi/dF_E F_E^T   (eq. 4; the Cauchy stress is tau / J), and
+  * the return mapping    F_E <- psi(F_E)                   (eq. 5), applied after F_E <- (I + dt grad v) F_E,
+  * the elastic energy density Psi(F_E) per unit reference volume (energy statistics).
+
+MLS-MPM needs the Kirchhoff stress: the nodal force is f_i = -sum_p V_p^0 tau_p grad w_ip, because
+V_p sigma_p = V_p^0 J_p sigma_p = V_p^0 tau_p.
+
+Conventions
+-----------
+* Hencky strain eps = log(Sigma) (principal, signed singular values clamped to >= 1e-4).
+* Von Mises: the yield stress tau_y is the UNIAXIAL yield stress.  The criterion on the Kirchhoff stress is
+  sqrt(3/2) |dev tau| <= tau_y, i.e. |dev eps| <= sqrt(2/3) tau_y / (2 mu).  Check (uniaxial stress s):
+  dev tau = s (-1/3, -1/3, 2/3), |dev tau| = s sqrt(2/3), so sqrt(3/2) |dev tau| = s: yield at s = tau_y.
+  (Dropping the sqrt(2/3) factor - a defect found in public code - yields at sqrt(3/2) tau_y.)
+* Linear hardening: tau_y(alpha) = tau_y + H alpha, alpha = equivalent plastic strain = sqrt(2/3) |eps_p|
+  (equal to the axial plastic strain in a uniaxial test).  Radial return with the consistency condition:
+  dgamma = (|dev eps| - r(alpha)) / (1 + H / (3 mu)), alpha += sqrt(2/3) dgamma.
+* Foam (viscoplastic): as above with Perzyna regularisation: dgamma_visc = dgamma / (1 + t_v / dt),
+  t_v = viscosity / (2 mu) (viscosity 0 = rate independent), plus a volumetric cap: tr(eps) is clamped
+  from below at -crush_strain (the excess compression stays as permanent plastic compaction).
+* Fluid: Tait pressure p = K / gamma (J^-gamma - 1) and Newtonian viscosity; the Kirchhoff stress is
+  tau = -J p I + J mu_v (grad v + grad v^T - 2/3 div v I); F_E is reset to J^(1/3) I (shear memory removed).
+* Fixed-corotated uses the polar rotation R of F (closest proper rotation, det R = +1, the same R as the
+  rotation-variant SVD U V^T).  It is tracked per particle as a quaternion, warm-started from the previous
+  substep and refined by a Newton step on SO(3) (:func:`polar_rotation_quat`; the gradient-only step of
+  Mueller et al. 2016 recovers only ~2/3 of each increment and lags), instead of a 3x3 SVD per substep.
+"""
+from __future__ import annotations
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+SQRT_2_3 = wp.constant(0.816496580927726)  # sqrt(2/3)
+MIN_SIGMA = wp.constant(1.0e-4)
+MIN_J = wp.constant(1.0e-6)
+
+
+# --------------------------------------------------------------------------------------------- helpers
+@wp.func
+def col(A: wp.mat33, j: int) -> wp.vec3:
+    """Column j of A, built element by element (never through a matrix constructor)."""
+    return wp.vec3(A[0, j], A[1, j], A[2, j])
+
+
+@wp.func
+def polar_rotation_quat(A: wp.mat33, q0: wp.quat, max_iter: int, tol: float) -> wp.quat:
+    """Rotation part of A (maximiser of tr(R^T A) over SO(3)), tracked as a unit quaternion.
+
+    Newton iteration on the rotation manifold, warm-started from the particle's previous rotation: with
+    B = R^T A, the objective tr(R^T A) around R exp([w]) is tr B + g.w - 1/2 w^T H w, with
+    g = (B32 - B23, B13 - B31, B21 - B12) and H = tr(B) I - sym(B), so w = H^-1 g (body frame) and
+    R <- R exp([w]).  Quadratic convergence: one iteration per substep tracks the rotation to O(dt^2).
+    When H is not positive definite (far from the optimum, e.g. a cold start on a large rotation) the step
+    falls back to the gradient step w = g / |tr B| of Mueller et al. 2016, which always ascends.
+    """
+    q = q0
+    for _it in range(max_iter):
+        R = wp.quat_to_matrix(q)
+        B = wp.transpose(R) @ A
+        g = wp.vec3(B[2, 1] - B[1, 2], B[0, 2] - B[2, 0], B[1, 0] - B[0, 1])
+        tr = B[0, 0] + B[1, 1] + B[2, 2]
+        h00 = tr - B[0, 0]
+        h11 = tr - B[1, 1]
+        h22 = tr - B[2, 2]
+        h01 = -0.5 * (B[0, 1] + B[1, 0])
+        h02 = -0.5 * (B[0, 2] + B[2, 0])
+        h12 = -0.5 * (B[1, 2] + B[2, 1])
+        # cofactors of the symmetric H (Sylvester test for positive definiteness + explicit inverse)
+        c00 = h11 * h22 - h12 * h12
+        c01 = h02 * h12 - h01 * h22
+        c02 = h01 * h12 - h02 * h11
+        det = h00 * c00 + h01 * c01 + h02 * c02
+        w = wp.vec3(0.0)
+        if h00 > 0.0 and h00 * h11 - h01 * h01 > 0.0 and det > 1.0e-12 * tr * tr * tr:
+            c11 = h00 * h22 - h02 * h02
+            c12 = h01 * h02 - h00 * h12
+            c22 = h00 * h11 - h01 * h01
+            w = wp.vec3(
+                c00 * g[0] + c01 * g[1] + c02 * g[2],
+                c01 * g[0] + c11 * g[1] + c12 * g[2],
+                c02 * g[0] + c12 * g[1] + c22 * g[2],
+            ) / det
+        else:
+            w = g / (wp.abs(tr) + 1.0e-20)
+        w2 = wp.dot(w, w)
+        if w2 < tol * tol:
+            break
+        if w2 > 1.0:
+            w = w / wp.sqrt(w2)  # trust region: at most 1 rad per iteration
+        # q <- q * exp(w/2) (body-frame increment), exp approximated by normalise(w/2, 1)
+        dq = wp.quat(0.5 * w[0], 0.5 * w[1], 0.5 * w[2], 1.0)
+        q = wp.normalize(q * dq)
+    return q
+
+
+@wp.func
+def polar_track_quat(A: wp.mat33, q0: wp.quat, iters: int) -> wp.quat:
+    """Cheap per-substep tracking of the rotation of A from the previous substep's rotation ``q0``.
+
+    Scaled gradient step (world frame): w = 1.5 sum_j r_j x a_j / tr(R^T A), R <- exp([w]) R.  The factor 1.5 is
+    the exact Newton step for an isotropic stretch (H = tr(B) I - sym(B) = 2/3 tr(B) I when B = s I); for a
+    stretch with principal strains eps the step error is O(eps) times the rotation increment, so the tracked
+    rotation lags the exact one by O(eps |w| dt) only (Mueller et al.'s unscaled step recovers 2/3 of every
+    increment and lags by half an increment).  Frames start and end with the full Newton iteration
+    :func:`polar_rotation_quat`, which removes any residual.
+    """
+    q = q0
+    for _it in range(iters):
+        R = wp.quat_to_matrix(q)
+        r0 = wp.vec3(R[0, 0], R[1, 0], R[2, 0])
+        r1 = wp.vec3(R[0, 1], R[1, 1], R[2, 1])
+        r2 = wp.vec3(R[0, 2], R[1, 2], R[2, 2])
+        a0 = wp.vec3(A[0, 0], A[1, 0], A[2, 0])
+        a1 = wp.vec3(A[0, 1], A[1, 1], A[2, 1])
+        a2 = wp.vec3(A[0, 2], A[1, 2], A[2, 2])
+        tr = wp.dot(r0, a0) + wp.dot(r1, a1) + wp.dot(r2, a2)
+        w = (wp.cross(r0, a0) + wp.cross(r1, a1) + wp.cross(r2, a2)) * (1.5 / (wp.abs(tr) + 1.0e-20))
+        w2 = wp.dot(w, w)
+        if w2 > 1.0:
+            w = w / wp.sqrt(w2)
+        q = wp.normalize(wp.quat(0.5 * w[0], 0.5 * w[1], 0.5 * w[2], 1.0) * q)
+    return q
+
+
+@wp.func
+def diag3(a: float, b: float, c: float) -> wp.mat33:
+    return wp.mat33(a, 0.0, 0.0, 0.0, b, 0.0, 0.0, 0.0, c)
+
+
+@wp.func
+def safe_log(s: float) -> float:
+    return wp.log(wp.max(s, MIN_SIGMA))
+
+
+# --------------------------------------------------------------------------------------------- fixed corotated
+@wp.func
+def tau_fixed_corotated(F: wp.mat33, R: wp.mat33, mu: float, lam: float) -> wp.mat33:
+    """Kirchhoff stress of fixed-corotated elasticity: 2 mu (F - R) F^T + lambda (J - 1) J I."""
+    J = wp.determinant(F)
+    return 2.0 * mu * (F - R) @ wp.transpose(F) + wp.identity(n=3, dtype=float) * (lam * (J - 1.0) * J)
+
+
+@wp.func
+def psi_fixed_corotated(F: wp.mat33, R: wp.mat33, mu: float, lam: float) -> float:
+    D = F - R
+    J = wp.determinant(F)
+    return mu * wp.ddot(D, D) + 0.5 * lam * (J - 1.0) * (J - 1.0)
+
+
+# --------------------------------------------------------------------------------------------- neo-Hookean
+@wp.func
+def tau_neo_hookean(F: wp.mat33, mu: float, lam: float) -> wp.mat33:
+    """Kirchhoff stress of compressible Neo-Hookean: mu (F F^T - I) + lambda ln(J) I."""
+    J = wp.max(wp.determinant(F), MIN_J)
+    I = wp.identity(n=3, dtype=float)
+    return mu * (F @ wp.transpose(F) - I) + I * (lam * wp.log(J))
+
+
+@wp.func
+def psi_neo_hookean(F: wp.mat33, mu: float, lam: float) -> float:
+    J = wp.max(wp.determinant(F), MIN_J)
+    lj = wp.log(J)
+    return 0.5 * mu * (wp.ddot(F, F) - 3.0) - mu * lj + 0.5 * lam * lj * lj
+
+
+# --------------------------------------------------------------------------------------------- StVK-Hencky
+@wp.func
+def tau_hencky_principal(eps: wp.vec3, mu: float, lam: float) -> wp.vec3:
+    """Principal Kirchhoff stresses of StVK-Hencky: 2 mu eps + lambda tr(eps)."""
+    tr = eps[0] + eps[1] + eps[2]
+    return 2.0 * mu * eps + wp.vec3(lam * tr, lam * tr, lam * tr)
+
+
+@wp.func
+def hencky_strain(sigma: wp.vec3) -> wp.vec3:
+    return wp.vec3(safe_log(sigma[0]), safe_log(sigma[1]), safe_log(sigma[2]))
+
+
+@wp.func
+def tau_hencky(F: wp.mat33, mu: float, lam: float) -> wp.mat33:
+    """Kirchhoff stress of StVK-Hencky elasticity, tau = U diag(2 mu eps + lambda tr eps) U^T."""
+    U = wp.mat33()
+    s = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F, U, s, V)
+    t = tau_hencky_principal(hencky_strain(s), mu, lam)
+    return U @ diag3(t[0], t[1], t[2]) @ wp.transpose(U)
+
+
+@wp.func
+def psi_hencky(F: wp.mat33, mu: float, lam: float) -> float:
+    U = wp.mat33()
+    s = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F, U, s, V)
+    e = hencky_strain(s)
+    tr = e[0] + e[1] + e[2]
+    return mu * wp.dot(e, e) + 0.5 * lam * tr * tr
+
+
+@wp.struct
+class PlasticResult:
+    F: wp.mat33  # returned elastic deformation gradient F_E
+    tau: wp.mat33  # Kirchhoff stress of the returned F_E
+    alpha: float  # updated equivalent plastic strain
+
+
+@wp.func
+def hencky_plastic_return(
+    F: wp.mat33,
+    mu: float,
+    lam: float,
+    tau_y: float,
+    hardening: float,
+    alpha: float,
+    viscosity: float,
+    crush: float,
+    is_foam: int,
+    dt: float,
+) -> PlasticResult:
+    """Return mapping of StVK-Hencky + von Mises (model 2) or the viscoplastic foam (model 3).
+
+    Works on the signed singular values of the trial F_E (rotation-variant SVD, so inversion keeps its sign),
+    returns the projected F_E together with its Kirchhoff stress (the SVD is shared).
+    """
+    U = wp.mat33()
+    s = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F, U, s, V)
+    eps = hencky_strain(s)
+    res = PlasticResult()
+    res.alpha = alpha
+    changed = int(0)
+    if is_foam != 0:
+        tr0 = eps[0] + eps[1] + eps[2]
+        if tr0 < -crush:
+            shift = (-crush - tr0) / 3.0
+            eps = eps + wp.vec3(shift, shift, shift)
+            changed = 1
+    tr = eps[0] + eps[1] + eps[2]
+    mean = tr / 3.0
+    dev = eps - wp.vec3(mean, mean, mean)
+    dev_norm = wp.length(dev)
+    radius = SQRT_2_3 * (tau_y + hardening * alpha) / (2.0 * mu)
+    if dev_norm > radius and dev_norm > 1.0e-12:
+        dgamma = (dev_norm - radius) / (1.0 + hardening / (3.0 * mu))
+        if is_foam != 0 and viscosity > 0.0:
+            t_v = viscosity / (2.0 * mu)
+            dgamma = dgamma / (1.0 + t_v / dt)
+        eps = eps - dev * (dgamma / dev_norm)
+        res.alpha = alpha + SQRT_2_3 * dgamma
+        changed = 1
+    if changed != 0:
+        res.F = U @ diag3(wp.exp(eps[0]), wp.exp(eps[1]), wp.exp(eps[2])) @ wp.transpose(V)
+    else:
+        res.F = F
+    t = tau_hencky_principal(eps, mu, lam)
+    res.tau = U @ diag3(t[0], t[1], t[2]) @ wp.transpose(U)
+    return res
+
+
+# --------------------------------------------------------------------------------------------- fluid
+@wp.func
+def tait_pressure(J: float, K: float, gamma: float) -> float:
+    """Tait equation of state p = K / gamma (J^-gamma - 1) (gamma = 1: p = K (1/J - 1))."""
+    Jc = wp.max(J, MIN_J)
+    return K / gamma * (wp.pow(Jc, -gamma) - 1.0)
+
+
+@wp.func
+def tau_fluid(J: float, gradv: wp.mat33, K: float, gamma: float, visc: float) -> wp.mat33:
+    """Kirchhoff stress of the weakly compressible fluid: -J p I + J mu_v (grad v + grad v^T - 2/3 div v I)."""
+    I = wp.identity(n=3, dtype=float)
+    p = tait_pressure(J, K, gamma)
+    div = gradv[0, 0] + gradv[1, 1] + gradv[2, 2]
+    shear = gradv + wp.transpose(gradv) - I * (2.0 / 3.0 * div)
+    return I * (-J * p) + shear * (J * visc)
+
+
+@wp.func
+def psi_fluid(J: float, K: float, gamma: float) -> float:
+    """Stored energy of the Tait fluid per reference volume: -int_1^J p(j) dj."""
+    Jc = wp.max(J, MIN_J)
+    if gamma == 1.0:
+        integral = wp.log(Jc)
+    else:
+        integral = (wp.pow(Jc, 1.0 - gamma) - 1.0) / (1.0 - gamma)
+    return -K / gamma * (integral - (Jc - 1.0))
+
+
+@wp.func
+def fluid_reset(F: wp.mat33) -> wp.mat33:
+    """F_E <- J^(1/3) I (the fluid keeps only its volume change)."""
+    J = wp.max(wp.determinant(F), MIN_J)
+    c = wp.pow(J, 1.0 / 3.0)
+    return diag3(c, c, c)

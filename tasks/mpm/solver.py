@@ -1,0 +1,889 @@
+"""MLS-MPM driver: :class:`MPMSolver` owns the Warp arrays and runs frames of CFL-adaptive substeps.
+
+Per substep (paper sec. "Squeezing-Driven Deformation"): P2G -> grid update (gravity, walls, floor, Dirichlet
+nodes with reaction forces, external finger forces) -> G2P with F_E <- (I + dt grad v) F_E and the material's
+return mapping.  See :mod:`tasks.mpm.kernels` for the kernels and :mod:`tasks.mpm.constitutive` for the models.
+
+Boundary conditions (generic; the finger field is connected by the caller)
+    * :class:`DirichletPoints`: constrained points (positions, target velocities, finger ids, optional slip
+      normals).  Every substep they are projected onto the nodes their quadratic B-spline stencils touch; a
+      node's prescribed velocity is the weight-averaged target of the points touching it.  Before the
+      overwrite the solver accumulates the reaction  F_k = sum_{i in nodes of k} m_i (v_bc - v*_i) / dt
+      (a node shared by several fingers is split in proportion to their weights).  F_k is the force the
+      constraint applies to the material (N); the finger feels -F_k.
+    * :class:`DirichletNodes`: explicit node indices with prescribed velocities.
+    * :class:`ForcePatch` ("force mode"): a total force vector per finger, distributed over the massive nodes
+      that finger's points touch in proportion to the B-spline weight, so the total force per finger is exactly
+      the given vector, independent of the particle count.
+    * floor plane and domain walls (config).
+Tracers (surface 3D Gaussians) are massless points advected by the grid velocity with their own F
+(``tracer_F``): deform covariances with :func:`deform_covariances` (F Sigma F^T) and rotate with
+:func:`polar_rotation`.
+"""
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import dataclass
+from typing import Any, Callable, Optional, Sequence, Union
+
+import numpy as np
+import warp as wp
+
+from conf.mpm_schema import MPMConfig, mpm_config_from
+
+from . import kernels as K
+from .materials import COL_DENSITY, N_COLS, PLASTIC_MODELS, Material, pack_table
+
+wp.config.quiet = True
+
+
+class SimulationError(RuntimeError):
+    """The simulation left its valid range (non-finite state, particle out of the grid, extreme J, Courant)."""
+
+
+# ============================================================================================ inputs
+@dataclass
+class DirichletPoints:
+    """Constrained points with prescribed velocities (m, m/s).
+
+    ``normals`` (optional, per point): when given (non-zero), only the velocity component along the normal is
+    prescribed (frictionless contact, e.g. a slip plate); otherwise the full vector (sticky finger pad).
+    ``min_weight``: stencil nodes whose B-spline weight is below this are left free (0 = all 27).
+    ``advect``: move the points by ``velocity * dt`` every substep (kinematic targets).
+    """
+
+    positions: np.ndarray
+    velocities: np.ndarray
+    finger_ids: Optional[np.ndarray] = None
+    normals: Optional[np.ndarray] = None
+    min_weight: float = 0.0
+    advect: bool = True
+
+
+@dataclass
+class DirichletNodes:
+    """Explicit Dirichlet nodes: integer grid indices (M, 3), prescribed velocities (M, 3), finger ids (M,)."""
+
+    indices: np.ndarray
+    velocities: np.ndarray
+    finger_ids: Optional[np.ndarray] = None
+    normals: Optional[np.ndarray] = None
+
+    @classmethod
+    def from_mask(cls, mask: np.ndarray, velocity, finger_id: int = 0) -> "DirichletNodes":
+        """Nodes where the boolean grid-shaped ``mask`` is True, all with one velocity (3,) and finger id."""
+        idx = np.argwhere(np.asarray(mask, bool)).astype(np.int32)
+        vel = np.broadcast_to(np.asarray(velocity, np.float32).reshape(-1, 3), (len(idx), 3)).copy()
+        return cls(idx, vel, np.full(len(idx), int(finger_id), np.int32))
+
+
+@dataclass
+class ForcePatch:
+    """Force mode: finger k pushes with the total force ``forces[k]`` (N) through its points ``positions``."""
+
+    positions: np.ndarray
+    finger_ids: np.ndarray
+    forces: np.ndarray
+
+
+BoundarySpec = Union[DirichletPoints, DirichletNodes, Sequence[Union[DirichletPoints, DirichletNodes]], None,
+                     Callable[[float, Optional[float]], Any]]
+
+
+@dataclass
+class FrameStats:
+    """Statistics of one frame (SI).  Energies, momentum, speed and J are end-of-frame values; ``reaction`` and
+    ``applied_force`` are frame means (impulse / frame_dt) per finger id."""
+
+    frame: int
+    time: float  # s, simulated time at the end of the frame
+    substeps: int
+    dt_min: float
+    dt_max: float
+    courant: float  # c_p dt_max / dx
+    max_speed: float  # m/s, particles, end of frame
+    j_min: float
+    j_max: float
+    kinetic_energy: float  # J
+    internal_energy: float  # J (elastic stored energy)
+    ke_ie_ratio: float
+    momentum: np.ndarray  # kg m/s
+    mass: float  # kg
+    reaction: np.ndarray  # (n_fingers, 3) N, mean force the Dirichlet constraint of each finger applied
+    applied_force: np.ndarray  # (n_fingers, 3) N, mean force applied in force mode
+    mass_scale: float
+    stiffness_scale: float
+    quasi_static_ok: bool
+    wall_seconds: float
+
+    def as_dict(self) -> dict:
+        d = dict(self.__dict__)
+        for k, v in d.items():
+            if isinstance(v, np.ndarray):
+                d[k] = v.tolist()
+        return d
+
+
+# ============================================================================================ helpers
+def _num(x: float) -> str:
+    """3 significant digits, keeping a decimal point (1 -> '1.0', 1.4 -> '1.4')."""
+    s = f"{x:.3g}"
+    return s if ("." in s or "e" in s or "inf" in s or "nan" in s) else s + ".0"
+
+
+def resolve_device(device: Optional[str]) -> str:
+    """``auto`` -> ``cuda:0`` when a CUDA device is present, else ``cpu``."""
+    if device is None or device == "auto":
+        return "cuda:0" if wp.get_cuda_device_count() > 0 else "cpu"
+    return device
+
+
+def bspline_stencil(g: np.ndarray):
+    """numpy twin of the kernel stencil: base (P,3) int, weights (P,3,3) per axis."""
+    base = np.floor(g - 0.5).astype(np.int64)
+    f = g - base
+    w = np.stack([0.5 * (1.5 - f) ** 2, 0.75 - (f - 1.0) ** 2, 0.5 * (f - 0.5) ** 2], axis=-1)  # (P,3 axes,3)
+    return base, w
+
+
+def deform_covariances(F: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """Covariances of deformed Gaussians: F Sigma F^T (F: (N,3,3), cov: (N,3,3))."""
+    return np.einsum("nij,njk,nlk->nil", F, cov, F)
+
+
+def polar_rotation(F: np.ndarray) -> np.ndarray:
+    """Rotation part R (det +1) of the polar decomposition F = R S, batched (N,3,3).
+
+    Uses the SVD F = U S V^T with the sign of the smallest singular value flipped when det F < 0, so R is a proper
+    rotation (the closest one to F).
+    """
+    F = np.asarray(F, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(F)
+    d = np.sign(np.linalg.det(U @ Vt))
+    d[d == 0] = 1.0
+    D = np.ones(F.shape[:-1])
+    D[..., -1] = d
+    return (U * D[..., None, :]) @ Vt
+
+
+def rotate_quaternions(R: np.ndarray, q_wxyz: np.ndarray) -> np.ndarray:
+    """Compose rotation matrices R (N,3,3) with Gaussian orientations q (N,4, w first): returns R*q (w first)."""
+    from scipy.spatial.transform import Rotation
+
+    r = Rotation.from_matrix(R)
+    qx = np.concatenate([q_wxyz[:, 1:], q_wxyz[:, :1]], axis=1)
+    out = (r * Rotation.from_quat(qx)).as_quat()
+    return np.concatenate([out[:, 3:], out[:, :3]], axis=1)
+
+
+# ============================================================================================ solver
+class MPMSolver:
+    """MLS-MPM solver (Warp, CPU or CUDA).
+
+    Args:
+        positions: (N, 3) particle positions, m.
+        volumes: (N,) or scalar initial particle volumes, m^3 (mass = volume x material density, constant).
+        materials: one :class:`Material` or a list; ``material_ids`` (N,) index into it (default all 0).
+        velocities: (N, 3) initial velocities, m/s (default 0).
+        config: :class:`conf.mpm_schema.MPMConfig`, a mapping or an OmegaConf node (default settings if None).
+        tracers: (T, 3) massless tracer positions (surface Gaussians), advected with their own F.
+        device: overrides ``config.device``.
+        n_fingers: size of the per-finger reaction/force arrays (grows automatically with the finger ids seen).
+    """
+
+    def __init__(
+        self,
+        positions: np.ndarray,
+        volumes: Union[np.ndarray, float],
+        materials: Union[Material, Sequence[Material]],
+        material_ids: Optional[np.ndarray] = None,
+        velocities: Optional[np.ndarray] = None,
+        config: Any = None,
+        tracers: Optional[np.ndarray] = None,
+        device: Optional[str] = None,
+        n_fingers: int = 5,
+    ) -> None:
+        self.cfg: MPMConfig = mpm_config_from(config)
+        self.device = resolve_device(device or self.cfg.device)
+        if self.cfg.debug:
+            wp.set_module_options({"mode": "debug"}, K)
+        self.materials: list[Material] = [materials] if isinstance(materials, Material) else list(materials)
+        x = np.ascontiguousarray(np.asarray(positions, dtype=np.float32).reshape(-1, 3))
+        n = x.shape[0]
+        if n == 0:
+            raise ValueError("MPMSolver needs at least one particle")
+        if not np.all(np.isfinite(x)):
+            raise SimulationError("initial particle positions contain NaN/inf")
+        self.n_particles = n
+        vol = np.broadcast_to(np.asarray(volumes, dtype=np.float32), (n,)).copy()
+        if not np.all(vol > 0):
+            raise ValueError("particle volumes must be > 0")
+        mid = np.zeros(n, np.int32) if material_ids is None else np.asarray(material_ids, np.int32).reshape(n)
+        if mid.min() < 0 or mid.max() >= len(self.materials):
+            raise ValueError(f"material_ids must be in [0, {len(self.materials)})")
+        v = np.zeros_like(x) if velocities is None else np.asarray(velocities, np.float32).reshape(n, 3)
+        self._mid_host = mid
+        present = sorted(set(int(i) for i in np.unique(mid)))
+        self._present = present
+        codes_present = {self.materials[i].code for i in present}
+        self.n_fingers = int(n_fingers)
+
+        # ---------------- grid geometry
+        cfg = self.cfg
+        tr = None if tracers is None else np.asarray(tracers, np.float32).reshape(-1, 3)
+        pts = x if tr is None or len(tr) == 0 else np.concatenate([x, tr], axis=0)
+        bb_lo, bb_hi = pts.min(axis=0).astype(np.float64), pts.max(axis=0).astype(np.float64)
+        extent = float(np.max(bb_hi - bb_lo))
+        if cfg.dx is not None:
+            dx = float(cfg.dx)
+        else:
+            dx = max(extent, 1e-6) / cfg.cells_across
+        self.floor_height: Optional[float] = None
+        if cfg.floor:
+            # default: the lowest particle (not tracer) rests on the floor
+            self.floor_height = float(x[:, 2].min() if cfg.floor_height is None else cfg.floor_height)
+        if cfg.domain_lo is not None:
+            box_lo = np.asarray(cfg.domain_lo, np.float64)
+            box_hi = np.asarray(cfg.domain_hi, np.float64)
+        else:
+            box_lo = bb_lo - cfg.margin_cells * dx
+            box_hi = bb_hi + cfg.margin_cells * dx
+            if self.floor_height is not None:
+                box_lo[2] = min(self.floor_height, bb_lo[2])
+        pad = cfg.padding
+        dims = np.ceil((box_hi - box_lo) / dx - 1e-9).astype(int) + 2 * pad + 1
+        lo = box_lo - pad * dx
+        self.dx = dx
+        self.lo = lo
+        self.dims = tuple(int(d) for d in dims)
+        self.gi = K.GridInfo()
+        self.gi.lo = wp.vec3(*lo.astype(np.float32))
+        self.gi.dx = float(dx)
+        self.gi.inv_dx = float(1.0 / dx)
+        self.gi.safe_lo = wp.vec3(1.0, 1.0, 1.0)
+        self.gi.safe_hi = wp.vec3(*(np.asarray(self.dims, np.float32) - 2.0))
+        g0 = (x.astype(np.float64) - lo) / dx
+        outside = np.any((g0 < pad - 0.5) | (g0 > np.asarray(self.dims) - pad - 0.5), axis=1)
+        if np.any(outside):
+            raise SimulationError(
+                f"{int(outside.sum())} particles start inside the padding layer / outside the domain box "
+                f"[{box_lo.round(4).tolist()}, {box_hi.round(4).tolist()}]: enlarge domain_lo/domain_hi"
+            )
+        self.floor_g = 0.0 if self.floor_height is None else float((self.floor_height - lo[2]) / dx)
+
+        # ---------------- scaling and material table
+        self.stiffness_scale = float(cfg.stiffness_scaling)
+        self.mass_scale = float(cfg.mass_scale) if cfg.mass_scaling == "manual" else 1.0
+        self._mass_scale_fixed = cfg.mass_scaling != "auto"
+        d = self.device
+        self.mat_model = wp.zeros(len(self.materials), dtype=wp.int32, device=d)
+        self.mat_par = wp.zeros((len(self.materials), N_COLS), dtype=float, device=d)
+        self._upload_materials()
+
+        # ---------------- particle state (allocate only what the present models need)
+        self.x = wp.array(x, dtype=wp.vec3, device=d)
+        self.v = wp.array(v, dtype=wp.vec3, device=d)
+        self.C = wp.zeros(n, dtype=wp.mat33, device=d)
+        self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33, device=d)
+        self.has_corotated = 0 in codes_present
+        self.has_plastic = any(c in PLASTIC_MODELS for c in codes_present)
+        qn = n if self.has_corotated else 1
+        self.q = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (qn, 1)), dtype=wp.quat, device=d)
+        self.alpha = wp.zeros(n if self.has_plastic else 1, dtype=float, device=d)
+        self.vol = wp.array(vol, dtype=float, device=d)
+        self.mat_id = wp.array(mid, dtype=wp.int32, device=d)
+
+        # ---------------- grid (two buffers: the fused G2P/P2G reads one and fills the other)
+        self.grid_a = wp.zeros(self.dims, dtype=wp.vec4, device=d)
+        self.grid_b = wp.zeros(self.dims, dtype=wp.vec4, device=d)
+        self._bc_alloc = False
+        self._dummy3 = wp.zeros((1, 1, 1), dtype=wp.vec4, device=d)
+        self.bc_v = self.bc_n = self.react = self._dummy3
+
+        # ---------------- tracers
+        self.n_tracers = 0 if tr is None else len(tr)
+        self.tx = wp.array(tr if self.n_tracers else np.zeros((1, 3), np.float32), dtype=wp.vec3, device=d)
+        self.tF = wp.array(np.tile(np.eye(3, dtype=np.float32), (max(self.n_tracers, 1), 1, 1)), dtype=wp.mat33,
+                           device=d)
+
+        # ---------------- small buffers
+        self.flags = wp.zeros(K.N_FLAGS, dtype=wp.int32, device=d)
+        self._reset_flags()
+        self.gstats = wp.zeros(1, dtype=float, device=d)
+        big = 2**30
+        self.bbox_init = wp.array(np.array([big, big, big, -big, -big, -big], np.int32), dtype=wp.int32, device=d)
+        self.bbox = wp.zeros(6, dtype=wp.int32, device=d)
+        self._last_box: Optional[tuple[np.ndarray, np.ndarray]] = None
+        self.all_corotated = codes_present == {0}
+        # CPU: host views of the small per-substep buffers (zero-copy); CUDA: device ops + copies
+        self._cpu = wp.get_device(d).is_cpu
+        self._gstats_np = self.gstats.numpy() if self._cpu else None
+        self._bbox_np = self.bbox.numpy() if self._cpu else None
+        self._cmds: Optional[dict] = None
+        self.sums = wp.zeros(6, dtype=wp.float64, device=d)
+        self.ext = wp.zeros(3, dtype=float, device=d)
+        self.ext_init = wp.array(np.array([np.inf, -np.inf, 0.0], np.float32), dtype=float, device=d)
+        self._alloc_finger_arrays(self.n_fingers)
+
+        self.time = 0.0
+        self.frame = 0
+        self.substep = 0
+        self._vmax = float(np.max(np.linalg.norm(v, axis=1))) if n else 0.0
+        self._times: list[tuple[int, float]] = []
+        self.last_stats: Optional[FrameStats] = None
+
+    # ------------------------------------------------------------------ setup helpers
+    def _upload_materials(self) -> None:
+        models, params = pack_table(self.materials, self.stiffness_scale, self.mass_scale)
+        self.mat_model.assign(models)
+        self.mat_par.assign(params)
+        self.c_max = max(
+            self.materials[i].p_wave_speed(self.stiffness_scale, self.mass_scale) for i in self._present
+        )
+        self.dt_visc = math.inf
+        for i in self._present:
+            m = self.materials[i]
+            if m.model == "fluid" and m.viscosity > 0:
+                self.dt_visc = min(self.dt_visc, m.density * self.mass_scale * self.dx ** 2 / (6.0 * m.viscosity))
+
+    def _alloc_finger_arrays(self, k: int) -> None:
+        d = self.device
+        self.n_fingers = k
+        self.finger_react = wp.zeros(k, dtype=wp.vec3, device=d)
+        self.finger_applied = wp.zeros(k, dtype=wp.vec3, device=d)
+        self.finger_force = wp.zeros(k, dtype=wp.vec3, device=d)
+        self.finger_w = wp.zeros(k, dtype=float, device=d)
+
+    def _ensure_bc_arrays(self) -> None:
+        if not self._bc_alloc:
+            d = self.device
+            self.bc_v = wp.zeros(self.dims, dtype=wp.vec4, device=d)
+            self.bc_n = wp.zeros(self.dims, dtype=wp.vec4, device=d)
+            self.react = wp.zeros(self.dims, dtype=wp.vec4, device=d)
+            self._bc_alloc = True
+            self._cmds = None  # recorded grid launches reference the boundary arrays
+
+    def _reset_flags(self) -> None:
+        f = np.zeros(K.N_FLAGS, np.int32)
+        f[4:8] = K.NO_SUBSTEP
+        f[8:12] = -1
+        self.flags.assign(f)
+
+    # ------------------------------------------------------------------ public geometry helpers
+    def node_position(self, idx: np.ndarray) -> np.ndarray:
+        """World positions (m) of integer grid indices (M, 3)."""
+        return self.lo + np.asarray(idx, np.float64) * self.dx
+
+    def project_points(self, positions: np.ndarray, velocities: np.ndarray, finger_ids: Optional[np.ndarray] = None,
+                       min_weight: float = 0.0) -> DirichletNodes:
+        """Project constrained points onto the grid nodes within their B-spline support (numpy).
+
+        Returns the touched nodes with the weight-averaged target velocity and the finger with the largest weight
+        share; the solver does the same projection on the device every substep for :class:`DirichletPoints`.
+        """
+        P = np.asarray(positions, np.float64).reshape(-1, 3)
+        V = np.asarray(velocities, np.float64).reshape(-1, 3)
+        fid = np.zeros(len(P), np.int64) if finger_ids is None else np.asarray(finger_ids, np.int64)
+        g = (P - self.lo) / self.dx
+        base, w = bspline_stencil(g)
+        off = np.stack(np.meshgrid(range(3), range(3), range(3), indexing="ij"), -1).reshape(-1, 3)
+        ww = w[:, 0, off[:, 0]] * w[:, 1, off[:, 1]] * w[:, 2, off[:, 2]]  # (P, 27)
+        nodes = (base[:, None, :] + off[None]).reshape(-1, 3)
+        ww = ww.reshape(-1)
+        keep = ww > min_weight
+        nodes, ww = nodes[keep], ww[keep]
+        vv = np.repeat(V, 27, axis=0)[keep]
+        ff = np.repeat(fid, 27)[keep]
+        uniq, inv = np.unique(nodes, axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        W = np.bincount(inv, weights=ww)
+        vel = np.stack([np.bincount(inv, weights=ww * vv[:, c]) for c in range(3)], 1) / W[:, None]
+        nf = int(ff.max()) + 1 if len(ff) else 1
+        share = np.zeros((len(uniq), nf))
+        np.add.at(share, (inv, ff), ww)
+        return DirichletNodes(indices=uniq.astype(np.int32), velocities=vel.astype(np.float32),
+                              finger_ids=share.argmax(axis=1).astype(np.int32))
+
+    # ------------------------------------------------------------------ time step
+    def courant_number(self, dt: float) -> float:
+        return dt * self.c_max / self.dx
+
+    def _stable_dt(self, vmax: float) -> float:
+        cfg = self.cfg
+        dt = cfg.courant * self.dx / self.c_max
+        if vmax > 0:
+            dt = min(dt, cfg.max_speed_cfl * self.dx / vmax)
+        return min(dt, self.dt_visc)
+
+    def _next_dt(self, remaining: float, vmax: float) -> float:
+        cfg = self.cfg
+        if cfg.dt is not None:
+            dt = float(cfg.dt)
+            cn = self.courant_number(dt)
+            if cn > cfg.courant_limit:
+                raise SimulationError(
+                    f"Courant number {_num(cn)} > limit {_num(cfg.courant_limit)}: lower dt or E "
+                    f"(forced dt={dt:.3g} s, c_p={self.c_max:.4g} m/s, dx={self.dx:.4g} m; "
+                    f"at substep {self.substep}, t={self.time:.6g} s)"
+                )
+            adv = vmax * dt / self.dx
+            if adv > cfg.courant_limit:
+                raise SimulationError(
+                    f"advective Courant number {_num(adv)} > limit {_num(cfg.courant_limit)}: lower dt "
+                    f"(max speed {vmax:.4g} m/s at substep {self.substep}, t={self.time:.6g} s)"
+                )
+        else:
+            dt = self._stable_dt(vmax)
+        if dt >= remaining * (1.0 - 1e-6):
+            return remaining
+        n_left = math.ceil(remaining / dt - 1e-6)
+        return remaining / n_left
+
+    def _auto_mass_scale(self, frame_dt: float) -> None:
+        if self._mass_scale_fixed:
+            return
+        self._mass_scale_fixed = True
+        cfg = self.cfg
+        dt1 = cfg.courant * self.dx / self.c_max  # c_max at mass scale 1
+        needed = frame_dt / dt1
+        s = max(1.0, (needed / cfg.target_substeps_per_frame) ** 2)
+        if s > 1.0:
+            self.mass_scale = s
+            self._upload_materials()
+
+    # ------------------------------------------------------------------ boundary upload
+    def _upload_dirichlet(self, spec: BoundarySpec) -> list[dict]:
+        if spec is None:
+            return []
+        items = [spec] if isinstance(spec, (DirichletPoints, DirichletNodes)) else list(spec)
+        out = []
+        for it in items:
+            if isinstance(it, DirichletNodes):
+                idx = np.asarray(it.indices, np.float64).reshape(-1, 3)
+                # the outermost node layer belongs to the domain walls and has no full stencil: skipped
+                keep = np.all((idx >= 1) & (idx <= np.asarray(self.dims) - 2), axis=1)
+                it = DirichletNodes(idx[keep], np.broadcast_to(np.asarray(it.velocities, np.float32).reshape(-1, 3),
+                                                               (len(idx), 3))[keep],
+                                    None if it.finger_ids is None else np.asarray(it.finger_ids).reshape(-1)[keep],
+                                    None if it.normals is None else np.broadcast_to(
+                                        np.asarray(it.normals, np.float32).reshape(-1, 3), (len(idx), 3))[keep])
+                idx = idx[keep]
+                pos = self.lo + idx * self.dx
+                # a point exactly on a node has weight 0.75^3 = 0.42 there and <= 0.75^2 0.125 = 0.07 on the other
+                # stencil nodes: min_weight 0.2 keeps exactly that node
+                it = DirichletPoints(pos, it.velocities, it.finger_ids, it.normals, min_weight=0.2, advect=False)
+            pos = np.asarray(it.positions, np.float32).reshape(-1, 3)
+            m = len(pos)
+            if m == 0:
+                continue
+            vel = np.broadcast_to(np.asarray(it.velocities, np.float32).reshape(-1, 3), (m, 3))
+            fid = np.zeros(m, np.int32) if it.finger_ids is None else np.asarray(it.finger_ids, np.int32).reshape(m)
+            nrm = np.zeros((m, 3), np.float32) if it.normals is None else np.broadcast_to(
+                np.asarray(it.normals, np.float32).reshape(-1, 3), (m, 3))
+            if nrm.any():
+                ln = np.linalg.norm(nrm, axis=1, keepdims=True)
+                nrm = np.where(ln > 0, nrm / np.maximum(ln, 1e-30), 0.0).astype(np.float32)
+            if fid.min() < 0:
+                raise ValueError("finger ids must be >= 0")
+            self._grow_fingers(int(fid.max()) + 1)
+            d = self.device
+            out.append(dict(
+                x=wp.array(np.ascontiguousarray(pos), dtype=wp.vec3, device=d),
+                v=wp.array(np.ascontiguousarray(vel), dtype=wp.vec3, device=d),
+                n=wp.array(np.ascontiguousarray(nrm), dtype=wp.vec3, device=d),
+                f=wp.array(fid, dtype=wp.int32, device=d),
+                min_w=float(it.min_weight), advect=int(bool(it.advect)), count=m,
+                speed=float(np.linalg.norm(vel, axis=1).max()),
+            ))
+        if out:
+            self._ensure_bc_arrays()
+        return out
+
+    def _upload_forces(self, spec: Optional[Union[ForcePatch, Sequence[ForcePatch]]]) -> list[dict]:
+        if spec is None:
+            return []
+        items = [spec] if isinstance(spec, ForcePatch) else list(spec)
+        out = []
+        for it in items:
+            pos = np.asarray(it.positions, np.float32).reshape(-1, 3)
+            fid = np.asarray(it.finger_ids, np.int32).reshape(-1)
+            forces = np.asarray(it.forces, np.float32).reshape(-1, 3)
+            if len(pos) == 0:
+                continue
+            if fid.max() >= len(forces) or fid.min() < 0:
+                raise ValueError("ForcePatch.finger_ids must index ForcePatch.forces")
+            self._grow_fingers(len(forces))
+            d = self.device
+            ff = np.zeros((self.n_fingers, 3), np.float32)
+            ff[: len(forces)] = forces
+            out.append(dict(x=wp.array(pos, dtype=wp.vec3, device=d), f=wp.array(fid, dtype=wp.int32, device=d),
+                            F=wp.array(ff, dtype=wp.vec3, device=d), count=len(pos)))
+        return out
+
+    def _grow_fingers(self, k: int) -> None:
+        if k > self.n_fingers:
+            self._alloc_finger_arrays(k)
+
+    # ------------------------------------------------------------------ stepping
+    def _step_params(self, dt_g2p: float, dt_p2g: float, restart: bool = False) -> K.StepParams:
+        sp = K.StepParams()
+        sp.dt_g2p = float(dt_g2p)
+        sp.dt_p2g = float(dt_p2g)
+        sp.substep = int(self.substep)
+        sp.j_min = float(self.cfg.j_min)
+        sp.j_max = float(self.cfg.j_max)
+        sp.polar_iters = int(self.cfg.polar_restart_iterations if restart else self.cfg.polar_iterations)
+        sp.polar_tol = float(self.cfg.polar_tol)
+        sp.polar_newton = int(restart or self.cfg.polar_method == "newton")
+        return sp
+
+    def _recorded(self) -> dict:
+        """Recorded launches of the two per-substep kernels (one per grid-buffer parity): replaying them avoids
+        re-packing ~15 arguments per launch (Python overhead dominates small scenes)."""
+        if self._cmds is not None:
+            return self._cmds
+        d, cfg = self.device, self.cfg
+        cmds: dict = {"sp": self._step_params(0.0, 0.0)}
+        for cur, other in ((self.grid_a, self.grid_b), (self.grid_b, self.grid_a)):
+            if self.all_corotated:
+                fused = wp.launch(K.k_g2p_p2g_fc, dim=self.n_particles, device=d, record_cmd=True, inputs=[
+                    self.gi, cmds["sp"], cur, other, self.x, self.F, self.q, self.vol, self.mat_id, self.mat_par,
+                    self.flags, self.bbox])
+            else:
+                fused = wp.launch(K.k_g2p_p2g, dim=self.n_particles, device=d, record_cmd=True, inputs=[
+                    self.gi, cmds["sp"], cur, other, self.x, self.F, self.q, self.alpha, self.vol, self.mat_id,
+                    self.mat_model, self.mat_par, self.flags, self.bbox])
+            grid = wp.launch(K.k_grid_update, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
+                cur, other, wp.vec3i(0, 0, 0), 0.0, wp.vec3(*[float(g) for g in cfg.gravity]), cfg.padding,
+                int(cfg.wall_sticky), int(self.floor_height is not None), self.floor_g, float(cfg.floor_friction),
+                int(cfg.floor_sticky), 0, self.bc_v, self.bc_n, self.react, self.gstats])
+            cmds[id(cur)] = (fused, grid)
+        self._cmds = cmds
+        return cmds
+
+    def _reset_bbox(self) -> None:
+        if self._cpu:
+            self._bbox_np[:3] = 2**30
+            self._bbox_np[3:] = -(2**30)
+        else:
+            wp.copy(self.bbox, self.bbox_init)
+
+    def _launch_grid(self, cur, box_lo: np.ndarray, box_hi: np.ndarray, dt: float, has_bc: int) -> float:
+        """Grid update over the node box [box_lo, box_hi]; returns the max grid speed (m/s)."""
+        grid = self._recorded()[id(cur)][1]
+        if self._cpu:
+            self._gstats_np[0] = 0.0
+        else:
+            self.gstats.zero_()
+        grid.set_dim(tuple(int(a) for a in box_hi - box_lo + 1))
+        grid.set_param_at_index(2, wp.vec3i(int(box_lo[0]), int(box_lo[1]), int(box_lo[2])))
+        grid.set_param_at_index_from_ctype(3, float(dt))
+        grid.set_param_at_index_from_ctype(11, int(has_bc))
+        grid.launch()
+        return float(self._gstats_np[0]) if self._cpu else float(self.gstats.numpy()[0])
+
+    def _launch_fused(self, cur, dt: float, dt_next: float) -> None:
+        cmds = self._recorded()
+        sp = cmds["sp"]
+        sp.dt_g2p = float(dt)
+        sp.dt_p2g = float(dt_next)
+        sp.substep = int(self.substep)
+        fused = cmds[id(cur)][0]
+        fused.set_param_at_index_from_ctype(1, sp.__ctype__())
+        fused.launch()
+
+    def step_frame(self, frame_dt: float, dirichlet: BoundarySpec = None,
+                   forces: Optional[Union[ForcePatch, Sequence[ForcePatch]]] = None) -> FrameStats:
+        """Advance by ``frame_dt`` seconds with CFL-adaptive substeps; returns the frame statistics.
+
+        ``dirichlet``: DirichletPoints / DirichletNodes (or a list), constant targets over the frame (points are
+        advected with their target velocity every substep), or a callable ``(t, dt) -> spec`` evaluated at every
+        substep (t = time since the frame start; dt = the substep's size, None at the frame's first call, which
+        only sizes the first substep).  ``forces``: ForcePatch (force mode, or a list, or such a callable),
+        constant over the frame.  Raises :class:`SimulationError` when a guard trips.
+        """
+        if not frame_dt > 0:
+            raise ValueError("frame_dt must be > 0")
+        wall0 = time.perf_counter()
+        self._auto_mass_scale(frame_dt)
+        cfg = self.cfg
+        d = self.device
+        bc_fn = dirichlet if callable(dirichlet) else None
+        f_fn = forces if callable(forces) else None
+        bcs = self._upload_dirichlet(dirichlet(0.0, None) if bc_fn else dirichlet)
+        fps = self._upload_forces(forces(0.0, None) if f_fn else forces)
+        self.finger_react.zero_()
+        self.finger_applied.zero_()
+        has_bc = int(len(bcs) > 0)
+        bc_speed = max([b["speed"] for b in bcs], default=0.0)
+        check_every = 1 if cfg.debug else cfg.check_every
+        n = self.n_particles
+
+        t = 0.0
+        nsub = 0
+        dts: list[float] = []
+        self._times = [(self.substep, self.time)]
+        dt = self._next_dt(frame_dt, max(self._vmax, bc_speed))
+        cur, other = self.grid_b, self.grid_a
+        # P2G of the frame's first substep (stress from the stored state)
+        self._reset_bbox()
+        wp.launch(K.k_p2g, dim=n, device=d, inputs=[
+            self.gi, self._step_params(0.0, dt, restart=True), self.x, self.v, self.C, self.F, self.q, self.vol,
+            self.mat_id, self.mat_model, self.mat_par, cur, self.flags, self.bbox])
+        box_cur = self._read_box()
+        box_prev = self._last_box if self._last_box is not None else box_cur
+        while True:
+            if nsub > 0 and bc_fn is not None:  # time-varying constraints: re-evaluated every substep
+                bcs = self._upload_dirichlet(bc_fn(t, dt))
+                has_bc = int(len(bcs) > 0)
+                bc_speed = max([b["speed"] for b in bcs], default=0.0)
+            if nsub > 0 and f_fn is not None:
+                fps = self._upload_forces(f_fn(t, dt))
+            for fp in fps:
+                self.finger_w.zero_()
+                self.finger_force.assign(fp["F"])
+                wp.launch(K.k_force_weights, dim=fp["count"], device=d, inputs=[
+                    self.gi, fp["x"], fp["f"], cur, self.finger_w, self.flags, self.substep])
+                wp.launch(K.k_force_apply, dim=fp["count"], device=d, inputs=[
+                    self.gi, fp["x"], fp["f"], self.finger_force, self.finger_w, dt, cur, self.finger_applied])
+            for bc in bcs:
+                wp.launch(K.k_bc_scatter, dim=bc["count"], device=d, inputs=[
+                    self.gi, bc["x"], bc["v"], bc["n"], bc["min_w"], self.bc_v, self.bc_n, self.flags, self.substep])
+            vmax = self._launch_grid(cur, np.minimum(box_cur[0], box_prev[0]), np.maximum(box_cur[1], box_prev[1]),
+                                     dt, has_bc)
+            for bc in bcs:
+                wp.launch(K.k_bc_reaction, dim=bc["count"], device=d, inputs=[
+                    self.gi, bc["x"], bc["f"], bc["min_w"], dt, self.react, self.finger_react])
+                wp.launch(K.k_bc_clear_advance, dim=bc["count"], device=d, inputs=[
+                    self.gi, bc["x"], bc["v"], dt, bc["advect"], self.bc_v, self.bc_n, self.react])
+            if self.n_tracers:
+                wp.launch(K.k_tracer_g2p, dim=self.n_tracers, device=d, inputs=[
+                    self.gi, cur, dt, self.tx, self.tF, self.flags, self.substep])
+            t += dt
+            nsub += 1
+            dts.append(dt)
+            remaining = frame_dt - t
+            if remaining <= 1e-6 * frame_dt:
+                self.sums.zero_()
+                wp.copy(self.ext, self.ext_init)
+                wp.launch(K.k_g2p, dim=n, device=d, inputs=[
+                    self.gi, self._step_params(dt, 0.0, restart=True), cur, self.x, self.v, self.C, self.F, self.q,
+                    self.alpha, self.vol, self.mat_id, self.mat_model, self.mat_par, self.flags, self.sums, self.ext])
+                self.substep += 1
+                self._times.append((self.substep, self.time + t))
+                self._last_box = box_cur
+                break
+            if not math.isfinite(vmax):
+                self._vmax = vmax
+                self._check_flags(force_nonfinite=True)
+            dt_next = self._next_dt(remaining, max(vmax, bc_speed))
+            self._reset_bbox()
+            self._launch_fused(cur, dt, dt_next)
+            box_prev, box_cur = box_cur, self._read_box()
+            cur, other = other, cur
+            dt = dt_next
+            self.substep += 1
+            self._times.append((self.substep, self.time + t))
+            self._vmax = vmax
+            if nsub % check_every == 0:
+                self._check_flags()
+            if nsub >= cfg.max_substeps_per_frame:
+                raise SimulationError(
+                    f"frame {self.frame} needs more than {cfg.max_substeps_per_frame} substeps "
+                    f"(dt={dt:.3g} s, max speed {vmax:.4g} m/s at substep {self.substep}, "
+                    f"t={self.time + t:.6g} s): the time step collapsed; likely cause: runaway velocities "
+                    f"(unstable material or boundary velocities too large)")
+        # grid_a: last grid state (velocities + masses of the last P2G); grid_b: zeroed, the next frame's P2G target
+        self.grid_a, self.grid_b = cur, other
+        self.time += frame_dt
+        self.frame += 1
+        self._vmax = vmax
+        stats = self._frame_stats(nsub, dts, frame_dt, wall0)
+        self._check_flags()
+        self._check_state(stats)
+        self.last_stats = stats
+        return stats
+
+    def _read_box(self) -> tuple[np.ndarray, np.ndarray]:
+        """Node box [lo, hi] (inclusive) touched by the last P2G (stencil bases + 2), clamped to the grid."""
+        b = (self._bbox_np if self._cpu else self.bbox.numpy()).tolist()
+        dims = self.dims
+        lo = [min(max(b[i], 0), dims[i] - 1) for i in range(3)]
+        hi = [max(min(b[3 + i] + 2, dims[i] - 1), lo[i]) for i in range(3)]
+        return np.array(lo), np.array(hi)
+
+    # ------------------------------------------------------------------ statistics and guards
+    def _frame_stats(self, nsub: int, dts: list[float], frame_dt: float, wall0: float) -> FrameStats:
+        s = self.sums.numpy()
+        e = self.ext.numpy()
+        ke, ie = float(s[0]), float(s[1])
+        ratio = ke / ie if ie > 1e-30 else (math.inf if ke > 0 else 0.0)
+        qs_ok = True
+        if self.mass_scale > 1.0 and ratio > self.cfg.quasi_static_ke_ie_max and ie > 0:
+            qs_ok = False
+            warnings.warn(
+                f"mass scaling x{self.mass_scale:.3g}: kinetic/internal energy ratio {ratio:.3g} > "
+                f"{self.cfg.quasi_static_ke_ie_max} at t={self.time:.4g} s - the quasi-static assumption is violated; "
+                "lower target mass scaling or raise target_substeps_per_frame", RuntimeWarning, stacklevel=3)
+        return FrameStats(
+            frame=self.frame, time=self.time, substeps=nsub, dt_min=min(dts), dt_max=max(dts),
+            courant=self.courant_number(max(dts)), max_speed=float(e[2]), j_min=float(e[0]), j_max=float(e[1]),
+            kinetic_energy=ke, internal_energy=ie, ke_ie_ratio=ratio, momentum=s[2:5].copy(), mass=float(s[5]),
+            reaction=self.finger_react.numpy().astype(np.float64) / frame_dt,
+            applied_force=self.finger_applied.numpy().astype(np.float64) / frame_dt,
+            mass_scale=self.mass_scale, stiffness_scale=self.stiffness_scale, quasi_static_ok=qs_ok,
+            wall_seconds=time.perf_counter() - wall0,
+        )
+
+    def _substep_time(self, sub: int) -> float:
+        best = self.time
+        for s, t in self._times:
+            if s <= sub:
+                best = t
+        return best
+
+    def _material_name(self, p: int) -> str:
+        return self.materials[int(self._mid_host[p])].name
+
+    def _check_flags(self, force_nonfinite: bool = False) -> None:
+        f = self.flags.numpy()
+        if not (f[0] or f[1] or f[2] or f[3]) and not force_nonfinite:
+            return
+        x = self.x.numpy()
+        F = self.F.numpy()
+        cn = self.courant_number(self._stable_dt(self._vmax) if self.cfg.dt is None else self.cfg.dt)
+        hint_dt = (f"Courant number {cn:.3g} (limit {self.cfg.courant_limit:.3g}), c_p={self.c_max:.4g} m/s, "
+                   f"dx={self.dx:.4g} m")
+        if f[1] or force_nonfinite:  # non-finite first: it explains the others
+            bad = ~(np.isfinite(x).all(1) & np.isfinite(F).reshape(len(F), -1).all(1))
+            p = int(np.argmax(bad)) if bad.any() else int(max(f[9], 0))
+            sub = int(f[5]) if f[5] != K.NO_SUBSTEP else self.substep
+            raise SimulationError(
+                f"non-finite particle state (NaN/inf position, velocity or F) at substep {sub} "
+                f"(t={self._substep_time(sub):.6g} s, frame {self.frame}); {int(max(f[1], bad.sum()))} particles; "
+                f"worst particle #{p} of material '{self._material_name(p)}'. Likely cause: numerical blow-up - "
+                f"the time step is too large for the stiffness ({hint_dt}) or the input contains NaN; "
+                "lower dt or E, or enable stiffness/mass scaling")
+        if f[0]:
+            g = (x.astype(np.float64) - self.lo) / self.dx
+            lo_b, hi_b = 1.0, np.asarray(self.dims, np.float64) - 2.0
+            out = np.maximum(lo_b - g, 0.0).max(1) + np.maximum(g - hi_b, 0.0).max(1)
+            p = int(np.argmax(out)) if out.max() > 0 else int(max(f[8], 0))
+            sub = int(f[4])
+            hi = (self.lo + (np.asarray(self.dims) - 1) * self.dx).round(5).tolist()
+            raise SimulationError(
+                f"particle left the simulation grid (entered the padding layer / domain boundary) at substep {sub} "
+                f"(t={self._substep_time(sub):.6g} s, frame {self.frame}); {int(f[0])} offences; worst particle #{p} "
+                f"of material '{self._material_name(p)}' at {x[p].round(5).tolist()} m, grid "
+                f"[{self.lo.round(5).tolist()}, {hi}]. "
+                f"Likely cause: velocities too large (max speed {self._vmax:.4g} m/s; unstable material, "
+                f"{hint_dt}) or boundary targets driving material out of the domain; enlarge the domain "
+                "(margin_cells / domain_lo / domain_hi) or lower dt")
+        if f[2]:
+            J = np.linalg.det(F.astype(np.float64))
+            dev = np.abs(np.log(np.clip(J, 1e-30, None)))
+            dev[~np.isfinite(J) | (J <= 0)] = np.inf
+            p = int(np.argmax(dev))
+            sub = int(f[6])
+            raise SimulationError(
+                f"extreme volume change det(F)={J[p]:.4g} outside [{self.cfg.j_min}, {self.cfg.j_max}] at substep "
+                f"{sub} (t={self._substep_time(sub):.6g} s, frame {self.frame}); {int(f[2])} offences; worst particle "
+                f"#{p} of material '{self._material_name(p)}'. Likely cause: element inversion or over-stretch - "
+                f"the load or boundary velocity is too large for the material stiffness, or the time step is too "
+                f"large ({hint_dt}); lower dt, raise E, or use a plastic/fluid model for this material")
+        if f[3]:
+            sub = int(f[7])
+            p = int(f[11])
+            raise SimulationError(
+                f"a tracer / boundary point left the simulation grid (entered the padding layer) at substep {sub} "
+                f"(t={self._substep_time(sub):.6g} s, frame {self.frame}); point #{p}. Likely cause: surface "
+                "Gaussians or constrained/force points lie outside the domain box, or targets move them out; enlarge "
+                "the domain")
+
+    def _check_state(self, st: FrameStats) -> None:
+        """Per-frame cheap checks: finite energies/momentum and the J range."""
+        vals = [st.kinetic_energy, st.internal_energy, st.j_min, st.j_max, st.max_speed, *st.momentum.tolist()]
+        if not all(math.isfinite(v) for v in vals):
+            self._check_flags(force_nonfinite=True)
+        if st.j_min < self.cfg.j_min or st.j_max > self.cfg.j_max:
+            self.flags.assign(np.array([0, 0, 1, 0, 0, 0, self.substep, 0, -1, -1, 0, -1], np.int32))
+            self._check_flags()
+
+    # ------------------------------------------------------------------ accessors
+    def positions(self) -> np.ndarray:
+        return self.x.numpy().copy()
+
+    def velocities(self) -> np.ndarray:
+        return self.v.numpy().copy()
+
+    def deformation_gradients(self) -> np.ndarray:
+        """Elastic deformation gradients F_E (N, 3, 3) (fluid: J^(1/3) I)."""
+        return self.F.numpy().copy()
+
+    def plastic_strain(self) -> np.ndarray:
+        """Equivalent plastic strain alpha (N,) (zeros when no plastic material is present)."""
+        if not self.has_plastic:
+            return np.zeros(self.n_particles, np.float32)
+        return self.alpha.numpy().copy()
+
+    def volumes(self) -> np.ndarray:
+        return self.vol.numpy().copy()
+
+    def masses(self) -> np.ndarray:
+        """Particle masses (kg), including the current mass scale."""
+        par = self.mat_par.numpy()
+        return self.vol.numpy() * par[self._mid_host, COL_DENSITY]
+
+    def material_ids(self) -> np.ndarray:
+        return self._mid_host.copy()
+
+    def tracer_positions(self) -> np.ndarray:
+        return self.tx.numpy()[: self.n_tracers].copy()
+
+    def tracer_F(self) -> np.ndarray:
+        return self.tF.numpy()[: self.n_tracers].copy()
+
+    def grid_mass(self) -> float:
+        """Total mass (kg) on the grid from the last P2G (float64 sum of the nodal masses)."""
+        return float(self.grid_a.numpy()[..., 3].astype(np.float64).sum())
+
+    def set_velocities(self, v: np.ndarray) -> None:
+        self.v.assign(np.asarray(v, np.float32).reshape(-1, 3))
+        self._vmax = max(self._vmax, float(np.max(np.linalg.norm(v, axis=1))))
+
+    def set_positions(self, x: np.ndarray) -> None:
+        self.x.assign(np.asarray(x, np.float32).reshape(-1, 3))
+
+    def set_material_ids(self, ids: np.ndarray) -> None:
+        """Re-assign particle materials (e.g. a ruptured shell).  The new materials must use models whose state
+        is already allocated and the same density (mass is conserved exactly)."""
+        ids = np.asarray(ids, np.int32).reshape(self.n_particles)
+        if ids.min() < 0 or ids.max() >= len(self.materials):
+            raise ValueError(f"material ids must be in [0, {len(self.materials)})")
+        changed = ids != self._mid_host
+        for a, b in {(int(i), int(j)) for i, j in zip(self._mid_host[changed], ids[changed])}:
+            ma, mb = self.materials[a], self.materials[b]
+            if ma.density != mb.density:
+                raise ValueError(f"material {mb.name} has another density than {ma.name}: mass would change")
+            if (mb.code == 0 and not self.has_corotated) or (mb.is_plastic and not self.has_plastic):
+                raise ValueError(f"material {mb.name} needs solver state that was not allocated")
+        self._mid_host = ids.copy()
+        self.mat_id.assign(ids)
+
+    def set_deformation_gradients(self, F: np.ndarray) -> None:
+        self.F.assign(np.asarray(F, np.float32).reshape(-1, 3, 3))
+
+    def state_nbytes(self) -> dict[str, int]:
+        """Bytes of the per-particle state arrays (allocated only for the models present)."""
+        arrs = dict(x=self.x, v=self.v, C=self.C, F=self.F, q=self.q, alpha=self.alpha, vol=self.vol,
+                    mat_id=self.mat_id)
+        return {k: int(a.size * wp.types.type_size_in_bytes(a.dtype)) for k, a in arrs.items()}
+
+    def bytes_per_particle(self) -> float:
+        return sum(self.state_nbytes().values()) / self.n_particles
+
+    def grid_nbytes(self) -> int:
+        per = 16 * int(np.prod(self.dims))
+        return per * (2 + (3 if self._bc_alloc else 0))

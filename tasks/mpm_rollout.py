@@ -1,0 +1,372 @@
+"""Squeezing-driven deformation: the MPM rollout of one object under its squeeze (paper sec. 3.2, eqs. 4-5).
+
+Per output frame the displacement field of eq. 3 is imposed as Dirichlet boundary conditions: every surface
+point constrained at the end of the frame is driven towards its target ``x0 + dx(x0)`` with the velocity
+``(target - current) / frame_dt``, projected onto the grid nodes of its B-spline stencil (the tracked surface
+points are the 3D Gaussians, advected as massless tracers).  The contact is unilateral: a point is driven only
+while the finger pushes or holds it: (target - current) . d_k >= -dx/4 while the target advances or holds (d_k the
+inward patch normal; the tolerance stops contact chatter) and >= 0 while it retreats, so material that lies
+deeper than a retreating finger is left free, so on release the object rebounds or keeps its dent as its
+material dictates.  The ``force`` boundary mode (the
+no_dirichlet ablation) pushes with a total per-finger force ``force_per_coefficient * c_k,t`` along the
+inward patch normal instead.
+
+Squeezing threshold (sec. 3.2): the squeeze strain of finger k is the mean inward displacement of the surface
+points under its patch divided by the object's half extent along that direction,
+``eps_k = mean(u . d_k) / h(d_k)`` with u = x - x0 the surface displacement (the object's base is held by the
+table, ``mpm.floor_sticky``, so u carries no rigid translation) and ``h(d) = sum_i |d_i| half_i``.  When ``max_k eps_k`` first
+reaches the material oracle's threshold, the shell ruptures within ``release_radius`` of that finger's patch
+(those shell particles become ``ruptured_softening`` times softer, and the finger that punctured the skin no
+longer constrains its patch, so the juice has a way out) and the interior particles there are released opposite to the squeeze direction with speed ``release_speed_per_pascal * p_k`` (capped), p_k the
+finger's contact pressure = |reaction| / patch area.  Objects without interior material, or whose control
+signals never reach the threshold (predicted from the prescribed field before simulating), get no interior
+particles at all.
+
+Resistive force feedback (sec. 3.2): ``f_k = clip(tau_y * A_k, 0, feedback_max_force)`` with tau_y the
+shell's yield stress and A_k the contact patch area; for materials without a yield stress (elastic rubber)
+the simulated contact force |reaction_k| is used instead, clipped the same way.
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import replace
+from typing import Any, Mapping, Optional
+
+import numpy as np
+
+from conf.mpm_schema import mpm_config_from
+from tasks.artifacts import Array
+from tasks.material_oracle import materials_from_dict, mpm_material_kwargs
+from tasks.mpm.materials import Material, material_from_dict
+from tasks.mpm.solver import (DirichletPoints, ForcePatch, MPMSolver, deform_covariances, polar_rotation,
+                              rotate_quaternions)
+from tasks.step import artifact_step
+
+N_FINGERS = 5
+SHELL, INTERIOR, RUPTURED = 0, 1, 2
+
+
+def support_half_extent(direction: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """h(d) = sum_i |d_i| half_i: half-width (m) of the object's bounding box along unit direction(s) d."""
+    return np.abs(direction) @ half
+
+
+def finger_regions(finger: np.ndarray, patch_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The surface region and squeeze direction of each finger per frame, remembered after release.
+
+    Returns ``region`` (frame, finger, point) bool — the largest set of points finger k has constrained so far
+    (a press grows it; a release, which shrinks the contact to the deepest points, does not replace it) — and
+    ``direction`` (frame, finger, xyz) the inward unit normal of
+    that patch.  Both the prescribed and the observed squeeze strain are measured on these regions.
+    """
+    T, S = finger.shape
+    region = np.zeros((T, N_FINGERS, S), bool)
+    direction = np.zeros((T, N_FINGERS, 3))
+    for k in range(N_FINGERS):
+        last_sel, last_dir = np.zeros(S, bool), np.zeros(3)
+        for f in range(T):
+            sel = finger[f] == k
+            if sel.any() and sel.sum() >= last_sel.sum():
+                last_sel, last_dir = sel, -patch_normals[f, k]
+            region[f, k], direction[f, k] = last_sel, last_dir
+    return region, direction
+
+
+def squeeze_strain(displacement: np.ndarray, region: np.ndarray, direction: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """eps_k = mean over finger k's region of the inward displacement / h(d_k) (finger,), 1.
+
+    ``displacement`` (point, xyz) m of the surface points, ``region`` (finger, point), ``direction``
+    (finger, xyz).  A finger that has not touched yet has strain 0.
+    """
+    out = np.zeros(N_FINGERS)
+    for k in range(N_FINGERS):
+        if region[k].any():
+            out[k] = (displacement[region[k]] @ direction[k]).mean() / max(support_half_extent(direction[k], half), 1e-9)
+    return out
+
+
+def cauchy_free_measures(F: np.ndarray, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """J = det F and the von Mises stress 3 mu eps_eq of the Hencky strain (Pa) per particle.
+
+    eps_eq = sqrt(2/3) |dev log V|, V the left stretch of F (the elastic part for plastic models), so
+    sigma_vm = 2 mu sqrt(3/2) |dev eps| = 3 mu eps_eq (StVK-Hencky, exact for that model).
+    """
+    J = np.linalg.det(F)
+    s = np.linalg.svd(F, compute_uv=False)
+    logs = np.log(np.clip(s, 1e-6, None))
+    dev = logs - logs.mean(axis=1, keepdims=True)
+    eps_eq = math.sqrt(2.0 / 3.0) * np.linalg.norm(dev, axis=1)
+    return J, 3.0 * mu * eps_eq
+
+
+def _covariances(scales: np.ndarray, quats: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_quat(np.concatenate([quats[:, 1:], quats[:, :1]], axis=1)).as_matrix()
+    return np.einsum("nij,nj,nkj->nik", R, scales.astype(np.float64) ** 2, R)
+
+
+def _sym6(cov: np.ndarray) -> np.ndarray:
+    """(N,3,3) symmetric -> (N,6) as xx, xy, xz, yy, yz, zz."""
+    return np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2]], axis=1)
+
+
+def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], field: Mapping[str, np.ndarray],
+                forces: np.ndarray, patches: Mapping[str, np.ndarray], times: np.ndarray,
+                materials: Mapping[str, Any], mpm: Mapping[str, Any], sim: Mapping[str, Any],
+                boundary: str) -> tuple[dict[str, Array], dict[str, Any]]:
+    """Simulate one object through its squeeze session; returns the rollout arrays and attributes."""
+    if boundary not in ("dirichlet", "force"):
+        raise ValueError(f"variant.boundary must be dirichlet or force, got {boundary!r}")
+    mats = materials_from_dict(materials)
+    shell = material_from_dict(mpm_material_kwargs(mats.shell, "shell"))
+    T = len(times)
+    frame_dt = float(times[1] - times[0]) if T > 1 else 1.0 / 30.0
+    half = 0.5 * (np.asarray(obj_attrs["bbox_max"]) - np.asarray(obj_attrs["bbox_min"]))
+    disp, finger_of = field["displacement"], field["finger"]
+    notes: list[str] = []
+
+    # ---- what this scene needs: interior particles only if they can be released
+    threshold = mats.squeeze_threshold
+    region, direction = finger_regions(finger_of, patches["patch_normals"])
+    constrained_now = finger_of >= 0
+    predicted = np.stack([squeeze_strain(np.where(constrained_now[f][:, None], disp[f], 0.0), region[f],
+                                         direction[f], half) for f in range(T)])
+    with_interior = mats.interior is not None and len(obj["interior_positions"]) > 0
+    if mats.interior is None or len(obj["interior_positions"]) == 0:
+        notes.append("interior and release skipped: the object has no interior material")
+    elif threshold is None:
+        with_interior = False
+        notes.append("interior and release skipped: the material never ruptures (no squeeze threshold)")
+    elif predicted.max() < threshold:
+        with_interior = False
+        notes.append(f"interior and release skipped: the controls never reach the squeeze threshold "
+                     f"(predicted peak strain {predicted.max():.3f} < {threshold:.3f})")
+
+    mat_list: list[Material] = [shell]
+    positions = [obj["particle_positions"]]
+    volumes = [obj["particle_volumes"]]
+    ids = [np.full(len(obj["particle_positions"]), SHELL, np.int32)]
+    if with_interior:
+        fluid = material_from_dict(mpm_material_kwargs(mats.interior, "interior"))
+        mat_list.append(fluid)
+        positions.append(obj["interior_positions"])
+        volumes.append(obj["interior_volumes"])
+        ids.append(np.full(len(obj["interior_positions"]), INTERIOR, np.int32))
+        mat_list.append(replace(shell, name="ruptured_shell",
+                                youngs_modulus=shell.youngs_modulus * float(sim["ruptured_softening"]),
+                                yield_stress=shell.yield_stress * float(sim["ruptured_softening"])))
+    x0 = np.concatenate(positions).astype(np.float32)
+    vol = np.concatenate(volumes).astype(np.float32)
+    mid = np.concatenate(ids)
+
+    # ---- grid and time scaling
+    cfg = mpm_config_from(dict(mpm))
+    spacing = float(obj_attrs["particle_spacing"])
+    dx = cfg.dx or spacing * cfg.particles_per_cell ** (1.0 / 3.0)
+    mass_scale = 1.0
+    target = int(sim["target_substeps_per_frame"])
+    solids = [m for m in mat_list[:2] if m.model != "fluid"]
+    if target > 0:
+        dt_target = frame_dt / target
+        c_max = max(m.p_wave_speed(cfg.stiffness_scaling) for m in solids)
+        mass_scale = max(1.0, (c_max * dt_target / (cfg.courant * dx)) ** 2)
+    if with_interior and mat_list[1].model == "fluid":
+        # weakly compressible: sound speed 10 x the reference flow speed AFTER mass scaling (Mach 0.1, ~1 %
+        # density error), instead of water's 1450 m/s
+        v = float(sim["fluid_reference_speed"])
+        k_fluid = mass_scale * mat_list[1].density * (10.0 * v) ** 2 / cfg.stiffness_scaling
+        notes.append(f"interior fluid bulk modulus {k_fluid:.3g} Pa (sound speed {10 * v:g} m/s at mass scale "
+                     f"x{mass_scale:.3g}; Mach 0.1 at {v:g} m/s) instead of {mats.interior.bulk_modulus:.3g} Pa")
+        mat_list[1] = replace(mat_list[1], bulk_modulus=k_fluid)
+    gravity = [g / mass_scale for g in cfg.gravity]
+    cfg = replace(cfg, dx=dx, mass_scaling="manual" if mass_scale > 1 else cfg.mass_scaling,
+                  mass_scale=mass_scale if mass_scale > 1 else cfg.mass_scale, gravity=gravity)
+    solver = MPMSolver(x0, vol, mat_list, material_ids=mid, config=cfg, tracers=obj["surface_points"])
+    contact_tolerance = 0.25 * dx  # m: a point this much deeper than its finger is still in contact
+
+    # ---- outputs (only what the scene needs)
+    P, S = len(x0), len(obj["surface_points"])
+    plastic = any(m.is_plastic for m in mat_list)
+    out_x = np.zeros((T, P, 3), np.float32)
+    out_J = np.ones((T, P), np.float32)
+    out_vm = np.zeros((T, P), np.float32)
+    out_ep = np.zeros((T, P), np.float32) if plastic else None
+    g_pos = np.zeros((T, S, 3), np.float32)
+    g_cov = np.zeros((T, S, 6), np.float32)
+    g_rot = np.zeros((T, S, 4), np.float32)
+    reaction = np.zeros((T, N_FINGERS, 3), np.float32)
+    applied = np.zeros((T, N_FINGERS, 3), np.float32)
+    strain = np.zeros((T, N_FINGERS), np.float32)
+    tracking = np.zeros(T, np.float32)
+    stats_keys = ("substeps", "dt_min", "courant", "max_speed", "j_min", "j_max", "kinetic_energy",
+                  "internal_energy", "ke_ie_ratio")
+    stats = {k: np.zeros(T, np.float64) for k in stats_keys}
+    mu_phys = np.array([m.mu for m in mat_list])[mid]
+    cov0 = _covariances(obj["gaussian_scales"], obj["gaussian_rotations"])
+    q0 = obj["gaussian_rotations"].astype(np.float64)
+    released = np.zeros(P, bool) if with_interior else None
+    torn = np.zeros(len(obj["surface_points"]), bool)  # surface points whose skin ruptured: no longer constrained
+    event: dict[str, Any] = {"crossed": False, "threshold": threshold}
+    surface0 = obj["surface_points"].astype(np.float64)
+
+    def record(f: int) -> None:
+        F = solver.deformation_gradients().astype(np.float64)
+        out_x[f] = solver.positions()
+        out_J[f], out_vm[f] = cauchy_free_measures(F, mu_phys)
+        if out_ep is not None:
+            out_ep[f] = solver.plastic_strain()
+        tx, tF = solver.tracer_positions(), solver.tracer_F().astype(np.float64)
+        g_pos[f] = tx
+        g_cov[f] = _sym6(deform_covariances(tF, cov0))
+        g_rot[f] = rotate_quaternions(polar_rotation(tF), q0)
+        moved = tx - surface0
+        strain[f] = squeeze_strain(moved, region[f], direction[f], half)
+
+    record(0)
+    for f in range(1, T):
+        bc, push = None, None
+        if boundary == "dirichlet":
+            idx = np.flatnonzero(field["constrained"][f] & ~torn)
+            if len(idx):
+                current = solver.tracer_positions()[idx].astype(np.float64)
+                target_x = surface0[idx] + disp[f, idx]
+                # unilateral contact: a finger pushes or holds, it never pulls material outwards
+                inward = direction[f, finger_of[f, idx]]
+                gap = np.einsum("ij,ij->i", target_x - current, inward)
+                retreating = np.einsum("ij,ij->i", disp[f, idx] - disp[f - 1, idx], inward) < 0.0
+                push_or_hold = gap >= np.where(retreating, 0.0, -contact_tolerance)
+                idx, current, target_x = idx[push_or_hold], current[push_or_hold], target_x[push_or_hold]
+            if len(idx):
+                bc = DirichletPoints(positions=current, velocities=(target_x - current) / frame_dt,
+                                     finger_ids=finger_of[f, idx].astype(np.int32))
+        else:
+            idx = np.flatnonzero(field["constrained"][f])
+            if len(idx):
+                total = np.zeros((N_FINGERS, 3))
+                for k in range(N_FINGERS):
+                    if patches["patch_active"][f, k]:
+                        total[k] = float(sim["force_per_coefficient"]) * forces[f, k] * -patches["patch_normals"][f, k]
+                push = ForcePatch(positions=solver.tracer_positions()[idx], finger_ids=finger_of[f, idx].astype(np.int32),
+                                  forces=total)
+        with warnings.catch_warnings():  # the KE/IE check is summarised in the attributes instead
+            warnings.simplefilter("ignore", RuntimeWarning)
+            st = solver.step_frame(frame_dt, dirichlet=bc, forces=push)
+        for k in stats_keys:
+            stats[k][f] = float(getattr(st, k))
+        reaction[f] = np.asarray(st.reaction)[:N_FINGERS]
+        applied[f] = np.asarray(st.applied_force)[:N_FINGERS]
+        record(f)
+        if bc is not None:  # RMS distance of the imposed points from their targets at the end of the frame
+            tracking[f] = np.sqrt(np.mean(np.sum((g_pos[f][idx] - target_x) ** 2, axis=1)))
+        if with_interior and not event["crossed"] and threshold is not None and strain[f].max() >= threshold:
+            tx = solver.tracer_positions()
+            centers = np.array([tx[region[f, k]].mean(axis=0) if region[f, k].any() else patches["patch_centers"][f, k]
+                                for k in range(N_FINGERS)])
+            event = _release(solver, f, times[f], strain[f], threshold, patches, centers, reaction[f], applied[f],
+                             boundary, mid, released, sim)
+            for k in event["fingers"]:  # the finger punctured the skin: it no longer presses on its patch
+                torn |= region[f, k] | (np.linalg.norm(tx - centers[k], axis=1) <= float(sim["release_radius"]))
+            mid = solver.material_ids()
+
+    # ---- resistive force feedback (per finger, N)
+    area = patches["patch_areas"] * patches["patch_active"]
+    contact = np.linalg.norm(reaction if boundary == "dirichlet" else applied, axis=-1)
+    tau_y = mats.shell.yield_stress
+    raw_feedback = tau_y * area if tau_y else contact
+    feedback = np.clip(raw_feedback, 0.0, float(sim["feedback_max_force"])).astype(np.float32)
+
+    arrays: dict[str, Array] = {
+        "time": Array(times.astype(np.float64), ("frame",), "s"),
+        "particle_positions": Array(out_x, ("frame", "particle", "xyz"), "m"),
+        "particle_material": Array(mid.astype(np.int8), ("particle",), "1",
+                                   "0 shell, 1 interior, 2 ruptured shell"),
+        "particle_J": Array(out_J, ("frame", "particle"), "1", "det F (volume ratio)"),
+        "particle_von_mises": Array(out_vm, ("frame", "particle"), "Pa", "3 mu eps_eq of the elastic Hencky strain"),
+        "gaussian_positions": Array(g_pos, ("frame", "point", "xyz"), "m"),
+        "gaussian_covariances": Array(g_cov, ("frame", "point", "sym6"), "m^2", "F Sigma F^T: xx xy xz yy yz zz"),
+        "gaussian_rotations": Array(g_rot, ("frame", "point", "quat"), "1", "polar(F) q0, w first"),
+        "reaction_force": Array(reaction, ("frame", "finger", "xyz"), "N",
+                                "sum m (v_bc - v*) / dt over the finger's constrained nodes, frame mean"),
+        "applied_force": Array(applied, ("frame", "finger", "xyz"), "N", "force mode push, frame mean"),
+        "feedback_force": Array(feedback, ("frame", "finger"), "N", "resistive force for the glove"),
+        "squeeze_strain": Array(strain, ("frame", "finger"), "1"),
+        "dirichlet_tracking_error": Array(tracking, ("frame",), "m",
+                                          "RMS |x - (x0 + dx)| over the points imposed in that frame"),
+        "predicted_squeeze_strain": Array(predicted.astype(np.float32), ("frame", "finger"), "1"),
+    }
+    units = {"dt_min": "s", "courant": "1", "max_speed": "m/s", "j_min": "1", "j_max": "1", "kinetic_energy": "J",
+             "internal_energy": "J", "ke_ie_ratio": "1", "substeps": "1"}
+    for k in stats_keys:
+        arrays[k] = Array(stats[k], ("frame",), units[k])
+    if out_ep is not None:
+        arrays["plastic_strain"] = Array(out_ep, ("frame", "particle"), "1", "equivalent plastic strain")
+    if released is not None:
+        arrays["released"] = Array(released, ("particle",), "1", "released at the threshold crossing")
+    attrs = {
+        "boundary": boundary, "materials": [m.name for m in mat_list], "n_particles": int(P),
+        "n_interior": int((mid == INTERIOR).sum()),
+        "with_interior": bool(with_interior), "dx": float(dx), "mass_scale": float(mass_scale),
+        "gravity_effective": gravity, "device": solver.device, "substeps_total": int(stats["substeps"].sum()),
+        "threshold_event": event, "notes": notes,
+        "feedback_rule": "tau_y * area" if tau_y else "|contact force| (no yield stress)",
+        "bytes_per_particle": float(solver.bytes_per_particle()),
+        "quasi_static": _quasi_static_summary(stats["ke_ie_ratio"], reaction if boundary == "dirichlet" else applied,
+                                              mass_scale, float(cfg.quasi_static_ke_ie_max)),
+    }
+    return arrays, attrs
+
+
+def _quasi_static_summary(ke_ie: np.ndarray, contact: np.ndarray, mass_scale: float, limit: float) -> dict:
+    """How well the mass-scaled run stayed quasi-static while the fingers were in contact (KE/IE per frame)."""
+    in_contact = np.linalg.norm(contact, axis=-1).max(axis=1) > 0
+    ratio = ke_ie[in_contact] if in_contact.any() else np.zeros(1)
+    return {"mass_scale": mass_scale, "limit": limit, "max_ke_ie_in_contact": float(ratio.max()),
+            "median_ke_ie_in_contact": float(np.median(ratio)),
+            "frames_over_limit": int((ratio > limit).sum()), "frames_in_contact": int(in_contact.sum())}
+
+
+def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold: float,
+             patches: Mapping[str, np.ndarray], centers: np.ndarray, reaction: np.ndarray, applied: np.ndarray,
+             boundary: str, mid: np.ndarray, released: np.ndarray, sim: Mapping[str, Any]) -> dict[str, Any]:
+    """Rupture the shell and release interior particles at the finger(s) past the threshold.
+
+    ``centers`` (finger, xyz) m: where each finger's contact is now (the deformed patch), not at rest."""
+    x = solver.positions().astype(np.float64)
+    v = solver.velocities().astype(np.float64)
+    ids = mid.copy()
+    radius = float(sim["release_radius"])
+    fingers = [k for k in range(N_FINGERS) if strain[k] >= threshold and patches["patch_active"][f, k]]
+    fingers = fingers or [int(np.argmax(strain))]
+    speeds = []
+    for k in fingers:
+        c = centers[k]
+        n_out = patches["patch_normals"][f, k]
+        area = max(float(patches["patch_areas"][f, k]), 1e-8)
+        force = np.linalg.norm(reaction[k] if boundary == "dirichlet" else applied[k])
+        speed = min(float(sim["release_speed_per_pascal"]) * force / area, float(sim["max_release_speed"]))
+        near = np.linalg.norm(x - c, axis=1) <= radius
+        ids[near & (mid == SHELL)] = RUPTURED
+        out = near & (mid == INTERIOR) & ~released
+        v[out] = n_out * speed  # opposite to the squeeze direction (-n_out)
+        released |= out
+        speeds.append(speed)
+    solver.set_material_ids(ids)
+    solver.set_velocities(v.astype(np.float32))
+    return {"crossed": True, "frame": int(f), "time": float(t), "fingers": fingers,
+            "strain": float(strain.max()), "threshold": threshold, "released_particles": int(released.sum()),
+            "release_speeds": speeds}
+
+
+@artifact_step("mpm_rollout", modules=("tasks.mpm.solver", "tasks.mpm.kernels", "tasks.mpm.constitutive",
+                                        "tasks.mpm.materials", "conf.mpm_schema", "tasks.material_oracle"))
+def mpm_rollout_step(inputs, params):
+    """The squeeze simulated with MLS-MPM.  params: ``mpm`` (MPMConfig), ``simulation``, ``boundary``.
+
+    inputs: ``object``, ``frames``, ``forces``, ``contacts``, ``field`` (eq. 3), ``materials`` (oracle).
+    """
+    obj = inputs["object"]
+    return mpm_rollout(obj.arrays, obj.attrs, inputs["field"].arrays, inputs["forces"]["force_coefficients"],
+                       inputs["contacts"].arrays, inputs["frames"]["time"], inputs["materials"].attrs["materials"],
+                       params["mpm"], params["simulation"], params["boundary"])

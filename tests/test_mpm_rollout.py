@@ -1,0 +1,174 @@
+"""The squeeze simulated end to end (paper sec. 3.2): Dirichlet tracking, rebound vs dent, threshold release,
+force mode totals, and the measures the rollout reports (known answers)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from omegaconf import OmegaConf
+
+from conf.schema import Config
+from tasks.artifacts import read_artifact
+from tasks.mpm_rollout import (cauchy_free_measures, finger_regions, squeeze_strain, support_half_extent)
+
+# ------------------------------------------------------------------------------------------ pure measures
+
+
+def test_support_half_extent_of_a_box():
+    half = np.array([0.03, 0.02, 0.01])
+    assert support_half_extent(np.array([1.0, 0, 0]), half) == pytest.approx(0.03)
+    d = np.array([1.0, 1.0, 0]) / math.sqrt(2)
+    assert support_half_extent(d, half) == pytest.approx(0.05 / math.sqrt(2))
+
+
+def test_squeeze_strain_is_mean_inward_displacement_over_half_extent():
+    half = np.array([0.03, 0.02, 0.01])
+    region = np.zeros((5, 4), bool)
+    region[1, :2] = True
+    direction = np.zeros((5, 3))
+    direction[1] = [0, 1, 0]
+    u = np.zeros((4, 3))
+    u[:2] = [[0, 0.002, 0], [0, 0.004, 0.001]]  # the z part does not count
+    eps = squeeze_strain(u, region, direction, half)
+    assert eps[1] == pytest.approx(0.003 / 0.02)
+    assert np.all(np.delete(eps, 1) == 0)
+
+
+def test_finger_regions_are_remembered_after_release():
+    finger = np.array([[-1, -1, -1], [0, 0, -1], [-1, -1, -1]])
+    normals = np.zeros((3, 5, 3))
+    normals[1, 0] = [0, 0, 1]
+    region, direction = finger_regions(finger, normals)
+    assert not region[0, 0].any()
+    assert region[1, 0].tolist() == [True, True, False] and region[2, 0].tolist() == [True, True, False]
+    np.testing.assert_array_equal(direction[2, 0], [0, 0, -1])  # inward = -outward patch normal
+
+
+def test_von_mises_of_hencky_strain():
+    mu = np.array([2.0e5, 2.0e5])
+    c, s = math.cos(0.4), math.sin(0.4)
+    F = np.stack([[[c, -s, 0], [s, c, 0], [0, 0, 1]], np.diag([1.1, 1.0, 1.0])])
+    J, vm = cauchy_free_measures(F, mu)
+    assert J == pytest.approx([1.0, 1.1])
+    assert vm[0] == pytest.approx(0.0, abs=1e-6)
+    # uniaxial Hencky strain l = ln 1.1: dev = l (2/3, -1/3, -1/3), eps_eq = 2l/3, sigma_vm = 3 mu eps_eq = 2 mu l
+    assert vm[1] == pytest.approx(2 * 2.0e5 * math.log(1.1), rel=1e-6)
+
+
+# ------------------------------------------------------------------------------------------ real rollouts
+
+
+def _rollout(tmp_path, name: str, *extra: str):
+    from flows.pipeline import step_params
+    from tasks.contact_patches import contact_patches_step
+    from tasks.dirichlet_field import dirichlet_field_step
+    from tasks.force_coefficients import force_coefficients_step
+    from tasks.material_oracle import material_oracle_step
+    from tasks.mpm_rollout import mpm_rollout_step
+    from tasks.object_model import object_model_step
+    from tasks.signal_smoothing import signal_smoothing_step
+    from tasks.squeeze_signals import squeeze_signals_step
+
+    cfg = OmegaConf.merge(OmegaConf.structured(Config),
+                          {"object": OmegaConf.load(f"conf/object/{name}.yaml"),
+                           "mpm": OmegaConf.load("conf/mpm/default.yaml")},
+                          OmegaConf.from_dotlist(["control.smoothing.frame_rate=20", *extra]))
+    p = step_params(cfg, cfg.object)
+    kw = dict(root=str(tmp_path), scope=name)
+    o = object_model_step.run_local(params=p["object_model"], **kw)
+    s = squeeze_signals_step.run_local(params=p["squeeze_signals"], inputs={"object": o}, **kw)
+    fr = signal_smoothing_step.run_local(params=p["signal_smoothing"], inputs={"signals": s}, **kw)
+    fc = force_coefficients_step.run_local(params=p["force_coefficients"], inputs={"frames": fr}, **kw)
+    cp = contact_patches_step.run_local(params=p["contact_patches"], inputs={"object": o, "frames": fr, "forces": fc}, **kw)
+    df = dirichlet_field_step.run_local(params=p["dirichlet_field"], inputs={"object": o, "contacts": cp, "forces": fc}, **kw)
+    mo = material_oracle_step.run_local(params=p["material_oracle"], **kw)
+    r = mpm_rollout_step.run_local(params=p["mpm_rollout"], inputs={
+        "object": o, "frames": fr, "forces": fc, "contacts": cp, "field": df, "materials": mo}, **kw)
+    return {k: read_artifact(v) for k, v in dict(field=df, forces=fc, patches=cp, rollout=r).items()}
+
+
+@pytest.fixture(scope="module")
+def clay(tmp_path_factory):
+    return _rollout(tmp_path_factory.mktemp("clay"), "clay")
+
+
+@pytest.fixture(scope="module")
+def ball(tmp_path_factory):
+    return _rollout(tmp_path_factory.mktemp("ball"), "rubber_ball", "signal.session=ramp_hold_release")
+
+
+def test_dirichlet_points_follow_their_targets(clay):
+    r = clay["rollout"]
+    active = clay["field"]["constrained"].any(axis=1)
+    assert active.sum() > 10
+    assert r["dirichlet_tracking_error"][active].max() < 0.25 * r.attrs["dx"]
+    # prescribed and simulated squeeze strain agree while the fingers hold
+    pred, obs = r["predicted_squeeze_strain"].max(axis=1), r["squeeze_strain"].max(axis=1)
+    # while the prescribed squeeze advances or holds (a retreating finger leaves plastic clay behind)
+    advancing = pred >= 0.99 * np.maximum.accumulate(pred)
+    big = advancing & (pred > 0.5 * pred.max())
+    np.testing.assert_allclose(obs[big], pred[big], rtol=0.15)
+
+
+def test_clay_keeps_its_dent_and_rubber_rebounds(clay, ball):
+    for art, keeps in ((clay, True), (ball, False)):
+        eps = art["rollout"]["squeeze_strain"].max(axis=1)
+        peak, final = eps.max(), eps[-1]
+        assert peak > 0.03
+        if keeps:
+            assert final > 0.5 * peak, (peak, final)
+        else:
+            assert final < 0.3 * peak, (peak, final)
+    assert "plastic_strain" in clay["rollout"] and clay["rollout"]["plastic_strain"].max() > 0.01
+
+
+def test_scene_without_interior_allocates_and_stores_none(ball):
+    r = ball["rollout"]
+    assert "released" not in r
+    assert not r.attrs["with_interior"]
+    assert (r["particle_material"] == 0).all()
+    assert any("no interior material" in n for n in r.attrs["notes"])
+    assert r.attrs["threshold_event"]["crossed"] is False
+
+
+def test_reaction_and_feedback_forces(clay, ball):
+    # clay: feedback = yield stress x contact area (clipped to the glove's 20 N)
+    r, patches = clay["rollout"], clay["patches"]
+    expected = np.clip(40e3 * patches["patch_areas"] * patches["patch_active"], 0, 20.0)
+    np.testing.assert_allclose(r["feedback_force"], expected, rtol=1e-5, atol=1e-6)
+    assert np.linalg.norm(r["reaction_force"], axis=-1).max() > 1.0  # the fingers feel the clay
+    # rubber (no yield stress): feedback = |reaction|, clipped
+    rb = ball["rollout"]
+    np.testing.assert_allclose(rb["feedback_force"], np.clip(np.linalg.norm(rb["reaction_force"], axis=-1), 0, 20),
+                               rtol=1e-5, atol=1e-6)
+
+
+def test_tomato_bursts_past_its_threshold(tmp_path):
+    art = _rollout(tmp_path, "tomato", "signal.session=crush", "signal.peak_flexion=1.0", "signal.duration=2.0")
+    r = art["rollout"]
+    ev = r.attrs["threshold_event"]
+    assert r.attrs["with_interior"] and ev["crossed"], r.attrs["notes"]
+    assert r["squeeze_strain"][ev["frame"]].max() >= ev["threshold"]
+    rel = r["released"]
+    assert rel.sum() > 0 and rel.sum() == ev["released_particles"]
+    # released at the deformed contact of the finger past the threshold, with speed = gain x pressure (capped)
+    f, k = ev["frame"], ev["fingers"][0]
+    pressure = np.linalg.norm(r["reaction_force"][f, k]) / art["patches"]["patch_areas"][f, k]
+    assert ev["release_speeds"][0] == pytest.approx(min(1.0e-4 * pressure, 1.0), rel=1e-4)
+    x = r["particle_positions"][f]
+    centre = x[rel].mean(axis=0)
+    assert np.linalg.norm(x[rel] - centre, axis=1).max() <= 2 * 0.012 + 1e-6
+    assert (r["particle_material"] == 2).any()  # the shell ruptured there
+    assert (r["particle_material"][rel] == 1).all()  # only interior particles are released
+
+
+def test_force_mode_applies_the_total_force_per_finger(tmp_path):
+    art = _rollout(tmp_path, "rubber_ball", "variant.boundary=force", "signal.duration=1.5")
+    r = art["rollout"]
+    c, active = art["forces"]["force_coefficients"], art["patches"]["patch_active"]
+    applied = np.linalg.norm(r["applied_force"], axis=-1)
+    expected = 8.0 * c * active  # simulation.force_per_coefficient = 8 N
+    on = expected[1:] > 0.5
+    np.testing.assert_allclose(applied[1:][on], expected[1:][on], rtol=0.02)
+    assert np.all(r["reaction_force"] == 0)
