@@ -72,7 +72,7 @@ class RunTable:
 
     def add_future(self, obj: str, step: str, future) -> Optional[ArtifactRef]:
         """Wait for a submitted step and record ran / cached / failed; returns its reference or None."""
-        state = future.wait() or future.state
+        future.wait()
         state = future.state
         if state.is_failed() or state.is_crashed() or state.is_cancelled():
             try:
@@ -83,10 +83,10 @@ class RunTable:
             self.rows.append(TaskRow(obj, step, "failed", 0.0, 0, "", msg))
             return None
         ref: ArtifactRef = future.result()
-        cached = state.name == "Cached"
+        cached = state.name == "Cached" or ref.reused
         self.rows.append(
             TaskRow(obj, step, "cached" if cached else "ran", 0.0 if cached else ref.compute_seconds,
-                    directory_size(ref.path), ref.path)
+                    directory_size(ref.path), ref.path, "reused from disk" if ref.reused else "")
         )
         return ref
 

@@ -39,6 +39,7 @@ class ArtifactRef(BaseModel):
     scope: str
     nbytes: int = 0
     compute_seconds: float = 0.0
+    reused: bool = False  # found complete on disk (e.g. its cache record was lost to a kill): not recomputed
 
     def exists(self) -> bool:
         """True when the group at ``path`` is complete and carries this reference's digest."""

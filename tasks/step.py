@@ -116,7 +116,7 @@ def _execute(step: str, version: str, compute: ComputeFn, root: str, scope: str,
     try:  # the artifact survived although its cache record did not (e.g. result storage wiped)
         attrs = read_group_attrs(path)
         return ArtifactRef(path=str(path), digest=attrs["digest"], step=step, scope=scope,
-                           compute_seconds=float(attrs.get("compute_seconds", 0.0)))
+                           compute_seconds=float(attrs.get("compute_seconds", 0.0)), reused=True)
     except ArtifactError:
         pass
     loaded = {name: read_artifact(ref) for name, ref in inputs.items()}

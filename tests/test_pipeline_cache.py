@@ -73,6 +73,20 @@ def test_deleted_or_half_written_artifact_is_recomputed(prefect_server, tmp_path
     read_group_attrs(artifact_of(tmp_path, "orange", "contact_patches")[0])  # complete again
 
 
+def test_lost_cache_records_reuse_the_artifacts_on_disk(prefect_server, tmp_path, compose_cfg):
+    """A kill between an artifact's rename and Prefect's record write leaves an artifact without a record:
+    the step finds it on disk and does not recompute it (reported as cached, 'reused from disk')."""
+    import shutil
+
+    first = run_grid(compose_cfg, tmp_path, ["paper_cup"])
+    assert set(first.values()) == {"ran"}
+    shutil.rmtree(tmp_path / "artifacts" / ".prefect" / "results")
+    before = _digests(tmp_path)
+    again = run_grid(compose_cfg, tmp_path, ["paper_cup"])
+    assert set(again.values()) == {"cached"}
+    assert _digests(tmp_path) == before
+
+
 def _digests(root: Path) -> dict[tuple[str, str], str]:
     out = {}
     for group in (root / "artifacts").glob("*/*/*.zarr"):
