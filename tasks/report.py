@@ -163,15 +163,19 @@ def rollout_summary(refs: Mapping[str, Mapping[str, Any]]) -> Optional[str]:
                  f"{ev['released_particles']} released" if ev.get("crossed")
                  else ("never crossed" if ev.get("threshold") is not None else "no threshold"))
         eps = r["squeeze_strain"].max(axis=1)
+        qs = a.get("quasi_static", {})
         rows.append(f"| {obj} | {a['boundary']} | {a['n_particles']} | {a['substeps_total']} | x{a['mass_scale']:.3g} | "
+                    f"{qs.get('median_ke_ie_in_contact', float('nan')):.3g} ({qs.get('frames_over_limit', 0)}/"
+                    f"{qs.get('frames_in_contact', 0)} over) | "
                     f"{eps.max():.3f} / {eps[-1]:.3f} | {1e3 * r['dirichlet_tracking_error'].max():.2f} | "
                     f"{r['feedback_force'].max():.1f} | {event} | {ref.compute_seconds:.1f} | "
                     f"{'; '.join(a['notes']) or '-'} |")
     if not rows:
         return None
-    head = ("| object | boundary | particles | substeps | mass scale | squeeze strain peak / end | "
-            "max tracking error (mm) | peak feedback (N) | threshold | sim wall (s) | left out / notes |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|")
+    head = ("| object | boundary | particles | substeps | mass scale | KE/IE in contact: median (frames over limit) | "
+            "squeeze strain peak / end | max tracking error (mm) | peak feedback (N) | threshold | sim wall (s) | "
+            "left out / notes |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|---|")
     return head + "\n" + "\n".join(rows)
 
 

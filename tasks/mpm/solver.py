@@ -225,6 +225,7 @@ class MPMSolver:
             raise ValueError(f"material_ids must be in [0, {len(self.materials)})")
         v = np.zeros_like(x) if velocities is None else np.asarray(velocities, np.float32).reshape(n, 3)
         self._mid_host = mid
+        self._warned_quasi_static = False
         present = sorted(set(int(i) for i in np.unique(mid)))
         self._present = present
         codes_present = {self.materials[i].code for i in present}
@@ -723,6 +724,8 @@ class MPMSolver:
         qs_ok = True
         if self.mass_scale > 1.0 and ratio > self.cfg.quasi_static_ke_ie_max and ie > 0:
             qs_ok = False
+        if not qs_ok and not self._warned_quasi_static:  # once per solver; every frame's flag is in FrameStats
+            self._warned_quasi_static = True
             warnings.warn(
                 f"mass scaling x{self.mass_scale:.3g}: kinetic/internal energy ratio {ratio:.3g} > "
                 f"{self.cfg.quasi_static_ke_ie_max} at t={self.time:.4g} s - the quasi-static assumption is violated; "
