@@ -8,7 +8,6 @@ Each call below submits a cached Prefect task (tasks.step) with exactly the conf
 from __future__ import annotations
 
 import hashlib
-import logging
 
 from prefect.logging import get_logger
 import time

@@ -1,13 +1,12 @@
 """What every flow shares: task runner from config, result storage, the per-task status table."""
 from __future__ import annotations
 
-import logging
 
 from prefect.logging import get_logger
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Optional
+from typing import Optional
 
 import pandas as pd
 from omegaconf import DictConfig

@@ -139,8 +139,6 @@ def write_artifact(
         nbytes = 0
         for name, a in arrays.items():
             data = a.data
-            if data.dtype == np.float64:
-                data = data  # keep double where a step produced double
             chunks = _chunks(data)
             arr = group.create_array(
                 name,

@@ -79,7 +79,7 @@ signals onto the surface), so a finger pointing at the object from afar is activ
 """
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import replace
-from typing import Any, Mapping, Optional
+from typing import Any, Mapping
 
 import numpy as np
 

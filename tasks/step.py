@@ -16,7 +16,6 @@ from __future__ import annotations
 import hashlib
 import importlib
 import inspect
-import logging
 
 from prefect.logging import get_logger
 import time
