@@ -34,6 +34,16 @@ def code_revision() -> str:
         return "unknown"
 
 
+def _save(fig, axes, path: Path, dpi: int = 110) -> Path:
+    """Grid lines on every axis, tight layout, PNG at ``path``; the figure is closed."""
+    for ax in np.ravel(axes):
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
+
+
 def control_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Path) -> Optional[Path]:
     """Flexion, force coefficients (eq. 1) and contact patch area (eq. 2) per finger over time."""
     try:
@@ -55,12 +65,7 @@ def control_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pa
     axes[2].set_xlabel("time (s)")
     axes[0].legend(ncol=5, fontsize=8, loc="upper right")
     axes[0].set_title(f"{obj}: squeezing control mapping")
-    for ax in axes:
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, axes, path)
 
 
 def rollout_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Path) -> Optional[Path]:
@@ -96,12 +101,7 @@ def rollout_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pa
     axes[3].set_ylabel("substeps / frame")
     axes[3].set_xlabel("time (s)")
     axes[0].set_title(f"{obj}: MPM rollout ({r.attrs['boundary']}, mass scale x{r.attrs['mass_scale']:.3g})")
-    for ax in axes:
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, axes, path)
 
 
 def snapshot_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Path) -> Optional[Path]:
