@@ -27,8 +27,10 @@ class MPMConfig:
         courant: C in dt <= C dx / c_p (c_p = P-wave speed of the stiffest material present, after scaling).
         max_speed_cfl: advective bound dt <= max_speed_cfl dx / max |v|.
         dt: forced substep size in s (disables the adaptive choice); checked against ``courant_limit``.
-        courant_limit: largest Courant number dt c_p / dx accepted with a forced ``dt`` (explicit MPM blew up
-            near 1.2 in a CPU test; the adaptive default uses ``courant``).
+        courant_limit: largest Courant number dt c_p / dx accepted, for ``courant`` and for a forced ``dt``.
+            0.8: ``python -m flows.stability`` measured explicit MLS-MPM (8 cells, plate release) unstable at 0.95
+            for nu = 0.45 and at 0.9 for nu = 0.49, with J in range and no NaN (energy x120): no guard catches
+            that, so the config refuses it.
         max_substeps_per_frame: safety cap (a collapsing dt is an error, not an endless loop).
     Body force and boundaries
         gravity: m/s^2 (z up).
@@ -37,10 +39,15 @@ class MPMConfig:
         floor_sticky: the floor holds the material (no slip, no separation).
         wall_sticky: domain walls are sticky instead of slip.
     Acceleration knobs (each changes the physics; reported in the frame statistics)
-        mass_scaling: ``off``, ``manual`` (density x ``mass_scale``) or ``auto`` (smallest scale s >= 1 so that the
-            elastic CFL needs at most ``target_substeps_per_frame`` substeps; c_p drops by sqrt(s)).  Weight grows
-            with the density too.  With scaling on, a frame whose kinetic/internal energy ratio exceeds
-            ``quasi_static_ke_ie_max`` warns: the quasi-static assumption behind mass scaling is violated.
+        mass_scaling: time (mass) scaling, the one mechanism of the project: ``off``; ``manual`` (every density x
+            ``mass_scale``); ``auto`` (the smallest s >= 1 for which the elastic CFL of the non-fluid materials
+            needs at most ``target_substeps_per_frame`` substeps per output frame, fixed at the first frame:
+            s = max(1, (c_p frame_dt / (N C dx))^2), see :func:`tasks.mpm.solver.mass_scale_for`).  Wave speeds
+            drop by sqrt(s); gravity is divided by s, so weights and quasi-static states under gravity are
+            unchanged (motion is sqrt(s) times slower).  With scaling on, a frame whose kinetic/internal energy
+            ratio exceeds ``quasi_static_ke_ie_max`` warns: the quasi-static assumption is violated.
+        mass_scale: the factor s of ``manual`` (>= 1, dimensionless).
+        target_substeps_per_frame: N of ``auto``: substeps per output frame the elastic CFL may need.
         stiffness_scaling: factor on E (and K) of every material; yield stresses are unchanged.
     Guards
         j_min, j_max: admissible range of det(F_E); outside raises SimulationError.
@@ -68,7 +75,7 @@ class MPMConfig:
     courant: float = 0.3
     max_speed_cfl: float = 0.5
     dt: Optional[float] = None
-    courant_limit: float = 1.0
+    courant_limit: float = 0.8
     max_substeps_per_frame: int = 200000
     gravity: list[float] = field(default_factory=lambda: [0.0, 0.0, -9.81])
     floor: bool = True
@@ -78,7 +85,7 @@ class MPMConfig:
     wall_sticky: bool = False
     mass_scaling: str = "off"
     mass_scale: float = 1.0
-    target_substeps_per_frame: int = 200
+    target_substeps_per_frame: int = 100
     quasi_static_ke_ie_max: float = 0.1
     stiffness_scaling: float = 1.0
     j_min: float = 0.05
@@ -111,8 +118,9 @@ def validate_mpm_config(cfg: MPMConfig) -> MPMConfig:
         bad("padding", f"must be >= 2 nodes (got {cfg.padding}); the stencil needs room")
     if cfg.margin_cells < 0:
         bad("margin_cells", "must be >= 0")
-    if not 0 < cfg.courant <= 1.0:
-        bad("courant", f"must be in (0, 1] (got {cfg.courant}); 0.3-0.5 is stable")
+    if not 0 < cfg.courant <= cfg.courant_limit:
+        bad("courant", f"must be in (0, courant_limit={cfg.courant_limit}] (got {cfg.courant}); 0.3-0.5 is stable, "
+                       "above 0.85 explicit MPM was measured unstable for nearly incompressible materials")
     if not 0 < cfg.max_speed_cfl <= 1.0:
         bad("max_speed_cfl", f"must be in (0, 1] (got {cfg.max_speed_cfl})")
     if cfg.dt is not None and not cfg.dt > 0:

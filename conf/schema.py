@@ -11,6 +11,7 @@ from typing import Any, Optional
 
 from omegaconf import MISSING
 
+from conf.metrics_schema import MetricsConfig, validate_metrics
 from conf.mpm_schema import MPMConfig
 from conf.oracle_schema import OracleConfig
 
@@ -163,6 +164,7 @@ class VariantConfig:
     with a per-finger force estimated from the flexion instead."""
 
     name: str = "full"
+    label: str = ""  # how the report names the variant (Table 2's "Method" column); default: name
     boundary: str = "dirichlet"  # dirichlet | force
 
 
@@ -170,27 +172,38 @@ class VariantConfig:
 class SimulationConfig:
     """How the squeeze drives the MPM (paper sec. "Squeezing-Driven Deformation").
 
-    target_substeps_per_frame: explicit substeps per output frame the time (mass) scaling aims at; the mass
-        scale s = max(1, (c_p dt_target / (C dx))^2) slows the stiffest material's P wave to fit, and gravity
-        is divided by s so weights stay physical (quasi-static squeeze; KE/IE is reported per frame).  0 = off.
     fluid_reference_speed: m/s; a weakly compressible interior fluid gets the bulk modulus that makes its sound
-        speed 10 v after mass scaling (K = s rho (10 v)^2; Mach 0.1: density error ~1 %) instead of water's 2.2
-        GPa.  Keep max_release_speed <= this speed.
+        speed 10 v after mass scaling (K = s rho (10 v)^2, s the solver's mass scale, ``mpm.mass_scaling``;
+        Mach 0.1: density error ~1 %) instead of water's 2.2 GPa.  Keep max_release_speed <= this speed.  The
+        sound speed is capped at the solids' P-wave speed after mass scaling (juice made from burst pulp appears
+        mid-run and must not need a smaller time step than the solver chose from the materials present).
+    fluid_tait_exponent: gamma of the interior fluid's Tait equation of state p = K / gamma (J^-gamma - 1); 1
+        keeps the sound speed constant under compression (water's gamma = 7 doubles it at J = 0.8, which an
+        explicit step sized for the rest state does not survive in a squeezed, sealed can).
     force_per_coefficient: N per unit force coefficient c (force mode, the no_dirichlet variant).
     release_radius: m; interior particles this close to a finger's patch centre are released at the
-        threshold crossing, and shell particles this close rupture (become ``ruptured_softening`` x softer).
+        threshold crossing (for an object with a solid core: the core particles there, which become the interior
+        material), and shell particles this close rupture (become ``ruptured_softening`` x softer).  Keep it
+        >= 2.5 grid cells (8 mm at the default sampling): MPM shares one velocity field per grid node, so
+        released material within ~1.5 cells of the material that stays is dragged back with it.
+    ruptured_softening: factor on the torn shell's E and yield stress (1e-2: it no longer holds the interior
+        in, yet keeps enough volumetric stiffness that torn skin carried off by the spray does not invert).
     release_speed_per_pascal: m/s per Pa of local finger pressure (initial speed of released particles).
-    max_release_speed: m/s cap of that speed.
+    max_release_speed: m/s cap of that speed (a liquid pressed out at ~20 kPa would leave at sqrt(2 p / rho) ~ 6
+        m/s).  1.5: at 1 most of the released orange juice and plush stuffing was dragged back by the grid coupling
+        to what stays; at 2 the torn skin carried off with the tomato's and the can's spray was squeezed to
+        det F ~ 0.06-0.09 where the spray hits the domain walls (guard 0.05); at 3 a torn 4 mm orange peel tore
+        past det F 20.
     feedback_max_force: N, the glove's per-finger force-feedback range (resistive force is clipped to it).
     """
 
-    target_substeps_per_frame: int = 100
-    fluid_reference_speed: float = 1.0
+    fluid_reference_speed: float = 1.5
+    fluid_tait_exponent: float = 1.0
     force_per_coefficient: float = 8.0
-    release_radius: float = 0.012
+    release_radius: float = 0.02
     release_speed_per_pascal: float = 1.0e-4
-    max_release_speed: float = 1.0
-    ruptured_softening: float = 1.0e-3
+    max_release_speed: float = 1.5
+    ruptured_softening: float = 1.0e-2
     feedback_max_force: float = 20.0
 
 
@@ -214,12 +227,15 @@ class PathsConfig:
 
 @dataclass
 class GridConfig:
-    """The evaluation grid: objects evaluated when no single ``object`` is selected."""
+    """The evaluation grid: objects x variants evaluated when no single ``object`` / ``variant`` is selected.
+
+    Names refer to ``catalog`` (objects) and ``variants`` (method variants, e.g. Table 2's two rows)."""
 
     objects: list[str] = field(
         default_factory=lambda: [
             "can", "plush_toy", "rubber_duck", "clay", "tomato", "orange", "rubber_ball", "paper_cup"]
     )
+    variants: list[str] = field(default_factory=lambda: ["full", "no_dirichlet"])
 
 
 @dataclass
@@ -235,11 +251,12 @@ class Config:
     oracle: OracleConfig = field(default_factory=OracleConfig)
     mpm: MPMConfig = field(default_factory=MPMConfig)
     simulation: SimulationConfig = field(default_factory=SimulationConfig)
-    variant: VariantConfig = field(default_factory=VariantConfig)
+    variant: Optional[VariantConfig] = None
+    variants: dict[str, VariantConfig] = field(default_factory=dict)
+    metrics: MetricsConfig = field(default_factory=MetricsConfig)
     # later stages plug in here: they declare their own dataclasses
     render: dict[str, Any] = field(default_factory=dict)
     generation: dict[str, Any] = field(default_factory=dict)
-    metrics: dict[str, Any] = field(default_factory=dict)
     run_name: Optional[str] = None  # report folder name; default: flow name + time stamp
 
 
@@ -279,6 +296,89 @@ def validate(cfg: Any) -> None:
     need(c.displacement.eta >= 0, "control.displacement.eta", f"must be >= 0 m, got {c.displacement.eta}")
     need(cfg.sampling.surface_points >= 100, "sampling.surface_points", f"must be >= 100, got {cfg.sampling.surface_points}")
     need(cfg.sampling.particle_spacing > 0, "sampling.particle_spacing", f"must be > 0 m, got {cfg.sampling.particle_spacing}")
+    sim = cfg.simulation
+    need(sim.fluid_tait_exponent >= 1, "simulation.fluid_tait_exponent", f"must be >= 1, got {sim.fluid_tait_exponent}")
+    need(sim.release_radius > 0, "simulation.release_radius", f"must be > 0 m, got {sim.release_radius}")
+    need(0 < sim.ruptured_softening <= 1, "simulation.ruptured_softening",
+         f"must be in (0, 1], got {sim.ruptured_softening}")
+    _validate_inputs(cfg, need)
     for name in cfg.grid.objects:
         need(name in cfg.catalog or (cfg.object is not None and cfg.object.name == name) or not cfg.catalog,
              "grid.objects", f"names unknown object {name!r}: known {sorted(cfg.catalog)}")
+    if cfg.variant is None:
+        need(len(cfg.grid.variants) > 0, "grid.variants", "is empty: name at least one variant, e.g. [full]")
+        for name in cfg.grid.variants:
+            need(name in cfg.variants, "grid.variants",
+                 f"names unknown variant {name!r}: known {sorted(cfg.variants)} (add conf/variant/{name}.yaml "
+                 f"and +variant@variants.{name}={name})")
+    for variant in ([cfg.variant] if cfg.variant is not None else [cfg.variants[n] for n in cfg.grid.variants]):
+        need(variant.boundary in ("dirichlet", "force"), f"variant {variant.name!r} boundary",
+             f"must be dirichlet or force, got {variant.boundary!r}")
+    try:
+        validate_metrics(cfg.metrics)
+    except ValueError as exc:
+        raise ConfigError(str(exc)) from None
+
+
+def _validate_inputs(cfg: Any, need: Any) -> None:
+    """What a run reads besides the method's knobs: the recording's size, the selected objects' geometry and
+    material overrides, the MPM grid and the material oracle.  Each error names the key to change."""
+    import math
+
+    from conf.mpm_schema import MPMConfigError, mpm_config_from
+    from conf.oracle_schema import ORACLE_BACKENDS
+
+    s = cfg.signal
+    if s.source == "csv" and s.path:
+        from tasks.squeeze_signals import (  # the reader's own limit
+            SignalError,
+            check_recording_size,
+        )
+
+        try:
+            check_recording_size(s.path)
+        except SignalError as exc:  # refused before the flow hashes (reads) the whole file
+            raise ConfigError(f"signal.path: {exc}") from None
+
+    def positive(value: Any) -> bool:
+        return value is not None and math.isfinite(float(value)) and float(value) > 0
+
+    selected = ([("object", cfg.object)] if cfg.object is not None else
+                [(f"catalog.{n}", cfg.catalog[n]) for n in cfg.grid.objects if n in cfg.catalog])
+    for key, obj in selected:
+        g, m = obj.geometry, obj.material
+        need(len(g.size) == 3 and all(positive(v) for v in g.size), f"{key}.geometry.size",
+             f"must be three lengths > 0 m (x, y, z), got {list(g.size)}")
+        need(g.wall_thickness >= 0, f"{key}.geometry.wall_thickness", f"must be >= 0 m, got {g.wall_thickness}")
+        need(g.kind not in ("ply", "mesh") or bool(g.path), f"{key}.geometry.path",
+             f"is required with geometry.kind={g.kind}: give the file's path")
+        if m.youngs_modulus is not None:
+            need(positive(m.youngs_modulus), f"{key}.material.youngs_modulus",
+                 f"must be > 0 Pa (Young's modulus in pascals, e.g. rubber 2e6), got {m.youngs_modulus}")
+        if m.poisson_ratio is not None:
+            need(0 <= m.poisson_ratio < 0.5, f"{key}.material.poisson_ratio",
+                 f"must be in [0, 0.5), got {m.poisson_ratio}: 0.5 is incompressible (infinite Lame lambda); "
+                 f"use at most 0.49 (rubber)")
+        if m.density is not None:
+            need(positive(m.density), f"{key}.material.density", f"must be > 0 kg/m^3, got {m.density}")
+        if m.yield_stress is not None:
+            need(positive(m.yield_stress), f"{key}.material.yield_stress", f"must be > 0 Pa, got {m.yield_stress}")
+        if m.squeeze_threshold is not None:
+            need(0 < m.squeeze_threshold < 1, f"{key}.material.squeeze_threshold",
+                 f"must be in (0, 1) (the compressive strain where rupture starts), got {m.squeeze_threshold}")
+
+    need(cfg.mpm.particles_per_cell >= 1, "mpm.particles_per_cell",
+         f"must be >= 1 (grid spacing = particle spacing x cbrt of it), got {cfg.mpm.particles_per_cell}")
+    try:
+        mpm_config_from(cfg.mpm)
+    except MPMConfigError as exc:  # mpm.dx = 0, mpm.cells_across = 0, ... (message names the key)
+        raise ConfigError(str(exc)) from None
+
+    o = cfg.oracle
+    need(o.backend in ORACLE_BACKENDS, "oracle.backend", f"must be one of {', '.join(ORACLE_BACKENDS)}, got {o.backend!r}")
+    need(positive(o.timeout_s), "oracle.timeout_s", f"must be > 0 s, got {o.timeout_s}")
+    if o.backend == "llm":
+        need(bool(o.llm_url) and str(o.llm_url).startswith(("http://", "https://")), "oracle.llm_url",
+             "must be the http(s) base URL of an OpenAI-compatible API with oracle.backend=llm "
+             "(e.g. http://127.0.0.1:8000/v1), or use oracle.backend=table")
+        need(bool(o.api_key_env), "oracle.api_key_env", "must name the environment variable that holds the API key")

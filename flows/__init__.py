@@ -3,7 +3,8 @@
 Prefect reads its settings when it is imported, so they are set here, before any flow module imports it:
 ``PREFECT_HOME`` under the artifacts folder, analytics off, and a server start-up timeout that survives a
 slow 2-core machine.  Variables already set in the environment win (e.g. ``PREFECT_API_URL`` of a
-long-lived ``prefect server start``).
+long-lived ``prefect server start``).  Two flow processes started at once on one artifacts folder do not
+share the database of their temporary servers (see :func:`flows.runtime.prefect_database_settings`).
 """
 import os as _os
 
@@ -14,6 +15,10 @@ for _key, _value in {
     "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "180",
     "PREFECT_LOGGING_LOG_PRINTS": "true",
     "PREFECT_RESULTS_PERSIST_BY_DEFAULT": "true",
+    # whatever Prefect persists (e.g. a failed flow's exception) is JSON: nothing under artifacts/ is a pickle
+    "PREFECT_RESULTS_DEFAULT_SERIALIZER": "json",
     "PREFECT_RESULTS_LOCAL_STORAGE_PATH": _os.path.join(_root, ".prefect", "results"),
 }.items():
     _os.environ.setdefault(_key, _value)
+# Prefect creates its home without parents (a new artifacts folder would leave its server without a database)
+_os.makedirs(_os.environ["PREFECT_HOME"], exist_ok=True)

@@ -1,8 +1,10 @@
 """The VirSqueezer flow: wires the method steps per object.  No computation lives here.
 
-Per object (paper sec. "Squeezing Control Mapping"):
+Per object (paper sec. "Squeezing Control Mapping"), computed once and shared by every variant:
   object_model -> squeeze_signals -> signal_smoothing -> force_coefficients -> contact_patches -> dirichlet_field
-  material_oracle ----------------------------------------------------------------------------------> mpm_rollout
+  material_oracle
+Per object and variant (paper Table 2: ``full`` = Dirichlet boundary conditions, ``no_dirichlet`` = force-driven):
+  mpm_rollout -> deformation_metrics
 Each call below submits a cached Prefect task (tasks.step) with exactly the config values the step reads.
 """
 from __future__ import annotations
@@ -20,6 +22,7 @@ from prefect import flow
 
 from flows.runtime import RunTable, make_task_runner, result_storage_settings
 from tasks.contact_patches import contact_patches_step
+from tasks.deformation_metrics import deformation_metrics_step
 from tasks.dirichlet_field import dirichlet_field_step
 from tasks.force_coefficients import force_coefficients_step
 from tasks.material_oracle import material_oracle_step
@@ -50,6 +53,16 @@ def selected_objects(cfg: DictConfig) -> list[DictConfig]:
     return [cfg.catalog[n] for n in cfg.grid.objects]
 
 
+def selected_variants(cfg: DictConfig) -> list[DictConfig]:
+    """``variant=NAME`` selects one variant; otherwise every name in ``grid.variants`` from ``variants``."""
+    if cfg.variant is not None:
+        return [cfg.variant]
+    missing = [n for n in cfg.grid.variants if n not in cfg.variants]
+    if missing:
+        raise SystemExit(f"grid.variants names unknown variants {missing}: known {sorted(cfg.variants)}")
+    return [cfg.variants[n] for n in cfg.grid.variants]
+
+
 def _plain(node: Any) -> Any:
     return OmegaConf.to_container(node, resolve=True)
 
@@ -78,13 +91,22 @@ def step_params(cfg: DictConfig, obj: DictConfig) -> dict[str, dict]:
                                              "eta": obj.eta if obj.eta is not None else cfg.control.displacement.eta}},
         "material_oracle": {"description": obj.description, "name": obj.name, "overrides": plain_obj["material"],
                             "interior": obj.interior, "oracle": _plain(cfg.oracle)},
-        "mpm_rollout": {"mpm": _plain(cfg.mpm), "simulation": _plain(cfg.simulation),
-                        "boundary": cfg.variant.boundary},
     }
 
 
-def submit_object(cfg: DictConfig, obj: DictConfig) -> dict[str, Any]:
-    """Submit one object's chain of steps; returns the futures by step name."""
+def variant_params(cfg: DictConfig, variant: DictConfig) -> dict[str, dict]:
+    """Exactly the config values each per-variant step reads (its cache key): not the variant's name, so two
+    variants that simulate the same thing share one artifact."""
+    return {
+        "mpm_rollout": {"mpm": _plain(cfg.mpm), "simulation": _plain(cfg.simulation), "boundary": variant.boundary},
+        "deformation_metrics": {"metrics": _plain(cfg.metrics)},
+    }
+
+
+def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig]) -> dict[tuple[str, str], Any]:
+    """Submit one object's steps: the shared chain once, then the rollout and metrics per variant.
+
+    Returns the futures keyed by (step, variant name); shared steps have variant ``""``."""
     root, scope = cfg.paths.artifacts, obj.name
     p = step_params(cfg, obj)
     kw = dict(root=root, scope=scope)
@@ -103,31 +125,50 @@ def submit_object(cfg: DictConfig, obj: DictConfig) -> dict[str, Any]:
         params=p["dirichlet_field"],
         inputs={"object": f["object_model"], "contacts": f["contact_patches"], "forces": f["force_coefficients"]}, **kw)
     f["material_oracle"] = material_oracle_step.submit(params=p["material_oracle"], **kw)
-    f["mpm_rollout"] = mpm_rollout_step.submit(
-        params=p["mpm_rollout"],
-        inputs={"object": f["object_model"], "frames": f["signal_smoothing"], "forces": f["force_coefficients"],
-                "contacts": f["contact_patches"], "field": f["dirichlet_field"], "materials": f["material_oracle"]},
-        **kw)
-    return f
+    out: dict[tuple[str, str], Any] = {(step, ""): fut for step, fut in f.items()}
+    for variant in variants:
+        vp = variant_params(cfg, variant)
+        rollout = mpm_rollout_step.submit(
+            params=vp["mpm_rollout"],
+            inputs={"object": f["object_model"], "frames": f["signal_smoothing"], "forces": f["force_coefficients"],
+                    "contacts": f["contact_patches"], "field": f["dirichlet_field"], "materials": f["material_oracle"]},
+            **kw)
+        metrics = deformation_metrics_step.submit(
+            params=vp["deformation_metrics"],
+            inputs={"rollout": rollout, "field": f["dirichlet_field"], "forces": f["force_coefficients"],
+                    "contacts": f["contact_patches"], "frames": f["signal_smoothing"], "object": f["object_model"]},
+            **kw)
+        out[("mpm_rollout", variant.name)] = rollout
+        out[("deformation_metrics", variant.name)] = metrics
+    return out
 
 
 @flow(name="virsqueezer", log_prints=True, validate_parameters=False, persist_result=False)
-def virsqueezer_flow(config: dict, flow_label: str = "evaluate") -> dict:
-    """Run the selected objects through the method steps, then write the run report.
+def virsqueezer_flow(config: dict, flow_label: str = "evaluate", report_dir: str | None = None) -> dict:
+    """Run the selected objects x variants through the method steps, then write the run report to
+    ``report_dir`` (default ``paths.reports/<run_name>``).
 
     Returns the report folder and the per-task table (as records).
     """
     cfg = OmegaConf.create(config)
     t0 = time.perf_counter()
-    objects = selected_objects(cfg)
-    futures = {obj.name: submit_object(cfg, obj) for obj in objects}
-    table = RunTable()
+    objects, variants = selected_objects(cfg), selected_variants(cfg)
+    futures = {obj.name: submit_object(cfg, obj, variants) for obj in objects}
+    table = RunTable(total=sum(len(f) for f in futures.values()))
     refs: dict[str, dict[str, Any]] = {}
     for name, steps in futures.items():
-        refs[name] = {step: table.add_future(name, step, fut) for step, fut in steps.items()}
-    run_name = cfg.run_name or f"{flow_label}-{datetime.now():%Y%m%d-%H%M%S}"
-    report_dir = Path(cfg.paths.reports) / run_name
-    write_run_report(report_dir, cfg=config, table=table, refs=refs, wall_seconds=time.perf_counter() - t0)
+        refs[name] = {}
+        for (step, variant), fut in steps.items():
+            ref = table.add_future(name, step, fut, variant=variant)
+            if variant:
+                refs[name].setdefault("variants", {}).setdefault(variant, {})[step] = ref
+            else:
+                refs[name][step] = ref
+    report_dir = Path(report_dir) if report_dir else Path(cfg.paths.reports) / (cfg.run_name or _fresh_run_name(
+        Path(cfg.paths.reports), flow_label))
+    labels = {v.name: v.label or v.name for v in variants}
+    write_run_report(report_dir, cfg=config, table=table, refs=refs, variants=labels,
+                     wall_seconds=time.perf_counter() - t0)
     print(f"\nper-task table ({table.summary()}), wall {time.perf_counter() - t0:.1f} s\n{table.to_text()}")
     print(f"report: {report_dir.resolve() / 'report.md'}")
     failed = [r for r in table.rows if r.status == "failed"]
@@ -137,14 +178,29 @@ def virsqueezer_flow(config: dict, flow_label: str = "evaluate") -> dict:
     return {"report": str(report_dir.resolve()), "tasks": table.frame().to_dict("records")}
 
 
-def sweep_job_number() -> int | None:
-    """Hydra's job number inside a ``-m`` sweep (so each job's report has its own folder), else None."""
+def _fresh_run_name(reports: Path, flow_label: str) -> str:
+    """``<flow>-<timestamp>``, claimed atomically; two runs started in the same second get distinct folders."""
+    reports.mkdir(parents=True, exist_ok=True)
+    stem = f"{flow_label}-{datetime.now():%Y%m%d-%H%M%S}"
+    for n in range(1, 1000):
+        name = stem if n == 1 else f"{stem}-{n}"
+        try:
+            (reports / name).mkdir()
+            return name
+        except FileExistsError:
+            continue
+    raise RuntimeError(f"cannot find a free report folder name under {reports} for {stem}")
+
+
+def sweep_job_dir() -> str | None:
+    """Inside a Hydra ``-m`` sweep, the job's own output folder (``<sweep dir>/<job number>``), where its report
+    goes next to Hydra's ``.hydra/overrides.yaml`` so that :mod:`flows.sweep_summary` can aggregate the jobs."""
     from hydra.core.hydra_config import HydraConfig
     from hydra.types import RunMode
 
     if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
         return None
-    return int(HydraConfig.get().job.num)
+    return str(HydraConfig.get().runtime.output_dir)
 
 
 def run(cfg: DictConfig, flow_label: str) -> dict:
@@ -157,8 +213,9 @@ def run(cfg: DictConfig, flow_label: str) -> dict:
         raise SystemExit(f"config error: {exc}") from None
     runner = make_task_runner(cfg.runner)
     config = OmegaConf.to_container(cfg, resolve=True)
-    job = sweep_job_number()
-    if config.get("run_name") is None and job is not None:
-        config["run_name"] = f"{flow_label}-{datetime.now():%Y%m%d-%H%M%S}-job{job}"
+    job_dir = sweep_job_dir()
+    if config.get("run_name") is None and job_dir is not None:
+        config["run_name"] = f"{flow_label}-{Path(job_dir).parent.name}-job{Path(job_dir).name}"
     with result_storage_settings(cfg.paths.artifacts):
-        return virsqueezer_flow.with_options(task_runner=runner, name=f"virsqueezer-{flow_label}")(config, flow_label)
+        return virsqueezer_flow.with_options(task_runner=runner, name=f"virsqueezer-{flow_label}")(
+            config, flow_label, job_dir)

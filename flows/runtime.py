@@ -43,12 +43,79 @@ def make_task_runner(runner: DictConfig):
 
 
 def result_storage_settings(artifacts_root: str | Path):
-    """A settings context in which Prefect keeps its cache records (JSON) next to the artifacts."""
+    """A settings context in which Prefect keeps its cache records (JSON) next to the artifacts, and in
+    which the temporary Prefect server of this process gets a database no other running flow uses
+    (:func:`prefect_database_settings`)."""
     from prefect.settings import PREFECT_RESULTS_LOCAL_STORAGE_PATH, temporary_settings
 
     path = Path(artifacts_root).resolve() / ".prefect" / "results"
     path.mkdir(parents=True, exist_ok=True)
-    return temporary_settings(updates={PREFECT_RESULTS_LOCAL_STORAGE_PATH: str(path)})
+    return temporary_settings(updates={PREFECT_RESULTS_LOCAL_STORAGE_PATH: str(path), **prefect_database_settings()})
+
+
+# ----------------------------------------------------------------------------------------------- Prefect database
+# Without PREFECT_API_URL every flow process starts its own temporary Prefect server, and every such server
+# opens the SQLite database under PREFECT_HOME.  Two runs started at once on one artifacts folder then race:
+# both servers migrate the same fresh database (one dies with alembic's "expected to match one row ... 0 found"
+# and is restarted after a lost start-up), and both write run states into one SQLite file ("database is
+# locked").  The database holds only run history - cache records are JSON files in result storage and the
+# data are the zarr artifacts - so the first process claims the shared database with an OS file lock held
+# until it exits (released by the OS on any exit, kill -9 included), and a process that finds it claimed
+# keeps its run history in a private database in a temporary folder, deleted at exit.
+_DATABASE_CHOICE: dict | None = None
+_HELD_LOCKS: list = []  # the claim lives as long as the process
+
+
+def prefect_database_settings() -> dict:
+    """Prefect settings updates that give this process's temporary server a database of its own.
+
+    Empty when ``PREFECT_API_URL`` names a running server (it serialises its own database), when the database
+    is not a SQLite file, or when this process holds the claim on the shared database.  Decided once per process
+    (a Hydra multirun reuses the temporary server of its first job)."""
+    global _DATABASE_CHOICE
+    from prefect.settings import PREFECT_API_DATABASE_CONNECTION_URL, PREFECT_API_URL
+
+    if PREFECT_API_URL.value():
+        return {}
+    if _DATABASE_CHOICE is None:
+        _DATABASE_CHOICE = claim_prefect_database(PREFECT_API_DATABASE_CONNECTION_URL.value())
+    return dict(_DATABASE_CHOICE)
+
+
+def claim_prefect_database(connection_url: str | None) -> dict:
+    """Claim the SQLite database at ``connection_url`` for this process (non-blocking file lock next to it).
+
+    Returns ``{}`` when claimed (or not a SQLite file), else the settings of a private database and memo store
+    in a new temporary folder that is removed when the process exits."""
+    import atexit
+    import shutil
+    import tempfile
+
+    from filelock import FileLock, Timeout
+    from prefect.settings import (
+        PREFECT_API_DATABASE_CONNECTION_URL,
+        PREFECT_MEMO_STORE_PATH,
+    )
+
+    prefix = "sqlite+aiosqlite:///"
+    url = str(connection_url or "")
+    if not url.startswith(prefix) or ":memory:" in url:
+        return {}
+    db = Path(url[len(prefix):])
+    db.parent.mkdir(parents=True, exist_ok=True)
+    lock = FileLock(f"{db}.lock")
+    try:
+        lock.acquire(timeout=0)
+    except Timeout:
+        private = Path(tempfile.mkdtemp(prefix="virsqueezer-prefect-"))
+        atexit.register(shutil.rmtree, private, True)  # registered before the server's own stop: runs after it
+        log.info("another flow run is using the Prefect database %s: this run keeps its run history in a "
+                 "private database in %s (removed at exit); artifacts and cache records are shared as usual",
+                 db, private)
+        return {PREFECT_API_DATABASE_CONNECTION_URL: f"{prefix}{private / 'prefect.db'}",
+                PREFECT_MEMO_STORE_PATH: str(private / "memo_store.toml")}
+    _HELD_LOCKS.append(lock)
+    return {}
 
 
 @dataclass
@@ -60,6 +127,7 @@ class TaskRow:
     artifact_bytes: int
     artifact: str
     note: str = ""
+    variant: str = ""  # "" for the steps every variant shares
 
 
 @dataclass
@@ -68,33 +136,42 @@ class RunTable:
 
     rows: list[TaskRow] = field(default_factory=list)
     started: float = field(default_factory=time.perf_counter)
+    total: int = 0  # tasks expected (for the progress line); 0 = unknown
 
-    def add_future(self, obj: str, step: str, future) -> Optional[ArtifactRef]:
-        """Wait for a submitted step and record ran / cached / failed; returns its reference or None."""
+    def add_future(self, obj: str, step: str, future, variant: str = "") -> Optional[ArtifactRef]:
+        """Wait for a submitted step and record ran / cached / failed; returns its reference or None.
+
+        Prints one progress line per finished task (long steps log their own frame progress)."""
         future.wait()
+        row = self._row(obj, step, future, variant)
+        self.rows.append(row)
+        done = f"{len(self.rows)}/{self.total}" if self.total else str(len(self.rows))
+        what = f"{obj} {step}" + (f" [{variant}]" if variant else "")
+        took = f" {row.wall_seconds:.1f} s" if row.status == "ran" else ""
+        print(f"[{done}] {what}: {row.status}{took}{(' - ' + row.note) if row.note else ''}"
+              f" (elapsed {time.perf_counter() - self.started:.0f} s)", flush=True)
+        return future.result() if row.status in ("ran", "cached") else None
+
+    def _row(self, obj: str, step: str, future, variant: str) -> TaskRow:
         state = future.state
+        if not state.is_final():  # never ran (Prefect leaves it pending): a step it depends on failed
+            return TaskRow(obj, step, "skipped", 0.0, 0, "", "not run: a step it needs failed", variant)
         if state.is_failed() or state.is_crashed() or state.is_cancelled():
             try:
                 future.result(raise_on_failure=True)
                 msg = state.message or "failed"
             except Exception as exc:  # the step's own error message
                 msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            self.rows.append(TaskRow(obj, step, "failed", 0.0, 0, "", msg))
-            return None
+            return TaskRow(obj, step, "failed", 0.0, 0, "", msg, variant)
         ref: ArtifactRef = future.result()
         cached = state.name == "Cached" or ref.reused
-        self.rows.append(
-            TaskRow(obj, step, "cached" if cached else "ran", 0.0 if cached else ref.compute_seconds,
-                    directory_size(ref.path), ref.path, "reused from disk" if ref.reused else "")
-        )
-        return ref
-
-    def skip(self, obj: str, step: str, why: str) -> None:
-        self.rows.append(TaskRow(obj, step, "skipped", 0.0, 0, "", why))
+        return TaskRow(obj, step, "cached" if cached else "ran", 0.0 if cached else ref.compute_seconds,
+                       directory_size(ref.path), ref.path, "reused from disk" if ref.reused else "", variant)
 
     def frame(self) -> pd.DataFrame:
         return pd.DataFrame([r.__dict__ for r in self.rows],
-                            columns=["object", "step", "status", "wall_seconds", "artifact_bytes", "artifact", "note"])
+                            columns=["object", "variant", "step", "status", "wall_seconds", "artifact_bytes",
+                                     "artifact", "note"])
 
     def summary(self) -> str:
         df = self.frame()

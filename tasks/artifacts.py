@@ -10,6 +10,7 @@ key built from the digests changes whenever the data does.
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -183,17 +184,32 @@ def _chunks(data: np.ndarray) -> tuple[int, ...]:
     return (1,) + tuple(max(1, s) for s in data.shape[1:])
 
 
-def _place(tmp: Path, final: Path, digest: str) -> None:
-    if final.exists():
+def _place(tmp: Path, final: Path, digest: str, attempts: int = 5) -> None:
+    """Rename ``tmp`` to ``final``.  Two runs writing the same step at once race here: a directory rename
+    onto an existing non-empty directory fails, and the other writer may place (or move away) ``final``
+    between our check and our rename.  Whoever loses re-checks: an identical artifact in place is kept."""
+    for _ in range(attempts):
+        if final.exists():
+            try:
+                if read_group_attrs(final).get("digest") == digest:
+                    return  # identical artifact already in place (concurrent writer)
+            except ArtifactError:
+                pass
+            trash = final.with_name(f".{final.name}.trash-{uuid.uuid4().hex[:12]}")
+            try:
+                os.replace(final, trash)
+            except FileNotFoundError:  # another writer moved it away first
+                pass
+            else:
+                shutil.rmtree(trash, ignore_errors=True)
         try:
-            if read_group_attrs(final).get("digest") == digest:
-                return  # identical artifact already in place (concurrent writer)
-        except ArtifactError:
-            pass
-        trash = final.with_name(f".{final.name}.trash-{uuid.uuid4().hex[:12]}")
-        os.replace(final, trash)
-        shutil.rmtree(trash, ignore_errors=True)
-    os.replace(tmp, final)
+            os.replace(tmp, final)
+            return
+        except OSError as exc:
+            if exc.errno not in (errno.ENOTEMPTY, errno.EEXIST):
+                raise
+            # another writer placed its group between our check and our rename: check it again
+    raise ArtifactError(f"artifact {final} keeps being replaced by another run; rerun when that run is done")
 
 
 def read_group_attrs(path: str | Path) -> dict[str, Any]:

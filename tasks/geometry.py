@@ -39,7 +39,7 @@ import numpy as np
 
 __all__ = [
     "SHAPE_KINDS", "Shape", "make_shape", "marching_tetrahedra", "smin", "smax",
-    "tangent_basis", "CUP_BOTTOM_RATIO",
+    "tangent_basis", "CUP_BOTTOM_RATIO", "crossing_triangle_pairs",
 ]
 
 SHAPE_KINDS = ("can", "cup", "sphere", "ellipsoid", "duck", "plush", "block")
@@ -222,6 +222,84 @@ def soup_area(tris: np.ndarray) -> np.ndarray:
 def soup_volume(tris: np.ndarray) -> float:
     """Enclosed volume (m^3) of a closed, outward-oriented triangle soup (divergence theorem)."""
     return float(np.sum(np.einsum("ij,ij->i", tris[:, 0], np.cross(tris[:, 1], tris[:, 2]))) / 6.0)
+
+
+def crossing_triangle_pairs(vertices, faces, limit: int = 1000) -> np.ndarray:
+    """Pairs ``(i, j)`` (i < j) of faces of a triangle mesh that pass through each other: a self-intersection.
+
+    Two non-coplanar triangles cross exactly when an edge of one passes through the other, so the test is:
+    every pair of faces that share no vertex and whose bounding boxes overlap (found on a uniform grid of about
+    the median face size; each face is binned into the cells its box touches) has each of its six edges
+    intersected with the other face (Moller-Trumbore, strict: touching at a vertex or along an edge is not a
+    crossing).  Approximate on purpose: two coplanar overlapping faces and a fold between faces that share a
+    vertex are not reported.  Returns the first ``limit`` or more pairs found (int64, shape (k, 2), sorted);
+    1-3 s per 100 000 faces on a 2-core machine.
+    """
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
+    if len(f) < 2:
+        return np.zeros((0, 2), np.int64)
+    tri = v[f]  # (F, 3, 3)
+    lo, hi = tri.min(axis=1), tri.max(axis=1)
+    scale = float(np.max(hi.max(axis=0) - lo.min(axis=0))) or 1.0
+    h = max(float(np.median(np.max(hi - lo, axis=1))), 1e-9 * scale)
+    origin = lo.min(axis=0)
+    # cells per face; a few very large faces would flood the grid: coarsen until entries stay ~linear in F
+    while True:
+        c0 = np.floor((lo - origin) / h).astype(np.int64)
+        c1 = np.floor((hi - origin) / h).astype(np.int64)
+        span = c1 - c0 + 1
+        count = np.prod(span, axis=1)
+        if count.sum() <= 16 * len(f) + 4096:
+            break
+        h *= 2.0
+    dims = c1.max(axis=0) + 1
+    face_of = np.repeat(np.arange(len(f)), count)
+    local = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    sy, sz = span[face_of, 1], span[face_of, 2]
+    cell = c0[face_of] + np.stack([local // (sy * sz), (local // sz) % sy, local % sz], axis=1)
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    order = np.argsort(key, kind="stable")
+    key, face_of = key[order], face_of[order]
+    starts = np.flatnonzero(np.r_[True, key[1:] != key[:-1]])
+    sizes = np.diff(np.r_[starts, len(key)])
+    after = np.repeat(starts + sizes, sizes) - np.arange(len(key)) - 1  # entries after each in its cell
+    found: list[np.ndarray] = []
+    idx, d = np.flatnonzero(after > 0), 1
+    while idx.size and sum(len(x) for x in found) < limit:  # entry k pairs with entry k + d of its cell
+        for chunk in range(0, idx.size, 1 << 20):
+            k = idx[chunk:chunk + (1 << 20)]
+            a, b = face_of[k], face_of[k + d]
+            i, j = np.minimum(a, b), np.maximum(a, b)  # a pair sharing several cells is tested once per cell
+            ok = np.all((lo[i] <= hi[j]) & (lo[j] <= hi[i]), axis=1)
+            ok &= ~(f[i][:, :, None] == f[j][:, None, :]).any(axis=(1, 2))
+            i, j = i[ok], j[ok]
+            hit = _edges_cross(tri[i], tri[j]) | _edges_cross(tri[j], tri[i])
+            if hit.any():
+                found.append(np.stack([i[hit], j[hit]], axis=1))
+        idx, d = idx[after[idx] > d], d + 1
+    if not found:
+        return np.zeros((0, 2), np.int64)
+    return np.unique(np.concatenate(found), axis=0)
+
+
+def _edges_cross(a: np.ndarray, b: np.ndarray, eps: float = 1e-9) -> np.ndarray:
+    """(N,) whether one of the three edges of triangle ``a[n]`` passes through the interior of ``b[n]``."""
+    e1, e2 = b[:, 1] - b[:, 0], b[:, 2] - b[:, 0]
+    hit = np.zeros(len(a), bool)
+    for s, t in ((0, 1), (1, 2), (2, 0)):
+        p0, d = a[:, s], a[:, t] - a[:, s]
+        pvec = np.cross(d, e2)
+        det = np.einsum("ij,ij->i", e1, pvec)
+        ok = np.abs(det) > 1e-12 * _norm(e1) * _norm(e2) * _norm(d)  # not parallel to the plane
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        tvec = p0 - b[:, 0]
+        u = np.einsum("ij,ij->i", tvec, pvec) * inv
+        qvec = np.cross(tvec, e1)
+        w = np.einsum("ij,ij->i", d, qvec) * inv
+        along = np.einsum("ij,ij->i", e2, qvec) * inv
+        hit |= ok & (u > eps) & (w > eps) & (u + w < 1 - eps) & (along > eps) & (along < 1 - eps)
+    return hit
 
 
 # ----------------------------------------------------------------------------------------------- shape base

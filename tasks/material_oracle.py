@@ -30,6 +30,11 @@ Conventions the simulator relies on
   from ``viscosity``).  Table fluids use ``nu = 0.49`` so that Lame's lambda is within 1.5 % of K as well.
 * ``yield_stress`` is the uniaxial yield stress (von Mises: sqrt(3/2) |dev tau| <= yield_stress).  It is
   required for the plastic models ``stvk_hencky_von_mises`` and ``foam``; elastic entries leave it ``None``.
+* ``core`` is the solid that fills the cavity and holds the shell up (fruit pulp, plush stuffing): it is part
+  of the object's body whether or not the threshold is ever reached.  ``interior`` is what is *released* past
+  the threshold (juice, cola, loose stuffing).  With a core, the released interior is made of core particles
+  near the rupture (the pulp's cells burst into juice; stuffing tears loose), so the two must have the same
+  density (mass is conserved).  Without a core (a sealed can of cola) the interior fills the cavity itself.
 """
 from __future__ import annotations
 
@@ -243,6 +248,7 @@ class ObjectMaterials(BaseModel):
 
     shell: MaterialProperties
     interior: Optional[MaterialProperties] = None
+    core: Optional[MaterialProperties] = None  # solid filling that supports the shell (pulp, stuffing), see above
     squeeze_threshold: Optional[float] = None  # 1, compressive engineering strain at the finger contact
     threshold_source: str = ""  # where the threshold comes from (measurement, literature range, choice)
     effect: str = "none"
@@ -266,6 +272,19 @@ class ObjectMaterials(BaseModel):
         if v not in BACKENDS:
             raise _fail(f"backend {v!r} is not one of {', '.join(BACKENDS)}")
         return v
+
+    @model_validator(mode="after")
+    def _core_matches_interior(self) -> "ObjectMaterials":
+        if self.core is not None:
+            if self.core.model == "fluid":
+                raise _fail("core must be a solid (it holds the shell up): use interior for a liquid")
+            if self.interior is None:
+                raise _fail("core without an interior: a core is the solid the released interior is made of")
+            if abs(self.core.density - self.interior.density) > 1e-9 * self.interior.density:
+                raise _fail(f"core density {self.core.density:g} differs from the interior's "
+                            f"{self.interior.density:g} kg/m^3: the released interior is converted from core "
+                            "particles, so both need the same density")
+        return self
 
     @model_validator(mode="after")
     def _spill_needs_threshold(self) -> "ObjectMaterials":
@@ -342,9 +361,12 @@ class TableEntry:
 
 @dataclass(frozen=True)
 class InteriorEntry:
+    """An interior material; ``core`` is the solid tissue that holds it inside the body (see the module doc)."""
+
     key: str
     keywords: tuple[str, ...]
     material: MaterialProperties
+    core: Optional[MaterialProperties] = None
 
 
 def _fluid(name: str, density: float, viscosity: float, source: str, note: str = "",
@@ -358,6 +380,29 @@ def _fluid(name: str, density: float, viscosity: float, source: str, note: str =
               "flow Mach number < ~0.1) and must report the factor; shear stress comes from viscosity only. "
               + note).strip())
 
+
+# the stuffing both holds a plush toy up (core) and is what spills from a torn seam (interior)
+_FIBREFILL = MaterialProperties(
+    name="polyester fibrefill stuffing", model="foam", youngs_modulus=5e3, poisson_ratio=0.15,
+    density=25.0, yield_stress=1e3,
+    source="engineering estimate: hollow PET staple fibre (fibre density 1.38 g/cm^3) packed at ~1.5-2.5 "
+           "vol% in stuffed toys -> ~20-35 kg/m^3; the effective small-strain compressive modulus of such "
+           "loose fibre assemblies is of order 1-10 kPa and stiffens strongly as the batting densifies "
+           "(van Wyk's fibre-mass compression law, 1946); 5 kPa mid choice; yield 1 kPa and nu 0.15 (fibre "
+           "batting barely expands sideways) are engineering choices, not measurements",
+    note="Foam-like effective continuum; real fibre mass has no tensile strength and a strongly "
+         "nonlinear compression curve.")
+# what spills from a torn seam: loose tufts of the same fibre, cohesionless (no tension, no shear stiffness)
+_LOOSE_FIBREFILL = MaterialProperties(
+    name="loose polyester fibrefill (torn out)", model="fluid",
+    youngs_modulus=3.0 * 5e3 * (1.0 - 2.0 * FLUID_NU), poisson_ratio=FLUID_NU, density=25.0, viscosity=1.0,
+    source="the stuffing above once a seam is open: same density (25 kg/m^3); a loose fibre mass carries no "
+           "tension, so it is modelled as a cohesionless, weakly compressible continuum (the model 'fluid': "
+           "no tension, shear stress from viscosity only) with the batting's ~5 kPa compressive modulus as its "
+           "bulk modulus; viscosity 1 Pa s is an engineering choice (it only damps the tufts' relative motion), "
+           "not a measurement",
+    note="Not a liquid: 'fluid' is the solver's only cohesionless model. The simulator sets its own bulk "
+         "modulus with the mass scale, as for juice.")
 
 _WATER_K_SRC = "bulk modulus of water 2.2 GPa at 20 C (CRC Handbook of Chemistry and Physics)"
 
@@ -374,25 +419,37 @@ INTERIORS: dict[str, InteriorEntry] = {e.key: e for e in (
         "tomato juice / locular pulp", 1020.0, 5e-3,
         "tomato juice at ~5 Brix: density ~1.02 g/cm^3 (sugar-solution tables); serum (juice without insoluble "
         "solids) viscosity ~1-2 mPa s while the locular gel with seeds is shear-thinning and far more viscous; "
-        "5 mPa s is an engineering choice inside the 1-10 mPa s range; " + _WATER_K_SRC)),
+        "5 mPa s is an engineering choice inside the 1-10 mPa s range; " + _WATER_K_SRC),
+        core=MaterialProperties(
+            name="tomato flesh: inner pericarp, locular gel and columella (effective)", model="neo_hookean",
+            youngs_modulus=0.1e6, poisson_ratio=0.45, density=1020.0,
+            source="tomato pericarp flesh modulus of order 0.1-0.5 MPa (orders of magnitude of postharvest "
+                   "tissue tests, e.g. Li et al. 2012, J. Food Eng. 111:82-91 - not verified against their "
+                   "tables); the locular gel is far softer, so the low end 0.1 MPa is used for the whole cavity; "
+                   "nu 0.45 for turgid, juice-filled tissue (assumed); density set equal to the juice's 1020 "
+                   "kg/m^3 (whole tomatoes ~0.95-1.05 g/cm^3) so that bursting cells conserve mass",
+            note="Solid flesh that holds the skin up; past the threshold the flesh at the rupture becomes "
+                 "juice. Compressible neo-Hookean, a common hyperelastic model of soft fruit tissue.")),
     InteriorEntry("orange_juice", ("juice", "pulp", "orange", "segment", "citrus", "juicy", "flesh"), _fluid(
         "orange juice", 1045.0, 2e-3,
         "orange juice at ~11-12 Brix: density ~1.04-1.05 g/cm^3 (sugar-solution tables); pulp-free juice "
-        "~1.5-3 mPa s at 20 C, pulp raises it; 2 mPa s chosen; " + _WATER_K_SRC)),
+        "~1.5-3 mPa s at 20 C, pulp raises it; 2 mPa s chosen; " + _WATER_K_SRC),
+        core=MaterialProperties(
+            name="orange segments: juice vesicles in segment membranes (effective)", model="neo_hookean",
+            youngs_modulus=0.1e6, poisson_ratio=0.45, density=1045.0,
+            source="engineering estimate: citrus segments are a soft, juice-filled tissue, much softer than the "
+                   "peel (peel modulus of order 1-3 MPa, Singh & Reddy 2006, J. Food Eng. 73:112-120); soft "
+                   "fruit flesh moduli start at ~0.1 MPa (tomato pericarp, see the tomato entry), 0.1 MPa chosen, "
+                   "not measured; nu 0.45 for juice-filled vesicles (assumed); density set equal to the juice's "
+                   "1045 kg/m^3 (whole-orange density 1.03 g/cm^3, Sharifi et al. 2007, Int. Agrophys. "
+                   "21:391-397) so that bursting vesicles conserve mass",
+            note="Solid flesh that holds the peel up; past the threshold the flesh at the rupture becomes "
+                 "juice. Compressible neo-Hookean, a common hyperelastic model of soft fruit tissue.")),
     InteriorEntry("water", ("water", "liquid"), _fluid(
         "water", 998.0, 1.0e-3,
         "water at 20 C: density 998 kg/m^3, viscosity 1.0 mPa s, " + _WATER_K_SRC)),
     InteriorEntry("polyester_fibrefill", ("stuffing", "fibrefill", "polyester", "filling", "fluff", "cotton",
-                                          "wadding", "batting"), MaterialProperties(
-        name="polyester fibrefill stuffing", model="foam", youngs_modulus=5e3, poisson_ratio=0.15,
-        density=25.0, yield_stress=1e3,
-        source="engineering estimate: hollow PET staple fibre (fibre density 1.38 g/cm^3) packed at ~1.5-2.5 "
-               "vol% in stuffed toys -> ~20-35 kg/m^3; the effective small-strain compressive modulus of such "
-               "loose fibre assemblies is of order 1-10 kPa and stiffens strongly as the batting densifies "
-               "(van Wyk's fibre-mass compression law, 1946); 5 kPa mid choice; yield 1 kPa and nu 0.15 (fibre "
-               "batting barely expands sideways) are engineering choices, not measurements",
-        note="Foam-like effective continuum; real fibre mass has no tensile strength and a strongly "
-             "nonlinear compression curve.")),
+                                          "wadding", "batting"), _LOOSE_FIBREFILL, core=_FIBREFILL),
 )}
 
 _GENT_SRC = "E from Gent's Shore-A hardness relation (A. N. Gent 1958, Trans. IRI 34:46)"
@@ -432,11 +489,12 @@ TABLE: tuple[TableEntry, ...] = (
                    "the yarns); 0.3 MPa and nu 0.3 are choices, not measured for a specific toy",
             note="A fabric has almost no bending or compressive stiffness; an isotropic solid shell "
                  "over-estimates both, so the low end of the range is used."),
-        interior="polyester_fibrefill", squeeze_threshold=0.3, effect="stuffing_spill",
+        interior="polyester_fibrefill", squeeze_threshold=0.15, effect="stuffing_spill",
         threshold_source="engineering choice: a sewn plush toy does not burst under light hand squeezing; "
-                         "a seam is assumed to open at 30 % mean compression under the fingers (strain = mean "
-                         "inward displacement of the finger's contact region / the toy's half-width; 60 % was "
-                         "unreachable without pushing a finger through the toy)"),
+                         "a seam is assumed to open at 15 % compression under the fingertips (strain = mean "
+                         "inward displacement under the fingertip / the toy's half-width: ~11 mm over the 72 mm "
+                         "half-width, a firm squeeze pushing ~25 mm in at the fingertip centre; the earlier 30 % "
+                         "needed the fingers pushed ~5 cm into the toy)"),
     TableEntry(
         key="rubber_duck", title="hollow bath duck of plasticised PVC vinyl",
         keywords=(("duck", 3), ("rubber", 2), ("vinyl", 2), ("pvc", 2), ("bath toy", 1), ("bath", 1),
@@ -501,9 +559,10 @@ TABLE: tuple[TableEntry, ...] = (
                    "to zero or slightly negative for compressed citrus peels; the air-filled albedo makes the "
                    "peel lighter than water (850 kg/m^3 is an estimate); E 2 MPa is a mid-range choice",
             note="Peel 3-6 mm thick, foam-like and energy absorbing."),
-        interior="orange_juice", squeeze_threshold=0.3, effect="juice",
+        interior="orange_juice", squeeze_threshold=0.2, effect="juice",
         threshold_source="engineering choice: the thick, energy-absorbing peel is assumed to delay rupture "
-                         "compared with a tomato; no measured value for hand squeezing"),
+                         "compared with a tomato (0.15), so 0.2 (7.5 mm indentation under the fingertips of a "
+                         "75 mm orange); no measured value for hand squeezing"),
     TableEntry(
         key="rubber_ball", title="hollow natural-rubber ball",
         keywords=(("ball", 3), ("rubber", 2), ("bouncy", 1), ("bouncing", 1), ("latex", 1),
@@ -772,7 +831,8 @@ def _table_answer(description: str, name: str, interior: Optional[str], values: 
         explicit = _explicit_shell(values)
         if explicit is None:
             raise
-        return dict(shell=explicit, interior=_interior_material(resolve_interior(interior, None, name)),
+        ikey = resolve_interior(interior, None, name)
+        return dict(shell=explicit, interior=_interior_material(ikey), core=_core_material(ikey),
                     squeeze_threshold=None, threshold_source="", effect="none", matched_entry="explicit",
                     backend="explicit",
                     notes=["no table entry matched: the shell comes from the object's explicit material values"])
@@ -783,13 +843,18 @@ def _table_answer(description: str, name: str, interior: Optional[str], values: 
                      "interior: null")
     elif key is not None:
         notes.append(f"interior {interior!r} -> table interior {key!r}")
-    return dict(shell=entry.shell, interior=_interior_material(key), squeeze_threshold=entry.squeeze_threshold,
+    return dict(shell=entry.shell, interior=_interior_material(key), core=_core_material(key),
+                squeeze_threshold=entry.squeeze_threshold,
                 threshold_source=entry.threshold_source, effect=entry.effect, matched_entry=entry.key,
                 backend="table", notes=notes)
 
 
 def _interior_material(key: Optional[str]) -> Optional[MaterialProperties]:
     return None if key is None else INTERIORS[key].material
+
+
+def _core_material(key: Optional[str]) -> Optional[MaterialProperties]:
+    return None if key is None else INTERIORS[key].core
 
 
 def _explicit_shell(values: dict[str, Any]) -> Optional[MaterialProperties]:
@@ -827,7 +892,8 @@ def _apply_overrides(base: dict, values: dict[str, Any], name: str) -> ObjectMat
         threshold_source = "explicit material.squeeze_threshold in the object config"
         notes.append(f"squeeze_threshold overridden by the object config: {threshold:g}")
     try:
-        return ObjectMaterials(shell=shell, interior=base["interior"], squeeze_threshold=threshold,
+        return ObjectMaterials(shell=shell, interior=base["interior"], core=base.get("core"),
+                               squeeze_threshold=threshold,
                                threshold_source=threshold_source, effect=base["effect"],
                                matched_entry=base["matched_entry"], backend=base["backend"], notes=notes)
     except ValidationError as exc:
@@ -847,7 +913,7 @@ def materials_to_dict(materials: ObjectMaterials) -> dict[str, Any]:
     """
     out = materials.model_dump(mode="json")
     derived: dict[str, Any] = {}
-    for part in ("shell", "interior"):
+    for part in ("shell", "interior", "core"):
         m = getattr(materials, part)
         if m is not None:
             derived[part] = {"shear_modulus": m.shear_modulus, "lame_lambda": m.lame_lambda,

@@ -11,16 +11,26 @@ material dictates.  The ``force`` boundary mode (the
 no_dirichlet ablation) pushes with a total per-finger force ``force_per_coefficient * c_k,t`` along the
 inward patch normal instead.
 
-Squeezing threshold (sec. 3.2): the squeeze strain of finger k is the mean inward displacement of the surface
-points under its patch divided by the object's half extent along that direction,
-``eps_k = mean(u . d_k) / h(d_k)`` with u = x - x0 the surface displacement (the object's base is held by the
-table, ``mpm.floor_sticky``, so u carries no rigid translation) and ``h(d) = sum_i |d_i| half_i``.  When ``max_k eps_k`` first
-reaches the material oracle's threshold, the shell ruptures within ``release_radius`` of that finger's patch
-(those shell particles become ``ruptured_softening`` times softer, and the finger that punctured the skin no
-longer constrains its patch, so the juice has a way out) and the interior particles there are released opposite to the squeeze direction with speed ``release_speed_per_pascal * p_k`` (capped), p_k the
-finger's contact pressure = |reaction| / patch area.  Objects without interior material, or whose control
-signals never reach the threshold (predicted from the prescribed field before simulating), get no interior
-particles at all.
+Squeezing threshold (sec. 3.2): the squeeze strain of finger k is the indentation under the fingertip divided
+by the object's half extent along the squeeze direction, ``eps_k = mean(u . d_k) / h(d_k)``, the mean taken over
+the contact core of finger k's patch (the surface points of its region with patch weight phi >= exp(-1/2), i.e.
+within one patch sigma of the centre; the mean over the whole 2.5-sigma support, whose rim barely moves,
+reads ~3x lower), u = x - x0 the surface displacement (the object's base is held by the table,
+``mpm.floor_sticky``, so u carries no rigid translation) and ``h(d) = sum_i |d_i| half_i``.  When ``max_k eps_k``
+first reaches the material oracle's threshold, the shell ruptures within ``release_radius`` of that finger's
+contact (those shell particles become ``ruptured_softening`` times softer; no finger constrains the surface
+within ``release_radius + 1.5 dx`` any more, so the opening is free) and the interior there is released opposite
+to the squeeze direction with speed ``release_speed_per_pascal * p_k`` (capped), p_k the finger's contact
+pressure = |reaction| / patch area.
+
+Interior and core: the oracle's ``core`` (fruit flesh, plush stuffing) fills the cavity and is part of the body:
+it is always simulated and holds the shell up.  The releasable ``interior`` (juice, loose stuffing) is made of
+the core particles within ``release_radius`` of the rupture, which switch to the interior material (labels in
+``particle_material``: 0 shell, 1 interior, 2 ruptured shell, 3 core).  Without a core (a sealed can of cola)
+the interior fills the cavity from the start.  Objects without interior material, or whose control signals never
+reach the threshold (predicted from the prescribed field before simulating), allocate no interior at all: no
+interior material, no ``released`` array.  A fluid interior has no tension (``tasks.mpm.constitutive``), so the
+released liquid separates from what stays instead of pulling back on it.
 
 Resistive force feedback (sec. 3.2): ``f_k = clip(tau_y * A_k, 0, feedback_max_force)`` with tau_y the
 shell's yield stress and A_k the contact patch area; for materials without a yield stress (elastic rubber)
@@ -38,17 +48,35 @@ from conf.mpm_schema import mpm_config_from
 from tasks.artifacts import Array
 from tasks.material_oracle import materials_from_dict, mpm_material_kwargs
 from tasks.mpm.materials import Material, material_from_dict
-from tasks.mpm.solver import (DirichletPoints, ForcePatch, MPMSolver, deform_covariances, polar_rotation,
-                              rotate_quaternions)
-from tasks.step import artifact_step
+from tasks.mpm.solver import (DirichletPoints, ForcePatch, MPMSolver, deform_covariances, mass_scale_for,
+                              polar_rotation, rotate_quaternions)
+from tasks.step import artifact_step, report_progress
 
 N_FINGERS = 5
-SHELL, INTERIOR, RUPTURED = 0, 1, 2
+SHELL, INTERIOR, RUPTURED, CORE = 0, 1, 2, 3  # particle labels (``particle_material``)
+N_LABELS = 4
 
 
 def support_half_extent(direction: np.ndarray, half: np.ndarray) -> np.ndarray:
     """h(d) = sum_i |d_i| half_i: half-width (m) of the object's bounding box along unit direction(s) d."""
     return np.abs(direction) @ half
+
+
+def _region_frames(finger: np.ndarray) -> np.ndarray:
+    """(frame, finger) index of the frame whose constrained set is finger k's region at frame f (-1: none yet).
+
+    The region is the largest set of points finger k has constrained so far: a press grows it; a release,
+    which shrinks the contact to the deepest points, does not replace it."""
+    T = finger.shape[0]
+    chosen = np.full((T, N_FINGERS), -1, np.int64)
+    for k in range(N_FINGERS):
+        last, size = -1, 0
+        for f in range(T):
+            n = int((finger[f] == k).sum())
+            if n and n >= size:
+                last, size = f, n
+            chosen[f, k] = last
+    return chosen
 
 
 def finger_regions(finger: np.ndarray, patch_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -60,28 +88,52 @@ def finger_regions(finger: np.ndarray, patch_normals: np.ndarray) -> tuple[np.nd
     that patch.  Both the prescribed and the observed squeeze strain are measured on these regions.
     """
     T, S = finger.shape
+    chosen = _region_frames(finger)
     region = np.zeros((T, N_FINGERS, S), bool)
     direction = np.zeros((T, N_FINGERS, 3))
-    for k in range(N_FINGERS):
-        last_sel, last_dir = np.zeros(S, bool), np.zeros(3)
-        for f in range(T):
-            sel = finger[f] == k
-            if sel.any() and sel.sum() >= last_sel.sum():
-                last_sel, last_dir = sel, -patch_normals[f, k]
-            region[f, k], direction[f, k] = last_sel, last_dir
+    for f in range(T):
+        for k in range(N_FINGERS):
+            c = chosen[f, k]
+            if c >= 0:
+                region[f, k], direction[f, k] = finger[c] == k, -patch_normals[c, k]
     return region, direction
 
 
-def squeeze_strain(displacement: np.ndarray, region: np.ndarray, direction: np.ndarray, half: np.ndarray) -> np.ndarray:
-    """eps_k = mean over finger k's region of the inward displacement / h(d_k) (finger,), 1.
+def region_weights(finger: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """(frame, finger, point) the contact weight phi (eq. 3, ``dirichlet_field``'s ``weight``) of each point of
+    finger k's region (:func:`finger_regions`) in the frame that region was chosen; 0 outside the region."""
+    T, S = finger.shape
+    chosen = _region_frames(finger)
+    out = np.zeros((T, N_FINGERS, S))
+    for f in range(T):
+        for k in range(N_FINGERS):
+            c = chosen[f, k]
+            if c >= 0:
+                out[f, k] = np.where(finger[c] == k, weight[c], 0.0)
+    return out
+
+
+CONTACT_CORE_PHI = math.exp(-0.5)  # patch weight at one sigma: the finger's contact core
+
+
+def squeeze_strain(displacement: np.ndarray, region: np.ndarray, direction: np.ndarray, half: np.ndarray,
+                   weight: np.ndarray | None = None) -> np.ndarray:
+    """eps_k = mean inward displacement under finger k / h(d_k) (finger,), 1.
 
     ``displacement`` (point, xyz) m of the surface points, ``region`` (finger, point), ``direction``
-    (finger, xyz).  A finger that has not touched yet has strain 0.
+    (finger, xyz).  Without ``weight`` the mean is over finger k's whole region.  With ``weight`` (finger,
+    point; the patch weight phi of :func:`region_weights`) it is over the region's contact core, the points with
+    phi >= exp(-1/2) (the patch's one-sigma ellipse, under the fingertip): the indentation depth at the contact,
+    which the mean over the whole 2.5-sigma support (whose rim barely moves) underestimates by ~3x.  A finger
+    that has not touched yet has strain 0.
     """
     out = np.zeros(N_FINGERS)
     for k in range(N_FINGERS):
-        if region[k].any():
-            out[k] = (displacement[region[k]] @ direction[k]).mean() / max(support_half_extent(direction[k], half), 1e-9)
+        sel = region[k]
+        if weight is not None and (sel & (weight[k] >= CONTACT_CORE_PHI)).any():
+            sel = sel & (weight[k] >= CONTACT_CORE_PHI)
+        if sel.any():
+            out[k] = (displacement[sel] @ direction[k]).mean() / max(support_half_extent(direction[k], half), 1e-9)
     return out
 
 
@@ -129,60 +181,83 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     # ---- what this scene needs: interior particles only if they can be released
     threshold = mats.squeeze_threshold
     region, direction = finger_regions(finger_of, patches["patch_normals"])
+    phi = region_weights(finger_of, field["weight"])
     constrained_now = finger_of >= 0
     predicted = np.stack([squeeze_strain(np.where(constrained_now[f][:, None], disp[f], 0.0), region[f],
-                                         direction[f], half) for f in range(T)])
-    with_interior = mats.interior is not None and len(obj["interior_positions"]) > 0
-    if mats.interior is None or len(obj["interior_positions"]) == 0:
+                                         direction[f], half, phi[f]) for f in range(T)])
+    has_cavity = len(obj["interior_positions"]) > 0
+    with_core = mats.core is not None and has_cavity  # the pulp / stuffing is body: always simulated
+    with_interior = mats.interior is not None and has_cavity
+    core_note = f"; the {mats.core.name} core is simulated as part of the body" if with_core else ""
+    if mats.interior is None or not has_cavity:
         notes.append("interior and release skipped: the object has no interior material")
     elif threshold is None:
         with_interior = False
-        notes.append("interior and release skipped: the material never ruptures (no squeeze threshold)")
+        notes.append("interior and release skipped: the material never ruptures (no squeeze threshold)" + core_note)
     elif predicted.max() < threshold:
         with_interior = False
         notes.append(f"interior and release skipped: the controls never reach the squeeze threshold "
-                     f"(predicted peak strain {predicted.max():.3f} < {threshold:.3f})")
+                     f"(predicted peak strain {predicted.max():.3f} < {threshold:.3f})" + core_note)
 
-    mat_list: list[Material] = [shell]
+    # materials by label (SHELL, INTERIOR, RUPTURED, CORE); the solver indexes the list of those present
+    by_label: dict[int, Material] = {SHELL: shell}
     positions = [obj["particle_positions"]]
     volumes = [obj["particle_volumes"]]
     ids = [np.full(len(obj["particle_positions"]), SHELL, np.int32)]
-    if with_interior:
-        fluid = material_from_dict(mpm_material_kwargs(mats.interior, "interior"))
-        mat_list.append(fluid)
+    if with_core:
+        by_label[CORE] = material_from_dict(mpm_material_kwargs(mats.core, "core"))
         positions.append(obj["interior_positions"])
         volumes.append(obj["interior_volumes"])
-        ids.append(np.full(len(obj["interior_positions"]), INTERIOR, np.int32))
-        mat_list.append(replace(shell, name="ruptured_shell",
-                                youngs_modulus=shell.youngs_modulus * float(sim["ruptured_softening"]),
-                                yield_stress=shell.yield_stress * float(sim["ruptured_softening"])))
+        ids.append(np.full(len(obj["interior_positions"]), CORE, np.int32))
+    if with_interior:
+        by_label[INTERIOR] = _released_material(mats.interior, sim)
+        if not with_core:  # no solid core: the interior fills the cavity from the start (cola in a can)
+            positions.append(obj["interior_positions"])
+            volumes.append(obj["interior_volumes"])
+            ids.append(np.full(len(obj["interior_positions"]), INTERIOR, np.int32))
+        soft = float(sim["ruptured_softening"])
+        by_label[RUPTURED] = replace(shell, name="ruptured_shell", youngs_modulus=shell.youngs_modulus * soft,
+                                     yield_stress=shell.yield_stress * soft)
+    # the solver picks its fixed-corotated-only fast path from the models present at construction and keeps it
+    # when particles later switch material, so a switch to another model needs one present from the start
+    initial = {by_label[lab].model for lab in set(np.concatenate(ids).tolist())}
+    if with_interior and shell.model == "fixed_corotated" and initial != {"fixed_corotated"}:
+        # torn skin carried off by the released interior: neo-Hookean's ln J barrier keeps the soft flakes from
+        # inverting where the spray piles up (fixed-corotated's (J - 1)^2 term barely resists J -> 0)
+        by_label[RUPTURED] = replace(by_label[RUPTURED], model="neo_hookean")
+    if with_interior and initial == {"fixed_corotated"} and by_label[INTERIOR].model != "fixed_corotated":
+        raise ValueError(f"shell {mats.shell.name!r} and core are both fixed_corotated: the "
+                         f"{by_label[INTERIOR].model} interior made from the core at the rupture needs another core "
+                         "model (e.g. neo_hookean)")
+    labels = sorted(by_label)
+    mat_list: list[Material] = [by_label[lab] for lab in labels]
+    slot = np.full(N_LABELS, -1, np.int32)
+    slot[labels] = np.arange(len(labels))
     x0 = np.concatenate(positions).astype(np.float32)
     vol = np.concatenate(volumes).astype(np.float32)
-    mid = np.concatenate(ids)
+    mid = np.concatenate(ids)  # labels; the solver's material ids are slot[mid]
 
     # ---- grid and time scaling
     cfg = mpm_config_from(dict(mpm))
     spacing = float(obj_attrs["particle_spacing"])
     dx = cfg.dx or spacing * cfg.particles_per_cell ** (1.0 / 3.0)
-    mass_scale = 1.0
-    target = int(sim["target_substeps_per_frame"])
-    solids = [m for m in mat_list[:2] if m.model != "fluid"]
-    if target > 0:
-        dt_target = frame_dt / target
-        c_max = max(m.p_wave_speed(cfg.stiffness_scaling) for m in solids)
-        mass_scale = max(1.0, (c_max * dt_target / (cfg.courant * dx)) ** 2)
-    if with_interior and mat_list[1].model == "fluid":
+    cfg = replace(cfg, dx=dx)  # the solver applies mpm.mass_scaling (densities x s, gravity / s)
+    if with_interior and mat_list[slot[INTERIOR]].model == "fluid":
         # weakly compressible: sound speed 10 x the reference flow speed AFTER mass scaling (Mach 0.1, ~1 %
-        # density error), instead of water's 1450 m/s
+        # density error), instead of water's 1450 m/s; s as the solver will compute it (fluids do not drive s).
+        # Capped at the solids' scaled P-wave speed: juice made from burst pulp appears mid-run, after the
+        # solver fixed its time step from the materials present at the start, and must not need a smaller one.
+        present = [mat_list[i] for i in np.unique(slot[mid])]
+        mass_scale = mass_scale_for(present, dx, frame_dt, cfg)
         v = float(sim["fluid_reference_speed"])
-        k_fluid = mass_scale * mat_list[1].density * (10.0 * v) ** 2 / cfg.stiffness_scaling
-        notes.append(f"interior fluid bulk modulus {k_fluid:.3g} Pa (sound speed {10 * v:g} m/s at mass scale "
-                     f"x{mass_scale:.3g}; Mach 0.1 at {v:g} m/s) instead of {mats.interior.bulk_modulus:.3g} Pa")
-        mat_list[1] = replace(mat_list[1], bulk_modulus=k_fluid)
-    gravity = [g / mass_scale for g in cfg.gravity]
-    cfg = replace(cfg, dx=dx, mass_scaling="manual" if mass_scale > 1 else cfg.mass_scaling,
-                  mass_scale=mass_scale if mass_scale > 1 else cfg.mass_scale, gravity=gravity)
-    solver = MPMSolver(x0, vol, mat_list, material_ids=mid, config=cfg, tracers=obj["surface_points"])
+        c_solid = max(m.p_wave_speed(cfg.stiffness_scaling, mass_scale) for m in present if m.model != "fluid")
+        c_fluid = min(10.0 * v, c_solid)
+        k_fluid = mass_scale * mat_list[slot[INTERIOR]].density * c_fluid ** 2 / cfg.stiffness_scaling
+        notes.append(f"interior fluid bulk modulus {k_fluid:.3g} Pa (sound speed {c_fluid:.3g} m/s at mass scale "
+                     f"x{mass_scale:.3g}: Mach {v / c_fluid:.2g} at {v:g} m/s) instead of "
+                     f"{mats.interior.bulk_modulus:.3g} Pa")
+        mat_list[slot[INTERIOR]] = replace(mat_list[slot[INTERIOR]], bulk_modulus=k_fluid)
+    solver = MPMSolver(x0, vol, mat_list, material_ids=slot[mid], config=cfg, tracers=obj["surface_points"])
     contact_tolerance = 0.25 * dx  # m: a point this much deeper than its finger is still in contact
 
     # ---- outputs (only what the scene needs)
@@ -202,7 +277,7 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     stats_keys = ("substeps", "dt_min", "courant", "max_speed", "j_min", "j_max", "kinetic_energy",
                   "internal_energy", "ke_ie_ratio")
     stats = {k: np.zeros(T, np.float64) for k in stats_keys}
-    mu_phys = np.array([m.mu for m in mat_list])[mid]
+    mu_phys = np.array([m.mu for m in mat_list])[slot[mid]]
     cov0 = _covariances(obj["gaussian_scales"], obj["gaussian_rotations"])
     q0 = obj["gaussian_rotations"].astype(np.float64)
     released = np.zeros(P, bool) if with_interior else None
@@ -221,7 +296,8 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         g_cov[f] = _sym6(deform_covariances(tF, cov0))
         g_rot[f] = rotate_quaternions(polar_rotation(tF), q0)
         moved = tx - surface0
-        strain[f] = squeeze_strain(moved, region[f], direction[f], half)
+        # torn skin (around an opening) is no longer under a finger: the released interior may carry it off
+        strain[f] = squeeze_strain(moved, region[f] & ~torn, direction[f], half, phi[f])
 
     record(0)
     for f in range(1, T):
@@ -255,6 +331,7 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         reaction[f] = np.asarray(st.reaction)[:N_FINGERS]
         applied[f] = np.asarray(st.applied_force)[:N_FINGERS]
         record(f)
+        report_progress(f, T - 1)
         if bc is not None:  # RMS distance of the imposed points from their targets at the end of the frame
             tracking[f] = np.sqrt(np.mean(np.sum((g_pos[f][idx] - target_x) ** 2, axis=1)))
         if with_interior and not event["crossed"] and threshold is not None and strain[f].max() >= threshold:
@@ -262,10 +339,15 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
             centers = np.array([tx[region[f, k]].mean(axis=0) if region[f, k].any() else patches["patch_centers"][f, k]
                                 for k in range(N_FINGERS)])
             event = _release(solver, f, times[f], strain[f], threshold, patches, centers, reaction[f], applied[f],
-                             boundary, mid, released, sim)
-            for k in event["fingers"]:  # the finger punctured the skin: it no longer presses on its patch
-                torn |= region[f, k] | (np.linalg.norm(tx - centers[k], axis=1) <= float(sim["release_radius"]))
-            mid = solver.material_ids()
+                             boundary, mid, slot, released, sim)
+            # the finger punctured the skin: it no longer presses on its patch, and no finger constrains the
+            # surface within release_radius + 1.5 dx of the opening (a constrained point's B-spline stencil reaches
+            # 1.5 dx deep: it would hold the released interior in place under the opening)
+            opening = float(sim["release_radius"]) + 1.5 * dx
+            for k in event["fingers"]:
+                torn |= region[f, k] | (np.linalg.norm(tx - centers[k], axis=1) <= opening)
+            mid = event.pop("labels")
+            mu_phys = np.array([m.mu for m in mat_list])[slot[mid]]
 
     # ---- resistive force feedback (per finger, N)
     area = patches["patch_areas"] * patches["patch_active"]
@@ -278,7 +360,8 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         "time": Array(times.astype(np.float64), ("frame",), "s"),
         "particle_positions": Array(out_x, ("frame", "particle", "xyz"), "m"),
         "particle_material": Array(mid.astype(np.int8), ("particle",), "1",
-                                   "0 shell, 1 interior, 2 ruptured shell"),
+                                   "0 shell, 1 interior (released juice / cola / stuffing), 2 ruptured shell, "
+                                   "3 core (pulp / stuffing: part of the body)"),
         "particle_J": Array(out_J, ("frame", "particle"), "1", "det F (volume ratio)"),
         "particle_von_mises": Array(out_vm, ("frame", "particle"), "Pa", "3 mu eps_eq of the elastic Hencky strain"),
         "gaussian_positions": Array(g_pos, ("frame", "point", "xyz"), "m"),
@@ -304,13 +387,13 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     attrs = {
         "boundary": boundary, "materials": [m.name for m in mat_list], "n_particles": int(P),
         "n_interior": int((mid == INTERIOR).sum()),
-        "with_interior": bool(with_interior), "dx": float(dx), "mass_scale": float(mass_scale),
-        "gravity_effective": gravity, "device": solver.device, "substeps_total": int(stats["substeps"].sum()),
+        "with_interior": bool(with_interior), "dx": float(dx), "mass_scale": solver.mass_scale,
+        "gravity_effective": solver.gravity, "device": solver.device, "substeps_total": int(stats["substeps"].sum()),
         "threshold_event": event, "notes": notes,
         "feedback_rule": "tau_y * area" if tau_y else "|contact force| (no yield stress)",
         "bytes_per_particle": float(solver.bytes_per_particle()),
         "quasi_static": _quasi_static_summary(stats["ke_ie_ratio"], reaction if boundary == "dirichlet" else applied,
-                                              mass_scale, float(cfg.quasi_static_ke_ie_max)),
+                                              solver.mass_scale, float(cfg.quasi_static_ke_ie_max)),
     }
     return arrays, attrs
 
@@ -324,12 +407,32 @@ def _quasi_static_summary(ke_ie: np.ndarray, contact: np.ndarray, mass_scale: fl
             "frames_over_limit": int((ratio > limit).sum()), "frames_in_contact": int(in_contact.sum())}
 
 
+def _released_material(interior: Any, sim: Mapping[str, Any]) -> Material:
+    """The solver material of what is released past the threshold (label INTERIOR).
+
+    A fluid (juice, cola, the table's loose stuffing) gets the Tait exponent ``simulation.fluid_tait_exponent``
+    (its bulk modulus is set with the mass scale).  A solid interior (an LLM's answer may give one) is
+    ``ruptured_softening`` times softer than stated: torn loose, it no longer carries load."""
+    m = material_from_dict(mpm_material_kwargs(interior, "interior"))
+    if m.model == "fluid":
+        return replace(m, fluid_gamma=float(sim["fluid_tait_exponent"]))
+    soft = float(sim["ruptured_softening"])
+    return replace(m, name="released_interior", youngs_modulus=m.youngs_modulus * soft,
+                   yield_stress=m.yield_stress * soft)
+
+
 def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold: float,
              patches: Mapping[str, np.ndarray], centers: np.ndarray, reaction: np.ndarray, applied: np.ndarray,
-             boundary: str, mid: np.ndarray, released: np.ndarray, sim: Mapping[str, Any]) -> dict[str, Any]:
+             boundary: str, mid: np.ndarray, slot: np.ndarray, released: np.ndarray,
+             sim: Mapping[str, Any]) -> dict[str, Any]:
     """Rupture the shell and release interior particles at the finger(s) past the threshold.
 
-    ``centers`` (finger, xyz) m: where each finger's contact is now (the deformed patch), not at rest."""
+    ``centers`` (finger, xyz) m: where each finger's contact is now (the deformed patch), not at rest.  ``mid``
+    holds the particle labels, ``slot`` maps a label to the solver's material index.  Within ``release_radius``
+    of a finger past the threshold the shell ruptures and the interior is released: the interior particles
+    there, or, for an object with a solid core (pulp, stuffing), the core particles there, which become the
+    interior material (the pulp's cells burst into juice, the stuffing tears loose).  The returned event holds
+    the new labels under ``labels``."""
     x = solver.positions().astype(np.float64)
     v = solver.velocities().astype(np.float64)
     ids = mid.copy()
@@ -344,16 +447,20 @@ def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold:
         force = np.linalg.norm(reaction[k] if boundary == "dirichlet" else applied[k])
         speed = min(float(sim["release_speed_per_pascal"]) * force / area, float(sim["max_release_speed"]))
         near = np.linalg.norm(x - c, axis=1) <= radius
-        ids[near & (mid == SHELL)] = RUPTURED
-        out = near & (mid == INTERIOR) & ~released
-        v[out] = n_out * speed  # opposite to the squeeze direction (-n_out)
+        torn = near & (mid == SHELL)
+        ids[torn] = RUPTURED
+        out = near & ((mid == INTERIOR) | (mid == CORE)) & ~released
+        ids[out] = INTERIOR
+        # opposite to the squeeze direction (-n_out); the torn shell over the opening is pushed out with it (a
+        # thick peel or a fabric heavier than the stuffing behind it would otherwise stop the interior)
+        v[out | torn] = n_out * speed
         released |= out
         speeds.append(speed)
-    solver.set_material_ids(ids)
+    solver.set_material_ids(slot[ids])
     solver.set_velocities(v.astype(np.float32))
     return {"crossed": True, "frame": int(f), "time": float(t), "fingers": fingers,
             "strain": float(strain.max()), "threshold": threshold, "released_particles": int(released.sum()),
-            "release_speeds": speeds}
+            "release_speeds": speeds, "labels": ids}
 
 
 @artifact_step("mpm_rollout", modules=("tasks.mpm.solver", "tasks.mpm.kernels", "tasks.mpm.constitutive",

@@ -15,6 +15,15 @@ VirSqueezer (paper sec. "Squeezing Control Mapping" and "Physics Simulation") re
 (``kind: mesh``, loaded with trimesh) or a 3DGS PLY (``kind: ply``, :mod:`tasks.gaussian_ply`).  All lengths
 are metres, areas m^2, volumes m^3; positions are float32.
 
+A mesh must be one closed surface: an open (non-watertight) mesh or one that intersects itself (e.g. a body and
+a head modelled as two overlapping closed shells) is refused, not repaired.  Both leave inside and outside
+undefined where it matters: the enclosed volume (divergence theorem) counts an overlap twice, the
+voxel fill and the signed distance disagree there, and surface samples - the Gaussians the fingers touch and
+the contact patches - would lie on faces buried inside the body.  A silent repair (hole filling, boolean
+union) would change the user's geometry without saying so; the error names the file and the repair to do.
+Self-intersection is found by :func:`tasks.geometry.crossing_triangle_pairs` (exact triangle-triangle
+crossings; coplanar overlaps and folds between neighbouring faces are not detected).
+
 Discretisation choices (documented here because downstream steps rely on them):
 
 * Surface samples are blue-noise: random area-uniform candidates (5 per sample) thinned by greedy Poisson-disk
@@ -37,7 +46,9 @@ Discretisation choices (documented here because downstream steps rely on them):
     mid-surface (``t/2`` inside the outer surface; on the sheet itself for the open cup), each with volume =
     its Voronoi area share x t, so the total is ``area x t`` and the wall mass is physical;
   - ``interior`` set: grid points with ``sdf < -max(t, s/2)`` (half a spacing clear of the wall layer), volumes
-    rescaled to the cavity volume ``V(sdf < 0) - wall volume``.
+    rescaled to the cavity volume ``V(sdf < 0) - wall volume``.  These cavity particles are the object's geometry
+    only: the rollout fills them with the oracle's ``core`` (fruit flesh, stuffing: part of the body) or, without
+    a core, with the interior material itself, and only when it can be released.
   ``particle_normals`` is the outward normal of the object's outer surface nearest to each particle
   (``grad sdf``), also for particles inside a thick wall.
 """
@@ -54,7 +65,16 @@ from scipy.spatial import cKDTree
 
 from tasks.artifacts import Array
 from tasks.gaussian_ply import read_gaussian_ply
-from tasks.geometry import SHAPE_KINDS, Shape, make_shape, marching_tetrahedra, soup_area, soup_volume, tangent_basis
+from tasks.geometry import (
+    SHAPE_KINDS,
+    Shape,
+    crossing_triangle_pairs,
+    make_shape,
+    marching_tetrahedra,
+    soup_area,
+    soup_volume,
+    tangent_basis,
+)
 
 __all__ = [
     "ObjectModelError", "build_object_model", "poisson_disk", "quadric_curvature", "matrix_to_quaternion",
@@ -526,6 +546,14 @@ class _MeshSource(_SampledSource):
         if open_edges or not mesh.is_watertight:
             raise ObjectModelError(f"mesh {p} is not watertight ({open_edges} open edges): repair it, e.g. "
                                    "trimesh.repair.fill_holes, or export a closed mesh")
+        crossing = crossing_triangle_pairs(mesh.vertices, mesh.faces, limit=100)
+        if len(crossing):
+            i, j = (int(x) for x in crossing[0])
+            more = "100 or more" if len(crossing) >= 100 else str(len(crossing))
+            raise ObjectModelError(f"mesh {p} intersects itself ({more} pairs of faces pass through each other, "
+                                   f"e.g. faces {i} and {j}): inside and outside are ambiguous; merge the "
+                                   "overlapping parts into one closed surface (a boolean union, e.g. Blender's "
+                                   "Boolean modifier) and export again")
         if mesh.volume < 0:
             mesh.invert()
         shift, scale = _fit_transform(mesh.bounds[0], mesh.bounds[1], size)

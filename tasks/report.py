@@ -146,11 +146,19 @@ def snapshot_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: P
     return path
 
 
-def rollout_summary(refs: Mapping[str, Mapping[str, Any]]) -> Optional[str]:
-    """One markdown row per object: particles, substeps, time scaling, threshold event, what was left out."""
-    rows = []
+def _variant_refs(refs: Mapping[str, Mapping[str, Any]]):
+    """(object, variant, that pair's refs = shared steps + the variant's own) for every simulated pair."""
     for obj, obj_refs in refs.items():
-        ref = obj_refs.get("mpm_rollout")
+        shared = {k: v for k, v in obj_refs.items() if k != "variants"}
+        for variant, vrefs in obj_refs.get("variants", {}).items():
+            yield obj, variant, {**shared, **vrefs}
+
+
+def rollout_summary(refs: Mapping[str, Mapping[str, Any]]) -> Optional[str]:
+    """One markdown row per object and variant: particles, substeps, time scaling, threshold event, notes."""
+    rows = []
+    for obj, variant, pair in _variant_refs(refs):
+        ref = pair.get("mpm_rollout")
         if ref is None:
             continue
         try:
@@ -164,19 +172,80 @@ def rollout_summary(refs: Mapping[str, Mapping[str, Any]]) -> Optional[str]:
                  else ("never crossed" if ev.get("threshold") is not None else "no threshold"))
         eps = r["squeeze_strain"].max(axis=1)
         qs = a.get("quasi_static", {})
-        rows.append(f"| {obj} | {a['boundary']} | {a['n_particles']} | {a['substeps_total']} | x{a['mass_scale']:.3g} | "
+        tracking = (f"{1e3 * r['dirichlet_tracking_error'].max():.2f}" if a["boundary"] == "dirichlet" else "-")
+        rows.append(f"| {obj} | {variant} | {a['n_particles']} | {a['substeps_total']} | x{a['mass_scale']:.3g} | "
                     f"{qs.get('median_ke_ie_in_contact', float('nan')):.3g} ({qs.get('frames_over_limit', 0)}/"
                     f"{qs.get('frames_in_contact', 0)} over) | "
-                    f"{eps.max():.3f} / {eps[-1]:.3f} | {1e3 * r['dirichlet_tracking_error'].max():.2f} | "
-                    f"{r['feedback_force'].max():.1f} | {event} | {ref.compute_seconds:.1f} | "
-                    f"{'; '.join(a['notes']) or '-'} |")
+                    f"{eps.max():.3f} / {eps[-1]:.3f} | {tracking} | "
+                    f"{r['feedback_force'].max():.1f} | {event} | {ref.compute_seconds:.1f} |")
     if not rows:
         return None
-    head = ("| object | boundary | particles | substeps | mass scale | KE/IE in contact: median (frames over limit) | "
-            "squeeze strain peak / end | max tracking error (mm) | peak feedback (N) | threshold | sim wall (s) | "
-            "left out / notes |\n"
-            "|---|---|---|---|---|---|---|---|---|---|---|---|")
+    head = ("| object | variant | particles | substeps | mass scale | KE/IE in contact: median (frames over limit) | "
+            "squeeze strain peak / end | max tracking error (mm) | peak feedback (N) | threshold | sim compute (s) |\n"
+            "|---|---|---|---|---|---|---|---|---|---|---|")
     return head + "\n" + "\n".join(rows)
+
+
+NOT_BUILT = ("G-buffer rendering, mask refinement, diffusion and 4D refinement (paper sec. 3.3-3.4) are not part "
+             "of this version: no run performs them.")
+
+
+def left_out(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """Per object and variant, what the run left out of the scene and why (the rollout's own notes)."""
+    lines = []
+    for obj, variant, pair in _variant_refs(refs):
+        ref = pair.get("mpm_rollout")
+        if ref is None:
+            lines.append(f"- {obj} [{variant}]: not simulated (an upstream step failed; see the task table)")
+            continue
+        try:
+            notes = read_artifact(ref, names=[]).attrs.get("notes", [])
+        except ArtifactError:
+            continue
+        lines.append(f"- {obj} [{variant}]: " + ("; ".join(notes) if notes else "nothing left out"))
+    return lines
+
+
+def wall_findings(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """Per object whose wall the grid cannot resolve: the thin-wall finding (:mod:`tasks.wall_resolution`)."""
+    from tasks.material_oracle import materials_from_dict
+    from tasks.wall_resolution import thin_wall_finding
+
+    lines = []
+    for obj, obj_refs in refs.items():
+        rollout = next((v.get("mpm_rollout") for v in obj_refs.get("variants", {}).values() if v.get("mpm_rollout")), None)
+        if rollout is None or obj_refs.get("object_model") is None or obj_refs.get("material_oracle") is None:
+            continue
+        try:
+            shape = read_artifact(obj_refs["object_model"], names=[]).attrs
+            shell = materials_from_dict(read_artifact(obj_refs["material_oracle"], names=[]).attrs["materials"]).shell
+            dx = float(read_artifact(rollout, names=[]).attrs["dx"])
+        except (ArtifactError, KeyError):
+            continue
+        finding = thin_wall_finding(shape, dx, shell.poisson_ratio, shell.youngs_modulus, name=obj)
+        if finding.flagged:
+            lines.append(f"- {obj}: {finding.message}")
+    return lines
+
+
+def metric_bars_figure(obj: str, df, labels: Mapping[str, str], path: Path) -> Optional[Path]:
+    """The four Table 2 scores of one object, one bar per variant."""
+    from tasks.report_tables import TABLE2
+
+    sub = df[df["object"] == obj] if len(df) else df
+    if sub is None or len(sub) == 0:
+        return None
+    fig, ax = plt.subplots(figsize=(6.5, 2.8))
+    width = 0.8 / len(sub)
+    for i, (_, row) in enumerate(sub.iterrows()):
+        vals = [row.get(key, np.nan) for key, _, _ in TABLE2]
+        ax.bar(np.arange(len(TABLE2)) + i * width, vals, width, label=labels.get(row["variant"], row["variant"]))
+    ax.set_xticks(np.arange(len(TABLE2)) + 0.4 - width / 2, [name for _, name, _ in TABLE2])
+    ax.set_ylim(0, 1)
+    ax.set_ylabel("score (1)")
+    ax.legend(fontsize=7, loc="lower right")
+    ax.set_title(f"{obj}: squeezing-controlled deformation metrics", fontsize=10)
+    return _save(fig, ax, path)
 
 
 def _embed(png: Path) -> str:
@@ -184,62 +253,139 @@ def _embed(png: Path) -> str:
 
 
 def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: Mapping[str, Mapping[str, Any]],
-                     wall_seconds: float, sections: Optional[list[tuple[str, str]]] = None) -> Path:
+                     wall_seconds: float, variants: Optional[Mapping[str, str]] = None,
+                     sections: Optional[list[tuple[str, str]]] = None) -> Path:
     """Write the report folder for one flow run and return the path of ``report.md``.
 
-    ``sections`` are extra (title, markdown) blocks contributed by later stages.
+    ``refs[object]`` holds the shared steps' references and ``refs[object]["variants"][variant]`` the
+    per-variant ones; ``variants`` maps variant names to their labels (Table 2's "Method").  ``sections`` are
+    extra (title, markdown) blocks contributed by later stages.
     """
+    from tasks.report_tables import (TABLE2, TRAJECTORY, html_table, markdown_table, metric_definitions,
+                                     metric_rows, paper_layout, write_metric_files)
+
     report_dir = Path(report_dir)
     report_dir.mkdir(parents=True, exist_ok=True)
+    labels = dict(variants or {})
     df = table.frame()
     df.to_csv(report_dir / "tasks.csv", index=False)
     (report_dir / "config.json").write_text(json.dumps(cfg, indent=2, default=str))
     revision = code_revision()
-    figures: dict[str, list[Path]] = {}
-    for obj, obj_refs in refs.items():
-        pngs = [control_figure(obj, obj_refs, report_dir / f"{obj}_control.png"),
-                rollout_figure(obj, obj_refs, report_dir / f"{obj}_rollout.png"),
-                snapshot_figure(obj, obj_refs, report_dir / f"{obj}_snapshots.png")]
-        figures[obj] = [p for p in pngs if p]
+    metrics = metric_rows(refs)
+    write_metric_files(metrics, report_dir)
+    objects = list(refs)
+    for v in (metrics["variant"].unique() if len(metrics) else []):
+        labels.setdefault(v, v)
+    tables = [(title, *paper_layout(metrics, keys, objects, labels)) for title, keys in
+              (("Squeezing-controlled deformation (paper Table 2 layout; bold: best variant per column)", TABLE2),
+               ("Trajectory metrics: sensed hand motion vs reconstructed deformation (paper Supplementary Part 6)",
+                TRAJECTORY))]
+    physical_cols = [c for c in metrics.columns if c not in {"object", "variant"} | {k for k, _, _ in TABLE2 + TRAJECTORY}]
+    physical = metrics[["object", "variant", *physical_cols]] if len(metrics) else metrics
+    definitions = metric_definitions(refs)
 
-    md = [f"# VirSqueezer run `{report_dir.name}`", "",
-          f"- wall time: {wall_seconds:.1f} s; tasks: {table.summary()}",
-          f"- code revision: `{revision}`; config: `config.json`", "",
-          "## Per-task table", "", "```", table.to_text(), "```", ""]
+    figures: dict[str, list[Path]] = {}
+    for obj in objects:
+        figures[obj] = [p for p in [control_figure(obj, refs[obj], report_dir / f"{obj}_control.png"),
+                                    metric_bars_figure(obj, metrics, labels, report_dir / f"{obj}_metrics.png")] if p]
+    for obj, variant, pair in _variant_refs(refs):
+        figures[obj] += [p for p in [rollout_figure(f"{obj} [{variant}]", pair, report_dir / f"{obj}_{variant}_rollout.png"),
+                                     snapshot_figure(f"{obj} [{variant}]", pair, report_dir / f"{obj}_{variant}_snapshots.png")]
+                         if p]
+
     summary = rollout_summary(refs)
     sections = ([("Squeeze simulation (MPM)", summary)] if summary else []) + list(sections or [])
+    md = [f"# VirSqueezer run `{report_dir.name}`", "",
+          f"- wall time: {wall_seconds:.1f} s; tasks: {table.summary()}; peak memory of the flow process "
+          f"{peak_rss_mb():.0f} MB (Dask workers not included)",
+          f"- code revision: `{revision}`; config: `config.json`; metric rows: `metrics.csv`, `metrics.parquet`",
+          "- variants: " + ", ".join(f"`{k}` = {v}" for k, v in labels.items()), ""]
+    for title, header, rows, best in tables:
+        md += [f"## {title}", "", markdown_table(header, rows, best) if rows else "(no metrics: see the task table)", ""]
+    if len(physical):
+        md += ["## Physical figures per object and variant", "",
+               markdown_table(list(physical.columns), [[_fmt(x) for x in r] for r in physical.itertuples(index=False)]), ""]
+    walls = wall_findings(refs)
+    md += ["## Left out of each scene, and why", "", *left_out(refs), f"- all objects: {NOT_BUILT}", ""]
+    if walls:
+        md += ["## Walls thinner than the grid resolves (python -m flows.stability)", "", *walls, ""]
+    md += ["## Compute per step (tasks that ran in this run)", "", step_shares(df), ""]
+    md += ["## Per-task table", "", "```", table.to_text(), "```", ""]
     for title, body in sections:
         md += [f"## {title}", "", body, ""]
+    if definitions:
+        md += ["## Metric definitions", ""] + [f"- **{k}**: {v}" for k, v in definitions.items()] + [""]
     md += ["## Objects", ""]
-    for obj in refs:
+    for obj in objects:
         md.append(f"### {obj}")
-        for png in figures.get(obj, []):
-            md.append(f"![{png.stem}]({png.name})")
-        md.append("")
-        md.append("| step | artifact |")
-        md.append("|---|---|")
-        for step, ref in refs[obj].items():
-            md.append(f"| {step} | `{ref.path if ref else '(not produced)'}` |")
+        md += [f"![{png.stem}]({png.name})" for png in figures.get(obj, [])]
+        md += ["", "| step | variant | artifact |", "|---|---|---|"]
+        md += [f"| {r.step} | {r.variant or '-'} | `{r.artifact or '(not produced)'}` |"
+               for r in table.rows if r.object == obj]
         md.append("")
     (report_dir / "report.md").write_text("\n".join(md))
 
     body = [f"<h1>VirSqueezer run {html.escape(report_dir.name)}</h1>",
             f"<p>wall time {wall_seconds:.1f} s; tasks: {html.escape(table.summary())}; code revision "
-            f"<code>{html.escape(revision)}</code></p>",
-            "<h2>Per-task table</h2>", df.drop(columns=["artifact"]).to_html(index=False, float_format="%.2f")]
+            f"<code>{html.escape(revision)}</code>; metric rows in metrics.csv / metrics.parquet</p>"]
+    for title, header, rows, best in tables:
+        body += [f"<h2>{html.escape(title)}</h2>", html_table(header, rows, best) if rows else "<p>(no metrics)</p>"]
+    if len(physical):
+        body += ["<h2>Physical figures per object and variant</h2>",
+                 html_table(list(physical.columns), [[_fmt(x) for x in r] for r in physical.itertuples(index=False)])]
+    body += ["<h2>Left out of each scene, and why</h2>", "<ul>" + "".join(
+        f"<li>{html.escape(line[2:])}</li>" for line in [*left_out(refs), f"- all objects: {NOT_BUILT}"]) + "</ul>"]
+    if walls:
+        body += ["<h2>Walls thinner than the grid resolves</h2>",
+                 "<ul>" + "".join(f"<li>{html.escape(line[2:])}</li>" for line in walls) + "</ul>"]
+    body += ["<h2>Compute per step (tasks that ran in this run)</h2>", f"<pre>{html.escape(step_shares(df))}</pre>"]
+    body += ["<h2>Per-task table</h2>", df.drop(columns=["artifact"]).to_html(index=False, float_format="%.2f")]
     for title, text in sections:
         body += [f"<h2>{html.escape(title)}</h2>", f"<pre>{html.escape(text)}</pre>"]
+    if definitions:
+        body += ["<h2>Metric definitions</h2>", "<dl>" + "".join(
+            f"<dt><b>{html.escape(k)}</b></dt><dd>{html.escape(v)}</dd>" for k, v in definitions.items()) + "</dl>"]
     body.append("<h2>Objects</h2>")
-    for obj in refs:
+    for obj in objects:
         body.append(f"<h3>{html.escape(obj)}</h3>")
         for png in figures.get(obj, []):
             body.append(f'<img alt="{html.escape(png.stem)}" src="{_embed(png)}" style="max-width:800px">')
         body.append("<ul>" + "".join(
-            f"<li>{html.escape(step)}: <code>{html.escape(ref.path if ref else '(not produced)')}</code></li>"
-            for step, ref in refs[obj].items()) + "</ul>")
+            f"<li>{html.escape(r.step)}{' [' + html.escape(r.variant) + ']' if r.variant else ''}: "
+            f"<code>{html.escape(r.artifact or '(not produced)')}</code></li>" for r in table.rows if r.object == obj)
+            + "</ul>")
+    body += ["<h2>Config</h2>", f"<pre>{html.escape(json.dumps(cfg, indent=2, default=str))}</pre>"]
     page = ("<!doctype html><html><head><meta charset='utf-8'><title>VirSqueezer report</title>"
-            "<style>body{font-family:sans-serif;max-width:1000px;margin:auto}table{border-collapse:collapse}"
+            "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse}"
             "td,th{border:1px solid #ccc;padding:2px 6px;font-size:13px}</style></head><body>"
             + "\n".join(body) + "</body></html>")
     (report_dir / "index.html").write_text(page)
     return report_dir / "report.md"
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory of this process so far (MB; Linux reports ru_maxrss in kB)."""
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def step_shares(df) -> str:
+    """Markdown table: compute seconds and share of the run's compute per step (tasks that ran, not cached)."""
+    ran = df[df["status"] == "ran"]
+    if ran.empty:
+        return "(every task was cached: no compute in this run)"
+    per = ran.groupby("step")["wall_seconds"].agg(["sum", "count"]).sort_values("sum", ascending=False)
+    total = float(per["sum"].sum())
+    rows = [[step, str(int(r["count"])), f"{r['sum']:.1f}", f"{100 * r['sum'] / max(total, 1e-12):.1f} %"]
+            for step, r in per.iterrows()]
+    from tasks.report_tables import markdown_table
+
+    return markdown_table(["step", "tasks", "compute (s)", "share"], rows)
+
+
+def _fmt(x: Any) -> str:
+    """Cell text: 4 significant digits for numbers, '-' for NaN."""
+    if isinstance(x, (float, np.floating)):
+        return "-" if not np.isfinite(x) else f"{x:.4g}"
+    return str(x)

@@ -28,7 +28,13 @@ Recording format (CSV, one row per sensor sample)
   side toward the four fingers, y = z x x.
 * Every value must be a finite number.  Empty cells, ``nan`` and ``inf`` are errors naming the row.  Every row
   must have as many fields as the header (a longer row, e.g. two rows merged by a lost newline, is an error).
-* Reading uses pandas' C parser: 1e6 rows x 28 columns (360-560 MB) read in ~3-9 s on a 2-core machine.
+* Reading uses pandas' C parser: 1e6 rows x 28 columns (360-560 MB) read in ~3-9 s on a 2-core machine, and
+  needs about twice the file size in memory.  A file larger than ``MAX_RECORDING_BYTES`` (256 MiB, about
+  450 000 rows = 7.5 min at 1 kHz, far longer than a squeeze session, whose simulation costs seconds per frame)
+  is refused before it is read (and, through :func:`conf.schema.validate`, before the flow hashes it), with a
+  message naming the file and the fix: cut the recording to the squeeze.  The limit is the ``max_bytes``
+  argument of :func:`read_recording`.
+* A last row with fewer fields than the header (an interrupted export or copy) is reported as a truncated file.
 
 Rows are numbered from 1 = the first data row after the header, so "row r" is line r + 1 of the file
 (when the file has no blank lines, which are skipped).
@@ -62,6 +68,8 @@ __all__ = [
     "PALM_QUATERNION_COLUMNS",
     "REQUIRED_COLUMNS",
     "PERCENT_BENT_FULL_SCALE",
+    "MAX_RECORDING_BYTES",
+    "check_recording_size",
     "read_recording",
     "write_recording",
     "validate_signals",
@@ -85,6 +93,7 @@ REQUIRED_COLUMNS: tuple[str, ...] = (
 SESSION_KINDS: tuple[str, ...] = ("ramp_hold_release", "pulses", "poke", "crush")
 
 PERCENT_BENT_FULL_SCALE = 10000.0  # SenseGlove percent-bent value of a fully closed finger
+MAX_RECORDING_BYTES = 256 * 2**20  # largest recording read (see the module docstring)
 _SCALE_DETECT = 1.5  # flexion max above this => percent-bent file
 _FLEX_TOLERANCE = 0.05  # accepted overshoot outside [0, 1] after scaling
 _ZERO_QUAT = 1e-9
@@ -97,7 +106,22 @@ def _one_line(text: Any) -> str:
     return " ".join(str(text).split())
 
 
-def read_recording(path: str | Path, frame_rate: float | None = None) -> dict[str, np.ndarray]:
+def check_recording_size(path: str | Path, max_bytes: int | None = MAX_RECORDING_BYTES) -> None:
+    """Refuse a recording larger than ``max_bytes`` (None: no limit) before anything reads or hashes it."""
+    p = Path(path)
+    size = p.stat().st_size if p.is_file() else 0
+    if max_bytes is not None and size > max_bytes:
+        raise SignalError(f"recording {p} is {_mib(size)}, above the {_mib(max_bytes)} limit of one squeeze "
+                          f"recording (MAX_RECORDING_BYTES in tasks/squeeze_signals.py); cut it to the squeeze "
+                          f"you want to simulate (keep the header row and that time span)")
+
+
+def _mib(n: int) -> str:
+    return f"{n / 2**20:.1f} MiB" if n < 2**30 else f"{n / 2**30:.2f} GiB"
+
+
+def read_recording(path: str | Path, frame_rate: float | None = None,
+                   max_bytes: int | None = MAX_RECORDING_BYTES) -> dict[str, np.ndarray]:
     """Read a SenseGlove-like CSV recording (format in the module docstring) into raw sensor-rate arrays.
 
     Paper sec. "Squeezing Control Mapping": the three signal groups (flexion, fingertips, palm pose) as
@@ -110,6 +134,8 @@ def read_recording(path: str | Path, frame_rate: float | None = None) -> dict[st
     frame_rate:
         Optional target frame rate (Hz) of the later resampling; the recording must then span at least one
         frame interval ``1 / frame_rate`` (s).
+    max_bytes:
+        Largest file read (bytes, default ``MAX_RECORDING_BYTES``; None = no limit).
 
     Returns
     -------
@@ -129,6 +155,7 @@ def read_recording(path: str | Path, frame_rate: float | None = None) -> dict[st
                           f"tasks/squeeze_signals.py for the format)")
     if p.is_dir():
         raise SignalError(f"recording {name} is a directory; signal.path must name a CSV file")
+    check_recording_size(p, max_bytes)
     if p.stat().st_size == 0:
         raise SignalError(f"recording {name} is empty (0 bytes); record again or point signal.path at a "
                           f"CSV with a header row and samples")
@@ -176,6 +203,8 @@ def read_recording(path: str | Path, frame_rate: float | None = None) -> dict[st
         row = int(np.flatnonzero(bad.any(axis=1))[0])
         col = int(np.flatnonzero(bad[row])[0])
         value = data[row, col]
+        if row == n - 1:
+            _refuse_truncated(p, name, row, len(header.columns))
         what = "empty or NaN" if np.isnan(value) else f"{float(value)}"
         raise SignalError(f"recording {name}: column {REQUIRED_COLUMNS[col]} row {row + 1} "
                           f"(line {row + 2}) is {what}; every value must be a finite number - fill or "
@@ -245,6 +274,19 @@ def read_recording(path: str | Path, frame_rate: float | None = None) -> dict[st
     }
 
 
+def _refuse_truncated(p: Path, name: str, row: int, columns: int) -> None:
+    """Raise if the last line of ``p`` (data row ``row``, 0-based) has fewer fields than the header."""
+    with open(p, "rb") as fh:
+        fh.seek(0, 2)
+        fh.seek(max(0, fh.tell() - 65536))
+        tail = fh.read().rstrip(b"\r\n \t")
+    fields = tail.rsplit(b"\n", 1)[-1].count(b",") + 1
+    if fields < columns:
+        raise SignalError(f"recording {name}: the last row {row + 1} (line {row + 2}) has {fields} of {columns} "
+                          f"fields - the file looks truncated (an interrupted export or copy); export or copy "
+                          f"the recording again, or drop that row")
+
+
 def _locate_bad_cell(p: Path, name: str, original: list, read_kw: dict, exc: Exception) -> pd.DataFrame:
     """Slow diagnostic path: re-read as text, report the first non-numeric cell (column, row)."""
     try:
@@ -264,6 +306,8 @@ def _locate_bad_cell(p: Path, name: str, original: list, read_kw: dict, exc: Exc
         raise SignalError(f"recording {name} could not be parsed as numbers ({_one_line(exc)}); every "
                           f"required column must hold plain numbers") from None
     row, j, value = first
+    if row == len(df) - 1:
+        _refuse_truncated(p, name, row, len(df.columns))
     raise SignalError(f"recording {name}: column {REQUIRED_COLUMNS[j]} row {row + 1} (line {row + 2}) holds "
                       f"non-numeric {value!r}; write a plain number (decimal point, no units)")
 

@@ -16,9 +16,11 @@ from __future__ import annotations
 import hashlib
 import importlib
 import inspect
+import json
 
 from prefect.logging import get_logger
 import time
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Optional
@@ -75,20 +77,64 @@ class ArtifactCachePolicy(CachePolicy):
             read_group_attrs(path)
         except ArtifactError:
             _drop_record(task_ctx, key)
+        else:
+            _drop_unsafe_record(task_ctx, key)
         return key
+
+
+def _record_path(task_ctx: TaskRunContext, key: str) -> Path | None:
+    store = task_ctx.result_store
+    storage = getattr(store, "result_storage", None)
+    basepath = getattr(storage, "basepath", None)
+    return None if basepath is None else Path(basepath).expanduser() / key
 
 
 def _drop_record(task_ctx: TaskRunContext, key: str) -> None:
     """Remove the cache record stored under ``key`` (its artifact no longer exists)."""
-    store = task_ctx.result_store
-    storage = getattr(store, "result_storage", None)
-    basepath = getattr(storage, "basepath", None)
-    if basepath is None:
-        return
-    for candidate in (Path(basepath).expanduser() / key,):
-        if candidate.exists():
-            candidate.unlink()
-            log.info("cache record %s dropped: its artifact is missing on disk", key[:12])
+    candidate = _record_path(task_ctx, key)
+    if candidate is not None and candidate.exists():
+        candidate.unlink()
+        log.info("cache record %s dropped: its artifact is missing on disk", key[:12])
+
+
+_PLAIN_SERIALIZER = {"type": "json", "jsonlib": "json",
+                     "object_encoder": "prefect.serializers.prefect_json_object_encoder",
+                     "object_decoder": "prefect.serializers.prefect_json_object_decoder"}
+
+
+def plain_record(path: Path) -> bool:
+    """True when the cache record at ``path`` is what this module writes: JSON naming Prefect's JSON serializer,
+    whose result is one :class:`ArtifactRef` of plain values.
+
+    Prefect decodes a record with the serializer the record itself names - pickle included, whatever the task
+    asks for - so a record planted in a shared result folder by anyone able to compute the key (code, config
+    values and input digests are not secret) would run code when a later run reads it.  Records are therefore
+    checked (as JSON, no object hooks) before Prefect sees them."""
+    try:
+        doc = json.loads(path.read_bytes())
+        serializer = doc["metadata"]["serializer"]
+        if any(serializer.get(k) != v for k, v in _PLAIN_SERIALIZER.items()) or serializer.get("loads_kwargs"):
+            return False
+        result = json.loads(doc["result"])
+        data = result["data"]
+        if set(result) != {"__class__", "data"} or result["__class__"] != "tasks.artifacts.ArtifactRef":
+            return False
+        if not all(isinstance(v, (str, int, float, bool)) or v is None for v in data.values()):
+            return False
+        ArtifactRef.model_validate(data)
+        return True
+    except Exception:  # noqa: BLE001 - unreadable, partial or foreign: not a record of ours
+        return False
+
+
+def _drop_unsafe_record(task_ctx: TaskRunContext, key: str) -> None:
+    """Remove the record under ``key`` unread when it is not a :func:`plain_record` (the artifact on disk is
+    reused instead, and Prefect writes a plain record again)."""
+    candidate = _record_path(task_ctx, key)
+    if candidate is not None and candidate.exists() and not plain_record(candidate):
+        candidate.unlink(missing_ok=True)
+        log.warning("cache record %s is not a plain JSON record of an artifact reference: removed unread "
+                    "(the artifact on disk is reused)", candidate)
 
 
 @dataclass
@@ -109,6 +155,29 @@ class StepTask:
         return _execute(self.name, self.version, self.compute, str(root), scope, dict(params), dict(inputs or {}))
 
 
+@dataclass
+class _Progress:
+    label: str
+    started: float = field(default_factory=time.perf_counter)
+    logged_tenth: int = 0
+
+
+_PROGRESS: ContextVar[Optional[_Progress]] = ContextVar("virsqueezer_step_progress", default=None)
+
+
+def report_progress(done: int, total: int, unit: str = "frame") -> None:
+    """Log ``<object>/<step>: frame done/total`` from inside a running step, at most once per tenth of the work
+    (so a grid of long steps shows where it is without flooding the log).  A no-op outside a step."""
+    state = _PROGRESS.get()
+    if state is None or total <= 0:
+        return
+    tenth = (10 * done) // total
+    if tenth > state.logged_tenth:
+        state.logged_tenth = tenth
+        log.info("%s: %s %d/%d (%d %%), %.0f s", state.label, unit, done, total, 100 * done // total,
+                 time.perf_counter() - state.started)
+
+
 def _execute(step: str, version: str, compute: ComputeFn, root: str, scope: str, params: dict, inputs: dict[str, ArtifactRef]) -> ArtifactRef:
     key = step_key(step, version, scope, params, inputs)
     path = artifact_path(root, scope, step, key)
@@ -120,7 +189,11 @@ def _execute(step: str, version: str, compute: ComputeFn, root: str, scope: str,
         pass
     loaded = {name: read_artifact(ref) for name, ref in inputs.items()}
     t0 = time.perf_counter()
-    arrays, attrs = compute(loaded, params)
+    token = _PROGRESS.set(_Progress(f"{scope}/{step}" + (f"[{params['boundary']}]" if "boundary" in params else "")))
+    try:
+        arrays, attrs = compute(loaded, params)
+    finally:
+        _PROGRESS.reset(token)
     seconds = time.perf_counter() - t0
     ref = write_artifact(path, arrays, step=step, scope=scope, config_digest=digest_of(params), attrs=attrs,
                          compute_seconds=seconds)

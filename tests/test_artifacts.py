@@ -70,3 +70,32 @@ def test_no_temporary_left_and_missing_is_clear(tmp_path):
 def test_dimension_names_must_match_rank():
     with pytest.raises(ValueError, match="dimension names"):
         Array(np.zeros((2, 3)), ("frame",), "1")
+
+
+def test_concurrent_writers_of_the_same_artifact_all_succeed(tmp_path):
+    """Two runs on one artifacts folder compute the same step at once: every writer returns the reference of
+    the one complete group in place, none fails on the directory rename, no temporary or trash is left."""
+    import threading
+
+    writers, errors, refs = 4, [], []
+    for trial in range(15):
+        path = tmp_path / f"t{trial}.zarr"
+        start = threading.Barrier(writers)
+
+        def write(path=path, start=start):
+            start.wait()
+            try:
+                refs.append(write_artifact(path, _arrays(), step="s", scope="o", config_digest="c"))
+            except Exception as exc:  # noqa: BLE001 - collected and asserted below
+                errors.append(repr(exc))
+
+        threads = [threading.Thread(target=write) for _ in range(writers)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        assert read_group_attrs(path)["digest"] == refs[-1].digest
+    assert errors == []
+    assert len(refs) == 15 * writers and len({r.digest for r in refs}) == 1
+    assert all(read_artifact(r)["time"][1] == 1 / 30 for r in refs)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(f"t{i}.zarr" for i in range(15))

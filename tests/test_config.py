@@ -55,10 +55,53 @@ def test_unknown_object_is_an_error(compose_cfg):
     ("control.force.weights=[1,1]", "control.force.weights"),
     ("signal.duration=0", "signal.duration"),
     ("control.smoothing.ema_alpha=0", "control.smoothing.ema_alpha"),
+    # a zero grid, before anything runs (the MPM step is the last and the costliest)
+    ("sampling.particle_spacing=0", "sampling.particle_spacing"),
+    ("mpm.dx=0", "mpm.dx"),
+    ("mpm.cells_across=0", "mpm.cells_across"),
+    ("mpm.particles_per_cell=0", "mpm.particles_per_cell"),
+    # the object's own material values (they win over the oracle) and geometry
+    ("object.material.youngs_modulus=-2e6", "object.material.youngs_modulus"),
+    ("object.material.poisson_ratio=0.5", "object.material.poisson_ratio"),
+    ("object.material.poisson_ratio=-0.1", "object.material.poisson_ratio"),
+    ("object.material.density=0", "object.material.density"),
+    ("object.material.squeeze_threshold=1.5", "object.material.squeeze_threshold"),
+    ("object.geometry.size=[0.05,0,0.05]", "object.geometry.size"),
+    ("object.geometry.kind=mesh", "object.geometry.path"),
+    # the material oracle
+    ("oracle.backend=gpt", "oracle.backend"),
+    ("oracle.timeout_s=0", "oracle.timeout_s"),
+    ("oracle.backend=llm", "oracle.llm_url"),
 ])
 def test_out_of_range_values_name_the_key(compose_cfg, override, key):
-    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")) as exc:
         validate(compose_cfg("squeeze", [override]))
+    assert str(exc.value).startswith(key) and "\n" not in str(exc.value)
+
+
+@pytest.mark.parametrize("override,key", [
+    ("catalog.rubber_ball.material.poisson_ratio=0.5", "catalog.rubber_ball.material.poisson_ratio"),
+    ("catalog.clay.material.youngs_modulus=-1", "catalog.clay.material.youngs_modulus"),
+    ("grid.objects=[rubber_ball,banana]", "grid.objects"),
+])
+def test_grid_objects_are_checked_with_the_key_to_override(compose_cfg, override, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        validate(compose_cfg("evaluate", ["grid.objects=[rubber_ball,clay]", override]))
+    # an object outside the grid is not run, so its values are not checked
+    validate(compose_cfg("evaluate", ["catalog.can.material.poisson_ratio=0.5", "grid.objects=[clay]"]))
+
+
+def test_huge_recording_is_refused_before_it_is_read_or_hashed(compose_cfg, tmp_path):
+    from tasks.squeeze_signals import MAX_RECORDING_BYTES
+
+    huge = tmp_path / "huge.csv"
+    with open(huge, "wb") as fh:  # sparse: st_size above the limit, no disk used
+        fh.write(b"time,flex_thumb\n")
+        fh.truncate(MAX_RECORDING_BYTES + 1)
+    with pytest.raises(ConfigError) as exc:
+        validate(compose_cfg("squeeze", ["signal=csv", f"signal.path={huge}"]))
+    msg = str(exc.value)
+    assert msg.startswith("signal.path") and str(huge) in msg and "256.0 MiB limit" in msg and "cut it" in msg
 
 
 def test_step_params_hold_exactly_what_each_step_reads(compose_cfg):

@@ -10,7 +10,9 @@ from omegaconf import OmegaConf
 
 from conf.schema import Config
 from tasks.artifacts import read_artifact
-from tasks.mpm_rollout import (cauchy_free_measures, finger_regions, squeeze_strain, support_half_extent)
+from conf.schema import SimulationConfig
+from tasks.mpm_rollout import (CONTACT_CORE_PHI, CORE, INTERIOR, RUPTURED, SHELL, cauchy_free_measures,
+                                finger_regions, region_weights, squeeze_strain, support_half_extent)
 
 # ------------------------------------------------------------------------------------------ pure measures
 
@@ -45,6 +47,25 @@ def test_finger_regions_are_remembered_after_release():
     np.testing.assert_array_equal(direction[2, 0], [0, 0, -1])  # inward = -outward patch normal
 
 
+def test_squeeze_strain_is_the_indentation_under_the_fingertip():
+    """With the patch weights phi, the mean is over the contact core (phi >= exp(-1/2)) of the region, and the
+    weights are those of the frame the region was chosen in (remembered after release)."""
+    finger = np.array([[-1, -1, -1, -1], [0, 0, 0, 0], [0, -1, -1, -1]])
+    weight = np.array([[0.0, 0, 0, 0], [1.0, 0.7, 0.3, 0.1], [0.9, 0, 0, 0]])
+    phi = region_weights(finger, weight)
+    assert not phi[0].any()
+    np.testing.assert_allclose(phi[2, 0], [1.0, 0.7, 0.3, 0.1])  # frame 1's region and weights, still
+    assert not phi[:, 1:].any()
+    normals = np.zeros((3, 5, 3))
+    normals[1:, 0] = [0, 0, 1]
+    region, direction = finger_regions(finger, normals)
+    half = np.array([0.03, 0.03, 0.02])
+    u = np.array([[0, 0, -0.004], [0, 0, -0.002], [0, 0, -0.001], [0, 0, 0.0]])  # inward = -z
+    assert 0.3 < CONTACT_CORE_PHI < 0.7
+    assert squeeze_strain(u, region[2], direction[2], half, phi[2])[0] == pytest.approx(0.003 / 0.02)
+    assert squeeze_strain(u, region[2], direction[2], half)[0] == pytest.approx(0.00175 / 0.02)  # whole region
+
+
 def test_von_mises_of_hencky_strain():
     mu = np.array([2.0e5, 2.0e5])
     c, s = math.cos(0.4), math.sin(0.4)
@@ -60,7 +81,7 @@ def test_von_mises_of_hencky_strain():
 
 
 def _rollout(tmp_path, name: str, *extra: str):
-    from flows.pipeline import step_params
+    from flows.pipeline import step_params, variant_params
     from tasks.contact_patches import contact_patches_step
     from tasks.dirichlet_field import dirichlet_field_step
     from tasks.force_coefficients import force_coefficients_step
@@ -72,9 +93,10 @@ def _rollout(tmp_path, name: str, *extra: str):
 
     cfg = OmegaConf.merge(OmegaConf.structured(Config),
                           {"object": OmegaConf.load(f"conf/object/{name}.yaml"),
-                           "mpm": OmegaConf.load("conf/mpm/default.yaml")},
+                           "mpm": OmegaConf.load("conf/mpm/default.yaml"),
+                           "variant": OmegaConf.load("conf/variant/full.yaml")},
                           OmegaConf.from_dotlist(["control.smoothing.frame_rate=20", *extra]))
-    p = step_params(cfg, cfg.object)
+    p = {**step_params(cfg, cfg.object), **variant_params(cfg, cfg.variant)}
     kw = dict(root=str(tmp_path), scope=name)
     o = object_model_step.run_local(params=p["object_model"], **kw)
     s = squeeze_signals_step.run_local(params=p["squeeze_signals"], inputs={"object": o}, **kw)
@@ -85,7 +107,7 @@ def _rollout(tmp_path, name: str, *extra: str):
     mo = material_oracle_step.run_local(params=p["material_oracle"], **kw)
     r = mpm_rollout_step.run_local(params=p["mpm_rollout"], inputs={
         "object": o, "frames": fr, "forces": fc, "contacts": cp, "field": df, "materials": mo}, **kw)
-    return {k: read_artifact(v) for k, v in dict(field=df, forces=fc, patches=cp, rollout=r).items()}
+    return {k: read_artifact(v) for k, v in dict(object=o, field=df, forces=fc, patches=cp, rollout=r).items()}
 
 
 @pytest.fixture(scope="module")
@@ -144,23 +166,69 @@ def test_reaction_and_feedback_forces(clay, ball):
                                rtol=1e-5, atol=1e-6)
 
 
-def test_tomato_bursts_past_its_threshold(tmp_path):
-    art = _rollout(tmp_path, "tomato", "signal.session=crush", "signal.peak_flexion=1.0", "signal.duration=2.0")
-    r = art["rollout"]
+def _outside_rest_surface(art, x: np.ndarray) -> np.ndarray:
+    """Signed distance (m) of points outside the object's rest surface (nearest surface sample, along its normal)."""
+    from scipy.spatial import cKDTree
+
+    pts, nrm = art["object"]["surface_points"], art["object"]["surface_normals"]
+    _, j = cKDTree(pts).query(x)
+    return np.einsum("ij,ij->i", x - pts[j], nrm[j])
+
+
+def _check_release(art, min_outward: float) -> dict:
+    """The threshold event of a rollout that crossed it: where, what and how far the released interior went."""
+    r, sim = art["rollout"], SimulationConfig()
     ev = r.attrs["threshold_event"]
     assert r.attrs["with_interior"] and ev["crossed"], r.attrs["notes"]
     assert r["squeeze_strain"][ev["frame"]].max() >= ev["threshold"]
-    rel = r["released"]
-    assert rel.sum() > 0 and rel.sum() == ev["released_particles"]
+    rel, mat = r["released"], r["particle_material"]
+    assert rel.sum() > 0 and rel.sum() == ev["released_particles"] == r.attrs["n_interior"]
+    assert (mat[rel] == INTERIOR).all() and (mat == RUPTURED).any()  # only the interior is released; torn shell
     # released at the deformed contact of the finger past the threshold, with speed = gain x pressure (capped)
     f, k = ev["frame"], ev["fingers"][0]
     pressure = np.linalg.norm(r["reaction_force"][f, k]) / art["patches"]["patch_areas"][f, k]
-    assert ev["release_speeds"][0] == pytest.approx(min(1.0e-4 * pressure, 1.0), rel=1e-4)
-    x = r["particle_positions"][f]
-    centre = x[rel].mean(axis=0)
-    assert np.linalg.norm(x[rel] - centre, axis=1).max() <= 2 * 0.012 + 1e-6
-    assert (r["particle_material"] == 2).any()  # the shell ruptured there
-    assert (r["particle_material"][rel] == 1).all()  # only interior particles are released
+    assert ev["release_speeds"][0] == pytest.approx(min(sim.release_speed_per_pascal * pressure,
+                                                        sim.max_release_speed), rel=1e-4)
+    x = r["particle_positions"]
+    assert np.linalg.norm(x[f, rel] - x[f, rel].mean(axis=0), axis=1).max() <= 2 * sim.release_radius + 1e-6
+    # and it leaves: outward (along the patch normal) from where it was released, past the object's rest surface
+    # (median: spray that reaches the domain walls slides along them)
+    outward = (x[-1, rel] - x[f, rel]) @ art["patches"]["patch_normals"][f, k]
+    assert np.median(outward) > min_outward, np.percentile(outward, [10, 50, 90])
+    outside = _outside_rest_surface(art, x[-1, rel])
+    assert (outside > 0.002).sum() >= 0.1 * rel.sum(), np.percentile(outside, [50, 90])
+    assert r["j_min"][1:].min() > 0.05 and r["j_max"].max() < 20.0  # the guards' range (they raise outside it)
+    return {"outward": outward, "outside": outside}
+
+
+def test_tomato_bursts_past_its_threshold(tmp_path):
+    art = _rollout(tmp_path, "tomato", "signal.session=crush", "signal.peak_flexion=1.0", "signal.duration=2.0")
+    _check_release(art, min_outward=0.005)
+    mat = art["rollout"]["particle_material"]
+    assert (mat == CORE).any()  # the juice came out of the flesh; the rest of the flesh stays
+
+
+def test_orange_crushed_in_its_default_session_releases_juice(tmp_path):
+    # the default session (crush) shortened to 2 s: the threshold is crossed during the 0.17 s ramp
+    art = _rollout(tmp_path, "orange", "signal.duration=2.0")
+    _check_release(art, min_outward=0.005)
+
+
+def test_tomato_below_its_threshold_has_flesh_but_no_interior(tmp_path):
+    """A gentle squeeze: the flesh (core) is simulated as part of the body and holds the skin up, so the tomato
+    springs back; nothing can be released, so no interior material or ``released`` array is allocated."""
+    art = _rollout(tmp_path, "tomato", "signal.session=poke", "signal.peak_flexion=0.5",
+                   "signal.duration=1.5")
+    r = art["rollout"]
+    assert not r.attrs["with_interior"] and r.attrs["threshold_event"]["crossed"] is False
+    assert "released" not in r and r.attrs["n_interior"] == 0
+    assert any("never reach the squeeze threshold" in n and "core" in n for n in r.attrs["notes"])
+    mat = r["particle_material"]
+    assert set(np.unique(mat).tolist()) == {SHELL, CORE}
+    assert (mat == CORE).sum() == len(art["object"]["interior_positions"])
+    assert r.attrs["materials"] == ["shell", "core"]
+    eps = r["squeeze_strain"].max(axis=1)
+    assert eps.max() > 0.03 and eps[-1] < 0.3 * eps.max()  # dented by the poke, then springs back
 
 
 def test_force_mode_applies_the_total_force_per_finger(tmp_path):

@@ -409,3 +409,69 @@ def test_matrix_to_quaternion_round_trip():
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     q *= np.where(q[:, :1] < 0, -1, 1)
     np.testing.assert_allclose(matrix_to_quaternion(quat_matrix(q)), q, atol=1e-9)
+
+
+def _two_overlapping_boxes() -> trimesh.Trimesh:
+    """Two closed boxes, the second poking through the first: every edge is shared (watertight), yet faces
+    pass through each other (a body and a head modelled as two shells)."""
+    a = trimesh.creation.box(extents=[0.05, 0.04, 0.03])
+    b = trimesh.creation.box(extents=[0.03, 0.05, 0.02])
+    b.apply_translation([0.02, 0.01, 0.005])
+    return trimesh.util.concatenate([a, b])
+
+
+def _folded_sphere() -> trimesh.Trimesh:
+    """One closed sphere with a vertex pulled through the body to the far side: its fan of faces crosses the
+    opposite wall."""
+    ico = trimesh.creation.icosphere(subdivisions=3, radius=0.03)
+    v = ico.vertices.copy()
+    v[0] *= -1.5
+    return trimesh.Trimesh(v, ico.faces, process=False)
+
+
+def test_crossing_triangle_pairs_finds_real_self_intersections():
+    from tasks.geometry import crossing_triangle_pairs
+
+    overlapping, folded = _two_overlapping_boxes(), _folded_sphere()
+    assert overlapping.is_watertight and folded.is_watertight
+    pairs = crossing_triangle_pairs(overlapping.vertices, overlapping.faces)
+    assert len(pairs) > 0 and np.all(pairs[:, 0] < 12) and np.all(pairs[:, 1] >= 12)  # box A's faces x box B's
+    pairs = crossing_triangle_pairs(folded.vertices, folded.faces)
+    moved = np.flatnonzero((folded.faces == 0).any(axis=1))  # the fan around the pulled vertex
+    assert len(pairs) > 0 and np.all(np.isin(pairs, moved).any(axis=1))
+    # independent check with trimesh: each reported pair really crosses (a segment of one pierces the other)
+    for i, j in pairs:
+        a, b = folded.triangles[i], folded.triangles[j]
+        starts, ends = np.concatenate([a, b]), np.concatenate([np.roll(a, -1, 0), np.roll(b, -1, 0)])
+        other = [b] * 3 + [a] * 3
+        hits = [trimesh.triangles.points_to_barycentric(np.array([tri]), np.array([p]))[0]
+                for tri, p in zip(other, _segment_plane_points(starts, ends, other)) if p is not None]
+        assert any(np.all(w > 0) for w in hits)
+    # closed surfaces that touch nothing: no false positives (sphere, torus, two disjoint boxes, a box of 12)
+    apart = _two_overlapping_boxes().split(only_watertight=False)
+    apart[1].apply_translation([0.2, 0, 0])
+    for mesh in (trimesh.creation.icosphere(subdivisions=5), trimesh.creation.torus(0.03, 0.01),
+                 trimesh.util.concatenate(list(apart)), trimesh.creation.box()):
+        assert len(crossing_triangle_pairs(mesh.vertices, mesh.faces)) == 0
+
+
+def _segment_plane_points(starts, ends, tris):
+    """Where each segment meets the plane of its triangle (None when it does not, within the segment)."""
+    out = []
+    for s, e, tri in zip(starts, ends, tris):
+        n = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+        denom = n @ (e - s)
+        t = None if abs(denom) < 1e-15 else (n @ (tri[0] - s)) / denom
+        out.append(None if t is None or not 0 < t < 1 else s + t * (e - s))
+    return out
+
+
+def test_self_intersecting_mesh_is_refused_with_the_file_and_the_fix(tmp_path):
+    for name, mesh in (("overlap.obj", _two_overlapping_boxes()), ("folded.stl", _folded_sphere())):
+        mesh.export(tmp_path / name)
+        with pytest.raises(ObjectModelError) as exc:
+            build_object_model(make_obj(geometry={"kind": "mesh", "path": str(tmp_path / name)}, filled=True),
+                               SAMPLING)
+        msg = str(exc.value)
+        assert msg.startswith(f"mesh {tmp_path / name} intersects itself (") and "boolean union" in msg
+        assert "\n" not in msg

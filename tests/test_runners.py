@@ -11,15 +11,19 @@ from tasks.artifacts import read_group_attrs
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL = ["sampling.surface_points=600", "sampling.particle_spacing=0.004", "signal.duration=1.5",
-         "control.smoothing.frame_rate=15", "simulation.target_substeps_per_frame=10"]
+         "control.smoothing.frame_rate=15", "mpm.target_substeps_per_frame=10"]
 
 
 def _digests(root: Path) -> dict:
-    return {(g.parent.parent.name, g.parent.name): read_group_attrs(g)["digest"]
+    return {(g.parent.parent.name, g.parent.name, g.name): read_group_attrs(g)["digest"]
             for g in (root / "artifacts").glob("*/*/*.zarr")}
 
 
-def test_dask_local_cluster_gives_the_same_artifacts_as_sequential(prefect_server, tmp_path, compose_cfg):
+def test_dask_local_cluster_gives_the_same_artifacts_and_metrics_as_sequential(prefect_server, tmp_path, compose_cfg):
+    """Both Table 2 variants on a real 2-process Dask cluster: the shared steps run once per object, the
+    rollout and metrics once per variant, and every artifact and metric equals the sequential run's."""
+    import pandas as pd
+
     from flows.pipeline import run
 
     outs = {}
@@ -28,23 +32,44 @@ def test_dask_local_cluster_gives_the_same_artifacts_as_sequential(prefect_serve
         cfg = compose_cfg("evaluate", [f"paths.artifacts={root / 'artifacts'}", f"paths.reports={root / 'reports'}",
                                        "grid.objects=[clay,rubber_ball]", f"runner={kind}", *SMALL])
         outs[kind] = run(cfg, "test")
-        assert {r["status"] for r in outs[kind]["tasks"]} == {"ran"}
+        rows = outs[kind]["tasks"]
+        assert {r["status"] for r in rows} == {"ran"}
+        per_variant = [(r["object"], r["step"]) for r in rows if r["variant"]]
+        assert sorted(per_variant) == sorted((o, s) for o in ("clay", "rubber_ball") for s in
+                                             ("mpm_rollout", "deformation_metrics") for _ in ("full", "no_dirichlet"))
+        assert len([r for r in rows if not r["variant"]]) == 2 * 7  # shared steps: once per object
     assert _digests(tmp_path / "dask") == _digests(tmp_path / "sequential")
-    assert len(_digests(tmp_path / "dask")) == 16
+    assert len(_digests(tmp_path / "dask")) == 2 * (7 + 2 * 2)
+    metrics = {k: pd.read_parquet(Path(outs[k]["report"]) / "metrics.parquet") for k in outs}
+    assert list(metrics["dask"].columns[:2]) == ["object", "variant"] and len(metrics["dask"]) == 4
+    pd.testing.assert_frame_equal(metrics["dask"], metrics["sequential"])
+    table2 = (Path(outs["dask"]["report"]) / "report.md").read_text()
+    assert "| Full VirSqueezer | BDC-T |" in table2 and "| VirSqueezer w/o Dirichlet Boundary Constraint | mIoU |" in table2
 
 
-def test_multirun_sweep_reuses_cache_across_jobs(prefect_server, tmp_path):
+def test_multirun_sweep_reuses_cache_across_jobs_and_aggregates(prefect_server, tmp_path):
     env = dict(os.environ, PREFECT_API_URL=prefect_server)
     cmd = [sys.executable, "-m", "flows.evaluate", "-m", "control.force.gamma=1.5,2.0", "object=clay",
            f"paths.artifacts={tmp_path / 'artifacts'}", f"paths.reports={tmp_path / 'reports'}", "runner=sequential",
-           *SMALL]
+           "grid.variants=[full]", *SMALL]
     out = subprocess.run(cmd, env=env, cwd=REPO, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
-    tables = sorted((tmp_path / "reports").glob("evaluate-*-job*/tasks.csv"))
-    assert [t.parent.name[-4:] for t in tables] == ["job0", "job1"]
+    (sweep,) = (tmp_path / "reports" / "multirun").iterdir()
+    tables = [sweep / job / "tasks.csv" for job in ("0", "1")]
     status = [{row["step"]: row["status"] for row in csv.DictReader(t.open())} for t in tables]
     assert set(status[0].values()) == {"ran"}
     assert [status[1][s] for s in ("object_model", "squeeze_signals", "signal_smoothing", "material_oracle")] == \
         ["cached"] * 4
-    assert [status[1][s] for s in ("force_coefficients", "contact_patches", "dirichlet_field", "mpm_rollout")] == \
-        ["ran"] * 4
+    assert [status[1][s] for s in ("force_coefficients", "contact_patches", "dirichlet_field", "mpm_rollout",
+                                   "deformation_metrics")] == ["ran"] * 5
+    # one table across the jobs, the swept parameter as a column, each job's own metric row
+    import pandas as pd
+
+    summary = pd.read_csv(sweep / "sweep_metrics.csv")
+    assert list(summary.columns[:2]) == ["job", "control.force.gamma"]
+    assert summary[["job", "control.force.gamma", "object", "variant"]].values.tolist() == \
+        [[0, 1.5, "clay", "full"], [1, 2.0, "clay", "full"]]
+    for job in (0, 1):
+        own = pd.read_csv(sweep / str(job) / "metrics.csv")
+        assert summary.loc[summary.job == job, "bdc_t"].item() == own["bdc_t"].item()
+    assert "control.force.gamma" in (sweep / "sweep_summary.md").read_text()

@@ -501,3 +501,35 @@ def test_recording_file_level_errors(tmp_path):
     read_recording(short)  # fine without a frame rate
     with pytest.raises(SignalError, match="short.csv.*shorter than one frame"):
         read_recording(short, frame_rate=30.0)
+
+
+def test_truncated_recording_names_the_cut_row(tmp_path):
+    """An export or copy cut off mid-row (fewer fields in the last row, or half a number) is reported as a
+    truncated file naming the row, not as a mysterious NaN or silently dropped."""
+    head, last = _write_table(tmp_path / "full.csv", _good_rows(6)).read_text().rstrip("\n").rsplit("\n", 1)
+    cut_fields = tmp_path / "cut_fields.csv"
+    cut_fields.write_text(head + "\n" + ",".join(last.split(",")[:24]))  # last row: 24 of 28 fields
+    cut_number = tmp_path / "cut_number.csv"
+    cut_number.write_text(head + "\n0.05,0.1,1e-")  # cut in the middle of a number
+    for path, fields in ((cut_fields, "24 of 28"), (cut_number, "3 of 28")):
+        with pytest.raises(SignalError) as err:
+            read_recording(path)
+        msg = str(err.value)
+        assert msg.startswith(f"recording {path}: the last row 6 (line 7) has {fields} fields") and "truncated" in msg
+        assert "\n" not in msg
+    # a NaN in the last row of a complete file is still a NaN (not called truncated)
+    rows = _good_rows(6)
+    rows[-1][3] = "nan"
+    with pytest.raises(SignalError, match="column flex_middle row 6 .* is empty or NaN"):
+        read_recording(_write_table(tmp_path / "nan_last.csv", rows))
+
+
+def test_recording_above_the_size_limit_is_refused_unread(tmp_path):
+    path = _write_table(tmp_path / "session.csv", _good_rows(50))
+    size = path.stat().st_size
+    assert len(read_recording(path, max_bytes=size)["time"]) == 50  # at the limit: read
+    with pytest.raises(SignalError) as err:
+        read_recording(path, max_bytes=size - 1)
+    msg = str(err.value)
+    assert msg.startswith(f"recording {path} is ") and "limit" in msg and "cut it to the squeeze" in msg
+    assert len(read_recording(path, max_bytes=None)["time"]) == 50

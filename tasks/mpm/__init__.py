@@ -8,6 +8,7 @@ from .solver import (  # noqa: F401
     MPMSolver,
     SimulationError,
     deform_covariances,
+    mass_scale_for,
     polar_rotation,
     resolve_device,
     rotate_quaternions,

@@ -22,7 +22,9 @@ Conventions
   t_v = viscosity / (2 mu) (viscosity 0 = rate independent), plus a volumetric cap: tr(eps) is clamped
   from below at -crush_strain (the excess compression stays as permanent plastic compaction).
 * Fluid: Tait pressure p = K / gamma (J^-gamma - 1) and Newtonian viscosity; the Kirchhoff stress is
-  tau = -J p I + J mu_v (grad v + grad v^T - 2/3 div v I); F_E is reset to J^(1/3) I (shear memory removed).
+  tau = -J p I + J mu_v (grad v + grad v^T - 2/3 div v I); F_E is reset to min(J, 1)^(1/3) I (shear memory
+  removed).  No tension: J is capped at 1, so p >= 0 - a free liquid separates (cavitates, breaks into drops)
+  instead of pulling back on what it leaves, and a spray's volume does not grow without bound.
 * Fixed-corotated uses the polar rotation R of F (closest proper rotation, det R = +1, the same R as the
   rotation-variant SVD U V^T).  It is tracked per particle as a quaternion, warm-started from the previous
   substep and refined by a Newton step on SO(3) (:func:`polar_rotation_quat`; the gradient-only step of
@@ -266,8 +268,8 @@ def hencky_plastic_return(
 # --------------------------------------------------------------------------------------------- fluid
 @wp.func
 def tait_pressure(J: float, K: float, gamma: float) -> float:
-    """Tait equation of state p = K / gamma (J^-gamma - 1) (gamma = 1: p = K (1/J - 1))."""
-    Jc = wp.max(J, MIN_J)
+    """Tait equation of state p = K / gamma (J^-gamma - 1) (gamma = 1: p = K (1/J - 1)), no tension (J <= 1)."""
+    Jc = wp.clamp(J, MIN_J, 1.0)
     return K / gamma * (wp.pow(Jc, -gamma) - 1.0)
 
 
@@ -283,8 +285,8 @@ def tau_fluid(J: float, gradv: wp.mat33, K: float, gamma: float, visc: float) ->
 
 @wp.func
 def psi_fluid(J: float, K: float, gamma: float) -> float:
-    """Stored energy of the Tait fluid per reference volume: -int_1^J p(j) dj."""
-    Jc = wp.max(J, MIN_J)
+    """Stored energy of the Tait fluid per reference volume: -int_1^J p(j) dj (0 for J >= 1: no tension)."""
+    Jc = wp.clamp(J, MIN_J, 1.0)
     if gamma == 1.0:
         integral = wp.log(Jc)
     else:
@@ -294,7 +296,7 @@ def psi_fluid(J: float, K: float, gamma: float) -> float:
 
 @wp.func
 def fluid_reset(F: wp.mat33) -> wp.mat33:
-    """F_E <- J^(1/3) I (the fluid keeps only its volume change)."""
-    J = wp.max(wp.determinant(F), MIN_J)
+    """F_E <- min(J, 1)^(1/3) I (the fluid keeps only its volume change, and never stretches: no tension)."""
+    J = wp.clamp(wp.determinant(F), MIN_J, 1.0)
     c = wp.pow(J, 1.0 / 3.0)
     return diag3(c, c, c)

@@ -310,7 +310,48 @@ def scatter_at(xp: wp.vec3, p: int, substep: int, grid: wp.array3d(dtype=wp.vec4
 
 
 @wp.func
-def g2p_particle(
+def g2p_begin(
+    p: int,
+    grid: wp.array3d(dtype=wp.vec4),
+    gi: GridInfo,
+    sp: StepParams,
+    x: wp.array(dtype=wp.vec3),
+    F: wp.array(dtype=wp.mat33),
+    flags: wp.array(dtype=wp.int32),
+) -> G2PResult:
+    """First part of the G2P of particle p, common to every model: gather v (m/s) and C (1/s), the advected position
+    x + dt v (m) and the trial elastic deformation gradient (I + dt C) F_E, before the model's update."""
+    xp = x[p]
+    r = gather_at(xp, p, grid, gi, sp, flags)
+    r.F = (wp.identity(n=3, dtype=float) + sp.dt_g2p * r.C) @ F[p]
+    r.x = xp + sp.dt_g2p * r.v
+    r.q = wp.quat_identity()
+    r.alpha = 0.0
+    return r
+
+
+@wp.func
+def g2p_end(r: G2PResult, p: int, sp: StepParams, x: wp.array(dtype=wp.vec3), F: wp.array(dtype=wp.mat33),
+            flags: wp.array(dtype=wp.int32)):
+    """Last part of the G2P of particle p: guards on the new state, then store x and F_E."""
+    check_particle(r, p, sp, flags)
+    x[p] = r.x
+    F[p] = r.F
+
+
+@wp.func
+def corotated_update(r: G2PResult, p: int, q: wp.array(dtype=wp.quat), sp: StepParams, mu: float,
+                     lam: float) -> G2PResult:
+    """Fixed-corotated part of the G2P: rotation of the trial F_E (warm-started from, and stored into, q[p]) and
+    the Kirchhoff stress (Pa; mu, lam in Pa)."""
+    r.q = rotation_update(r.F, q[p], sp)
+    r.tau = tau_fixed_corotated(r.F, wp.quat_to_matrix(r.q), mu, lam)
+    q[p] = r.q
+    return r
+
+
+@wp.func
+def g2p_update(
     p: int,
     grid: wp.array3d(dtype=wp.vec4),
     gi: GridInfo,
@@ -325,40 +366,34 @@ def g2p_particle(
     flags: wp.array(dtype=wp.int32),
 ) -> G2PResult:
     """G2P of one particle, any model: gather v and C, F_E <- (I + dt C) F_E, return mapping (eq. 5), Kirchhoff
-    stress of the new state (eq. 4), advection, guards."""
-    xp = x[p]
-    r = gather_at(xp, p, grid, gi, sp, flags)
+    stress of the new state (eq. 4), advection, guards; stores x, F_E and the model's state (rotation q of
+    fixed-corotated, plastic strain alpha of von Mises / foam).  Velocity and C are returned, not stored."""
+    r = g2p_begin(p, grid, gi, sp, x, F, flags)
     mu = mat_par[mid, C_MU]
     lam = mat_par[mid, C_LAMBDA]
-    Fn = (wp.identity(n=3, dtype=float) + sp.dt_g2p * r.C) @ F[p]
-    r.q = wp.quat_identity()
-    r.alpha = 0.0
     if model == 0:
-        qn = rotation_update(Fn, q[p], sp)
-        r.q = qn
-        r.tau = tau_fixed_corotated(Fn, wp.quat_to_matrix(qn), mu, lam)
+        r = corotated_update(r, p, q, sp, mu, lam)
     elif model == 1:
-        r.tau = tau_neo_hookean(Fn, mu, lam)
+        r.tau = tau_neo_hookean(r.F, mu, lam)
     elif model == 4:
-        J = wp.determinant(Fn)
-        r.tau = tau_fluid(J, r.C, mat_par[mid, C_BULK], mat_par[mid, C_GAMMA], mat_par[mid, C_VISCOSITY])
-        Fn = fluid_reset(Fn)
+        r.tau = tau_fluid(wp.determinant(r.F), r.C, mat_par[mid, C_BULK], mat_par[mid, C_GAMMA],
+                          mat_par[mid, C_VISCOSITY])
+        r.F = fluid_reset(r.F)
     else:
         pr = hencky_plastic_return(
-            Fn, mu, lam, mat_par[mid, C_YIELD], mat_par[mid, C_HARDENING], alpha[p],
+            r.F, mu, lam, mat_par[mid, C_YIELD], mat_par[mid, C_HARDENING], alpha[p],
             mat_par[mid, C_VISCOSITY], mat_par[mid, C_CRUSH], int(model == 3), sp.dt_g2p,
         )
-        Fn = pr.F
+        r.F = pr.F
         r.tau = pr.tau
         r.alpha = pr.alpha
-    r.F = Fn
-    r.x = xp + sp.dt_g2p * r.v
-    check_particle(r, p, sp, flags)
+        alpha[p] = r.alpha
+    g2p_end(r, p, sp, x, F, flags)
     return r
 
 
 @wp.func
-def g2p_particle_fc(
+def g2p_update_fc(
     p: int,
     grid: wp.array3d(dtype=wp.vec4),
     gi: GridInfo,
@@ -370,17 +405,9 @@ def g2p_particle_fc(
     lam: float,
     flags: wp.array(dtype=wp.int32),
 ) -> G2PResult:
-    """G2P specialised for fixed-corotated particles (the common fast path; same maths as model 0 above)."""
-    xp = x[p]
-    r = gather_at(xp, p, grid, gi, sp, flags)
-    Fn = (wp.identity(n=3, dtype=float) + sp.dt_g2p * r.C) @ F[p]
-    qn = rotation_update(Fn, q[p], sp)
-    r.q = qn
-    r.tau = tau_fixed_corotated(Fn, wp.quat_to_matrix(qn), mu, lam)
-    r.alpha = 0.0
-    r.F = Fn
-    r.x = xp + sp.dt_g2p * r.v
-    check_particle(r, p, sp, flags)
+    """:func:`g2p_update` specialised for a fixed-corotated particle (the common fast path, no model branches)."""
+    r = corotated_update(g2p_begin(p, grid, gi, sp, x, F, flags), p, q, sp, mu, lam)
+    g2p_end(r, p, sp, x, F, flags)
     return r
 
 
@@ -436,14 +463,7 @@ def k_g2p_p2g(
     """Fused G2P (substep n, from ``grid_in``) + P2G (substep n+1, into ``grid_out``), any model."""
     p = wp.tid()
     mid = int(mat_id[p])
-    model = mat_model[mid]
-    r = g2p_particle(p, grid_in, gi, sp, x, F, q, alpha, mid, model, mat_par, flags)
-    x[p] = r.x
-    F[p] = r.F
-    if model == 0:
-        q[p] = r.q
-    elif model == 2 or model == 3:
-        alpha[p] = r.alpha
+    r = g2p_update(p, grid_in, gi, sp, x, F, q, alpha, mid, mat_model[mid], mat_par, flags)
     scatter_at(r.x, p, sp.substep + 1, grid_out, gi, sp.dt_p2g, vol[p], vol[p] * mat_par[mid, C_DENSITY], r.v, r.C,
                r.tau, flags, bbox)
 
@@ -466,10 +486,7 @@ def k_g2p_p2g_fc(
     """Fused G2P + P2G when every particle is fixed-corotated (no model branches, no plastic state)."""
     p = wp.tid()
     mid = int(mat_id[p])
-    r = g2p_particle_fc(p, grid_in, gi, sp, x, F, q, mat_par[mid, C_MU], mat_par[mid, C_LAMBDA], flags)
-    x[p] = r.x
-    F[p] = r.F
-    q[p] = r.q
+    r = g2p_update_fc(p, grid_in, gi, sp, x, F, q, mat_par[mid, C_MU], mat_par[mid, C_LAMBDA], flags)
     scatter_at(r.x, p, sp.substep + 1, grid_out, gi, sp.dt_p2g, vol[p], vol[p] * mat_par[mid, C_DENSITY], r.v, r.C,
                r.tau, flags, bbox)
 
@@ -512,15 +529,9 @@ def k_g2p(
     p = wp.tid()
     mid = int(mat_id[p])
     model = mat_model[mid]
-    r = g2p_particle(p, grid_in, gi, sp, x, F, q, alpha, mid, model, mat_par, flags)
-    x[p] = r.x
+    r = g2p_update(p, grid_in, gi, sp, x, F, q, alpha, mid, model, mat_par, flags)
     v[p] = r.v
     C[p] = r.C
-    F[p] = r.F
-    if model == 0:
-        q[p] = r.q
-    elif model == 2 or model == 3:
-        alpha[p] = r.alpha
     mass = vol[p] * mat_par[mid, C_DENSITY]
     psi = elastic_energy_density(model, r, mat_par, mid)
     J = wp.determinant(r.F)

@@ -148,6 +148,28 @@ def bspline_stencil(g: np.ndarray):
     return base, w
 
 
+def mass_scale_for(materials: Sequence[Material], dx: float, frame_dt: float | None, cfg: MPMConfig) -> float:
+    """The density factor s >= 1 that ``cfg.mass_scaling`` prescribes (dimensionless).
+
+    ``off``: 1.  ``manual``: ``cfg.mass_scale``.  ``auto``: the smallest s for which the elastic CFL of the
+    non-fluid ``materials`` needs at most N = ``cfg.target_substeps_per_frame`` substeps per output frame:
+    s = max(1, (c_p (frame_dt / N) / (C dx))^2), c_p the largest P-wave speed (m/s, after stiffness scaling) of
+    those materials, C = ``cfg.courant``, ``dx`` the grid spacing (m), ``frame_dt`` the frame duration (s).
+    Scaling rho by s slows every wave by sqrt(s).  Fluids do not drive s: a weakly compressible fluid's bulk
+    modulus is an artificial choice that the caller sets relative to s (so its sound speed stays at its target).
+    """
+    if cfg.mass_scaling == "off":
+        return 1.0
+    if cfg.mass_scaling == "manual":
+        return float(cfg.mass_scale)
+    if frame_dt is None:
+        raise ValueError("mass_scaling=auto needs the frame duration")
+    solids = [m.p_wave_speed(cfg.stiffness_scaling) for m in materials if m.model != "fluid"]
+    if not solids:
+        return 1.0
+    return max(1.0, (max(solids) * (frame_dt / cfg.target_substeps_per_frame) / (cfg.courant * dx)) ** 2)
+
+
 def deform_covariances(F: np.ndarray, cov: np.ndarray) -> np.ndarray:
     """Covariances of deformed Gaussians: F Sigma F^T (F: (N,3,3), cov: (N,3,3))."""
     return np.einsum("nij,njk,nlk->nil", F, cov, F)
@@ -191,6 +213,15 @@ class MPMSolver:
         tracers: (T, 3) massless tracer positions (surface Gaussians), advected with their own F.
         device: overrides ``config.device``.
         n_fingers: size of the per-finger reaction/force arrays (grows automatically with the finger ids seen).
+
+    Mass (time) scaling (``config.mass_scaling``; s from :func:`mass_scale_for`, fixed once: at construction,
+    or for ``auto`` at the first :meth:`step_frame`): every density is multiplied by s and gravity is divided by
+    s (``self.gravity``, m/s^2), so weights rho g and every quasi-static state under gravity and boundary loads
+    are unchanged, while wave speeds, hence the stable dt, scale by 1/sqrt(s) and sqrt(s).  For elastic materials
+    driven only by gravity and static boundaries the scaled motion is exactly the unscaled one slowed down by
+    sqrt(s): x_s(t) = x(t / sqrt(s)).  Inertia-driven motion (impacts, rebounds, free flight) is slowed by
+    that factor, so a boundary moving at a prescribed speed meets a material that responds sqrt(s) times slower;
+    the kinetic/internal energy ratio per frame (``FrameStats``) flags frames where that matters.
     """
 
     def __init__(
@@ -224,6 +255,9 @@ class MPMSolver:
         if mid.min() < 0 or mid.max() >= len(self.materials):
             raise ValueError(f"material_ids must be in [0, {len(self.materials)})")
         v = np.zeros_like(x) if velocities is None else np.asarray(velocities, np.float32).reshape(n, 3)
+        if not np.all(np.isfinite(v)):  # stability suite guard: bad input is refused, not reported as a blow-up
+            raise SimulationError(f"initial particle velocities contain NaN/inf ({int((~np.isfinite(v)).any(1).sum())} "
+                                  "particles): the caller's input is corrupt")
         self._mid_host = mid
         self._warned_quasi_static = False
         present = sorted(set(int(i) for i in np.unique(mid)))
@@ -276,8 +310,8 @@ class MPMSolver:
 
         # ---------------- scaling and material table
         self.stiffness_scale = float(cfg.stiffness_scaling)
-        self.mass_scale = float(cfg.mass_scale) if cfg.mass_scaling == "manual" else 1.0
-        self._mass_scale_fixed = cfg.mass_scaling != "auto"
+        self._mass_scale_pending = cfg.mass_scaling == "auto"  # auto: fixed by the first step_frame's duration
+        self.mass_scale = 1.0 if self._mass_scale_pending else mass_scale_for(self._present_materials(), dx, None, cfg)
         d = self.device
         self.mat_model = wp.zeros(len(self.materials), dtype=wp.int32, device=d)
         self.mat_par = wp.zeros((len(self.materials), N_COLS), dtype=float, device=d)
@@ -336,13 +370,17 @@ class MPMSolver:
         self.last_stats: Optional[FrameStats] = None
 
     # ------------------------------------------------------------------ setup helpers
+    def _present_materials(self) -> list[Material]:
+        return [self.materials[i] for i in self._present]
+
     def _upload_materials(self) -> None:
+        """Material table, wave speeds and the compensated gravity g / s of the current mass scale s."""
         models, params = pack_table(self.materials, self.stiffness_scale, self.mass_scale)
         self.mat_model.assign(models)
         self.mat_par.assign(params)
-        self.c_max = max(
-            self.materials[i].p_wave_speed(self.stiffness_scale, self.mass_scale) for i in self._present
-        )
+        self.c_max = max(m.p_wave_speed(self.stiffness_scale, self.mass_scale) for m in self._present_materials())
+        self.gravity = [g / self.mass_scale for g in self.cfg.gravity]
+        self._cmds = None  # the recorded grid launch holds the gravity
         self.dt_visc = math.inf
         for i in self._present:
             m = self.materials[i]
@@ -442,17 +480,12 @@ class MPMSolver:
         n_left = math.ceil(remaining / dt - 1e-6)
         return remaining / n_left
 
-    def _auto_mass_scale(self, frame_dt: float) -> None:
-        if self._mass_scale_fixed:
+    def _resolve_auto_mass_scale(self, frame_dt: float) -> None:
+        if not self._mass_scale_pending:
             return
-        self._mass_scale_fixed = True
-        cfg = self.cfg
-        dt1 = cfg.courant * self.dx / self.c_max  # c_max at mass scale 1
-        needed = frame_dt / dt1
-        s = max(1.0, (needed / cfg.target_substeps_per_frame) ** 2)
-        if s > 1.0:
-            self.mass_scale = s
-            self._upload_materials()
+        self._mass_scale_pending = False
+        self.mass_scale = mass_scale_for(self._present_materials(), self.dx, frame_dt, self.cfg)
+        self._upload_materials()
 
     # ------------------------------------------------------------------ boundary upload
     def _upload_dirichlet(self, spec: BoundarySpec) -> list[dict]:
@@ -488,6 +521,12 @@ class MPMSolver:
                 nrm = np.where(ln > 0, nrm / np.maximum(ln, 1e-30), 0.0).astype(np.float32)
             if fid.min() < 0:
                 raise ValueError("finger ids must be >= 0")
+            bad = ~(np.isfinite(pos).all(1) & np.isfinite(vel).all(1) & np.isfinite(nrm).all(1))
+            if bad.any():  # stability suite guard: a NaN target is an input error, not a numerical blow-up
+                raise ValueError(
+                    f"Dirichlet boundary input contains NaN/inf positions, velocities or normals: {int(bad.sum())} of "
+                    f"{m} points (fingers {sorted(set(fid[bad].tolist()))}) at frame {self.frame}, t={self.time:.6g} s; "
+                    "the finger field / targets passed to step_frame are corrupt")
             self._grow_fingers(int(fid.max()) + 1)
             d = self.device
             out.append(dict(
@@ -515,6 +554,9 @@ class MPMSolver:
                 continue
             if fid.max() >= len(forces) or fid.min() < 0:
                 raise ValueError("ForcePatch.finger_ids must index ForcePatch.forces")
+            if not (np.isfinite(pos).all() and np.isfinite(forces).all()):  # stability suite guard (input error)
+                raise ValueError(f"ForcePatch input contains NaN/inf positions or forces at frame {self.frame}, "
+                                 f"t={self.time:.6g} s; the finger forces passed to step_frame are corrupt")
             self._grow_fingers(len(forces))
             d = self.device
             ff = np.zeros((self.n_fingers, 3), np.float32)
@@ -557,7 +599,7 @@ class MPMSolver:
                     self.gi, cmds["sp"], cur, other, self.x, self.F, self.q, self.alpha, self.vol, self.mat_id,
                     self.mat_model, self.mat_par, self.flags, self.bbox])
             grid = wp.launch(K.k_grid_update, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
-                cur, other, wp.vec3i(0, 0, 0), 0.0, wp.vec3(*[float(g) for g in cfg.gravity]), cfg.padding,
+                cur, other, wp.vec3i(0, 0, 0), 0.0, wp.vec3(*self.gravity), cfg.padding,
                 int(cfg.wall_sticky), int(self.floor_height is not None), self.floor_g, float(cfg.floor_friction),
                 int(cfg.floor_sticky), 0, self.bc_v, self.bc_n, self.react, self.gstats])
             cmds[id(cur)] = (fused, grid)
@@ -608,7 +650,7 @@ class MPMSolver:
         if not frame_dt > 0:
             raise ValueError("frame_dt must be > 0")
         wall0 = time.perf_counter()
-        self._auto_mass_scale(frame_dt)
+        self._resolve_auto_mass_scale(frame_dt)
         cfg = self.cfg
         d = self.device
         bc_fn = dirichlet if callable(dirichlet) else None
@@ -625,6 +667,7 @@ class MPMSolver:
         t = 0.0
         nsub = 0
         dts: list[float] = []
+        self._frame_dts = dts  # the substeps taken so far (the guard messages quote their Courant number)
         self._times = [(self.substep, self.time)]
         dt = self._next_dt(frame_dt, max(self._vmax, bc_speed))
         cur, other = self.grid_b, self.grid_a
@@ -729,7 +772,7 @@ class MPMSolver:
             warnings.warn(
                 f"mass scaling x{self.mass_scale:.3g}: kinetic/internal energy ratio {ratio:.3g} > "
                 f"{self.cfg.quasi_static_ke_ie_max} at t={self.time:.4g} s - the quasi-static assumption is violated; "
-                "lower target mass scaling or raise target_substeps_per_frame", RuntimeWarning, stacklevel=3)
+                "lower mpm.mass_scale or raise mpm.target_substeps_per_frame", RuntimeWarning, stacklevel=3)
         return FrameStats(
             frame=self.frame, time=self.time, substeps=nsub, dt_min=min(dts), dt_max=max(dts),
             courant=self.courant_number(max(dts)), max_speed=float(e[2]), j_min=float(e[0]), j_max=float(e[1]),
@@ -756,7 +799,9 @@ class MPMSolver:
             return
         x = self.x.numpy()
         F = self.F.numpy()
-        cn = self.courant_number(self._stable_dt(self._vmax) if self.cfg.dt is None else self.cfg.dt)
+        taken = getattr(self, "_frame_dts", None)  # the largest dt actually used this frame, not the post-blow-up one
+        cn = self.courant_number(max(taken) if taken else (
+            self._stable_dt(self._vmax) if self.cfg.dt is None else self.cfg.dt))
         hint_dt = (f"Courant number {cn:.3g} (limit {self.cfg.courant_limit:.3g}), c_p={self.c_max:.4g} m/s, "
                    f"dx={self.dx:.4g} m")
         if f[1] or force_nonfinite:  # non-finite first: it explains the others
@@ -765,7 +810,7 @@ class MPMSolver:
             sub = int(f[5]) if f[5] != K.NO_SUBSTEP else self.substep
             raise SimulationError(
                 f"non-finite particle state (NaN/inf position, velocity or F) at substep {sub} "
-                f"(t={self._substep_time(sub):.6g} s, frame {self.frame}); {int(max(f[1], bad.sum()))} particles; "
+                f"(t={self._substep_time(sub):.6g} s, frame {self.frame}); {int(bad.sum())} particles non-finite now; "
                 f"worst particle #{p} of material '{self._material_name(p)}'. Likely cause: numerical blow-up - "
                 f"the time step is too large for the stiffness ({hint_dt}) or the input contains NaN; "
                 "lower dt or E, or enable stiffness/mass scaling")

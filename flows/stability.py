@@ -1,0 +1,48 @@
+"""Numerical stability suite:  ``python -m flows.stability`` (all cases, ~10 min on 2 cores),
+``python -m flows.stability quick=true`` (< 1 min), ``python -m flows.stability cases=[courant,deep_poke]``.
+
+Wires :mod:`tasks.stability` (cases, runners, report) to the Hydra config (``conf/stability.yaml``, schema
+``conf/stability_schema.py``) and writes ``<paths.reports>/stability/<run>/stability.md`` and ``stability.csv``.
+No Prefect: the cases are short diagnostics run in this process, one after the other (a case that fails is a row
+of the table, never the end of the run).
+"""
+from __future__ import annotations
+
+from datetime import datetime
+from pathlib import Path
+
+import hydra
+from omegaconf import DictConfig, OmegaConf
+
+from conf.stability_schema import register_stability_config
+
+register_stability_config()
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="stability")
+def main(cfg: DictConfig) -> None:
+    from conf.mpm_schema import MPMConfigError, mpm_config_from
+    from tasks.stability import (
+        SuiteContext,
+        run_suite,
+        select_cases,
+        table_text,
+        write_report,
+    )
+
+    try:
+        mpm_config_from(cfg.mpm)
+        cases = select_cases(list(cfg.cases), bool(cfg.quick))
+    except (MPMConfigError, ValueError) as exc:
+        raise SystemExit(f"config error: {exc}") from None
+    run = cfg.run_name or f"stability-{datetime.now():%Y%m%d-%H%M%S}"
+    out = Path(cfg.paths.reports) / "stability" / run
+    print(f"stability suite: {len(cases)} cases -> {out}")
+    rows = run_suite(SuiteContext.from_config(cfg), cases, log=print)
+    report = write_report(rows, out, config=OmegaConf.to_container(cfg, resolve=True))
+    print("\n" + table_text(rows))
+    print(f"\nreport: {report.resolve()}\ntable: {(out / 'stability.csv').resolve()}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,143 @@
+"""Error against run time (issue 5): the error measures, the Pareto front and the observed order on known
+answers, and one tiny real sweep through the flow that writes the table."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from tasks.convergence import (
+    TABLE_COLUMNS,
+    ConvergenceError,
+    bbox_diagonal,
+    observed_order,
+    pareto_front,
+    peak_strain_error,
+    position_error,
+    reaction_force_error,
+    rollout_errors,
+    timing_spread,
+    tracer_drift,
+)
+
+
+def _rollout(rng, T=6, S=40):
+    return {
+        "gaussian_positions": rng.normal(size=(T, S, 3)) * 0.01,
+        "reaction_force": rng.normal(size=(T, 5, 3)),
+        "applied_force": np.zeros((T, 5, 3)),
+        "squeeze_strain": np.abs(rng.normal(size=(T, 5))) * 0.1,
+    }
+
+
+def test_identical_rollouts_have_zero_error():
+    ref = _rollout(np.random.default_rng(0))
+    assert rollout_errors(ref, ref, size=0.1) == {k: 0.0 for k in (
+        "position_error", "final_position_error", "reaction_force_error", "peak_strain_error")}
+
+
+def test_known_offset_gives_the_known_normalised_rms():
+    ref = np.zeros((4, 10, 3))
+    run = ref.copy()
+    run[..., 0] += 0.003  # every point 3 mm off along x in every frame
+    run[..., 2] -= 0.004  # and 4 mm along z: |dx| = 5 mm
+    size = bbox_diagonal([0, 0, 0], [0.03, 0.04, 0.0])  # 50 mm
+    assert size == pytest.approx(0.05)
+    assert position_error(run, ref, size) == pytest.approx(0.1)
+    # half of the frames off: RMS = sqrt(0.5) x 5 mm
+    run[:2] = 0.0
+    assert position_error(run, ref, size) == pytest.approx(math.sqrt(0.5) * 0.1)
+
+
+def test_reaction_force_error_is_relative_l2_of_the_magnitudes():
+    ref = np.zeros((3, 5, 3))
+    ref[:, 1, 2] = [1.0, 2.0, 2.0]  # |R_index| over frames, norm 3
+    run = ref.copy()
+    run[:, 1, 2] *= -1.0  # same magnitudes, opposite direction: no magnitude error
+    assert reaction_force_error(run, ref) == 0.0
+    run[:, 1, 2] = [1.0, 2.0, 3.5]  # magnitude off by 1.5 in one frame
+    assert reaction_force_error(run, ref) == pytest.approx(0.5)
+    assert reaction_force_error(np.zeros((3, 5)), np.zeros((3, 5))) == 0.0
+    assert reaction_force_error(np.ones((3, 5)), np.zeros((3, 5))) == math.inf
+
+
+def test_peak_strain_error_compares_per_finger_peaks():
+    ref = np.zeros((10, 5))
+    ref[4, 0], ref[6, 1] = 0.3, 0.4  # peaks (0.3, 0.4): norm 0.5
+    run = np.roll(ref, 2, axis=0)  # same peaks, later: no error
+    assert peak_strain_error(run, ref) == 0.0
+    run[6, 0] = 0.2  # thumb peak 0.2 instead of 0.3 -> 0.1 / 0.5
+    assert peak_strain_error(run, ref) == pytest.approx(0.2)
+
+
+def test_mismatched_tracers_are_refused():
+    with pytest.raises(ConvergenceError, match="surface sampling"):
+        position_error(np.zeros((3, 10, 3)), np.zeros((3, 12, 3)), 0.1)
+
+
+def test_tracer_drift_is_the_growth_of_the_distance_to_the_material():
+    particles = np.zeros((2, 3, 3))
+    particles[:, :, 0] = [0.0, 0.01, 0.02]  # three particles on the x axis, at rest
+    tracers = np.zeros((2, 2, 3))
+    tracers[:, :, 1] = 0.001  # two tracers 1 mm off the body
+    assert tracer_drift(tracers, particles) == 0.0
+    tracers[1, 1, 1] = 0.005  # one leaves it: 5 mm away at the end
+    assert tracer_drift(tracers, particles) == pytest.approx(0.004)
+
+
+def test_pareto_front_of_a_hand_example():
+    cost = [10, 20, 30, 15, 40, 25, np.nan]
+    err = [0.5, 0.2, 0.1, 0.6, 0.1, 0.2, 0.0]
+    # 15 s/0.6 is dominated by 10 s/0.5; 40 s/0.1 by 30 s/0.1; 25 s/0.2 by 20 s/0.2; NaN cost never on it
+    assert pareto_front(cost, err).tolist() == [True, True, True, False, False, False, False]
+
+
+def test_timing_spread_compares_settings_doing_the_same_work():
+    df = pd.DataFrame({"setting": ["a", "b", "c"], "status": "ok", "rollout_s": [20.0, 50.0, 90.0],
+                       "n_particles": [800, 800, 800], "substeps_total": [9000, 9000, 18000], "dx_m": 0.008})
+    assert "a, b do the same work" in timing_spread(df) and "(2.5 x)" in timing_spread(df)
+    assert timing_spread(df.iloc[[0, 2]]) == ""
+
+
+@pytest.mark.parametrize("p", [1.0, 2.0, 1.5])
+def test_observed_order_recovers_a_known_order(p):
+    h = np.array([0.016, 0.008, 0.004, 0.002, 0.001])
+    e = 3.0 * h ** p
+    fit = observed_order(np.append(h, 0.0005), np.append(e, 0.0))  # the reference (error 0) is left out
+    assert fit.n == 5 and fit.p == pytest.approx(p) and fit.C == pytest.approx(3.0)
+    assert fit.pairwise == pytest.approx([p] * 4)
+    assert observed_order([0.01], [0.1]) is None
+
+
+# ------------------------------------------------------------------------------------------ the real flow, tiny
+TINY = ["object=rubber_ball", "sampling.surface_points=300", "sampling.particle_spacing=0.006", "signal.duration=0.6",
+        "control.smoothing.frame_rate=10"]
+
+
+def test_two_setting_sweep_writes_the_table(prefect_server, tmp_path, compose_cfg):
+    from flows.convergence import run_convergence
+
+    cfg = compose_cfg("convergence", [
+        f"paths.artifacts={tmp_path / 'artifacts'}", f"paths.reports={tmp_path / 'reports'}", "run_name=tiny", *TINY,
+        "convergence.reference=fine",
+        ("convergence.settings=[{name: fine, family: grid, overrides: []},"
+         "{name: coarse, family: grid, overrides: ['mpm.particles_per_cell=27']}]"),
+        "convergence.families={grid: dx}"])
+    out = run_convergence(cfg)
+    df = pd.read_csv(tmp_path / "reports" / "convergence" / "tiny" / "convergence.csv")
+    assert list(df.columns) == list(TABLE_COLUMNS)
+    assert df["setting"].tolist() == ["fine", "coarse"] and (df["status"] == "ok").all()
+    fine, coarse = df.iloc[0], df.iloc[1]
+    assert fine["reference"] and fine["position_error"] == 0.0 and fine["reaction_force_error"] == 0.0
+    assert fine["dx_m"] == pytest.approx(0.012) and coarse["dx_m"] == pytest.approx(0.018)  # 6 mm x cbrt(8 | 27)
+    assert coarse["n_particles"] == fine["n_particles"]  # the same particles on a coarser grid
+    assert 0 < coarse["position_error"] < 0.2 and coarse["rollout_s"] > 0
+    assert (tmp_path / "reports" / "convergence" / "tiny" / "pareto.png").stat().st_size > 0
+    # a rerun of the sweep is served from the cache and reports the same recorded times
+    again = run_convergence(cfg)
+    assert set(again["statuses"].values()) == {"cached"}
+    df2 = pd.read_csv(tmp_path / "reports" / "convergence" / "tiny" / "convergence.csv")
+    pd.testing.assert_series_equal(df["rollout_s"], df2["rollout_s"])
+    assert out["report"] == again["report"]
