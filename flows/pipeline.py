@@ -43,24 +43,25 @@ def file_sha256(path: str) -> str:
     return hashlib.sha256(p.read_bytes()).hexdigest()
 
 
+def _selected(single: Any, catalog: Any, names: Any, what: str) -> list[DictConfig]:
+    """``single`` when the user picked one (``object=NAME`` / ``variant=NAME``), else ``catalog[n]`` for every name
+    in ``names`` (``grid.objects`` / ``grid.variants``)."""
+    if single is not None:
+        return [single]
+    missing = [n for n in names if n not in catalog]
+    if missing:
+        raise SystemExit(f"grid.{what}s names unknown {what}s {missing}: known {sorted(catalog)}")
+    return [catalog[n] for n in names]
+
+
 def selected_objects(cfg: DictConfig) -> list[DictConfig]:
     """``object=NAME`` selects one object; otherwise every name in ``grid.objects`` from the catalog."""
-    if cfg.object is not None:
-        return [cfg.object]
-    missing = [n for n in cfg.grid.objects if n not in cfg.catalog]
-    if missing:
-        raise SystemExit(f"grid.objects names unknown objects {missing}: known {sorted(cfg.catalog)}")
-    return [cfg.catalog[n] for n in cfg.grid.objects]
+    return _selected(cfg.object, cfg.catalog, cfg.grid.objects, "object")
 
 
 def selected_variants(cfg: DictConfig) -> list[DictConfig]:
     """``variant=NAME`` selects one variant; otherwise every name in ``grid.variants`` from ``variants``."""
-    if cfg.variant is not None:
-        return [cfg.variant]
-    missing = [n for n in cfg.grid.variants if n not in cfg.variants]
-    if missing:
-        raise SystemExit(f"grid.variants names unknown variants {missing}: known {sorted(cfg.variants)}")
-    return [cfg.variants[n] for n in cfg.grid.variants]
+    return _selected(cfg.variant, cfg.variants, cfg.grid.variants, "variant")
 
 
 def _plain(node: Any) -> Any:

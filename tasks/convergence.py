@@ -86,6 +86,11 @@ def reaction_force_error(reaction: np.ndarray, reference: np.ndarray) -> float:
     """
     a, b = _magnitudes(reaction), _magnitudes(reference)
     _same_shape(a, b, "reaction_force")
+    return _relative_l2(a, b)
+
+
+def _relative_l2(a: np.ndarray, b: np.ndarray) -> float:
+    """|a - b| / |b| (L2 over all entries); 0 when both are zero, inf when only the reference is."""
     norm = float(np.linalg.norm(b))
     diff = float(np.linalg.norm(a - b))
     if norm == 0.0:
@@ -98,12 +103,7 @@ def peak_strain_error(strain: np.ndarray, reference: np.ndarray) -> float:
     a = np.asarray(strain, np.float64)
     b = np.asarray(reference, np.float64)
     _same_shape(a, b, "squeeze_strain")
-    pa, pb = a.max(axis=0), b.max(axis=0)
-    norm = float(np.linalg.norm(pb))
-    diff = float(np.linalg.norm(pa - pb))
-    if norm == 0.0:
-        return 0.0 if diff == 0.0 else math.inf
-    return diff / norm
+    return _relative_l2(a.max(axis=0), b.max(axis=0))
 
 
 def tracer_drift(tracers: np.ndarray, particles: np.ndarray) -> float:

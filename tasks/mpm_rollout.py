@@ -218,17 +218,11 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         soft = float(sim["ruptured_softening"])
         by_label[RUPTURED] = replace(shell, name="ruptured_shell", youngs_modulus=shell.youngs_modulus * soft,
                                      yield_stress=shell.yield_stress * soft)
-    # the solver picks its fixed-corotated-only fast path from the models present at construction and keeps it
-    # when particles later switch material, so a switch to another model needs one present from the start
     initial = {by_label[lab].model for lab in set(np.concatenate(ids).tolist())}
     if with_interior and shell.model == "fixed_corotated" and initial != {"fixed_corotated"}:
         # torn skin carried off by the released interior: neo-Hookean's ln J barrier keeps the soft flakes from
         # inverting where the spray piles up (fixed-corotated's (J - 1)^2 term barely resists J -> 0)
         by_label[RUPTURED] = replace(by_label[RUPTURED], model="neo_hookean")
-    if with_interior and initial == {"fixed_corotated"} and by_label[INTERIOR].model != "fixed_corotated":
-        raise ValueError(f"shell {mats.shell.name!r} and core are both fixed_corotated: the "
-                         f"{by_label[INTERIOR].model} interior made from the core at the rupture needs another core "
-                         "model (e.g. neo_hookean)")
     labels = sorted(by_label)
     mat_list: list[Material] = [by_label[lab] for lab in labels]
     slot = np.full(N_LABELS, -1, np.int32)
@@ -316,12 +310,12 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
             if len(idx):
                 bc = DirichletPoints(positions=current, velocities=(target_x - current) / frame_dt,
                                      finger_ids=finger_of[f, idx].astype(np.int32))
-        else:
-            idx = np.flatnonzero(field["constrained"][f])
+        else:  # a finger that punctured the skin no longer presses on the torn part (as in dirichlet mode)
+            idx = np.flatnonzero(field["constrained"][f] & ~torn)
             if len(idx):
                 total = np.zeros((N_FINGERS, 3))
                 for k in range(N_FINGERS):
-                    if patches["patch_active"][f, k]:
+                    if patches["patch_active"][f, k] and (finger_of[f, idx] == k).any():
                         total[k] = float(sim["force_per_coefficient"]) * forces[f, k] * -patches["patch_normals"][f, k]
                 push = ForcePatch(positions=solver.tracer_positions()[idx], finger_ids=finger_of[f, idx].astype(np.int32),
                                   forces=total)
@@ -439,13 +433,16 @@ def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold:
     radius = float(sim["release_radius"])
     fingers = [k for k in range(N_FINGERS) if strain[k] >= threshold and patches["patch_active"][f, k]]
     fingers = fingers or [int(np.argmax(strain))]
+    interior = solver.materials[int(slot[INTERIOR])]
+    c_released = interior.p_wave_speed(solver.stiffness_scale, solver.mass_scale)  # m/s, after mass scaling
     speeds = []
     for k in fingers:
         c = centers[k]
         n_out = patches["patch_normals"][f, k]
         area = max(float(patches["patch_areas"][f, k]), 1e-8)
         force = np.linalg.norm(reaction[k] if boundary == "dirichlet" else applied[k])
-        speed = min(float(sim["release_speed_per_pascal"]) * force / area, float(sim["max_release_speed"]))
+        speed = float(min(float(sim["release_speed_per_pascal"]) * force / area, float(sim["max_release_speed"]),
+                          float(sim["release_mach_max"]) * c_released))
         near = np.linalg.norm(x - c, axis=1) <= radius
         torn = near & (mid == SHELL)
         ids[torn] = RUPTURED

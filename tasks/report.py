@@ -299,6 +299,8 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
           f"- wall time: {wall_seconds:.1f} s; tasks: {table.summary()}; peak memory of the flow process "
           f"{peak_rss_mb():.0f} MB (Dask workers not included)",
           f"- code revision: `{revision}`; config: `config.json`; metric rows: `metrics.csv`, `metrics.parquet`",
+          "- accuracy preset: " + ("; ".join(f"{k} {v}" for k, v in cfg.get("accuracy", {}).items())
+                                   or "none stated (no preset selected)"),
           "- variants: " + ", ".join(f"`{k}` = {v}" for k, v in labels.items()), ""]
     for title, header, rows, best in tables:
         md += [f"## {title}", "", markdown_table(header, rows, best) if rows else "(no metrics: see the task table)", ""]
@@ -327,7 +329,9 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
 
     body = [f"<h1>VirSqueezer run {html.escape(report_dir.name)}</h1>",
             f"<p>wall time {wall_seconds:.1f} s; tasks: {html.escape(table.summary())}; code revision "
-            f"<code>{html.escape(revision)}</code>; metric rows in metrics.csv / metrics.parquet</p>"]
+            f"<code>{html.escape(revision)}</code>; metric rows in metrics.csv / metrics.parquet</p>",
+            "<p>accuracy preset: " + html.escape("; ".join(f"{k} {v}" for k, v in cfg.get("accuracy", {}).items())
+                                                 or "none stated") + "</p>"]
     for title, header, rows, best in tables:
         body += [f"<h2>{html.escape(title)}</h2>", html_table(header, rows, best) if rows else "<p>(no metrics)</p>"]
     if len(physical):

@@ -906,7 +906,9 @@ class MPMSolver:
 
     def set_material_ids(self, ids: np.ndarray) -> None:
         """Re-assign particle materials (e.g. a ruptured shell).  The new materials must use models whose state
-        is already allocated and the same density (mass is conserved exactly)."""
+        is already allocated and the same density (mass is conserved exactly).  The set of materials present,
+        the stable time step (their wave speeds, fluid viscosity) and the fixed-corotated fast path are updated;
+        the mass scale stays as it was."""
         ids = np.asarray(ids, np.int32).reshape(self.n_particles)
         if ids.min() < 0 or ids.max() >= len(self.materials):
             raise ValueError(f"material ids must be in [0, {len(self.materials)})")
@@ -919,6 +921,9 @@ class MPMSolver:
                 raise ValueError(f"material {mb.name} needs solver state that was not allocated")
         self._mid_host = ids.copy()
         self.mat_id.assign(ids)
+        self._present = sorted(set(int(i) for i in np.unique(ids)))
+        self.all_corotated = {self.materials[i].code for i in self._present} == {0}
+        self._upload_materials()
 
     def set_deformation_gradients(self, F: np.ndarray) -> None:
         self.F.assign(np.asarray(F, np.float32).reshape(-1, 3, 3))
