@@ -457,7 +457,7 @@ def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold:
     solver.set_velocities(v.astype(np.float32))
     return {"crossed": True, "frame": int(f), "time": float(t), "fingers": fingers,
             "strain": float(strain.max()), "threshold": threshold, "released_particles": int(released.sum()),
-            "release_speeds": speeds, "labels": ids}
+            "release_speeds": speeds, "release_sound_speed": float(c_released), "labels": ids}
 
 
 @artifact_step("mpm_rollout", modules=("tasks.mpm.solver", "tasks.mpm.kernels", "tasks.mpm.constitutive",
