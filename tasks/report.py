@@ -308,7 +308,8 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
         md += ["## Physical figures per object and variant", "",
                markdown_table(list(physical.columns), [[_fmt(x) for x in r] for r in physical.itertuples(index=False)]), ""]
     walls = wall_findings(refs)
-    md += ["## Left out of each scene, and why", "", *left_out(refs), f"- all objects: {NOT_BUILT}", ""]
+    omitted = [*left_out(refs), f"- all objects: {NOT_BUILT}"]
+    md += ["## Left out of each scene, and why", "", *omitted, ""]
     if walls:
         md += ["## Walls thinner than the grid resolves (python -m flows.stability)", "", *walls, ""]
     md += ["## Compute per step (tasks that ran in this run)", "", step_shares(df), ""]
@@ -338,7 +339,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
         body += ["<h2>Physical figures per object and variant</h2>",
                  html_table(list(physical.columns), [[_fmt(x) for x in r] for r in physical.itertuples(index=False)])]
     body += ["<h2>Left out of each scene, and why</h2>", "<ul>" + "".join(
-        f"<li>{html.escape(line[2:])}</li>" for line in [*left_out(refs), f"- all objects: {NOT_BUILT}"]) + "</ul>"]
+        f"<li>{html.escape(line[2:])}</li>" for line in omitted) + "</ul>"]
     if walls:
         body += ["<h2>Walls thinner than the grid resolves</h2>",
                  "<ul>" + "".join(f"<li>{html.escape(line[2:])}</li>" for line in walls) + "</ul>"]

@@ -471,20 +471,28 @@ def run_compression(case: Case, ctx: SuiteContext, progress: _Progress | None = 
 
 
 # ============================================================================================ guard cases
-def run_push_out(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
-    """A finger (sticky Dirichlet points on the +x face) pushes the column at 0.5 m/s toward -x inside a tight
-    automatic box (``margin_cells`` 1): Dirichlet nodes override the slip walls, so material is driven into the
-    padding layer until the out-of-grid guard stops the run."""
-    from tasks.mpm.solver import DirichletPoints, MPMSolver
+def _column_solver(case: Case, ctx: SuiteContext, progress: _Progress, **mpm_overrides: Any):
+    """The case's material on the suite's column, in an MPMSolver configured as production (``ctx.mpm``) plus
+    ``mpm_overrides``, dx chosen as the rollout chooses it; the solver is registered with ``progress``."""
+    from tasks.mpm.solver import MPMSolver
 
-    progress = progress or _Progress()
     mat = _material(case.params["material"], ctx)
-    mpm = dict(ctx.mpm)
-    mpm.update(gravity=[0.0, 0.0, 0.0], floor=False, margin_cells=1)
+    mpm = {**ctx.mpm, **mpm_overrides}
     mpm["dx"] = grid_spacing(mpm, float(ctx.sampling["particle_spacing"]))
     col = _column(ctx, mpm)
     solver = MPMSolver(col.X, col.vol, mat, config=mpm)
     progress.solver = solver
+    return col, solver
+
+
+def run_push_out(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
+    """A finger (sticky Dirichlet points on the +x face) pushes the column at 0.5 m/s toward -x inside a tight
+    automatic box (``margin_cells`` 1): Dirichlet nodes override the slip walls, so material is driven into the
+    padding layer until the out-of-grid guard stops the run."""
+    from tasks.mpm.solver import DirichletPoints
+
+    progress = progress or _Progress()
+    col, solver = _column_solver(case, ctx, progress, gravity=[0.0, 0.0, 0.0], floor=False, margin_cells=1)
     face = col.X[col.X[:, 0] > col.W - col.dx / 2].copy()
     speed, fdt = 0.5, 1.0 / FRAME_RATE_HUMAN
     for _ in range(6):  # up to 0.1 m of travel: far past the 1-cell margin
@@ -499,15 +507,8 @@ def run_push_out(case: Case, ctx: SuiteContext, progress: _Progress | None = Non
 
 def run_nan_state(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
     """Two frames of a free column, then a NaN written into one particle's velocity (a corrupted state)."""
-    from tasks.mpm.solver import MPMSolver
-
     progress = progress or _Progress()
-    mat = _material(case.params["material"], ctx)
-    mpm = dict(ctx.mpm)  # production as is (gravity, sticky floor, mass scaling)
-    mpm["dx"] = grid_spacing(mpm, float(ctx.sampling["particle_spacing"]))
-    col = _column(ctx, mpm)
-    solver = MPMSolver(col.X, col.vol, mat, config=mpm)
-    progress.solver = solver
+    _, solver = _column_solver(case, ctx, progress)  # production as is (gravity, sticky floor, mass scaling)
     for _ in range(2):
         progress.stats.append(solver.step_frame(1.0 / FRAME_RATE_HUMAN))
     v = solver.velocities()
@@ -523,15 +524,10 @@ def run_nan_state(case: Case, ctx: SuiteContext, progress: _Progress | None = No
 
 def run_nan_input(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
     """A finger (Dirichlet points on the top face) whose target velocity of one point is NaN, from the 2nd frame."""
-    from tasks.mpm.solver import DirichletPoints, MPMSolver
+    from tasks.mpm.solver import DirichletPoints
 
     progress = progress or _Progress()
-    mat = _material(case.params["material"], ctx)
-    mpm = dict(ctx.mpm)  # production as is
-    mpm["dx"] = grid_spacing(mpm, float(ctx.sampling["particle_spacing"]))
-    col = _column(ctx, mpm)
-    solver = MPMSolver(col.X, col.vol, mat, config=mpm)
-    progress.solver = solver
+    col, solver = _column_solver(case, ctx, progress)  # production as is
     pts = col.X[col.X[:, 2] > col.L - col.dx / 2].copy()
     for f in range(3):
         vel = np.tile([0.0, 0.0, -0.01], (len(pts), 1))
