@@ -1,7 +1,7 @@
-"""Structured schema of the ``metrics`` config group (the deformation metrics, :mod:`tasks.deformation_metrics`).
+"""Structured schema of the ``metrics`` config group (the deformation metrics, :mod:`tasks.evaluation.deformation_metrics`).
 
 The paper (sec. "Evaluation for Squeezing Controlled Deformation", Table 2) names BDC-T, BDC-S, SDC and mIoU
-but does not define them; the definitions used here are in ``tasks.deformation_metrics.DEFINITIONS``.
+but does not define them; the definitions used here are in ``tasks.evaluation.deformation_metrics.DEFINITIONS``.
 """
 from __future__ import annotations
 

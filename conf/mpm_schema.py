@@ -1,4 +1,4 @@
-"""Structured schema of the ``mpm`` config group (MLS-MPM solver, :mod:`tasks.mpm`).
+"""Structured schema of the ``mpm`` config group (MLS-MPM solver, :mod:`tasks.physics.mpm`).
 
 All physical quantities are SI (metres, seconds, pascals, kilograms).  The grid spacing is ``dx`` when given,
 otherwise the object's largest extent divided by ``cells_across``.
@@ -42,7 +42,7 @@ class MPMConfig:
         mass_scaling: time (mass) scaling, the one mechanism of the project: ``off``; ``manual`` (every density x
             ``mass_scale``); ``auto`` (the smallest s >= 1 for which the elastic CFL of the non-fluid materials
             needs at most ``target_substeps_per_frame`` substeps per output frame, fixed at the first frame:
-            s = max(1, (c_p frame_dt / (N C dx))^2), see :func:`tasks.mpm.solver.mass_scale_for`).  Wave speeds
+            s = max(1, (c_p frame_dt / (N C dx))^2), see :func:`tasks.physics.mpm.solver.mass_scale_for`).  Wave speeds
             drop by sqrt(s); gravity is divided by s, so weights and quasi-static states under gravity are
             unchanged (motion is sqrt(s) times slower).  With scaling on, a frame whose kinetic/internal energy
             ratio exceeds ``quasi_static_ke_ie_max`` warns: the quasi-static assumption is violated.

@@ -4,7 +4,7 @@ The material oracle turns an object's free-text description into physical proper
 simulation (paper sec. 3.2, "Squeezing-Driven Deformation"; the paper uses GPT-5).  Two backends exist:
 
 * ``table`` (default, offline): a curated table of real material properties with their sources
-  (:mod:`tasks.material_oracle`); no network.
+  (:mod:`tasks.physics.material_oracle`); no network.
 * ``llm``: any OpenAI-compatible chat-completions endpoint at ``llm_url`` (``POST {llm_url}/chat/completions``).
   The API key is read at call time from the environment variable named by ``api_key_env`` - it is never part
   of the config, of results, of cache files or of error messages.  Answers are cached on disk as JSON under

@@ -11,11 +11,11 @@ from typing import Any, Optional
 
 from omegaconf import MISSING
 
+from conf.hand import FINGERS
 from conf.metrics_schema import MetricsConfig, validate_metrics
 from conf.mpm_schema import MPMConfig
 from conf.oracle_schema import OracleConfig
 
-FINGERS: tuple[str, ...] = ("thumb", "index", "middle", "ring", "pinky")
 
 
 # ----------------------------------------------------------------------------------------------- object
@@ -329,24 +329,13 @@ def validate(cfg: Any) -> None:
 
 
 def _validate_inputs(cfg: Any, need: Any) -> None:
-    """What a run reads besides the method's knobs: the recording's size, the selected objects' geometry and
-    material overrides, the MPM grid and the material oracle.  Each error names the key to change."""
+    """What a run reads besides the method's knobs: the selected objects' geometry and material overrides, the
+    MPM grid and the material oracle.  Each error names the key to change.  (Input *files* - existence, size,
+    format - are checked by :mod:`flows.preflight` before the flow starts.)"""
     import math
 
     from conf.mpm_schema import MPMConfigError, mpm_config_from
     from conf.oracle_schema import ORACLE_BACKENDS
-
-    s = cfg.signal
-    if s.source == "csv" and s.path:
-        from tasks.squeeze_signals import (  # the reader's own limit
-            SignalError,
-            check_recording_size,
-        )
-
-        try:
-            check_recording_size(s.path)
-        except SignalError as exc:  # refused before the flow hashes (reads) the whole file
-            raise ConfigError(f"signal.path: {exc}") from None
 
     def positive(value: Any) -> bool:
         return value is not None and math.isfinite(float(value)) and float(value) > 0

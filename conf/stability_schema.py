@@ -1,4 +1,4 @@
-"""Structured schema of ``python -m flows.stability`` (the numerical stability suite, :mod:`tasks.stability`).
+"""Structured schema of ``python -m flows.stability`` (the numerical stability suite, :mod:`tasks.verification.stability`).
 
 The suite reads the production config groups (``mpm``, ``sampling``, ``control``, ``signal``, ``simulation``,
 ``oracle`` and the object ``catalog``) from the same YAML files as the main flows, so every case runs with the
@@ -22,7 +22,7 @@ from conf.schema import (
 
 @dataclass
 class StabilityConfig:
-    """``cases``: case names or categories to run (empty = all; see ``tasks.stability.default_cases``);
+    """``cases``: case names or categories to run (empty = all; see ``tasks.verification.stability.default_cases``);
     ``quick``: only the quick subset of the selection (< 1 min on 2 cores); ``run_name``: report folder under
     ``<paths.reports>/stability/`` (default: a time stamp)."""
 

@@ -9,7 +9,7 @@ boundary layer, the bottom wall is the floor), same forced dt (Courant 0.3 of th
 substeps, float32.  Throughput = particles x substeps / wall time, compile/JIT excluded (both warmed up).
 
 Solvers measured (each in a fresh subprocess, runs interleaved, best of ``--repeats``):
-  * warp-cpu: ``tasks.mpm.MPMSolver`` on Warp's CPU backend (one thread, LLVM); frames of ``--substeps``
+  * warp-cpu: ``tasks.physics.mpm.MPMSolver`` on Warp's CPU backend (one thread, LLVM); frames of ``--substeps``
     substeps with the full per-frame work (stats kernel, guards) included;
   * warp-cuda: the same on CUDA when a GPU is present;
   * taichi (default threads; all cores) and taichi (cpu_max_num_threads=1, same-thread comparison), both with
@@ -56,7 +56,7 @@ def run_warp(scene_path: str, device: str, substeps: int, repeats: int, save: st
     """Run our solver on the saved scene (called in a subprocess)."""
     import warp as wp
 
-    from tasks.mpm import Material, MPMSolver
+    from tasks.physics.mpm import Material, MPMSolver
 
     sc = np.load(scene_path)
     n, dx, dt = int(sc["n_grid"]), float(sc["dx"]), float(sc["dt"])
@@ -149,7 +149,7 @@ def main(argv: list[str] | None = None) -> dict:
     if not a.skip_taichi:
         for label, threads, polar in (("taichi-svd-default-threads", 0, "svd"), ("taichi-svd-1-thread", 1, "svd"),
                                       ("taichi-quat-1-thread", 1, "quat")):
-            runs.append((label, [sys.executable, "-m", "tasks.mpm.taichi_peer", "--scene", scene_path,
+            runs.append((label, [sys.executable, "-m", "tasks.verification.taichi_peer", "--scene", scene_path,
                                  "--threads", str(threads), "--polar", polar, "--substeps", str(a.substeps),
                                  "--repeats", str(a.repeats), "--save", os.path.join(tmp, f"{label}.npy"),
                                  "--polar-iters", str(a.polar_iters)]))

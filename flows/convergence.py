@@ -4,7 +4,7 @@ Runs one object and its session once per setting of ``convergence.settings`` (ea
 through the cached pipeline steps (:func:`flows.pipeline.submit_object`), so a rerun of the sweep is served from
 the cache and a killed sweep resumes where it stopped; each step's recorded compute seconds are the wall time.
 Then measures every setting against the reference setting and writes ``<paths.reports>/convergence/<run>/``
-``convergence.md``, ``convergence.csv`` and ``pareto.png`` (:mod:`tasks.convergence`).  No computation here.
+``convergence.md``, ``convergence.csv`` and ``pareto.png`` (:mod:`tasks.verification.convergence`).  No computation here.
 """
 from __future__ import annotations
 
@@ -28,7 +28,7 @@ PRESET_DIR = Path(__file__).resolve().parents[1] / "conf" / "preset"
 def setting_configs(cfg: DictConfig) -> dict[str, DictConfig]:
     """The composed config of every setting (base + preset + overrides), validated like a pipeline run."""
     from conf.schema import ConfigError, validate
-    from tasks.convergence import ConvergenceError, load_preset, setting_config
+    from tasks.verification.convergence import ConvergenceError, load_preset, setting_config
 
     out = {}
     for s in cfg.convergence.settings:
@@ -44,7 +44,7 @@ def setting_configs(cfg: DictConfig) -> dict[str, DictConfig]:
 
 def preset_configs(cfg: DictConfig) -> dict[str, DictConfig]:
     """Every ``conf/preset/*.yaml`` applied to the base config (to tell which setting each preset sits at)."""
-    from tasks.convergence import load_preset, setting_config
+    from tasks.verification.convergence import load_preset, setting_config
 
     return {p.stem: setting_config(cfg, [], load_preset(PRESET_DIR, p.stem)) for p in sorted(PRESET_DIR.glob("*.yaml"))}
 

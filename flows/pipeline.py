@@ -1,17 +1,19 @@
-"""The VirSqueezer flow: wires the method steps per object.  No computation lives here.
+"""The VirSqueezer flow: wires the declared method steps per object and variant.  No computation lives here.
 
-Per object (paper sec. "Squeezing Control Mapping"), computed once and shared by every variant:
-  object_model -> squeeze_signals -> signal_smoothing -> force_coefficients -> contact_patches -> dirichlet_field
-  material_oracle
-Per object and variant (paper Table 2: ``full`` = Dirichlet boundary conditions, ``no_dirichlet`` = force-driven):
-  mpm_rollout -> deformation_metrics
-Each call below submits a cached Prefect task (tasks.step) with exactly the config values the step reads.
+Each step declares its inputs (by producing step), the config paths it reads and its outputs next to its
+function (:func:`tasks.core.step.artifact_step`); this module only lists the steps in pipeline order and
+submits each with the futures its declaration names.  Per object, computed once and shared by every variant
+(paper sec. 3.1-3.2):
+
+    object_model -> squeeze_signals -> signal_smoothing -> force_coefficients -> contact_patches
+    -> dirichlet_field; material_oracle
+
+Per object and variant (Table 2: ``full`` = Dirichlet boundary conditions, ``no_dirichlet`` = force-driven):
+
+    mpm_rollout -> deformation_metrics
 """
 from __future__ import annotations
 
-import hashlib
-
-from prefect.logging import get_logger
 import time
 from datetime import datetime
 from pathlib import Path
@@ -19,28 +21,56 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 from prefect import flow
+from prefect.logging import get_logger
 
+from flows.preflight import preflight
 from flows.runtime import RunTable, make_task_runner, result_storage_settings
-from tasks.contact_patches import contact_patches_step
-from tasks.deformation_metrics import deformation_metrics_step
-from tasks.dirichlet_field import dirichlet_field_step
-from tasks.force_coefficients import force_coefficients_step
-from tasks.material_oracle import material_oracle_step
-from tasks.mpm_rollout import mpm_rollout_step
-from tasks.object_model import object_model_step
-from tasks.report import write_run_report
-from tasks.signal_smoothing import signal_smoothing_step
-from tasks.squeeze_signals import squeeze_signals_step
+from tasks.control.contact_patches import contact_patches_step
+from tasks.control.dirichlet_field import dirichlet_field_step
+from tasks.control.force_coefficients import force_coefficients_step
+from tasks.control.object_model import object_model_step
+from tasks.control.signal_smoothing import signal_smoothing_step
+from tasks.control.squeeze_signals import squeeze_signals_step
+from tasks.core.artifacts import ArtifactRef
+from tasks.core.params import resolve_reads
+from tasks.core.step import StepTask, WiringError
+from tasks.evaluation.deformation_metrics import deformation_metrics_step
+from tasks.physics.material_oracle import material_oracle_step
+from tasks.physics.mpm_rollout import mpm_rollout_step
+from tasks.reporting.report import write_run_report
 
 log = get_logger("virsqueezer")
 
+# The pipeline, in order.  A step runs once per object unless it reads the variant (its spec's per_variant), in
+# which case it runs once per object and variant; a per-object step cannot consume a per-variant one.
+PER_OBJECT: tuple[StepTask, ...] = (
+    object_model_step, squeeze_signals_step, signal_smoothing_step, force_coefficients_step, contact_patches_step,
+    dirichlet_field_step, material_oracle_step,
+)
+PER_VARIANT: tuple[StepTask, ...] = (mpm_rollout_step, deformation_metrics_step)
+STEPS: tuple[StepTask, ...] = PER_OBJECT + PER_VARIANT
 
-def file_sha256(path: str) -> str:
-    """Content digest of a user input file, so that editing the file invalidates the steps reading it."""
-    p = Path(path).expanduser()
-    if not p.is_file():
-        raise SystemExit(f"input file {p} does not exist: check the path in your config")
-    return hashlib.sha256(p.read_bytes()).hexdigest()
+
+def check_wiring(per_object: tuple[StepTask, ...] = PER_OBJECT,
+                 per_variant: tuple[StepTask, ...] = PER_VARIANT) -> None:
+    """Refuse a wiring that disagrees with the declarations: every input produced by an earlier step, no step
+    listed twice, per-object steps that read no variant and consume no per-variant output."""
+    produced: set[str] = set()
+    for stage, steps in (("per-object", per_object), ("per-variant", per_variant)):
+        for step in steps:
+            if step.name in produced:
+                raise WiringError(f"step {step.name!r} is wired twice")
+            missing = [name for name in step.spec.inputs if name not in produced]
+            if missing:
+                raise WiringError(f"step {step.name!r} needs {missing}, which no earlier step of the wiring produces")
+            if stage == "per-object" and step.spec.per_variant:
+                raise WiringError(f"step {step.name!r} reads the variant but is wired per object")
+            if stage == "per-object" and any(i in {s.name for s in per_variant} for i in step.spec.inputs):
+                raise WiringError(f"step {step.name!r} is wired per object but consumes a per-variant step")
+            produced.add(step.name)
+
+
+check_wiring()
 
 
 def _selected(single: Any, catalog: Any, names: Any, what: str) -> list[DictConfig]:
@@ -64,84 +94,43 @@ def selected_variants(cfg: DictConfig) -> list[DictConfig]:
     return _selected(cfg.variant, cfg.variants, cfg.grid.variants, "variant")
 
 
-def _plain(node: Any) -> Any:
-    return OmegaConf.to_container(node, resolve=True)
-
-
-def step_params(cfg: DictConfig, obj: DictConfig) -> dict[str, dict]:
-    """Exactly the config values each step reads (its cache key), per object."""
-    plain_obj = _plain(obj)
-    shape = {k: plain_obj[k] for k in ("name", "geometry", "appearance", "filled", "interior")}
-    object_params = {"object": shape, "sampling": _plain(cfg.sampling)}
-    if obj.geometry.kind in ("ply", "mesh"):
-        object_params["file_sha256"] = file_sha256(obj.geometry.path)
-    signal = _plain(cfg.signal)
-    signal["session"] = cfg.signal.session or obj.session
-    signal_params = {"signal": signal, "frame_rate": cfg.control.smoothing.frame_rate}
-    if cfg.signal.source == "csv":
-        signal_params["file_sha256"] = file_sha256(cfg.signal.path)
-        # a recording does not depend on the generator's knobs
-        signal_params["signal"] = {"source": "csv", "path": cfg.signal.path}
-    return {
-        "object_model": object_params,
-        "squeeze_signals": signal_params,
-        "signal_smoothing": {"smoothing": _plain(cfg.control.smoothing)},
-        "force_coefficients": {"force": _plain(cfg.control.force), "frame_rate": cfg.control.smoothing.frame_rate},
-        "contact_patches": {"contact": _plain(cfg.control.contact)},
-        "dirichlet_field": {"displacement": {**_plain(cfg.control.displacement),
-                                             "eta": obj.eta if obj.eta is not None else cfg.control.displacement.eta}},
-        "material_oracle": {"description": obj.description, "name": obj.name, "overrides": plain_obj["material"],
-                            "interior": obj.interior, "oracle": _plain(cfg.oracle)},
-    }
-
-
-def variant_params(cfg: DictConfig, variant: DictConfig) -> dict[str, dict]:
-    """Exactly the config values each per-variant step reads (its cache key): not the variant's name, so two
-    variants that simulate the same thing share one artifact."""
-    return {
-        "mpm_rollout": {"mpm": _plain(cfg.mpm), "simulation": _plain(cfg.simulation), "boundary": variant.boundary},
-        "deformation_metrics": {"metrics": _plain(cfg.metrics)},
-    }
+def step_params(step: StepTask, cfg: DictConfig, obj: DictConfig, variant: DictConfig | None = None) -> dict:
+    """Exactly the config values ``step`` declares (its parameters and cache key) for one object and variant."""
+    return resolve_reads(step.name, step.spec.reads, step.spec.files, cfg, obj, variant)
 
 
 def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig]) -> dict[tuple[str, str], Any]:
-    """Submit one object's steps: the shared chain once, then the rollout and metrics per variant.
+    """Submit one object's steps: the per-object chain once, then the per-variant chain for each variant.
 
-    Returns the futures keyed by (step, variant name); shared steps have variant ``""``."""
-    root, scope = cfg.paths.artifacts, obj.name
-    p = step_params(cfg, obj)
-    kw = dict(root=root, scope=scope)
-    f: dict[str, Any] = {}
-    f["object_model"] = object_model_step.submit(params=p["object_model"], **kw)
-    f["squeeze_signals"] = squeeze_signals_step.submit(
-        params=p["squeeze_signals"], inputs={"object": f["object_model"]}, **kw)
-    f["signal_smoothing"] = signal_smoothing_step.submit(
-        params=p["signal_smoothing"], inputs={"signals": f["squeeze_signals"]}, **kw)
-    f["force_coefficients"] = force_coefficients_step.submit(
-        params=p["force_coefficients"], inputs={"frames": f["signal_smoothing"]}, **kw)
-    f["contact_patches"] = contact_patches_step.submit(
-        params=p["contact_patches"],
-        inputs={"object": f["object_model"], "frames": f["signal_smoothing"], "forces": f["force_coefficients"]}, **kw)
-    f["dirichlet_field"] = dirichlet_field_step.submit(
-        params=p["dirichlet_field"],
-        inputs={"object": f["object_model"], "contacts": f["contact_patches"], "forces": f["force_coefficients"]}, **kw)
-    f["material_oracle"] = material_oracle_step.submit(params=p["material_oracle"], **kw)
-    out: dict[tuple[str, str], Any] = {(step, ""): fut for step, fut in f.items()}
+    Returns the futures keyed by (step, variant name); per-object steps have variant ``""``."""
+    kw = dict(root=cfg.paths.artifacts, scope=obj.name)
+    shared: dict[str, Any] = {}
+    for step in PER_OBJECT:
+        shared[step.name] = step.submit(params=step_params(step, cfg, obj),
+                                        inputs={n: shared[n] for n in step.spec.inputs}, label=obj.name, **kw)
+    out: dict[tuple[str, str], Any] = {(name, ""): fut for name, fut in shared.items()}
     for variant in variants:
-        vp = variant_params(cfg, variant)
-        rollout = mpm_rollout_step.submit(
-            params=vp["mpm_rollout"],
-            inputs={"object": f["object_model"], "frames": f["signal_smoothing"], "forces": f["force_coefficients"],
-                    "contacts": f["contact_patches"], "field": f["dirichlet_field"], "materials": f["material_oracle"]},
-            **kw)
-        metrics = deformation_metrics_step.submit(
-            params=vp["deformation_metrics"],
-            inputs={"rollout": rollout, "field": f["dirichlet_field"], "forces": f["force_coefficients"],
-                    "contacts": f["contact_patches"], "frames": f["signal_smoothing"], "object": f["object_model"]},
-            **kw)
-        out[("mpm_rollout", variant.name)] = rollout
-        out[("deformation_metrics", variant.name)] = metrics
+        available = dict(shared)
+        for step in PER_VARIANT:
+            available[step.name] = step.submit(
+                params=step_params(step, cfg, obj, variant), inputs={n: available[n] for n in step.spec.inputs},
+                label=f"{obj.name}[{variant.name}]", **kw)
+            out[(step.name, variant.name)] = available[step.name]
     return out
+
+
+def run_object_local(cfg: DictConfig, obj: DictConfig, variant: DictConfig | None, root: str | Path,
+                     until: str | None = None) -> dict[str, ArtifactRef]:
+    """Run one object's chain (and one variant's, when given) without Prefect, up to step ``until`` (tests,
+    notebooks).  Same keys and artifacts as the flow."""
+    refs: dict[str, ArtifactRef] = {}
+    for step in PER_OBJECT + (PER_VARIANT if variant is not None else ()):
+        refs[step.name] = step.run_local(root=str(root), scope=obj.name,
+                                         params=step_params(step, cfg, obj, variant),
+                                         inputs={n: refs[n] for n in step.spec.inputs})
+        if step.name == until:
+            break
+    return refs
 
 
 @flow(name="virsqueezer", log_prints=True, validate_parameters=False, persist_result=False)
@@ -205,13 +194,8 @@ def sweep_job_dir() -> str | None:
 
 
 def run(cfg: DictConfig, flow_label: str) -> dict:
-    """Entry used by the Hydra mains: validate the config, pick the runner, run the flow."""
-    from conf.schema import ConfigError, validate
-
-    try:
-        validate(cfg)
-    except ConfigError as exc:
-        raise SystemExit(f"config error: {exc}") from None
+    """Entry used by the Hydra mains: check the config and inputs, pick the runner, run the flow."""
+    preflight(cfg)
     runner = make_task_runner(cfg.runner)
     config = OmegaConf.to_container(cfg, resolve=True)
     job_dir = sweep_job_dir()

@@ -12,7 +12,7 @@ import pandas as pd
 from omegaconf import DictConfig
 from prefect.task_runners import ThreadPoolTaskRunner
 
-from tasks.artifacts import ArtifactRef, directory_size
+from tasks.core.artifacts import ArtifactRef, directory_size
 
 log = get_logger("virsqueezer")
 

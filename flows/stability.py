@@ -1,7 +1,7 @@
 """Numerical stability suite:  ``python -m flows.stability`` (all cases, ~10 min on 2 cores),
 ``python -m flows.stability quick=true`` (< 1 min), ``python -m flows.stability cases=[courant,deep_poke]``.
 
-Wires :mod:`tasks.stability` (cases, runners, report) to the Hydra config (``conf/stability.yaml``, schema
+Wires :mod:`tasks.verification.stability` (cases, runners, report) to the Hydra config (``conf/stability.yaml``, schema
 ``conf/stability_schema.py``) and writes ``<paths.reports>/stability/<run>/stability.md`` and ``stability.csv``.
 No Prefect: the cases are short diagnostics run in this process, one after the other (a case that fails is a row
 of the table, never the end of the run).
@@ -22,7 +22,7 @@ register_stability_config()
 @hydra.main(version_base="1.3", config_path="../conf", config_name="stability")
 def main(cfg: DictConfig) -> None:
     from conf.mpm_schema import MPMConfigError, mpm_config_from
-    from tasks.stability import (
+    from tasks.verification.stability import (
         SuiteContext,
         run_suite,
         select_cases,

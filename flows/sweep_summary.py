@@ -16,7 +16,7 @@ import pandas as pd
 import yaml
 from hydra.experimental.callback import Callback
 
-from tasks.report_tables import TABLE2, markdown_table
+from tasks.reporting.report_tables import TABLE2, markdown_table
 
 
 def _override_columns(job_dir: Path) -> dict[str, str]:

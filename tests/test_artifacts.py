@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import zarr
 
-from tasks.artifacts import Array, ArtifactError, content_digest, read_artifact, read_group_attrs, write_artifact
+from tasks.core.artifacts import Array, ArtifactError, content_digest, read_artifact, read_group_attrs, write_artifact
 
 
 def _arrays(scale=1.0):

@@ -92,25 +92,30 @@ def test_grid_objects_are_checked_with_the_key_to_override(compose_cfg, override
 
 
 def test_huge_recording_is_refused_before_it_is_read_or_hashed(compose_cfg, tmp_path):
-    from tasks.squeeze_signals import MAX_RECORDING_BYTES
+    from tasks.control.squeeze_signals import MAX_RECORDING_BYTES
 
     huge = tmp_path / "huge.csv"
     with open(huge, "wb") as fh:  # sparse: st_size above the limit, no disk used
         fh.write(b"time,flex_thumb\n")
         fh.truncate(MAX_RECORDING_BYTES + 1)
-    with pytest.raises(ConfigError) as exc:
-        validate(compose_cfg("squeeze", ["signal=csv", f"signal.path={huge}"]))
+    from flows.preflight import preflight
+
+    with pytest.raises(SystemExit) as exc:
+        preflight(compose_cfg("squeeze", ["signal=csv", f"signal.path={huge}"]))
     msg = str(exc.value)
-    assert msg.startswith("signal.path") and str(huge) in msg and "256.0 MiB limit" in msg and "cut it" in msg
+    assert msg.startswith("input error: signal.path") and str(huge) in msg and "256.0 MiB limit" in msg
+    assert "cut it" in msg and "\n" not in msg
 
 
 def test_step_params_hold_exactly_what_each_step_reads(compose_cfg):
-    from flows.pipeline import step_params
+    from flows.pipeline import STEPS, step_params
 
     base = compose_cfg("squeeze", ["object=tomato"])
     other = compose_cfg("squeeze", ["object=tomato", "control.force.gamma=2.5"])
-    a, b = step_params(base, base.object), step_params(other, other.object)
+    a = {s.name: step_params(s, base, base.object, base.variant) for s in STEPS}
+    b = {s.name: step_params(s, other, other.object, other.variant) for s in STEPS}
     assert [k for k in a if a[k] != b[k]] == ["force_coefficients"]
+    assert a["force_coefficients"]["control.force"]["gamma"] == 1.5
 
 
 def test_cfg_job_prints_the_config():

@@ -1,5 +1,5 @@
-"""Known-answer tests of SC-CAE (eq. 2, tasks/contact_patches.py) and the displacement field (eq. 3,
-tasks/dirichlet_field.py) on analytic shapes: a Fibonacci sphere, a cylinder and hand-built patches."""
+"""Known-answer tests of SC-CAE (eq. 2, tasks/control/contact_patches.py) and the displacement field (eq. 3,
+tasks/control/dirichlet_field.py) on analytic shapes: a Fibonacci sphere, a cylinder and hand-built patches."""
 from __future__ import annotations
 
 import dataclasses
@@ -8,10 +8,11 @@ import time
 import numpy as np
 import pytest
 
-from conf.schema import FINGERS, ContactConfig, DisplacementConfig
-from tasks.artifacts import Array
-from tasks.contact_patches import DEFAULT_PAD_RADIUS, contact_patches
-from tasks.dirichlet_field import constrained_points, dirichlet_field, patch_weight
+from conf.hand import FINGERS
+from conf.schema import ContactConfig, DisplacementConfig
+from tasks.core.artifacts import Array
+from tasks.control.contact_patches import DEFAULT_PAD_RADIUS, contact_patches
+from tasks.control.dirichlet_field import constrained_points, dirichlet_field, patch_weight
 
 R_SPHERE = 0.03  # m
 S_POINTS = 3000

@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tasks.convergence import (
+from tasks.verification.convergence import (
     TABLE_COLUMNS,
     ConvergenceError,
     bbox_diagonal,

@@ -10,8 +10,9 @@ import pytest
 from omegaconf import OmegaConf
 
 from conf.metrics_schema import MetricsConfig, validate_metrics
-from tasks.artifacts import Artifact, ArtifactRef, read_artifact, write_artifact
-from tasks.deformation_metrics import (
+from tasks.core.params import Params
+from tasks.core.artifacts import Artifact, ArtifactRef, read_artifact, write_artifact
+from tasks.evaluation.deformation_metrics import (
     DEFINITIONS,
     bdc_s,
     bdc_t,
@@ -429,12 +430,15 @@ def test_step_compute_runs_on_loaded_artifacts_and_writes(tmp_path):
         ref = ArtifactRef(path=str(tmp_path / step), digest="0" * 64, step=step, scope="synthetic")
         return Artifact(ref=ref, arrays=arrays, dims={}, units={}, attrs=attrs or {})
 
-    inputs = {"rollout": loaded("mpm_rollout", art["rollout"], art["rollout_attrs"]),
-              "field": loaded("dirichlet_field", art["field"]), "forces": loaded("force_coefficients", art["forces"]),
-              "contacts": loaded("contact_patches", art["contacts"]), "frames": loaded("signal_smoothing", art["frames"]),
-              "object": loaded("object_model", art["obj"])}
-    arrays, attrs = deformation_metrics_step.compute(inputs, {"metrics": {"region_fraction": 0.1,
-                                                                          "ate_with_scale": False, "min_motion": 1e-5}})
+    inputs = {"mpm_rollout": loaded("mpm_rollout", art["rollout"], art["rollout_attrs"]),
+              "dirichlet_field": loaded("dirichlet_field", art["field"]),
+              "force_coefficients": loaded("force_coefficients", art["forces"]),
+              "contact_patches": loaded("contact_patches", art["contacts"]),
+              "signal_smoothing": loaded("signal_smoothing", art["frames"]),
+              "object_model": loaded("object_model", art["obj"])}
+    params = Params("deformation_metrics", {"metrics": {"region_fraction": 0.1, "ate_with_scale": False,
+                                                        "min_motion": 1e-5}})
+    arrays, attrs = deformation_metrics_step.compute(inputs, params)
     direct = deformation_metrics(**art, params=None)
     assert attrs == direct[1]
     ref = write_artifact(tmp_path / "metrics.zarr", arrays, step="deformation_metrics", scope="synthetic",

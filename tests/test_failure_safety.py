@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from tasks.artifacts import read_group_attrs
+from tasks.core.artifacts import read_group_attrs
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL = ["sampling.surface_points=600", "sampling.particle_spacing=0.004", "signal.duration=1.5",
@@ -53,9 +53,9 @@ class _Touch:
 
 def test_bad_recording_fails_cleanly_and_the_fixed_rerun_reuses_upstream(prefect_server, tmp_path, compose_cfg):
     from flows.pipeline import run
-    from tasks.object_model import build_object_model
-    from tasks.squeeze_signals import synthesize_session, write_recording
-    from tasks.step import plain_record
+    from tasks.control.object_model import build_object_model
+    from tasks.control.squeeze_signals import synthesize_session, write_recording
+    from tasks.core.step import plain_record
 
     # a recording made around the ball, then cut off mid-row the way an interrupted copy leaves it
     base = compose_cfg("evaluate", _overrides(tmp_path, ["rubber_ball"]))

@@ -1,4 +1,4 @@
-"""Tests of the material oracle (tasks/material_oracle.py).
+"""Tests of the material oracle (tasks/physics/material_oracle.py).
 
 The LLM backend is exercised against a REAL HTTP server on 127.0.0.1 (http.server in a thread); nothing else
 is contacted.
@@ -21,7 +21,7 @@ if str(ROOT) not in sys.path:
 
 from conf.oracle_schema import OracleConfig  # noqa: E402
 from conf.schema import MaterialOverrides  # noqa: E402
-from tasks.material_oracle import (  # noqa: E402
+from tasks.physics.material_oracle import (  # noqa: E402
     INTERIORS, TABLE, LLMAnswer, MaterialOracleError, MaterialProperties, ObjectMaterials, material_oracle,
     materials_from_dict, materials_to_dict, match_entry, mpm_material_kwargs, oracle_for_object,
     validate_material)
@@ -76,9 +76,9 @@ def test_every_table_entry_validates():
 
 def test_table_materials_build_mpm_materials():
     try:
-        from tasks.mpm.materials import material_from_dict
+        from tasks.physics.mpm.materials import material_from_dict
     except Exception as exc:  # noqa: BLE001 - the solver package is another module's work
-        pytest.skip(f"tasks.mpm.materials not importable: {exc}")
+        pytest.skip(f"tasks.physics.mpm.materials not importable: {exc}")
     mats = [e.shell for e in TABLE] + [i.material for i in INTERIORS.values()]
     for m in mats:
         mpm = material_from_dict(mpm_material_kwargs(m))
@@ -443,16 +443,17 @@ def test_api_key_is_in_no_artifact_cache_file_or_log(server, tmp_path, key_env, 
     (HTTP 401 body, invalid JSON), the key is in no file under that folder and in no log line or output."""
     import logging
 
-    from tasks.artifacts import read_artifact
-    from tasks.material_oracle import material_oracle_step
+    from tasks.core.artifacts import read_artifact
+    from tasks.physics.material_oracle import material_oracle_step
 
     caplog.set_level(logging.DEBUG)  # every logger, httpx and httpcore included
     root = tmp_path / "artifacts"
     oracle = {"backend": "llm", "llm_url": server.url("good"), "llm_model": "test-model", "api_key_env": KEY_ENV,
               "timeout_s": 5.0, "cache_dir": str(root / "llm-cache")}
-    params = {"description": OBJECTS["tomato"][0], "name": "tomato", "interior": "juice", "oracle": oracle,
-              "overrides": {k: None for k in ("model", "youngs_modulus", "poisson_ratio", "density",
-                                              "yield_stress", "squeeze_threshold")}}
+    params = {"object.description": OBJECTS["tomato"][0], "object.name": "tomato", "object.interior": "juice",
+              "oracle": oracle,
+              "object.material": {k: None for k in ("model", "youngs_modulus", "poisson_ratio", "density",
+                                                    "yield_stress", "squeeze_threshold")}}
     ref = material_oracle_step.run_local(root=str(root), scope="tomato", params=params)
     assert read_artifact(ref).attrs["materials"]["backend"] == "llm"
     assert material_oracle_step.run_local(root=str(root), scope="tomato", params=params).reused

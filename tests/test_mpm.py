@@ -17,8 +17,8 @@ import pytest
 import warp as wp
 
 from conf.mpm_schema import MPMConfigError, mpm_config_from
-from tasks.mpm.constitutive import hencky_plastic_return, polar_rotation_quat, polar_track_quat
-from tasks.mpm import (
+from tasks.physics.mpm.constitutive import hencky_plastic_return, polar_rotation_quat, polar_track_quat
+from tasks.physics.mpm import (
     DirichletNodes,
     DirichletPoints,
     ForcePatch,

@@ -10,9 +10,9 @@ import pytest
 from omegaconf import OmegaConf
 
 from conf.schema import Config
-from tasks.artifacts import read_artifact
+from tasks.core.artifacts import read_artifact
 from conf.schema import SimulationConfig
-from tasks.mpm_rollout import (CONTACT_CORE_PHI, CORE, INTERIOR, RUPTURED, SHELL, cauchy_free_measures,
+from tasks.physics.mpm_rollout import (CONTACT_CORE_PHI, CORE, INTERIOR, RUPTURED, SHELL, cauchy_free_measures,
                                 finger_regions, region_weights, squeeze_strain, support_half_extent)
 
 # ------------------------------------------------------------------------------------------ pure measures
@@ -82,33 +82,17 @@ def test_von_mises_of_hencky_strain():
 
 
 def _rollout(tmp_path, name: str, *extra: str):
-    from flows.pipeline import step_params, variant_params
-    from tasks.contact_patches import contact_patches_step
-    from tasks.dirichlet_field import dirichlet_field_step
-    from tasks.force_coefficients import force_coefficients_step
-    from tasks.material_oracle import material_oracle_step
-    from tasks.mpm_rollout import mpm_rollout_step
-    from tasks.object_model import object_model_step
-    from tasks.signal_smoothing import signal_smoothing_step
-    from tasks.squeeze_signals import squeeze_signals_step
+    from flows.pipeline import run_object_local
 
     cfg = OmegaConf.merge(OmegaConf.structured(Config),
                           {"object": OmegaConf.load(f"conf/object/{name}.yaml"),
                            "mpm": OmegaConf.load("conf/mpm/default.yaml"),
                            "variant": OmegaConf.load("conf/variant/full.yaml")},
                           OmegaConf.from_dotlist(["control.smoothing.frame_rate=20", *extra]))
-    p = {**step_params(cfg, cfg.object), **variant_params(cfg, cfg.variant)}
-    kw = dict(root=str(tmp_path), scope=name)
-    o = object_model_step.run_local(params=p["object_model"], **kw)
-    s = squeeze_signals_step.run_local(params=p["squeeze_signals"], inputs={"object": o}, **kw)
-    fr = signal_smoothing_step.run_local(params=p["signal_smoothing"], inputs={"signals": s}, **kw)
-    fc = force_coefficients_step.run_local(params=p["force_coefficients"], inputs={"frames": fr}, **kw)
-    cp = contact_patches_step.run_local(params=p["contact_patches"], inputs={"object": o, "frames": fr, "forces": fc}, **kw)
-    df = dirichlet_field_step.run_local(params=p["dirichlet_field"], inputs={"object": o, "contacts": cp, "forces": fc}, **kw)
-    mo = material_oracle_step.run_local(params=p["material_oracle"], **kw)
-    r = mpm_rollout_step.run_local(params=p["mpm_rollout"], inputs={
-        "object": o, "frames": fr, "forces": fc, "contacts": cp, "field": df, "materials": mo}, **kw)
-    return {k: read_artifact(v) for k, v in dict(object=o, field=df, forces=fc, patches=cp, rollout=r).items()}
+    refs = run_object_local(cfg, cfg.object, cfg.variant, tmp_path, until="mpm_rollout")
+    names = dict(object="object_model", field="dirichlet_field", forces="force_coefficients", patches="contact_patches",
+                 rollout="mpm_rollout")
+    return {k: read_artifact(refs[step]) for k, step in names.items()}
 
 
 @pytest.fixture(scope="module")

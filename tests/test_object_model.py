@@ -1,4 +1,4 @@
-"""Object model (tasks.object_model, tasks.geometry, tasks.gaussian_ply): known answers and clear errors.
+"""Object model (tasks.control.object_model, tasks.control.geometry, tasks.control.gaussian_ply): known answers and clear errors.
 
 Known answers: a sphere's area 4 pi R^2 and volume 4/3 pi R^3, its principal curvatures 1/R, outward normals;
 the eight catalogue objects fit their configured bbox; a thin wall is one particle layer of mass area x
@@ -16,9 +16,9 @@ import trimesh
 from omegaconf import OmegaConf
 
 from conf.schema import ObjectConfig, SamplingConfig
-from tasks.gaussian_ply import C0, GaussianPlyError, read_gaussian_ply, write_gaussian_ply
-from tasks.geometry import make_shape
-from tasks.object_model import ObjectModelError, build_object_model, matrix_to_quaternion
+from tasks.control.gaussian_ply import C0, GaussianPlyError, read_gaussian_ply, write_gaussian_ply
+from tasks.control.geometry import make_shape
+from tasks.control.object_model import ObjectModelError, build_object_model, matrix_to_quaternion
 
 REPO = Path(__file__).resolve().parents[1]
 EIGHT = ["can", "plush_toy", "rubber_duck", "clay", "tomato", "orange", "rubber_ball", "paper_cup"]
@@ -430,7 +430,7 @@ def _folded_sphere() -> trimesh.Trimesh:
 
 
 def test_crossing_triangle_pairs_finds_real_self_intersections():
-    from tasks.geometry import crossing_triangle_pairs
+    from tasks.control.geometry import crossing_triangle_pairs
 
     overlapping, folded = _two_overlapping_boxes(), _folded_sphere()
     assert overlapping.is_watertight and folded.is_watertight

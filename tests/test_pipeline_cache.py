@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 
-from tasks.artifacts import read_group_attrs
+from tasks.core.artifacts import read_group_attrs
 
 STEPS = ["object_model", "squeeze_signals", "signal_smoothing", "force_coefficients", "contact_patches",
          "dirichlet_field", "mpm_rollout", "deformation_metrics"]

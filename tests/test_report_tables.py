@@ -5,7 +5,7 @@ import math
 
 import pandas as pd
 
-from tasks.report_tables import TABLE2, TRAJECTORY, markdown_table, paper_layout, write_metric_files
+from tasks.reporting.report_tables import TABLE2, TRAJECTORY, markdown_table, paper_layout, write_metric_files
 
 LABELS = {"full": "Full VirSqueezer", "no_dirichlet": "w/o Dirichlet"}
 

@@ -7,7 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from tasks.artifacts import read_group_attrs
+from tasks.core.artifacts import read_group_attrs
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL = ["sampling.surface_points=600", "sampling.particle_spacing=0.004", "signal.duration=1.5",

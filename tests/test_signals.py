@@ -13,10 +13,10 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from conf.schema import ForceConfig, SignalConfig, SmoothingConfig  # noqa: E402
-from tasks.artifacts import Array  # noqa: E402
-from tasks.force_coefficients import force_coefficients, loading_curve  # noqa: E402
-from tasks.signal_smoothing import ema, resample_antialiased, smooth_signals  # noqa: E402
-from tasks.squeeze_signals import (  # noqa: E402
+from tasks.core.artifacts import Array  # noqa: E402
+from tasks.control.force_coefficients import force_coefficients, loading_curve  # noqa: E402
+from tasks.control.signal_smoothing import ema, resample_antialiased, smooth_signals  # noqa: E402
+from tasks.control.squeeze_signals import (  # noqa: E402
     PERCENT_BENT_FULL_SCALE,
     REQUIRED_COLUMNS,
     SESSION_KINDS,

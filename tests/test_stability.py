@@ -1,4 +1,4 @@
-"""Numerical stability suite (tasks/stability.py, flows/stability.py): every guard exercised through the suite's case
+"""Numerical stability suite (tasks/verification/stability.py, flows/stability.py): every guard exercised through the suite's case
 runner with real Warp kernels, the thin-wall detection on the real objects, a stable soft case with known answers,
 and the CLI on the quick subset.
 
@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tasks.stability import (
+from tasks.verification.stability import (
     Case,
     SuiteContext,
     crafted_session,
@@ -29,7 +29,7 @@ from tasks.stability import (
     run_case,
     select_cases,
 )
-from tasks.wall_resolution import thin_wall_finding
+from tasks.physics.wall_resolution import thin_wall_finding
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -11,8 +11,8 @@ VirSqueezer (paper sec. "Squeezing Control Mapping" and "Physics Simulation") re
 * **MPM volume particles** of the object's own material (MLS-MPM, Hu et al. 2018; PhysGaussian, Xie et al.
   2024 fills the volume in the same way), plus, for filled containers, particles of the interior material.
 
-:func:`build_object_model` returns both for a procedural shape (:mod:`tasks.geometry`), a triangle mesh
-(``kind: mesh``, loaded with trimesh) or a 3DGS PLY (``kind: ply``, :mod:`tasks.gaussian_ply`).  All lengths
+:func:`build_object_model` returns both for a procedural shape (:mod:`tasks.control.geometry`), a triangle mesh
+(``kind: mesh``, loaded with trimesh) or a 3DGS PLY (``kind: ply``, :mod:`tasks.control.gaussian_ply`).  All lengths
 are metres, areas m^2, volumes m^3; positions are float32.
 
 A mesh must be one closed surface: an open (non-watertight) mesh or one that intersects itself (e.g. a body and
@@ -21,7 +21,7 @@ undefined where it matters: the enclosed volume (divergence theorem) counts an o
 voxel fill and the signed distance disagree there, and surface samples - the Gaussians the fingers touch and
 the contact patches - would lie on faces buried inside the body.  A silent repair (hole filling, boolean
 union) would change the user's geometry without saying so; the error names the file and the repair to do.
-Self-intersection is found by :func:`tasks.geometry.crossing_triangle_pairs` (exact triangle-triangle
+Self-intersection is found by :func:`tasks.control.geometry.crossing_triangle_pairs` (exact triangle-triangle
 crossings; coplanar overlaps and folds between neighbouring faces are not detected).
 
 Discretisation choices (documented here because downstream steps rely on them):
@@ -63,9 +63,10 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from tasks.artifacts import Array
-from tasks.gaussian_ply import read_gaussian_ply
-from tasks.geometry import (
+from tasks.core.artifacts import Array
+from tasks.core.step import artifact_step
+from tasks.control.gaussian_ply import read_gaussian_ply
+from tasks.control.geometry import (
     SHAPE_KINDS,
     Shape,
     crossing_triangle_pairs,
@@ -522,38 +523,48 @@ def _fit_transform(lo: np.ndarray, hi: np.ndarray, size: np.ndarray) -> tuple[np
     return -0.5 * (lo + hi), float(np.min(size / ext))
 
 
+def load_checked_mesh(path: str | None):
+    """The closed triangle mesh at ``path`` (a ``trimesh.Trimesh``), or :class:`ObjectModelError` naming the file
+    and the fix: missing file, unreadable, empty, not watertight, or intersecting itself (see the module doc)."""
+    import trimesh
+
+    if not path:
+        raise ObjectModelError("object.geometry.path is required for geometry.kind 'mesh': "
+                               "set it to an OBJ/PLY/STL/GLB file")
+    p = Path(str(path)).expanduser()
+    if not p.is_file():
+        raise ObjectModelError(f"mesh {p} does not exist: set object.geometry.path to an existing OBJ/PLY/STL/GLB file")
+    try:
+        mesh = trimesh.load(str(p), force="mesh", process=True)
+    except Exception as exc:  # trimesh raises many types
+        raise ObjectModelError(f"mesh {p} could not be loaded ({type(exc).__name__}: {exc}): "
+                               "export it as OBJ, PLY, STL or GLB") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise ObjectModelError(f"mesh {p} is empty (0 faces): export the object's surface as triangles "
+                               "(a point cloud or 3DGS splat needs geometry.kind 'ply')")
+    open_edges = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
+    if open_edges or not mesh.is_watertight:
+        raise ObjectModelError(f"mesh {p} is not watertight ({open_edges} open edges): repair it, e.g. "
+                               "trimesh.repair.fill_holes, or export a closed mesh")
+    crossing = crossing_triangle_pairs(mesh.vertices, mesh.faces, limit=100)
+    if len(crossing):
+        i, j = (int(x) for x in crossing[0])
+        more = "100 or more" if len(crossing) >= 100 else str(len(crossing))
+        raise ObjectModelError(f"mesh {p} intersects itself ({more} pairs of faces pass through each other, "
+                               f"e.g. faces {i} and {j}): inside and outside are ambiguous; merge the "
+                               "overlapping parts into one closed surface (a boolean union, e.g. Blender's "
+                               "Boolean modifier) and export again")
+    return mesh
+
+
 class _MeshSource(_SampledSource):
     kind = "mesh"
 
     def __init__(self, path: str | None, size: np.ndarray, spacing: float, n_dense: int, rng: np.random.Generator):
         import trimesh
 
-        if not path:
-            raise ObjectModelError("object.geometry.path is required for geometry.kind 'mesh': "
-                                   "set it to an OBJ/PLY/STL/GLB file")
+        mesh = load_checked_mesh(path)
         p = Path(str(path)).expanduser()
-        if not p.is_file():
-            raise ObjectModelError(f"mesh {p} does not exist: set object.geometry.path to an existing OBJ/PLY/STL/GLB file")
-        try:
-            mesh = trimesh.load(str(p), force="mesh", process=True)
-        except Exception as exc:  # trimesh raises many types
-            raise ObjectModelError(f"mesh {p} could not be loaded ({type(exc).__name__}: {exc}): "
-                                   "export it as OBJ, PLY, STL or GLB") from None
-        if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-            raise ObjectModelError(f"mesh {p} is empty (0 faces): export the object's surface as triangles "
-                                   "(a point cloud or 3DGS splat needs geometry.kind 'ply')")
-        open_edges = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
-        if open_edges or not mesh.is_watertight:
-            raise ObjectModelError(f"mesh {p} is not watertight ({open_edges} open edges): repair it, e.g. "
-                                   "trimesh.repair.fill_holes, or export a closed mesh")
-        crossing = crossing_triangle_pairs(mesh.vertices, mesh.faces, limit=100)
-        if len(crossing):
-            i, j = (int(x) for x in crossing[0])
-            more = "100 or more" if len(crossing) >= 100 else str(len(crossing))
-            raise ObjectModelError(f"mesh {p} intersects itself ({more} pairs of faces pass through each other, "
-                                   f"e.g. faces {i} and {j}): inside and outside are ambiguous; merge the "
-                                   "overlapping parts into one closed surface (a boolean union, e.g. Blender's "
-                                   "Boolean modifier) and export again")
         if mesh.volume < 0:
             mesh.invert()
         shift, scale = _fit_transform(mesh.bounds[0], mesh.bounds[1], size)
@@ -788,7 +799,7 @@ def build_object_model(obj: Any, sampling: Any) -> tuple[dict[str, Array], dict[
         obj: an ``ObjectConfig`` (dataclass or OmegaConf node; read by attribute).
         sampling: a ``SamplingConfig`` (``surface_points``, ``particle_spacing`` m, ``seed``).
     Returns:
-        ``(arrays, attrs)``: the arrays named in the module doc as :class:`tasks.artifacts.Array`, and JSON
+        ``(arrays, attrs)``: the arrays named in the module doc as :class:`tasks.core.artifacts.Array`, and JSON
         attrs ``bbox_min``/``bbox_max`` (m), ``surface_area_total`` (m^2), ``enclosed_volume`` (m^3),
         ``wall_thickness``/``particle_spacing`` (m), ``thin_wall``, ``n_particles``, ``n_interior``, plus
         ``wall_volume``/``interior_volume`` (m^3, sums of the particle volumes) and ``kind``.
@@ -936,14 +947,32 @@ def build_object_model(obj: Any, sampling: Any) -> tuple[dict[str, Array], dict[
 
 
 # ----------------------------------------------------------------------------------------------- Prefect step
-from tasks.step import artifact_step  # noqa: E402
 
 
-@artifact_step("object_model", modules=("tasks.geometry", "tasks.gaussian_ply"))
+def check_geometry_file(kind: str, path: str | None) -> None:
+    """Check a user geometry file before anything runs: a closed mesh (``kind: mesh``) or a readable 3DGS PLY
+    (``kind: ply``).  Raises :class:`ObjectModelError` or :class:`GaussianPlyError` (one line, file and fix)."""
+    if kind == "mesh":
+        load_checked_mesh(path)
+    elif kind == "ply":
+        if not path:
+            raise ObjectModelError("object.geometry.path is required for geometry.kind 'ply': set it to a 3DGS .ply")
+        read_gaussian_ply(path)
+
+
+OBJECT_OUTPUTS = ("surface_points", "surface_normals", "surface_area", "surface_curvature", "surface_principal_dirs",
+                  "gaussian_scales", "gaussian_rotations", "gaussian_colors", "gaussian_opacities",
+                  "particle_positions", "particle_volumes", "particle_normals", "interior_positions",
+                  "interior_volumes")
+
+
+@artifact_step("object_model",
+               reads=("object.name", "object.geometry", "object.appearance", "object.filled", "object.interior",
+                      "sampling"),
+               files=("object.geometry.path",),
+               outputs=OBJECT_OUTPUTS)
 def object_model_step(inputs, params):
-    """The object model of one object.  params: ``object`` (ObjectConfig values), ``sampling``
-    (SamplingConfig values) and, for ply/mesh inputs, ``file_sha256`` (only a cache key: the file is read
-    from ``object.geometry.path``).  No inputs."""
-    from omegaconf import OmegaConf
-
-    return build_object_model(OmegaConf.create(params["object"]), OmegaConf.create(params["sampling"]))
+    """The object model of one object: surface 3D Gaussians and MPM volume particles (no inputs; a ply/mesh file
+    is read from ``object.geometry.path``, whose content digest is in the key)."""
+    obj = {key: params[f"object.{key}"] for key in ("name", "geometry", "appearance", "filled", "interior")}
+    return build_object_model(obj, params["sampling"])

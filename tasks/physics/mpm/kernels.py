@@ -13,7 +13,7 @@ Grid layout: ``wp.array3d(dtype=wp.vec4)``, node (i, j, k) at ``lo + (i, j, k) d
 
 Index safety: every particle or point coordinate is checked against the safe band of the grid before any grid
 access; an offending coordinate (including NaN) is clamped into the band and an error flag is raised in
-``flags`` (read by the host, which raises :class:`~tasks.mpm.solver.SimulationError`).  No kernel ever writes
+``flags`` (read by the host, which raises :class:`~tasks.physics.mpm.solver.SimulationError`).  No kernel ever writes
 outside the grid, in release or debug mode.
 
 Flag layout (int32 array of length ``N_FLAGS``): for each code c in (OUT_OF_GRID, NONFINITE, EXTREME_J,

@@ -1,7 +1,7 @@
 """Can the MPM grid resolve an object's wall?  A pure check of wall thickness against the grid spacing.
 
 A hollow object whose wall is thinner than the particle spacing ``s`` is sampled as ONE particle layer on the
-wall's mid-surface, each particle carrying area x thickness of volume (:mod:`tasks.object_model`), so its mass and
+wall's mid-surface, each particle carrying area x thickness of volume (:mod:`tasks.control.object_model`), so its mass and
 membrane stiffness E t are physical.  What such a wall cannot carry is its bending: a single layer of particles
 sits on the neutral surface, where bending strain is zero, and the quadratic B-spline grid smears the wall over
 ~3 dx, so the dent/buckle shape a finger makes is whatever the grid can represent, not what the wall would do.

@@ -29,7 +29,7 @@ the core particles within ``release_radius`` of the rupture, which switch to the
 ``particle_material``: 0 shell, 1 interior, 2 ruptured shell, 3 core).  Without a core (a sealed can of cola)
 the interior fills the cavity from the start.  Objects without interior material, or whose control signals never
 reach the threshold (predicted from the prescribed field before simulating), allocate no interior at all: no
-interior material, no ``released`` array.  A fluid interior has no tension (``tasks.mpm.constitutive``), so the
+interior material, no ``released`` array.  A fluid interior has no tension (``tasks.physics.mpm.constitutive``), so the
 released liquid separates from what stays instead of pulling back on it.
 
 Resistive force feedback (sec. 3.2): ``f_k = clip(tau_y * A_k, 0, feedback_max_force)`` with tau_y the
@@ -45,97 +45,15 @@ from typing import Any, Mapping
 import numpy as np
 
 from conf.mpm_schema import mpm_config_from
-from tasks.artifacts import Array
-from tasks.material_oracle import materials_from_dict, mpm_material_kwargs
-from tasks.mpm.materials import Material, material_from_dict
-from tasks.mpm.solver import (DirichletPoints, ForcePatch, MPMSolver, deform_covariances, mass_scale_for,
+from conf.hand import N_FINGERS
+from tasks.core.artifacts import Array
+from tasks.physics.material_oracle import materials_from_dict, mpm_material_kwargs
+from tasks.physics.mpm.materials import Material, material_from_dict
+from tasks.physics.mpm.solver import (DirichletPoints, ForcePatch, MPMSolver, deform_covariances, mass_scale_for,
                               polar_rotation, rotate_quaternions)
-from tasks.step import artifact_step, report_progress
-
-N_FINGERS = 5
-SHELL, INTERIOR, RUPTURED, CORE = 0, 1, 2, 3  # particle labels (``particle_material``)
-N_LABELS = 4
-
-
-def support_half_extent(direction: np.ndarray, half: np.ndarray) -> np.ndarray:
-    """h(d) = sum_i |d_i| half_i: half-width (m) of the object's bounding box along unit direction(s) d."""
-    return np.abs(direction) @ half
-
-
-def _region_frames(finger: np.ndarray) -> np.ndarray:
-    """(frame, finger) index of the frame whose constrained set is finger k's region at frame f (-1: none yet).
-
-    The region is the largest set of points finger k has constrained so far: a press grows it; a release,
-    which shrinks the contact to the deepest points, does not replace it."""
-    T = finger.shape[0]
-    chosen = np.full((T, N_FINGERS), -1, np.int64)
-    for k in range(N_FINGERS):
-        last, size = -1, 0
-        for f in range(T):
-            n = int((finger[f] == k).sum())
-            if n and n >= size:
-                last, size = f, n
-            chosen[f, k] = last
-    return chosen
-
-
-def finger_regions(finger: np.ndarray, patch_normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The surface region and squeeze direction of each finger per frame, remembered after release.
-
-    Returns ``region`` (frame, finger, point) bool — the largest set of points finger k has constrained so far
-    (a press grows it; a release, which shrinks the contact to the deepest points, does not replace it) — and
-    ``direction`` (frame, finger, xyz) the inward unit normal of
-    that patch.  Both the prescribed and the observed squeeze strain are measured on these regions.
-    """
-    T, S = finger.shape
-    chosen = _region_frames(finger)
-    region = np.zeros((T, N_FINGERS, S), bool)
-    direction = np.zeros((T, N_FINGERS, 3))
-    for f in range(T):
-        for k in range(N_FINGERS):
-            c = chosen[f, k]
-            if c >= 0:
-                region[f, k], direction[f, k] = finger[c] == k, -patch_normals[c, k]
-    return region, direction
-
-
-def region_weights(finger: np.ndarray, weight: np.ndarray) -> np.ndarray:
-    """(frame, finger, point) the contact weight phi (eq. 3, ``dirichlet_field``'s ``weight``) of each point of
-    finger k's region (:func:`finger_regions`) in the frame that region was chosen; 0 outside the region."""
-    T, S = finger.shape
-    chosen = _region_frames(finger)
-    out = np.zeros((T, N_FINGERS, S))
-    for f in range(T):
-        for k in range(N_FINGERS):
-            c = chosen[f, k]
-            if c >= 0:
-                out[f, k] = np.where(finger[c] == k, weight[c], 0.0)
-    return out
-
-
-CONTACT_CORE_PHI = math.exp(-0.5)  # patch weight at one sigma: the finger's contact core
-
-
-def squeeze_strain(displacement: np.ndarray, region: np.ndarray, direction: np.ndarray, half: np.ndarray,
-                   weight: np.ndarray | None = None) -> np.ndarray:
-    """eps_k = mean inward displacement under finger k / h(d_k) (finger,), 1.
-
-    ``displacement`` (point, xyz) m of the surface points, ``region`` (finger, point), ``direction``
-    (finger, xyz).  Without ``weight`` the mean is over finger k's whole region.  With ``weight`` (finger,
-    point; the patch weight phi of :func:`region_weights`) it is over the region's contact core, the points with
-    phi >= exp(-1/2) (the patch's one-sigma ellipse, under the fingertip): the indentation depth at the contact,
-    which the mean over the whole 2.5-sigma support (whose rim barely moves) underestimates by ~3x.  A finger
-    that has not touched yet has strain 0.
-    """
-    out = np.zeros(N_FINGERS)
-    for k in range(N_FINGERS):
-        sel = region[k]
-        if weight is not None and (sel & (weight[k] >= CONTACT_CORE_PHI)).any():
-            sel = sel & (weight[k] >= CONTACT_CORE_PHI)
-        if sel.any():
-            out[k] = (displacement[sel] @ direction[k]).mean() / max(support_half_extent(direction[k], half), 1e-9)
-    return out
-
+from tasks.core.step import artifact_step, report_progress
+from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
+from tasks.physics.regions import finger_regions, region_weights, squeeze_strain
 
 def cauchy_free_measures(F: np.ndarray, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """J = det F and the von Mises stress 3 mu eps_eq of the Hencky strain (Pa) per particle.
@@ -460,14 +378,23 @@ def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold:
             "release_speeds": speeds, "release_sound_speed": float(c_released), "labels": ids}
 
 
-@artifact_step("mpm_rollout", modules=("tasks.mpm.solver", "tasks.mpm.kernels", "tasks.mpm.constitutive",
-                                        "tasks.mpm.materials", "conf.mpm_schema", "tasks.material_oracle"))
-def mpm_rollout_step(inputs, params):
-    """The squeeze simulated with MLS-MPM.  params: ``mpm`` (MPMConfig), ``simulation``, ``boundary``.
+ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_J", "particle_von_mises",
+                   "gaussian_positions", "gaussian_covariances", "gaussian_rotations", "reaction_force",
+                   "applied_force", "feedback_force", "squeeze_strain", "dirichlet_tracking_error",
+                   "predicted_squeeze_strain", "substeps", "dt_min", "courant", "max_speed", "j_min", "j_max",
+                   "kinetic_energy", "internal_energy", "ke_ie_ratio", "plastic_strain?", "released?")
 
-    inputs: ``object``, ``frames``, ``forces``, ``contacts``, ``field`` (eq. 3), ``materials`` (oracle).
-    """
-    obj = inputs["object"]
-    return mpm_rollout(obj.arrays, obj.attrs, inputs["field"].arrays, inputs["forces"]["force_coefficients"],
-                       inputs["contacts"].arrays, inputs["frames"]["time"], inputs["materials"].attrs["materials"],
-                       params["mpm"], params["simulation"], params["boundary"])
+
+@artifact_step("mpm_rollout",
+               inputs=("object_model", "signal_smoothing", "force_coefficients", "contact_patches", "dirichlet_field",
+                       "material_oracle"),
+               reads=("mpm", "simulation", "variant.boundary"),
+               outputs=ROLLOUT_OUTPUTS)
+def mpm_rollout_step(inputs, params):
+    """The squeeze simulated with MLS-MPM (eqs. 4-5) under the eq. 3 field (``variant.boundary=dirichlet``) or the
+    per-finger force (``force``, the no_dirichlet ablation), with the oracle's materials."""
+    obj = inputs["object_model"]
+    return mpm_rollout(obj.arrays, obj.attrs, inputs["dirichlet_field"].arrays,
+                       inputs["force_coefficients"]["force_coefficients"], inputs["contact_patches"].arrays,
+                       inputs["signal_smoothing"]["time"], inputs["material_oracle"].attrs["materials"],
+                       params["mpm"], params["simulation"], params["variant.boundary"])

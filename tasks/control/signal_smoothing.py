@@ -3,8 +3,8 @@
 The paper synchronises flexion, fingertip positions and palm pose "along a unified timeline", applies "an
 exponential moving average ... to suppress noise induced by hand jitter" and uses the "de-biased flexion"
 u~ in eq. 1.  :func:`smooth_signals` does these three steps on raw sensor-rate arrays (as produced by
-:func:`tasks.squeeze_signals.read_recording` / ``synthesize_session``) and returns frame-rate
-:class:`tasks.artifacts.Array` objects.  Pure numpy/scipy; all units SI.
+:func:`tasks.control.squeeze_signals.read_recording` / ``synthesize_session``) and returns frame-rate
+:class:`tasks.core.artifacts.Array` objects.  Pure numpy/scipy; all units SI.
 
 1. Timeline.  Frames ``t_f = t0 + f / frame_rate`` (s) for every f with ``t_f <= t_end``; t0 and t_end are the
    first and last sample times.
@@ -41,9 +41,10 @@ from typing import Any, Mapping
 import numpy as np
 from scipy.signal import lfilter
 
-from conf.schema import FINGERS
-from tasks.artifacts import Array
-from tasks.squeeze_signals import SignalError, validate_signals
+from conf.hand import FINGERS
+from tasks.core.artifacts import Array
+from tasks.core.step import artifact_step
+from tasks.control.squeeze_signals import SignalError, validate_signals
 
 __all__ = ["smooth_signals", "frame_times", "resample_antialiased", "ema", "DIRECTION_REFERENCES"]
 
@@ -176,7 +177,7 @@ def smooth_signals(
     ----------
     raw:
         Raw sensor-rate arrays (``time`` s, ``flexion`` 1, ``fingertip_positions`` m, ``palm_position`` m,
-        ``palm_orientation`` wxyz), as from :func:`tasks.squeeze_signals.read_recording`.
+        ``palm_orientation`` wxyz), as from :func:`tasks.control.squeeze_signals.read_recording`.
     frame_rate:
         Output frame rate (Hz), ``control.smoothing.frame_rate``.
     ema_alpha:
@@ -252,13 +253,16 @@ def smooth_signals(
 
 
 # ----------------------------------------------------------------------------------------------- Prefect step
-from tasks.step import artifact_step  # noqa: E402
 
 
-@artifact_step("signal_smoothing")
+SMOOTHED_OUTPUTS = ("time", "flexion", "flexion_raw", "rest_flexion", "fingertip_positions", "palm_position",
+                    "palm_orientation", "squeeze_directions", "grasp_centre")
+
+
+@artifact_step("signal_smoothing", inputs=("squeeze_signals",), reads=("control.smoothing",),
+               outputs=SMOOTHED_OUTPUTS)
 def signal_smoothing_step(inputs, params):
-    """Frame-rate control signals (sec. 3.1).  params: ``smoothing`` (SmoothingConfig values)."""
-    raw = inputs["signals"].arrays
-    s = params["smoothing"]
-    frames = smooth_signals(raw, s["frame_rate"], s["ema_alpha"], s["rest_window"])
+    """Frame-rate control signals (sec. 3.1): resampled, EMA-smoothed, de-biased."""
+    s = params["control.smoothing"]
+    frames = smooth_signals(inputs["squeeze_signals"].arrays, s["frame_rate"], s["ema_alpha"], s["rest_window"])
     return frames, {"frame_rate": s["frame_rate"], "frames": int(len(frames["time"].data))}

@@ -5,19 +5,19 @@ substeps, substeps per simulated second, run time, and an accuracy figure where 
 
 Outcomes
     ``stable``    the run finished, the guards stayed quiet and the suite's own checks (below) found nothing;
-    ``unstable``  a :class:`~tasks.mpm.solver.SimulationError` raised by the solver's guards after the run started
+    ``unstable``  a :class:`~tasks.physics.mpm.solver.SimulationError` raised by the solver's guards after the run started
                   (non-finite state, particle out of the grid, extreme J, collapsing step), its message recorded;
                   or the suite's own checks found a failure the guards did NOT catch (reason starts ``UNCAUGHT``);
     ``refused``   a validation error raised before the step it concerns ran: config / material / boundary-input
                   validation, or the forced Courant check (reason = the error's message);
-    ``flagged`` / ``resolved``  thin-wall cases (a resolution finding, no simulation; :mod:`tasks.wall_resolution`);
+    ``flagged`` / ``resolved``  thin-wall cases (a resolution finding, no simulation; :mod:`tasks.physics.wall_resolution`);
     ``error``     any other exception type: a guard is missing (the message is recorded, the suite goes on).
 
 Case kinds and their production path
     * ``compression`` (stiffness sweep, near-incompressible, acceleration knobs, Courant, boundary): a column
       W x W x L (W = 4 dx, L = 8 dx) of particles at the production spacing (``sampling.particle_spacing``, dx
-      exactly as :func:`tasks.mpm_rollout.mpm_rollout` chooses it) with the material the production oracle gives
-      the named object, run by :class:`~tasks.mpm.MPMSolver` with the production ``mpm`` config.  Changed for a
+      exactly as :func:`tasks.physics.mpm_rollout.mpm_rollout` chooses it) with the material the production oracle gives
+      the named object, run by :class:`~tasks.physics.mpm.MPMSolver` with the production ``mpm`` config.  Changed for a
       closed form and a conservative system, and only these: gravity 0 and no floor; two frictionless plates
       (slip Dirichlet points) compress the column to the strain ``eps`` (below the yield strain), hold, then let
       go.  Phases: load (20% velocity ramp), hold, free (no boundary: the column rings in free space).
@@ -25,14 +25,14 @@ Case kinds and their production path
       "short simulated window" of the stiff cases), hold 4 L / c, free 3 periods of the axial mode (2 L / c each);
       ``human``: load over 0.2 s at the 30 Hz frame rate (the squeeze time scale the acceleration knobs are for),
       hold 0.1 s, free >= 3 periods (with the scaled wave speed).
-    * ``squeeze``: the real pipeline functions (:func:`tasks.squeeze_signals.grasp_targets` -> crafted session ->
-      :func:`~tasks.signal_smoothing.smooth_signals` -> :func:`~tasks.force_coefficients.force_coefficients` ->
-      :func:`~tasks.contact_patches.contact_patches` -> :func:`~tasks.dirichlet_field.dirichlet_field` ->
-      :func:`~tasks.mpm_rollout.mpm_rollout`) on a real object (:func:`~tasks.object_model.build_object_model`)
+    * ``squeeze``: the real pipeline functions (:func:`tasks.control.squeeze_signals.grasp_targets` -> crafted session ->
+      :func:`~tasks.control.signal_smoothing.smooth_signals` -> :func:`~tasks.control.force_coefficients.force_coefficients` ->
+      :func:`~tasks.control.contact_patches.contact_patches` -> :func:`~tasks.control.dirichlet_field.dirichlet_field` ->
+      :func:`~tasks.physics.mpm_rollout.mpm_rollout`) on a real object (:func:`~tasks.control.object_model.build_object_model`)
       with the production config groups, called directly (no Prefect).
     * ``push_out`` / ``nan_state`` / ``nan_input``: the compression column driven into the domain boundary, or
       corrupted by a NaN in its state / in its boundary input, to exercise the guards.
-    * ``thin_wall``: :func:`tasks.wall_resolution.thin_wall_finding` on the real object model.
+    * ``thin_wall``: :func:`tasks.physics.wall_resolution.thin_wall_finding` on the real object model.
 
 Measures (SI)
     max_speed       m/s, largest end-of-frame particle speed;
@@ -69,7 +69,7 @@ from typing import Any
 
 import numpy as np
 
-from tasks.wall_resolution import grid_spacing, thin_wall_finding
+from tasks.physics.wall_resolution import grid_spacing, thin_wall_finding
 
 ENERGY_GROWTH_LIMIT = 0.05  # 1, free-phase energy growth above this is reported as UNCAUGHT
 DETACHED_LIMIT = 0.01  # 1, fraction of surface Gaussians farther than 1 dx from every particle
@@ -252,11 +252,11 @@ def select_cases(names: Sequence[str] = (), quick: bool = False, cases: list[Cas
 
 # ============================================================================================ shared helpers
 def _material(spec: Any, ctx: SuiteContext, poisson_ratio: float | None = None):
-    """A :class:`~tasks.mpm.materials.Material` from a kwargs dict or ``oracle:<object>`` (production oracle)."""
-    from tasks.mpm.materials import material_from_dict
+    """A :class:`~tasks.physics.mpm.materials.Material` from a kwargs dict or ``oracle:<object>`` (production oracle)."""
+    from tasks.physics.mpm.materials import material_from_dict
 
     if isinstance(spec, str) and spec.startswith("oracle:"):
-        from tasks.material_oracle import material_oracle, mpm_material_kwargs
+        from tasks.physics.material_oracle import material_oracle, mpm_material_kwargs
 
         name = spec.split(":", 1)[1]
         obj = ctx.catalog[name]
@@ -288,8 +288,8 @@ def _one_line(exc: BaseException) -> str:
 def _classify(exc: BaseException, started: bool) -> tuple[str, str]:
     """(outcome, reason) of an exception raised by a case."""
     from conf.mpm_schema import MPMConfigError
-    from tasks.mpm.materials import MaterialError
-    from tasks.mpm.solver import SimulationError
+    from tasks.physics.mpm.materials import MaterialError
+    from tasks.physics.mpm.solver import SimulationError
 
     msg = _one_line(exc)
     if isinstance(exc, SimulationError):
@@ -367,7 +367,7 @@ def _compression_config(case: Case, ctx: SuiteContext, mat) -> tuple[dict, float
     elif knob == "stiffness":
         # the stiffness factor that gives the same P-wave speed (same substeps) as the auto mass scale: k = 1 / s
         from conf.mpm_schema import mpm_config_from
-        from tasks.mpm.solver import mass_scale_for
+        from tasks.physics.mpm.solver import mass_scale_for
 
         auto = mpm_config_from({**mpm, "mass_scaling": "auto", "target_substeps_per_frame": _target_substeps(ctx)})
         mpm["stiffness_scaling"] = 1.0 / mass_scale_for([mat], col_dx, 1.0 / FRAME_RATE_HUMAN, auto)
@@ -386,7 +386,7 @@ def _strain_target(mat, p: Mapping[str, Any]) -> float:
 
 def run_compression(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
     """Load / hold / free run of the plate-compressed column (module doc); raises on guard errors."""
-    from tasks.mpm.solver import DirichletPoints, MPMSolver
+    from tasks.physics.mpm.solver import DirichletPoints, MPMSolver
 
     p = case.params
     progress = progress or _Progress()
@@ -474,7 +474,7 @@ def run_compression(case: Case, ctx: SuiteContext, progress: _Progress | None = 
 def _column_solver(case: Case, ctx: SuiteContext, progress: _Progress, **mpm_overrides: Any):
     """The case's material on the suite's column, in an MPMSolver configured as production (``ctx.mpm``) plus
     ``mpm_overrides``, dx chosen as the rollout chooses it; the solver is registered with ``progress``."""
-    from tasks.mpm.solver import MPMSolver
+    from tasks.physics.mpm.solver import MPMSolver
 
     mat = _material(case.params["material"], ctx)
     mpm = {**ctx.mpm, **mpm_overrides}
@@ -489,7 +489,7 @@ def run_push_out(case: Case, ctx: SuiteContext, progress: _Progress | None = Non
     """A finger (sticky Dirichlet points on the +x face) pushes the column at 0.5 m/s toward -x inside a tight
     automatic box (``margin_cells`` 1): Dirichlet nodes override the slip walls, so material is driven into the
     padding layer until the out-of-grid guard stops the run."""
-    from tasks.mpm.solver import DirichletPoints
+    from tasks.physics.mpm.solver import DirichletPoints
 
     progress = progress or _Progress()
     col, solver = _column_solver(case, ctx, progress, gravity=[0.0, 0.0, 0.0], floor=False, margin_cells=1)
@@ -524,7 +524,7 @@ def run_nan_state(case: Case, ctx: SuiteContext, progress: _Progress | None = No
 
 def run_nan_input(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
     """A finger (Dirichlet points on the top face) whose target velocity of one point is NaN, from the 2nd frame."""
-    from tasks.mpm.solver import DirichletPoints
+    from tasks.physics.mpm.solver import DirichletPoints
 
     progress = progress or _Progress()
     col, solver = _column_solver(case, ctx, progress)  # production as is
@@ -547,7 +547,7 @@ def crafted_session(kind: str, surface_points: np.ndarray, surface_normals: np.n
                     travel: float | None = None, standoff: float = 0.005, travel_fraction: float = 0.25,
                     palm_standoff: float = 0.015) -> dict[str, np.ndarray]:
     """Raw sensor-rate signals of an extreme squeeze (same layout and geometry as
-    :func:`tasks.squeeze_signals.synthesize_session`, no noise, no tremor, static palm).
+    :func:`tasks.control.squeeze_signals.synthesize_session`, no noise, no tremor, static palm).
 
     Profile p(t) in [0, 1] of the active ``fingers`` (the others stay at ``rest``), flexion = rest + (peak - rest) p,
     fingertip k at ``standoff - travel p`` along its target's outward normal:
@@ -556,7 +556,7 @@ def crafted_session(kind: str, surface_points: np.ndarray, surface_normals: np.n
       * ``oscillation``: p = (1 - cos(2 pi f (t - onset))) / 2 after ``onset``; ``frequency="nyquist"`` is half the
         sensor rate, i.e. full flexion on every other sample.
     """
-    from tasks.squeeze_signals import grasp_targets, synthesize_session
+    from tasks.control.squeeze_signals import grasp_targets, synthesize_session
 
     n = math.floor(duration * sensor_rate + 1e-9) + 1
     t = np.arange(n) / sensor_rate
@@ -594,13 +594,13 @@ def _plain_arrays(d: Mapping[str, Any]) -> dict[str, np.ndarray]:
 
 def run_squeeze(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
     """The whole pipeline on a real object with a crafted session (module doc); rollout errors propagate."""
-    from tasks.contact_patches import contact_patches
-    from tasks.dirichlet_field import dirichlet_field
-    from tasks.force_coefficients import force_coefficients
-    from tasks.material_oracle import material_oracle, materials_to_dict
-    from tasks.mpm_rollout import mpm_rollout
-    from tasks.object_model import build_object_model
-    from tasks.signal_smoothing import smooth_signals
+    from tasks.control.contact_patches import contact_patches
+    from tasks.control.dirichlet_field import dirichlet_field
+    from tasks.control.force_coefficients import force_coefficients
+    from tasks.physics.material_oracle import material_oracle, materials_to_dict
+    from tasks.physics.mpm_rollout import mpm_rollout
+    from tasks.control.object_model import build_object_model
+    from tasks.control.signal_smoothing import smooth_signals
 
     p = case.params
     obj = dict(ctx.catalog[p["object"]])
@@ -743,7 +743,7 @@ class _Attr(dict):
 
 
 def _finger_direction(o: Mapping[str, np.ndarray]) -> np.ndarray:
-    from tasks.squeeze_signals import grasp_targets
+    from tasks.control.squeeze_signals import grasp_targets
 
     return -grasp_targets(o["surface_points"], o["surface_normals"])["normals"]
 
@@ -763,8 +763,8 @@ def _detached_fraction(gauss: np.ndarray, parts: np.ndarray, dx: float, every: i
 
 # ============================================================================================ thin walls
 def run_thin_wall(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
-    """:func:`tasks.wall_resolution.thin_wall_finding` on the real object model with the production dx."""
-    from tasks.object_model import build_object_model
+    """:func:`tasks.physics.wall_resolution.thin_wall_finding` on the real object model with the production dx."""
+    from tasks.control.object_model import build_object_model
 
     name = case.params["object"]
     obj = ctx.catalog[name]
@@ -878,7 +878,7 @@ def write_report(rows: Sequence[Row], out_dir: str | Path, config: Mapping[str, 
     md += [f"- **{r.case}**: {r.reason}" for r in uncaught] or ["- none"]
     walls = [r for r in rows if r.category == "thin_wall"]
     if walls:
-        md += ["", "## Thin walls (tasks.wall_resolution.thin_wall_finding)", ""]
+        md += ["", "## Thin walls (tasks.physics.wall_resolution.thin_wall_finding)", ""]
         md += [f"- **{r.case}** ({r.outcome}): {r.reason}; {r.notes}" for r in walls]
     md += ["", "## Notes per case", ""] + [f"- **{r.case}**: {r.notes}" for r in rows if r.notes]
     md += ["", "## Definitions", "",

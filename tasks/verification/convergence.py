@@ -33,6 +33,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from conf.convergence_schema import ERROR_COLUMNS
+
 NOT_SWEPT = (
     ("Generation (the number of denoising steps of the secondary-effect video models) is not swept: the pipeline "
     "has no generation step yet."),
@@ -42,7 +44,6 @@ NOT_SWEPT = (
     "`sampling.particle_spacing` x cbrt(`mpm.particles_per_cell`); an explicit `mpm.dx` is the same knob as "
     "`particles_per_cell` at a fixed spacing (the `grid` family)."),
 )
-ERROR_COLUMNS = ("position_error", "final_position_error", "reaction_force_error", "peak_strain_error")
 ROLLOUT_ARRAYS = ("time", "gaussian_positions", "particle_positions", "reaction_force", "applied_force",
                   "squeeze_strain", "substeps")
 
@@ -219,7 +220,7 @@ def matching_presets(setting: Any, presets: Mapping[str, Any]) -> list[str]:
 
 
 # ----------------------------------------------------------------------------------------------- measuring
-METRIC_NAMES = ("bdc_t", "bdc_s", "sdc", "miou")  # deformation metrics (tasks.deformation_metrics) compared
+METRIC_NAMES = ("bdc_t", "bdc_s", "sdc", "miou")  # deformation metrics (tasks.evaluation.deformation_metrics) compared
 
 
 @dataclass
@@ -241,7 +242,7 @@ def load_record(refs: Mapping[str, Any]) -> RolloutRecord:
     """Load one setting's rollout, object surface and recorded compute seconds from its artifact references
     (``object_model``, ``mpm_rollout``, optionally ``deformation_metrics``; every step's ref counts in the
     pipeline seconds).  The seconds are those recorded when each step ran (also for cache hits)."""
-    from tasks.artifacts import read_artifact, read_group_attrs
+    from tasks.core.artifacts import read_artifact, read_group_attrs
 
     roll = read_artifact(refs["mpm_rollout"], names=ROLLOUT_ARRAYS)
     obj = read_artifact(refs["object_model"], names=("surface_points",))
@@ -473,7 +474,7 @@ def write_convergence_report(report_dir: str | Path, df: pd.DataFrame, *, orders
             "substeps_total", "rollout_s", "pipeline_s", *ERROR_COLUMNS, "pareto"]
     md = [f"# Error against run time: {meta.get('object')} ({meta.get('session')} session)", ""]
     md += [(f"Reference: setting **{meta.get('reference')}** (the finest affordable setting); every error is measured "
-           f"against it (definitions: `tasks/convergence.py`). Size normalising the positions: bounding-box "
+           f"against it (definitions: `tasks/verification/convergence.py`). Size normalising the positions: bounding-box "
            f"diagonal {_fmt(meta.get('size_m'))} m. Wall times are the steps' recorded compute seconds on this "
            f"machine ({meta.get('machine', '')}), cold: `rollout_s` the MPM rollout, `pipeline_s` every step of "
            "the object. Other processes shared the cores, so times carry that noise; `substeps_total` and "
@@ -482,7 +483,7 @@ def write_convergence_report(report_dir: str | Path, df: pd.DataFrame, *, orders
     noise = timing_spread(df)
     if noise:
         md += [noise, ""]
-    md += [("Deformation metrics (tasks/deformation_metrics.py): absolute difference to the reference's score; "
+    md += [("Deformation metrics (tasks/evaluation/deformation_metrics.py): absolute difference to the reference's score; "
            "`ke_ie_max` the largest kinetic/internal energy ratio while the fingers touch (mass-scaling check); "
            "`tracer_drift_m` how far the surface Gaussians left the material by the last frame (m, see "
            "`tracer_drift`)."), "",

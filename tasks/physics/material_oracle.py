@@ -55,6 +55,8 @@ import httpx
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_core import PydanticCustomError
 
+from tasks.core.step import artifact_step
+
 log = logging.getLogger(__name__)
 
 MODELS: tuple[str, ...] = ("fixed_corotated", "neo_hookean", "stvk_hencky_von_mises", "foam", "fluid")
@@ -927,7 +929,7 @@ def materials_to_dict(materials: ObjectMaterials) -> dict[str, Any]:
 
 
 def mpm_material_kwargs(material: MaterialProperties, name: str = "") -> dict[str, Any]:
-    """Keyword arguments for the MPM solver's ``tasks.mpm.materials.Material`` (``material_from_dict``).
+    """Keyword arguments for the MPM solver's ``tasks.physics.mpm.materials.Material`` (``material_from_dict``).
 
     ``None`` becomes 0 (no yield / hardening / viscosity); a fluid passes its bulk modulus explicitly.
     """
@@ -1129,14 +1131,13 @@ def _snippet(text: str, limit: int = 160) -> str:
 
 
 # ----------------------------------------------------------------------------------------------- Prefect step
-from tasks.step import artifact_step  # noqa: E402
 
 
-@artifact_step("material_oracle")
+@artifact_step("material_oracle",
+               reads=("object.description", "object.name", "object.material", "object.interior", "oracle"))
 def material_oracle_step(inputs, params):
-    """Physical properties of one object from its description (sec. 3.2).  params: ``description``,
-    ``name``, ``overrides`` (MaterialOverrides values), ``interior``, ``oracle`` (OracleConfig values).
-    The result is small: it lives in the artifact's attributes (``materials``)."""
-    mats = material_oracle(params["description"], params["name"], params["overrides"], params["interior"],
-                           params["oracle"])
+    """Physical properties of one object from its description (sec. 3.2); values under ``object.material`` win.
+    The result is small: it lives in the artifact's attributes (``materials``), no arrays."""
+    mats = material_oracle(params["object.description"], params["object.name"], params["object.material"],
+                           params["object.interior"], params["oracle"])
     return {}, {"materials": materials_to_dict(mats)}

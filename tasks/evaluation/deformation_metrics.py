@@ -21,9 +21,10 @@ from typing import Any
 import numpy as np
 
 from conf.metrics_schema import MetricsConfig, validate_metrics
-from tasks.artifacts import Array
-from tasks.mpm_rollout import N_FINGERS, finger_regions
-from tasks.step import artifact_step
+from tasks.core.artifacts import Array
+from conf.hand import N_FINGERS
+from tasks.physics.regions import finger_regions
+from tasks.core.step import artifact_step
 
 __all__ = ["DEFINITIONS", "bdc_s", "bdc_t", "concordance", "deformation_metrics", "deformation_metrics_step",
            "finger_trajectories", "miou", "nonrigid_displacement", "pearson", "physical_figures", "sdc",
@@ -483,13 +484,15 @@ def deformation_metrics(rollout: Mapping[str, np.ndarray], rollout_attrs: Mappin
 
 # ----------------------------------------------------------------------------------------------- Prefect step
 
-@artifact_step("deformation_metrics", modules=("tasks.mpm_rollout", "conf.metrics_schema"))
+@artifact_step("deformation_metrics",
+               inputs=("mpm_rollout", "dirichlet_field", "force_coefficients", "contact_patches", "signal_smoothing",
+                       "object_model"),
+               reads=("metrics",),
+               outputs=("bdc_s_iou", "miou_iou", "nonrigid_displacement_rms", "volume_ratio", "sensed_trajectory",
+                        "reconstructed_trajectory"))
 def deformation_metrics_step(inputs, params):
-    """BDC-T, BDC-S, SDC, mIoU, trajectory and physical metrics of one rollout.  params: ``metrics``.
-
-    inputs: ``rollout``, ``field``, ``forces``, ``contacts``, ``frames``, ``object``.
-    """
-    r = inputs["rollout"]
-    return deformation_metrics(r.arrays, r.attrs, inputs["field"].arrays, inputs["forces"].arrays,
-                               inputs["contacts"].arrays, inputs["frames"].arrays, inputs["object"].arrays,
-                               params["metrics"])
+    """BDC-T, BDC-S, SDC, mIoU, trajectory and physical metrics of one rollout (Table 2; Supplementary Part 6)."""
+    r = inputs["mpm_rollout"]
+    return deformation_metrics(r.arrays, r.attrs, inputs["dirichlet_field"].arrays,
+                               inputs["force_coefficients"].arrays, inputs["contact_patches"].arrays,
+                               inputs["signal_smoothing"].arrays, inputs["object_model"].arrays, params["metrics"])

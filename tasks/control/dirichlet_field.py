@@ -31,7 +31,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from tasks.artifacts import Array, as_numpy, config_value
+from tasks.core.artifacts import Array, as_numpy, config_value
+from tasks.core.step import artifact_step
 
 
 
@@ -162,20 +163,19 @@ def constrained_points(field: Mapping[str, Any], frame: int, surface_points=None
     return idx, targets
 
 
-# ----------------------------------------------------------------------------------------------- Prefect step
-from tasks.step import artifact_step  # noqa: E402
-
-
-@artifact_step("dirichlet_field")
+@artifact_step("dirichlet_field", inputs=("object_model", "contact_patches", "force_coefficients"),
+               reads=("control.displacement", "object.eta"),
+               outputs=("displacement", "weight", "constrained", "finger", "surface_points"))
 def dirichlet_field_step(inputs, params):
-    """Eq. 3: target displacement of the surface points, the Dirichlet data of the MPM.
-
-    params: ``displacement`` (DisplacementConfig values).  inputs: ``object``, ``contacts``, ``forces``.
-    """
-    obj, patches = inputs["object"], inputs["contacts"]
+    """Eq. 3: target displacement of the surface points, the Dirichlet data of the MPM.  The object's own ``eta``
+    (m per unit force coefficient) wins over ``control.displacement.eta`` when set."""
+    obj, patches = inputs["object_model"], inputs["contact_patches"]
+    displacement = dict(params["control.displacement"])
+    if params["object.eta"] is not None:
+        displacement["eta"] = params["object.eta"]
     out = dirichlet_field(obj["surface_points"], patches["patch_centers"], patches["patch_normals"],
                           patches["patch_axes"], patches["patch_radii"], patches["patch_active"],
-                          inputs["forces"]["force_coefficients"], params["displacement"],
+                          inputs["force_coefficients"]["force_coefficients"], displacement,
                           surface_normals=obj["surface_normals"])
     peak = np.linalg.norm(out["displacement"].data, axis=-1).max(initial=0.0)
     return out, {"peak_displacement_m": float(peak)}

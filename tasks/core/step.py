@@ -1,24 +1,35 @@
 """Method steps as cached Prefect tasks over zarr artifacts.
 
 A step is a pure function ``compute(inputs, params) -> (arrays, attrs)`` of loaded input artifacts and the
-exact config values it reads.  :func:`artifact_step` turns it into a Prefect task that
+exact config values it reads.  It is declared once, next to the function, with :func:`artifact_step`::
 
-* computes a content-addressed key = sha256(step name, code version of its modules, scope,
-  params, digests of the input artifacts) — nothing else (no run id, job number or output dir);
+    @artifact_step("dirichlet_field",
+                   inputs=("object_model", "contact_patches", "force_coefficients"),   # producing steps
+                   reads=("control.displacement", "object.eta"),                          # config paths = cache key
+                   outputs=("displacement", "weight", "constrained", "finger", "surface_points"))
+    def dirichlet_field_step(inputs, params): ...
+
+* ``inputs`` are named by the step that produces them (one name per dataset, at both ends); the flow wires a
+  step's inputs from these names (:mod:`flows.pipeline`) and refuses a wiring that disagrees.
+* ``reads`` are config paths (:mod:`tasks.core.params`); the step sees only those values (:class:`Params`), so
+  everything it reads is in its key.  ``files`` are config paths of input files whose content digest joins it.
+* ``outputs`` are the array names the step writes (a trailing ``?`` marks an array written only for some
+  scenes); a step returning anything else fails with the difference named.
+* The code version in the key is the import closure of the step's module (:mod:`tasks.core.code_version`).
+
+The Prefect task made from the declaration
+
+* computes a content-addressed key = sha256(step name, code version, scope, params, digests of the input
+  artifacts) - nothing else (no run id, job number or output dir);
 * stores its result as a zarr group at ``<root>/<scope>/<step>/<key[:20]>.zarr`` (atomic, see
-  :mod:`tasks.artifacts`) and returns an :class:`ArtifactRef`;
+  :mod:`tasks.core.artifacts`) and returns an :class:`ArtifactRef`;
 * is cached by Prefect under that key (JSON result records, no pickle).  The cache policy checks the
   artifact on disk: if it was deleted or is incomplete, the stale cache record is removed and the step runs
   again instead of returning a dangling reference.
 """
 from __future__ import annotations
 
-import hashlib
-import importlib
-import inspect
 import json
-
-from prefect.logging import get_logger
 import time
 from contextvars import ContextVar
 from dataclasses import dataclass, field
@@ -28,22 +39,53 @@ from typing import Any, Callable, Mapping, Optional
 from prefect import task
 from prefect.cache_policies import CachePolicy
 from prefect.context import TaskRunContext
+from prefect.logging import get_logger
 
-from tasks.artifacts import Array, Artifact, ArtifactError, ArtifactRef, digest_of, read_artifact, read_group_attrs, write_artifact
+from tasks.core.artifacts import (
+    Array,
+    Artifact,
+    ArtifactError,
+    ArtifactRef,
+    digest_of,
+    read_artifact,
+    read_group_attrs,
+    write_artifact,
+)
+from tasks.core.code_version import code_version
+from tasks.core.params import Params
 
 log = get_logger("virsqueezer")
 
 ComputeFn = Callable[[Mapping[str, Artifact], Mapping[str, Any]], tuple[Mapping[str, Array], Mapping[str, Any]]]
 
 
-def code_version(modules: tuple[str, ...]) -> str:
-    """sha256 of the source files of ``modules`` (the step's own module and the modules it computes with)."""
-    h = hashlib.sha256()
-    for name in sorted(set(modules)):
-        mod = importlib.import_module(name)
-        h.update(name.encode())
-        h.update(Path(inspect.getfile(mod)).read_bytes())
-    return h.hexdigest()
+class StepOutputError(RuntimeError):
+    """A step returned arrays that its declaration does not list (or missed a required one)."""
+
+
+@dataclass(frozen=True)
+class StepSpec:
+    """What a step is: its inputs (named by the producing step), the config paths it reads, the files whose
+    content it reads, and the arrays it writes (``name?`` = written only for some scenes)."""
+
+    name: str
+    inputs: tuple[str, ...] = ()
+    reads: tuple[str, ...] = ()
+    files: tuple[str, ...] = ()
+    outputs: tuple[str, ...] = ()
+
+    @property
+    def per_variant(self) -> bool:
+        """True when the step reads the method variant (it runs once per object and variant)."""
+        return any(p.split(".")[0] == "variant" for p in self.reads + self.files)
+
+    def check_outputs(self, arrays: Mapping[str, Any]) -> None:
+        required = {o for o in self.outputs if not o.endswith("?")}
+        allowed = required | {o[:-1] for o in self.outputs if o.endswith("?")}
+        missing, extra = sorted(required - set(arrays)), sorted(set(arrays) - allowed)
+        if missing or extra:
+            raise StepOutputError(f"step {self.name!r} wrote arrays that disagree with its declared outputs: "
+                                  f"missing {missing}, undeclared {extra}")
 
 
 def step_key(step: str, version: str, scope: str, params: Mapping[str, Any], inputs: Mapping[str, ArtifactRef]) -> str:
@@ -117,7 +159,7 @@ def plain_record(path: Path) -> bool:
             return False
         result = json.loads(doc["result"])
         data = result["data"]
-        if set(result) != {"__class__", "data"} or result["__class__"] != "tasks.artifacts.ArtifactRef":
+        if set(result) != {"__class__", "data"} or result["__class__"] != "tasks.core.artifacts.ArtifactRef":
             return False
         if not all(isinstance(v, (str, int, float, bool)) or v is None for v in data.values()):
             return False
@@ -139,20 +181,38 @@ def _drop_unsafe_record(task_ctx: TaskRunContext, key: str) -> None:
 
 @dataclass
 class StepTask:
-    """A method step: its pure ``compute`` function and the Prefect task that caches it."""
+    """A declared method step: its spec, its pure ``compute`` function and the Prefect task that caches it."""
 
-    name: str
+    spec: StepSpec
     compute: ComputeFn
     version: str
     task: Any = field(repr=False)
 
-    def submit(self, *, root: str, scope: str, params: Mapping[str, Any], inputs: Mapping[str, Any] | None = None):
-        """Submit to the flow's task runner; ``inputs`` may hold futures of upstream steps."""
-        return self.task.submit(root=str(root), scope=scope, params=dict(params), inputs=dict(inputs or {}))
+    @property
+    def name(self) -> str:
+        return self.spec.name
 
-    def run_local(self, *, root: str, scope: str, params: Mapping[str, Any], inputs: Mapping[str, ArtifactRef] | None = None) -> ArtifactRef:
+    def submit(self, *, root: str, scope: str, params: Mapping[str, Any], inputs: Mapping[str, Any] | None = None,
+               label: str = ""):
+        """Submit to the flow's task runner; ``inputs`` (keyed by producing step) may hold futures."""
+        return self.task.submit(root=str(root), scope=scope, params=dict(params), inputs=self._inputs(inputs),
+                                label=label or scope)
+
+    def run_local(self, *, root: str, scope: str, params: Mapping[str, Any],
+                  inputs: Mapping[str, ArtifactRef] | None = None, label: str = "") -> ArtifactRef:
         """Run the step without Prefect (tests, notebooks): same key, same artifact."""
-        return _execute(self.name, self.version, self.compute, str(root), scope, dict(params), dict(inputs or {}))
+        return _execute(self, str(root), scope, dict(params), self._inputs(inputs), label or scope)
+
+    def _inputs(self, inputs: Mapping[str, Any] | None) -> dict[str, Any]:
+        given = dict(inputs or {})
+        if set(given) != set(self.spec.inputs):
+            raise WiringError(f"step {self.name!r} declares inputs {sorted(self.spec.inputs)} but was given "
+                              f"{sorted(given)}")
+        return given
+
+
+class WiringError(RuntimeError):
+    """The flow wired a step differently from its declaration."""
 
 
 @dataclass
@@ -178,41 +238,43 @@ def report_progress(done: int, total: int, unit: str = "frame") -> None:
                  time.perf_counter() - state.started)
 
 
-def _execute(step: str, version: str, compute: ComputeFn, root: str, scope: str, params: dict, inputs: dict[str, ArtifactRef]) -> ArtifactRef:
-    key = step_key(step, version, scope, params, inputs)
-    path = artifact_path(root, scope, step, key)
+def _execute(step: StepTask, root: str, scope: str, params: dict, inputs: dict[str, ArtifactRef],
+             label: str) -> ArtifactRef:
+    name = step.name
+    key = step_key(name, step.version, scope, params, inputs)
+    path = artifact_path(root, scope, name, key)
     try:  # the artifact survived although its cache record did not (e.g. result storage wiped)
         attrs = read_group_attrs(path)
-        return ArtifactRef(path=str(path), digest=attrs["digest"], step=step, scope=scope,
+        return ArtifactRef(path=str(path), digest=attrs["digest"], step=name, scope=scope,
                            compute_seconds=float(attrs.get("compute_seconds", 0.0)), reused=True)
     except ArtifactError:
         pass
-    loaded = {name: read_artifact(ref) for name, ref in inputs.items()}
+    loaded = {producer: read_artifact(ref) for producer, ref in inputs.items()}
     t0 = time.perf_counter()
-    token = _PROGRESS.set(_Progress(f"{scope}/{step}" + (f"[{params['boundary']}]" if "boundary" in params else "")))
+    token = _PROGRESS.set(_Progress(f"{label}/{name}"))
     try:
-        arrays, attrs = compute(loaded, params)
+        arrays, attrs = step.compute(loaded, Params(name, params))
     finally:
         _PROGRESS.reset(token)
+    step.spec.check_outputs(arrays)
     seconds = time.perf_counter() - t0
-    ref = write_artifact(path, arrays, step=step, scope=scope, config_digest=digest_of(params), attrs=attrs,
+    ref = write_artifact(path, arrays, step=name, scope=scope, config_digest=digest_of(params), attrs=attrs,
                          compute_seconds=seconds)
-    log.info("%-18s %-12s ran in %.2f s -> %s", step, scope, seconds, path)
+    log.info("%-18s %-12s ran in %.2f s -> %s", name, label, seconds, path)
     return ref
 
 
-def artifact_step(name: str, *, modules: tuple[str, ...] = ()) -> Callable[[ComputeFn], StepTask]:
-    """Decorator: expose a pure step function as a cached Prefect task (see module docstring).
-
-    ``modules`` lists the modules whose source is the step's code version besides the decorated
-    function's own module (e.g. the geometry module an object builder calls).
-    """
+def artifact_step(name: str, *, inputs: tuple[str, ...] = (), reads: tuple[str, ...] = (),
+                  files: tuple[str, ...] = (), outputs: tuple[str, ...] = ()) -> Callable[[ComputeFn], StepTask]:
+    """Decorator: declare a pure step function and expose it as a cached Prefect task (see module docstring)."""
+    spec = StepSpec(name=name, inputs=tuple(inputs), reads=tuple(reads), files=tuple(files), outputs=tuple(outputs))
 
     def decorate(compute: ComputeFn) -> StepTask:
-        version = code_version((compute.__module__, "tasks.artifacts", "tasks.step", *modules))
+        version = code_version(compute.__module__)
+        holder: dict[str, StepTask] = {}
 
-        def run(root: str, scope: str, params: dict, inputs: dict) -> ArtifactRef:
-            return _execute(name, version, compute, root, scope, params, inputs)
+        def run(root: str, scope: str, params: dict, inputs: dict, label: str) -> ArtifactRef:
+            return _execute(holder["step"], root, scope, params, inputs, label)
 
         run.__name__ = run.__qualname__ = name
         run.__doc__ = compute.__doc__
@@ -220,12 +282,13 @@ def artifact_step(name: str, *, modules: tuple[str, ...] = ()) -> Callable[[Comp
         prefect_task = task(
             run,
             name=name,
-            task_run_name=f"{name}[{{scope}}]",
+            task_run_name=f"{name}[{{label}}]",
             cache_policy=ArtifactCachePolicy(step=name, version=version),
             persist_result=True,
             result_serializer="json",
             cache_result_in_memory=False,
         )
-        return StepTask(name=name, compute=compute, version=version, task=prefect_task)
+        holder["step"] = StepTask(spec=spec, compute=compute, version=version, task=prefect_task)
+        return holder["step"]
 
     return decorate

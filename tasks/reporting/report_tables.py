@@ -1,7 +1,7 @@
 """Metric tables of a run: the object x variant rows, the paper's Table 2 layout, CSV and parquet.
 
-Pure functions of the ``deformation_metrics`` artifacts (:mod:`tasks.deformation_metrics`); the report
-(:mod:`tasks.report`) renders what they return as markdown and HTML.
+Pure functions of the ``deformation_metrics`` artifacts (:mod:`tasks.evaluation.deformation_metrics`); the report
+(:mod:`tasks.reporting.report`) renders what they return as markdown and HTML.
 """
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from typing import Any, Mapping, Optional, Sequence
 
 import pandas as pd
 
-from tasks.artifacts import ArtifactError, read_group_attrs
+from tasks.core.artifacts import ArtifactError, read_group_attrs
 
 # (column in the metrics rows, heading in the tables, higher is better)
 TABLE2 = (("bdc_t", "BDC-T", True), ("bdc_s", "BDC-S", True), ("sdc", "SDC", True), ("miou", "mIoU", True))

@@ -2,7 +2,7 @@
 
 Per substep (paper sec. "Squeezing-Driven Deformation"): P2G -> grid update (gravity, walls, floor, Dirichlet
 nodes with reaction forces, external finger forces) -> G2P with F_E <- (I + dt grad v) F_E and the material's
-return mapping.  See :mod:`tasks.mpm.kernels` for the kernels and :mod:`tasks.mpm.constitutive` for the models.
+return mapping.  See :mod:`tasks.physics.mpm.kernels` for the kernels and :mod:`tasks.physics.mpm.constitutive` for the models.
 
 Boundary conditions (generic; the finger field is connected by the caller)
     * :class:`DirichletPoints`: constrained points (positions, target velocities, finger ids, optional slip

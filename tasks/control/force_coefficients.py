@@ -4,7 +4,7 @@ Paper sec. "Squeezing Control Mapping", eq. 1::
 
     c_k,t = w_k * max(u~_k,t - beta, 0) ** gamma
 
-u~ is the de-biased flexion (1, from :func:`tasks.signal_smoothing.smooth_signals`), beta the activation
+u~ is the de-biased flexion (1, from :func:`tasks.control.signal_smoothing.smooth_signals`), beta the activation
 threshold, gamma the nonlinearity index and w_k the finger weight.  The paper says the mapping "supports
 bidirectional activation to better capture different stages of squeezing behavior" without giving the
 formula; the release branch below is this project's definition.
@@ -32,8 +32,9 @@ from typing import Sequence
 
 import numpy as np
 
-from conf.schema import FINGERS
-from tasks.artifacts import Array
+from conf.hand import FINGERS
+from tasks.core.artifacts import Array
+from tasks.core.step import artifact_step
 
 __all__ = ["force_coefficients", "loading_curve", "PHASE_IDLE", "PHASE_LOADING", "PHASE_RELEASING"]
 
@@ -164,13 +165,14 @@ def force_coefficients(
 
 
 # ----------------------------------------------------------------------------------------------- Prefect step
-from tasks.step import artifact_step  # noqa: E402
 
 
-@artifact_step("force_coefficients")
+@artifact_step("force_coefficients", inputs=("signal_smoothing",),
+               reads=("control.force", "control.smoothing.frame_rate"),
+               outputs=("force_coefficients", "phase", "flexion_rate"))
 def force_coefficients_step(inputs, params):
-    """Eq. 1 per finger and frame.  params: ``force`` (ForceConfig values), ``frame_rate`` (Hz)."""
-    f = params["force"]
-    out = force_coefficients(inputs["frames"]["flexion"], params["frame_rate"], f["weights"], f["beta"], f["gamma"],
-                             f["release_gamma"], f["release_rate_threshold"])
+    """Eq. 1 per finger and frame."""
+    f = params["control.force"]
+    out = force_coefficients(inputs["signal_smoothing"]["flexion"], params["control.smoothing.frame_rate"],
+                             f["weights"], f["beta"], f["gamma"], f["release_gamma"], f["release_rate_threshold"])
     return out, {"peak": [float(v) for v in out["force_coefficients"].data.max(axis=0)]}

@@ -18,8 +18,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from conf.schema import FINGERS  # noqa: E402
-from tasks.artifacts import ArtifactError, ArtifactRef, read_artifact  # noqa: E402
+from conf.hand import FINGERS  # noqa: E402
+from tasks.core.artifacts import ArtifactError, ArtifactRef, read_artifact  # noqa: E402
 
 
 def code_revision() -> str:
@@ -207,9 +207,9 @@ def left_out(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
 
 
 def wall_findings(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
-    """Per object whose wall the grid cannot resolve: the thin-wall finding (:mod:`tasks.wall_resolution`)."""
-    from tasks.material_oracle import materials_from_dict
-    from tasks.wall_resolution import thin_wall_finding
+    """Per object whose wall the grid cannot resolve: the thin-wall finding (:mod:`tasks.physics.wall_resolution`)."""
+    from tasks.physics.material_oracle import materials_from_dict
+    from tasks.physics.wall_resolution import thin_wall_finding
 
     lines = []
     for obj, obj_refs in refs.items():
@@ -230,7 +230,7 @@ def wall_findings(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
 
 def metric_bars_figure(obj: str, df, labels: Mapping[str, str], path: Path) -> Optional[Path]:
     """The four Table 2 scores of one object, one bar per variant."""
-    from tasks.report_tables import TABLE2
+    from tasks.reporting.report_tables import TABLE2
 
     sub = df[df["object"] == obj] if len(df) else df
     if sub is None or len(sub) == 0:
@@ -261,7 +261,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     per-variant ones; ``variants`` maps variant names to their labels (Table 2's "Method").  ``sections`` are
     extra (title, markdown) blocks contributed by later stages.
     """
-    from tasks.report_tables import (TABLE2, TRAJECTORY, html_table, markdown_table, metric_definitions,
+    from tasks.reporting.report_tables import (TABLE2, TRAJECTORY, html_table, markdown_table, metric_definitions,
                                      metric_rows, paper_layout, write_metric_files)
 
     report_dir = Path(report_dir)
@@ -384,7 +384,7 @@ def step_shares(df) -> str:
     total = float(per["sum"].sum())
     rows = [[step, str(int(r["count"])), f"{r['sum']:.1f}", f"{100 * r['sum'] / max(total, 1e-12):.1f} %"]
             for step, r in per.iterrows()]
-    from tasks.report_tables import markdown_table
+    from tasks.reporting.report_tables import markdown_table
 
     return markdown_table(["step", "tasks", "compute (s)", "share"], rows)
 

@@ -3,8 +3,8 @@
 Paper sec. "Squeezing Control Mapping" (sec. 3.1): the control signals are 1) the normalised flexion of the
 five fingers, 2) the 3D fingertip positions and 3) the 6-DoF palm pose.  This module reads and writes them
 as raw, sensor-rate arrays and synthesises realistic sessions around an object.  Resampling, EMA and
-de-biasing happen later in :mod:`tasks.signal_smoothing`; force coefficients (eq. 1) in
-:mod:`tasks.force_coefficients`.
+de-biasing happen later in :mod:`tasks.control.signal_smoothing`; force coefficients (eq. 1) in
+:mod:`tasks.control.force_coefficients`.
 
 Recording format (CSV, one row per sensor sample)
 -------------------------------------------------
@@ -55,7 +55,9 @@ from typing import Any, Mapping
 import numpy as np
 import pandas as pd
 
-from conf.schema import FINGERS
+from conf.hand import FINGERS
+from tasks.core.artifacts import Array
+from tasks.core.step import artifact_step
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +114,7 @@ def check_recording_size(path: str | Path, max_bytes: int | None = MAX_RECORDING
     size = p.stat().st_size if p.is_file() else 0
     if max_bytes is not None and size > max_bytes:
         raise SignalError(f"recording {p} is {_mib(size)}, above the {_mib(max_bytes)} limit of one squeeze "
-                          f"recording (MAX_RECORDING_BYTES in tasks/squeeze_signals.py); cut it to the squeeze "
+                          f"recording (MAX_RECORDING_BYTES in tasks/control/squeeze_signals.py); cut it to the squeeze "
                           f"you want to simulate (keep the header row and that time span)")
 
 
@@ -152,7 +154,7 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
     name = str(p)
     if not p.exists():
         raise SignalError(f"recording {name} does not exist; check signal.path (a CSV recording, see "
-                          f"tasks/squeeze_signals.py for the format)")
+                          f"tasks/control/squeeze_signals.py for the format)")
     if p.is_dir():
         raise SignalError(f"recording {name} is a directory; signal.path must name a CSV file")
     check_recording_size(p, max_bytes)
@@ -178,10 +180,10 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
         first = ",".join(str(c) for c in list(header.columns)[:4])
         raise SignalError(f"recording {name} has none of the required columns (the header row seems to be "
                           f"missing; line 1 reads '{first},...'); add a header row time,flex_<finger>,"
-                          f"tip_<finger>_x/y/z,palm_x/y/z,palm_qw/qx/qy/qz (format: tasks/squeeze_signals.py)")
+                          f"tip_<finger>_x/y/z,palm_x/y/z,palm_qw/qx/qy/qz (format: tasks/control/squeeze_signals.py)")
     if missing:
         raise SignalError(f"recording {name} lacks column(s) {', '.join(missing)}; add them to the header "
-                          f"(format: tasks/squeeze_signals.py)")
+                          f"(format: tasks/control/squeeze_signals.py)")
     original = [present[c] for c in REQUIRED_COLUMNS]
 
     # --- data: fast path parses straight to float64; on failure re-read as text to locate the bad cell.
@@ -667,9 +669,6 @@ def quat_to_matrix(q: np.ndarray) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------------------------- Prefect step
-from tasks.artifacts import Array  # noqa: E402
-from tasks.step import artifact_step  # noqa: E402
-
 RAW_DIMS = {
     "time": (("sample",), "s"),
     "flexion": (("sample", "finger"), "1"),
@@ -679,18 +678,22 @@ RAW_DIMS = {
 }
 
 
-@artifact_step("squeeze_signals")
+@artifact_step("squeeze_signals", inputs=("object_model",),
+               reads=("signal", "object.session", "control.smoothing.frame_rate"), files=("signal.path",),
+               outputs=tuple(RAW_DIMS))
 def squeeze_signals_step(inputs, params):
     """Raw squeezing control signals: a SenseGlove CSV recording or a synthetic session around the object.
 
-    params: ``signal`` (SignalConfig values, ``session`` resolved), ``frame_rate`` (Hz, to refuse a
-    recording shorter than one frame).  inputs: ``object`` (its surface aims the synthetic hand).
+    ``signal.session`` None means the object's own session; the frame rate (Hz) refuses a recording shorter than
+    one frame.  The object model's surface aims the synthetic hand.
     """
-    sig = params["signal"]
+    sig = dict(params["signal"])
+    sig["session"] = sig["session"] or params["object.session"]
     if sig["source"] == "csv":
-        raw = read_recording(sig["path"], frame_rate=params["frame_rate"])
+        raw = read_recording(sig["path"], frame_rate=params["control.smoothing.frame_rate"])
     else:
-        obj = inputs["object"]
+        obj = inputs["object_model"]
         raw = synthesize_session(sig["session"], obj["surface_points"], obj["surface_normals"], sig)
     arrays = {name: Array(np.asarray(raw[name]), dims, units) for name, (dims, units) in RAW_DIMS.items()}
-    return arrays, {"source": sig["source"], "session": sig.get("session"), "samples": int(len(raw["time"]))}
+    return arrays, {"source": sig["source"], "session": sig["session"] if sig["source"] != "csv" else None,
+                    "samples": int(len(raw["time"]))}

@@ -83,7 +83,8 @@ from typing import Any
 
 import numpy as np
 
-from tasks.artifacts import Array, as_numpy, config_value
+from tasks.core.artifacts import Array, as_numpy, config_value
+from tasks.core.step import artifact_step
 
 DEFAULT_PAD_RADIUS = 0.01  # m, fingertip pad radius of curvature (Hertz aspect of the force prior)
 DEFAULT_STANDOFF = 0.005  # m, reach = 2 sigma_max + standoff
@@ -557,18 +558,20 @@ def _any_interaction(x, n, radius, eligible) -> bool:
 
 
 # ----------------------------------------------------------------------------------------------- Prefect step
-from tasks.step import artifact_step  # noqa: E402
+
 
 SURFACE = ("surface_points", "surface_normals", "surface_curvature", "surface_principal_dirs", "surface_area")
 
 
-@artifact_step("contact_patches")
+@artifact_step("contact_patches", inputs=("object_model", "signal_smoothing", "force_coefficients"),
+               reads=("control.contact",),
+               outputs=("patch_centers", "patch_normals", "patch_axes", "patch_radii", "patch_areas", "patch_active",
+                        "patch_cost"))
 def contact_patches_step(inputs, params):
-    """SC-CAE (eq. 2) per finger and frame.  params: ``contact`` (ContactConfig values).
-
-    inputs: ``object`` (surface), ``frames`` (fingertips, squeeze directions), ``forces`` (eq. 1).
-    """
-    obj, frames = inputs["object"], inputs["frames"]
+    """SC-CAE (eq. 2) per finger and frame: the object's surface, the smoothed fingertips and squeeze directions,
+    and the force coefficients of eq. 1."""
+    obj, frames = inputs["object_model"], inputs["signal_smoothing"]
     out = contact_patches(*(obj[name] for name in SURFACE), frames["fingertip_positions"],
-                          frames["squeeze_directions"], inputs["forces"]["force_coefficients"], params["contact"])
+                          frames["squeeze_directions"], inputs["force_coefficients"]["force_coefficients"],
+                          params["control.contact"])
     return out, {"active_fraction": float(out["patch_active"].data.mean())}

@@ -1,0 +1,1 @@
+"""Paper sec. 3.1, squeezing control mapping: the object model and its libraries (geometry, gaussian_ply), the glove signals, smoothing, force coefficients (eq. 1), SC-CAE contact patches (eq. 2) and the displacement field turned Dirichlet data (eq. 3)."""
