@@ -17,7 +17,6 @@ from conf.mpm_schema import MPMConfig
 from conf.oracle_schema import OracleConfig
 
 
-
 # ----------------------------------------------------------------------------------------------- object
 @dataclass
 class GeometryConfig:

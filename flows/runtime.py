@@ -1,8 +1,6 @@
 """What every flow shares: task runner from config, result storage, the per-task status table."""
 from __future__ import annotations
 
-
-from prefect.logging import get_logger
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -10,6 +8,7 @@ from typing import Optional
 
 import pandas as pd
 from omegaconf import DictConfig
+from prefect.logging import get_logger
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from tasks.core.artifacts import ArtifactRef, directory_size

@@ -12,3 +12,4 @@ verification/  suites that check the solver (stability, convergence, benchmark p
 
 Package ``__init__`` files hold only a docstring (``tests/test_layering.py``), so that a step's code version is
 exactly the import closure of its module.
+"""

@@ -29,7 +29,8 @@ def prefect_server():
 
 def compose(config_name: str, overrides: list[str]):
     """Compose a config exactly as the ``python -m flows.<name>`` entry point does."""
-    from hydra import compose as hydra_compose, initialize_config_dir
+    from hydra import compose as hydra_compose
+    from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
     from conf.schema import register_configs

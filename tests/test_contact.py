@@ -10,9 +10,9 @@ import pytest
 
 from conf.hand import FINGERS
 from conf.schema import ContactConfig, DisplacementConfig
-from tasks.core.artifacts import Array
 from tasks.control.contact_patches import DEFAULT_PAD_RADIUS, contact_patches
 from tasks.control.dirichlet_field import constrained_points, dirichlet_field, patch_weight
+from tasks.core.artifacts import Array
 
 R_SPHERE = 0.03  # m
 S_POINTS = 3000

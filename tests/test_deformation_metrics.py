@@ -10,8 +10,8 @@ import pytest
 from omegaconf import OmegaConf
 
 from conf.metrics_schema import MetricsConfig, validate_metrics
-from tasks.core.params import Params
 from tasks.core.artifacts import Artifact, ArtifactRef, read_artifact, write_artifact
+from tasks.core.params import Params
 from tasks.evaluation.deformation_metrics import (
     DEFINITIONS,
     bdc_s,

@@ -6,7 +6,6 @@ is contacted.
 from __future__ import annotations
 
 import json
-import sys
 import threading
 import time
 import traceback
@@ -15,16 +14,25 @@ from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+from conf.oracle_schema import OracleConfig
+from conf.schema import MaterialOverrides
+from tasks.physics.material_oracle import (
+    INTERIORS,
+    TABLE,
+    LLMAnswer,
+    MaterialOracleError,
+    MaterialProperties,
+    ObjectMaterials,
+    match_entry,
+    material_oracle,
+    materials_from_dict,
+    materials_to_dict,
+    mpm_material_kwargs,
+    oracle_for_object,
+    validate_material,
+)
 
-from conf.oracle_schema import OracleConfig  # noqa: E402
-from conf.schema import MaterialOverrides  # noqa: E402
-from tasks.physics.material_oracle import (  # noqa: E402
-    INTERIORS, TABLE, LLMAnswer, MaterialOracleError, MaterialProperties, ObjectMaterials, material_oracle,
-    materials_from_dict, materials_to_dict, match_entry, mpm_material_kwargs, oracle_for_object,
-    validate_material)
+ROOT = Path(__file__).resolve().parents[1]
 
 # the eight evaluation objects: (name, description, interior) -> intended table entry
 OBJECTS = {
@@ -225,6 +233,7 @@ def _yaml_objects():
 @pytest.mark.parametrize("path", _yaml_objects() or [pytest.param(None, marks=pytest.mark.skip("no YAMLs yet"))])
 def test_object_yaml_matches_intended_entry(path):
     from omegaconf import OmegaConf
+
     from conf.schema import ObjectConfig
     raw = OmegaConf.load(path)
     obj = OmegaConf.merge(OmegaConf.structured(ObjectConfig), raw)

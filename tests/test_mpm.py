@@ -17,7 +17,6 @@ import pytest
 import warp as wp
 
 from conf.mpm_schema import MPMConfigError, mpm_config_from
-from tasks.physics.mpm.constitutive import hencky_plastic_return, polar_rotation_quat, polar_track_quat
 from tasks.physics.mpm import (
     DirichletNodes,
     DirichletPoints,
@@ -30,6 +29,7 @@ from tasks.physics.mpm import (
     mass_scale_for,
     polar_rotation,
 )
+from tasks.physics.mpm.constitutive import hencky_plastic_return, polar_rotation_quat, polar_track_quat
 
 DX = 0.005  # m
 

@@ -9,11 +9,20 @@ import numpy as np
 import pytest
 from omegaconf import OmegaConf
 
-from conf.schema import Config
+from conf.schema import Config, SimulationConfig
 from tasks.core.artifacts import read_artifact
-from conf.schema import SimulationConfig
-from tasks.physics.mpm_rollout import (CONTACT_CORE_PHI, CORE, INTERIOR, RUPTURED, SHELL, cauchy_free_measures,
-                                finger_regions, region_weights, squeeze_strain, support_half_extent)
+from tasks.physics.mpm_rollout import (
+    CONTACT_CORE_PHI,
+    CORE,
+    INTERIOR,
+    RUPTURED,
+    SHELL,
+    cauchy_free_measures,
+    finger_regions,
+    region_weights,
+    squeeze_strain,
+    support_half_extent,
+)
 
 # ------------------------------------------------------------------------------------------ pure measures
 

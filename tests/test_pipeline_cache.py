@@ -12,7 +12,6 @@ import sys
 import time
 from pathlib import Path
 
-
 from tasks.core.artifacts import read_group_attrs
 
 STEPS = ["object_model", "squeeze_signals", "signal_smoothing", "force_coefficients", "contact_patches",

@@ -1,22 +1,15 @@
 """Known-answer tests for the squeezing control signals (paper sec. "Squeezing Control Mapping", eq. 1)."""
 from __future__ import annotations
 
-import sys
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
-
-from conf.schema import ForceConfig, SignalConfig, SmoothingConfig  # noqa: E402
-from tasks.core.artifacts import Array  # noqa: E402
-from tasks.control.force_coefficients import force_coefficients, loading_curve  # noqa: E402
-from tasks.control.signal_smoothing import ema, resample_antialiased, smooth_signals  # noqa: E402
-from tasks.control.squeeze_signals import (  # noqa: E402
+from conf.schema import ForceConfig, SignalConfig, SmoothingConfig
+from tasks.control.force_coefficients import force_coefficients, loading_curve
+from tasks.control.signal_smoothing import ema, resample_antialiased, smooth_signals
+from tasks.control.squeeze_signals import (
     PERCENT_BENT_FULL_SCALE,
     REQUIRED_COLUMNS,
     SESSION_KINDS,
@@ -26,6 +19,7 @@ from tasks.control.squeeze_signals import (  # noqa: E402
     synthesize_session,
     write_recording,
 )
+from tasks.core.artifacts import Array
 
 RADIUS, HEIGHT = 0.033, 0.12  # soda can, m
 

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tasks.physics.wall_resolution import thin_wall_finding
 from tasks.verification.stability import (
     Case,
     SuiteContext,
@@ -29,7 +30,6 @@ from tasks.verification.stability import (
     run_case,
     select_cases,
 )
-from tasks.physics.wall_resolution import thin_wall_finding
 
 REPO = Path(__file__).resolve().parents[1]
 

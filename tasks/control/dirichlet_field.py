@@ -35,8 +35,6 @@ from tasks.core.artifacts import Array, as_numpy, config_value
 from tasks.core.step import artifact_step
 
 
-
-
 def patch_weight(points, center, normal, axes, radii, support: float, point_normals=None) -> np.ndarray:
     """Anisotropic soft weight phi_k (1) of one patch at ``points`` (..., 3); see the module doc (eq. 3).
 

@@ -63,8 +63,6 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from tasks.core.artifacts import Array
-from tasks.core.step import artifact_step
 from tasks.control.gaussian_ply import read_gaussian_ply
 from tasks.control.geometry import (
     SHAPE_KINDS,
@@ -76,6 +74,8 @@ from tasks.control.geometry import (
     soup_volume,
     tangent_basis,
 )
+from tasks.core.artifacts import Array
+from tasks.core.step import artifact_step
 
 __all__ = [
     "ObjectModelError", "build_object_model", "poisson_disk", "quadric_curvature", "matrix_to_quaternion",

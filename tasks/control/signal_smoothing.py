@@ -42,9 +42,9 @@ import numpy as np
 from scipy.signal import lfilter
 
 from conf.hand import FINGERS
+from tasks.control.squeeze_signals import SignalError, validate_signals
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step
-from tasks.control.squeeze_signals import SignalError, validate_signals
 
 __all__ = ["smooth_signals", "frame_times", "resample_antialiased", "ema", "DIRECTION_REFERENCES"]
 

@@ -20,11 +20,11 @@ from typing import Any
 
 import numpy as np
 
+from conf.hand import N_FINGERS
 from conf.metrics_schema import MetricsConfig, validate_metrics
 from tasks.core.artifacts import Array
-from conf.hand import N_FINGERS
-from tasks.physics.regions import finger_regions
 from tasks.core.step import artifact_step
+from tasks.physics.regions import finger_regions
 
 __all__ = ["DEFINITIONS", "bdc_s", "bdc_t", "concordance", "deformation_metrics", "deformation_metrics_step",
            "finger_trajectories", "miou", "nonrigid_displacement", "pearson", "physical_figures", "sdc",

@@ -12,14 +12,11 @@ import subprocess
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
-import matplotlib
+import matplotlib.pyplot as plt  # headless: matplotlib picks its Agg backend when there is no display
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from conf.hand import FINGERS  # noqa: E402
-from tasks.core.artifacts import ArtifactError, ArtifactRef, read_artifact  # noqa: E402
+from conf.hand import FINGERS
+from tasks.core.artifacts import ArtifactError, ArtifactRef, read_artifact
 
 
 def code_revision() -> str:
@@ -261,8 +258,16 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     per-variant ones; ``variants`` maps variant names to their labels (Table 2's "Method").  ``sections`` are
     extra (title, markdown) blocks contributed by later stages.
     """
-    from tasks.reporting.report_tables import (TABLE2, TRAJECTORY, html_table, markdown_table, metric_definitions,
-                                     metric_rows, paper_layout, write_metric_files)
+    from tasks.reporting.report_tables import (
+        TABLE2,
+        TRAJECTORY,
+        html_table,
+        markdown_table,
+        metric_definitions,
+        metric_rows,
+        paper_layout,
+        write_metric_files,
+    )
 
     report_dir = Path(report_dir)
     report_dir.mkdir(parents=True, exist_ok=True)

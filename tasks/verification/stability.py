@@ -597,10 +597,10 @@ def run_squeeze(case: Case, ctx: SuiteContext, progress: _Progress | None = None
     from tasks.control.contact_patches import contact_patches
     from tasks.control.dirichlet_field import dirichlet_field
     from tasks.control.force_coefficients import force_coefficients
-    from tasks.physics.material_oracle import material_oracle, materials_to_dict
-    from tasks.physics.mpm_rollout import mpm_rollout
     from tasks.control.object_model import build_object_model
     from tasks.control.signal_smoothing import smooth_signals
+    from tasks.physics.material_oracle import material_oracle, materials_to_dict
+    from tasks.physics.mpm_rollout import mpm_rollout
 
     p = case.params
     obj = dict(ctx.catalog[p["object"]])
