@@ -11,10 +11,12 @@ from typing import Any, Optional
 
 from omegaconf import MISSING
 
+from conf.generation_schema import GenerationConfig, RefinementConfig, VideoMetricsConfig, validate_generation
 from conf.hand import FINGERS
 from conf.metrics_schema import MetricsConfig, validate_metrics
 from conf.mpm_schema import MPMConfig
 from conf.oracle_schema import OracleConfig
+from conf.render_schema import RenderConfig, validate_render
 
 
 # ----------------------------------------------------------------------------------------------- object
@@ -240,6 +242,7 @@ class GridConfig:
             "can", "plush_toy", "rubber_duck", "clay", "tomato", "orange", "rubber_ball", "paper_cup"]
     )
     variants: list[str] = field(default_factory=lambda: ["full", "no_dirichlet"])
+    backends: Optional[list[str]] = None  # effect backends run per variant (None: [generation.backend]); Table 1
 
 
 @dataclass
@@ -258,9 +261,10 @@ class Config:
     variant: Optional[VariantConfig] = None
     variants: dict[str, VariantConfig] = field(default_factory=dict)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
-    # later stages plug in here: they declare their own dataclasses
-    render: dict[str, Any] = field(default_factory=dict)
-    generation: dict[str, Any] = field(default_factory=dict)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    generation: GenerationConfig = field(default_factory=GenerationConfig)
+    refinement: RefinementConfig = field(default_factory=RefinementConfig)
+    video_metrics: VideoMetricsConfig = field(default_factory=VideoMetricsConfig)
     run_name: Optional[str] = None  # report folder name; default: flow name + time stamp
     accuracy: dict[str, str] = field(default_factory=dict)  # the preset's measured error (conf/preset/), reported
 
@@ -323,6 +327,8 @@ def validate(cfg: Any) -> None:
              f"must be dirichlet or force, got {variant.boundary!r}")
     try:
         validate_metrics(cfg.metrics)
+        validate_render(cfg.render)
+        validate_generation(cfg.generation, cfg.refinement, cfg.video_metrics)
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
 

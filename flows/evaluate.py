@@ -9,6 +9,9 @@ register_configs()
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
 def main(cfg: DictConfig) -> None:
+    from flows.preflight import preflight
+
+    preflight(cfg)  # bad config or input: one line, before the engine, Prefect or a server is loaded
     from flows.pipeline import run
 
     run(cfg, "evaluate")

@@ -8,9 +8,15 @@ submits each with the futures its declaration names.  Per object, computed once 
     object_model -> squeeze_signals -> signal_smoothing -> force_coefficients -> contact_patches
     -> dirichlet_field; material_oracle
 
-Per object and variant (Table 2: ``full`` = Dirichlet boundary conditions, ``no_dirichlet`` = force-driven):
+Per object and variant (Table 2: ``full`` = Dirichlet boundary conditions, ``no_dirichlet`` = force-driven),
+sec. 3.2-3.3 and Table 2:
 
-    mpm_rollout -> deformation_metrics
+    mpm_rollout -> deformation_metrics; gbuffer -> conditions (eq. 6)
+
+Per object, variant and effect backend (``grid.backends``, default ``[generation.backend]``), sec. 3.3 and
+Tables 1 and 3:
+
+    effect -> appearance_refinement (eq. 7) -> video_metrics
 """
 from __future__ import annotations
 
@@ -35,28 +41,41 @@ from tasks.core.artifacts import ArtifactRef
 from tasks.core.params import resolve_reads
 from tasks.core.step import StepTask, WiringError
 from tasks.evaluation.deformation_metrics import deformation_metrics_step
+from tasks.evaluation.video_metrics import video_metrics_step
+from tasks.generation.appearance_refinement import appearance_refinement_step
+from tasks.generation.effect import effect_step
 from tasks.physics.material_oracle import material_oracle_step
 from tasks.physics.mpm_rollout import mpm_rollout_step
+from tasks.render.conditions import conditions_step
+from tasks.render.gbuffer import gbuffer_step
 from tasks.reporting.report import write_run_report
 
 log = get_logger("virsqueezer")
 
-# The pipeline, in order.  A step runs once per object unless it reads the variant (its spec's per_variant), in
-# which case it runs once per object and variant; a per-object step cannot consume a per-variant one.
+# The pipeline, in order.  A step runs once per object unless it reads the variant (its spec's per_variant) or
+# consumes a per-variant step: then once per object and variant; the effect steps, which read ``generation``, run
+# once per object, variant and backend.  A step may consume only steps of its own or an outer stage.
 PER_OBJECT: tuple[StepTask, ...] = (
     object_model_step, squeeze_signals_step, signal_smoothing_step, force_coefficients_step, contact_patches_step,
     dirichlet_field_step, material_oracle_step,
 )
-PER_VARIANT: tuple[StepTask, ...] = (mpm_rollout_step, deformation_metrics_step)
-STEPS: tuple[StepTask, ...] = PER_OBJECT + PER_VARIANT
+PER_VARIANT: tuple[StepTask, ...] = (mpm_rollout_step, deformation_metrics_step, gbuffer_step, conditions_step)
+PER_BACKEND: tuple[StepTask, ...] = (effect_step, appearance_refinement_step, video_metrics_step)
+STEPS: tuple[StepTask, ...] = PER_OBJECT + PER_VARIANT + PER_BACKEND
 
 
-def check_wiring(per_object: tuple[StepTask, ...] = PER_OBJECT,
-                 per_variant: tuple[StepTask, ...] = PER_VARIANT) -> None:
+def _reads_generation(step: StepTask) -> bool:
+    return any(p.split(".")[0] == "generation" for p in step.spec.reads)
+
+
+def check_wiring(per_object: tuple[StepTask, ...] = PER_OBJECT, per_variant: tuple[StepTask, ...] = PER_VARIANT,
+                 per_backend: tuple[StepTask, ...] = PER_BACKEND) -> None:
     """Refuse a wiring that disagrees with the declarations: every input produced by an earlier step, no step
-    listed twice, per-object steps that read no variant and consume no per-variant output."""
+    listed twice, per-object steps that read no variant and consume no per-variant output, and steps that read
+    the effect backend (``generation``) only in the per-backend stage."""
     produced: set[str] = set()
-    for stage, steps in (("per-object", per_object), ("per-variant", per_variant)):
+    inner: set[str] = {s.name for s in per_variant + per_backend}
+    for stage, steps in (("per-object", per_object), ("per-variant", per_variant), ("per-backend", per_backend)):
         for step in steps:
             if step.name in produced:
                 raise WiringError(f"step {step.name!r} is wired twice")
@@ -65,9 +84,13 @@ def check_wiring(per_object: tuple[StepTask, ...] = PER_OBJECT,
                 raise WiringError(f"step {step.name!r} needs {missing}, which no earlier step of the wiring produces")
             if stage == "per-object" and step.spec.per_variant:
                 raise WiringError(f"step {step.name!r} reads the variant but is wired per object")
-            if stage == "per-object" and any(i in {s.name for s in per_variant} for i in step.spec.inputs):
+            if stage == "per-object" and any(i in inner for i in step.spec.inputs):
                 raise WiringError(f"step {step.name!r} is wired per object but consumes a per-variant step")
+            if _reads_generation(step) and stage != "per-backend":
+                raise WiringError(f"step {step.name!r} reads the effect backend but is wired {stage}")
             produced.add(step.name)
+        if stage == "per-variant":
+            inner = {s.name for s in per_backend}
 
 
 check_wiring()
@@ -99,10 +122,28 @@ def step_params(step: StepTask, cfg: DictConfig, obj: DictConfig, variant: DictC
     return resolve_reads(step.name, step.spec.reads, step.spec.files, cfg, obj, variant)
 
 
-def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig]) -> dict[tuple[str, str], Any]:
-    """Submit one object's steps: the per-object chain once, then the per-variant chain for each variant.
+def selected_backends(cfg: DictConfig) -> list[str]:
+    """``grid.backends`` when set, else the one ``generation.backend``."""
+    return list(cfg.grid.backends) if cfg.grid.backends else [cfg.generation.backend]
 
-    Returns the futures keyed by (step, variant name); per-object steps have variant ``""``."""
+
+def backend_config(cfg: DictConfig, backend: str) -> DictConfig:
+    """``cfg`` with ``generation.backend`` set to ``backend``."""
+    return cfg if cfg.generation.backend == backend else OmegaConf.merge(cfg, {"generation": {"backend": backend}})
+
+
+def variant_key(variant: str, backend: str | None = None) -> str:
+    """How the run table names a per-variant (``full``) or per-backend (``full/physics``) step's chain."""
+    return variant if backend is None else f"{variant}/{backend}"
+
+
+def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig],
+                  backends: list[str] | None = None) -> dict[tuple[str, str], Any]:
+    """Submit one object's steps: the per-object chain once, the per-variant chain for each variant, and the
+    per-backend chain for each variant and backend.
+
+    Returns the futures keyed by (step, chain): ``""`` for per-object steps, the variant name for per-variant
+    steps and ``variant/backend`` for per-backend ones."""
     kw = dict(root=cfg.paths.artifacts, scope=obj.name)
     shared: dict[str, Any] = {}
     for step in PER_OBJECT:
@@ -116,6 +157,13 @@ def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig]) 
                 params=step_params(step, cfg, obj, variant), inputs={n: available[n] for n in step.spec.inputs},
                 label=f"{obj.name}[{variant.name}]", **kw)
             out[(step.name, variant.name)] = available[step.name]
+        for backend in (backends if backends is not None else selected_backends(cfg)):
+            cfg_b, chain = backend_config(cfg, backend), dict(available)
+            for step in PER_BACKEND:
+                chain[step.name] = step.submit(
+                    params=step_params(step, cfg_b, obj, variant), inputs={n: chain[n] for n in step.spec.inputs},
+                    label=f"{obj.name}[{variant_key(variant.name, backend)}]", **kw)
+                out[(step.name, variant_key(variant.name, backend))] = chain[step.name]
     return out
 
 
@@ -124,7 +172,7 @@ def run_object_local(cfg: DictConfig, obj: DictConfig, variant: DictConfig | Non
     """Run one object's chain (and one variant's, when given) without Prefect, up to step ``until`` (tests,
     notebooks).  Same keys and artifacts as the flow."""
     refs: dict[str, ArtifactRef] = {}
-    for step in PER_OBJECT + (PER_VARIANT if variant is not None else ()):
+    for step in PER_OBJECT + (PER_VARIANT + PER_BACKEND if variant is not None else ()):
         refs[step.name] = step.run_local(root=str(root), scope=obj.name,
                                          params=step_params(step, cfg, obj, variant),
                                          inputs={n: refs[n] for n in step.spec.inputs})
@@ -148,9 +196,12 @@ def virsqueezer_flow(config: dict, flow_label: str = "evaluate", report_dir: str
     refs: dict[str, dict[str, Any]] = {}
     for name, steps in futures.items():
         refs[name] = {}
-        for (step, variant), fut in steps.items():
-            ref = table.add_future(name, step, fut, variant=variant)
-            if variant:
+        for (step, chain), fut in steps.items():
+            ref = table.add_future(name, step, fut, variant=chain)
+            variant, _, backend = chain.partition("/")
+            if backend:
+                refs[name]["variants"][variant].setdefault("backends", {}).setdefault(backend, {})[step] = ref
+            elif variant:
                 refs[name].setdefault("variants", {}).setdefault(variant, {})[step] = ref
             else:
                 refs[name][step] = ref

@@ -18,7 +18,7 @@ from omegaconf import DictConfig
 from conf.schema import ConfigError, validate
 from tasks.control.gaussian_ply import GaussianPlyError
 from tasks.control.object_model import ObjectModelError, check_geometry_file
-from tasks.control.squeeze_signals import SignalError, read_recording
+from tasks.control.recording import SignalError, read_recording
 
 
 def _objects(cfg: DictConfig) -> list[tuple[str, Any]]:

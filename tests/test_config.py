@@ -92,7 +92,7 @@ def test_grid_objects_are_checked_with_the_key_to_override(compose_cfg, override
 
 
 def test_huge_recording_is_refused_before_it_is_read_or_hashed(compose_cfg, tmp_path):
-    from tasks.control.squeeze_signals import MAX_RECORDING_BYTES
+    from tasks.control.recording import MAX_RECORDING_BYTES
 
     huge = tmp_path / "huge.csv"
     with open(huge, "wb") as fh:  # sparse: st_size above the limit, no disk used

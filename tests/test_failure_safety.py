@@ -51,11 +51,13 @@ class _Touch:
         return (Path.touch, (self.path,))
 
 
-def test_bad_recording_fails_cleanly_and_the_fixed_rerun_reuses_upstream(prefect_server, tmp_path, compose_cfg):
+def test_bad_recording_is_refused_before_the_flow_starts(tmp_path, compose_cfg):
+    """A truncated recording stops the run in the pre-flight check: one line naming the input and the row, no
+    traceback, no Prefect server started (no flow runs), nothing written."""
     from flows.pipeline import run
     from tasks.control.object_model import build_object_model
-    from tasks.control.squeeze_signals import synthesize_session, write_recording
-    from tasks.core.step import plain_record
+    from tasks.control.recording import write_recording
+    from tasks.control.squeeze_signals import synthesize_session
 
     # a recording made around the ball, then cut off mid-row the way an interrupted copy leaves it
     base = compose_cfg("evaluate", _overrides(tmp_path, ["rubber_ball"]))
@@ -66,30 +68,49 @@ def test_bad_recording_fails_cleanly_and_the_fixed_rerun_reuses_upstream(prefect
     text = rec.read_text()
     rec.write_text(text[: len(text) - 40])
     cfg = compose_cfg("evaluate", _overrides(tmp_path, ["rubber_ball"], ["signal=csv", f"signal.path={rec}"]))
-
-    with pytest.raises(RuntimeError) as exc:
+    with pytest.raises(SystemExit) as exc:
         run(cfg, "test")
     msg = str(exc.value)
-    assert "\n" not in msg and "rubber_ball/squeeze_signals" in msg
+    assert msg.startswith("input error: signal.path: ") and "\n" not in msg
     assert f"recording {rec}: the last row 301 (line 302)" in msg and "looks truncated" in msg
+    assert not list((tmp_path / "artifacts").glob("*/*/*.zarr"))
+
+
+def test_a_failed_step_leaves_no_artifact_and_the_fixed_rerun_reuses_upstream(prefect_server, tmp_path,
+                                                                             compose_cfg, monkeypatch):
+    """A step that fails inside the flow (the LLM material oracle's endpoint refuses the connection): the run
+    fails with that step's own one-line message, the steps that need it are skipped, no artifact or cache
+    record of them exists, and the rerun with the table oracle reuses every upstream artifact."""
+    from flows.pipeline import run
+    from tasks.core.step import plain_record
+
+    monkeypatch.setenv("VIRSQUEEZER_LLM_API_KEY", "not-a-real-key")
+    llm = ["oracle.backend=llm", "oracle.llm_url=http://127.0.0.1:9/v1", "oracle.llm_model=m", "oracle.timeout_s=2",
+           f"oracle.cache_dir={tmp_path / 'llm-cache'}"]
+    with pytest.raises(RuntimeError) as exc:
+        run(compose_cfg("evaluate", _overrides(tmp_path, ["rubber_ball"], llm)), "test")
+    msg = str(exc.value)
+    assert "\n" not in msg and "rubber_ball/material_oracle" in msg
 
     art = tmp_path / "artifacts" / "rubber_ball"
+    upstream_steps = ["contact_patches", "dirichlet_field", "force_coefficients", "object_model",
+                      "signal_smoothing", "squeeze_signals"]
     # the failed step and everything after it: no artifact, complete or not, and no temporary
-    assert sorted(p.parent.name for p in art.glob("*/*.zarr")) == ["material_oracle", "object_model"]
+    assert sorted(p.parent.name for p in art.glob("*/*.zarr")) == upstream_steps
     assert _leftovers(tmp_path) == []
     [model] = art.glob("object_model/*.zarr")
     upstream = read_group_attrs(model)["digest"]
-    # cache records: only for the two complete artifacts; everything Prefect persisted is JSON (no pickle)
+    # cache records: only for the complete artifacts; everything Prefect persisted is JSON (no pickle)
     results = tmp_path / "artifacts" / ".prefect" / "results"
     docs = [json.loads(p.read_bytes()) for p in results.iterdir()]  # (a pickle would not parse)
     refs = [json.loads(d["result"])["data"] for d in docs if "ArtifactRef" in str(d.get("result"))]
-    assert sorted(r["step"] for r in refs) == ["material_oracle", "object_model"]
+    assert sorted(r["step"] for r in refs) == upstream_steps
     assert all(read_group_attrs(r["path"])["digest"] == r["digest"] for r in refs)
 
-    write_recording(rec, raw)  # the user fixes the file
+    cfg = compose_cfg("evaluate", _overrides(tmp_path, ["rubber_ball"]))  # the user switches to the table
     status = {r["step"]: r["status"] for r in run(cfg, "test")["tasks"]}
-    assert status.pop("object_model") == "cached" and status.pop("material_oracle") == "cached"
-    assert set(status.values()) == {"ran"} and "mpm_rollout" in status
+    assert all(status.pop(s) == "cached" for s in upstream_steps)
+    assert set(status.values()) == {"ran"} and "mpm_rollout" in status and "material_oracle" in status
     assert read_group_attrs(model)["digest"] == upstream
 
     # a pickle planted as the object model's cache record (anyone can compute the key) is removed unread

@@ -30,6 +30,8 @@ from tasks.physics.mpm import (
     polar_rotation,
 )
 from tasks.physics.mpm.constitutive import hencky_plastic_return, polar_rotation_quat, polar_track_quat
+from tasks.physics.mpm.kernels import stencil_at, stencil_weight
+from tasks.physics.mpm.solver import bspline_stencil
 
 DX = 0.005  # m
 
@@ -111,6 +113,50 @@ def test_device_auto_selects_available():
     X, vol = cube(0.01)
     s = MPMSolver(X, vol, JELLY, config=dict(dx=DX))
     assert s.device == ("cuda:0" if wp.get_cuda_device_count() > 0 else "cpu")
+
+
+# ============================================================================================ stencil
+@wp.kernel
+def _k_stencils(g: wp.array(dtype=wp.vec3), base: wp.array(dtype=wp.vec3i), w_axis: wp.array3d(dtype=float),
+                w_node: wp.array2d(dtype=float)):
+    p = wp.tid()
+    s = stencil_at(g[p])
+    base[p] = s.base
+    for i in range(3):
+        w_axis[p, 0, i] = s.wx[i]
+        w_axis[p, 1, i] = s.wy[i]
+        w_axis[p, 2, i] = s.wz[i]
+        for j in range(3):
+            for k in range(3):
+                w_node[p, 9 * i + 3 * j + k] = stencil_weight(s, i, j, k)
+
+
+def test_bspline_stencil_partition_of_unity_and_linear_reproduction():
+    """The kernels' quadratic B-spline stencil: base = floor(g - 1/2), per-axis weights >= 0 summing to 1 and
+    reproducing linear functions (sum_i w_i (base + i) = g); hand values 1/8, 3/4, 1/8 on a node (f = 1) and
+    1/2, 1/2, 0 halfway between nodes (f = 1/2); node weight = product of the axis weights; equal to the numpy
+    twin used by ``project_points``."""
+    rng = np.random.default_rng(3)
+    g = np.r_[[[2.0, 2.5, 3.25], [5.49, 5.5, 5.51]], rng.uniform(1.0, 30.0, (200, 3))].astype(np.float32)
+    P = len(g)
+    base = wp.zeros(P, dtype=wp.vec3i, device="cpu")
+    w_axis = wp.zeros((P, 3, 3), dtype=float, device="cpu")
+    w_node = wp.zeros((P, 27), dtype=float, device="cpu")
+    wp.launch(_k_stencils, dim=P, device="cpu", inputs=[wp.array(g, dtype=wp.vec3, device="cpu"), base, w_axis,
+                                                          w_node])
+    b, w, wn = base.numpy(), w_axis.numpy(), w_node.numpy()
+    np.testing.assert_array_equal(b, np.floor(g - np.float32(0.5)))
+    assert (w >= 0).all()
+    np.testing.assert_allclose(w.sum(-1), 1.0, atol=1e-6)
+    np.testing.assert_allclose((w * (b[..., None] + np.arange(3))).sum(-1), g, atol=2e-5)
+    np.testing.assert_allclose(w[0, 0], [0.125, 0.75, 0.125], atol=1e-7)  # g = 2: on node 2 (f = 1)
+    np.testing.assert_allclose(w[0, 1], [0.5, 0.5, 0.0], atol=1e-7)  # g = 2.5: halfway between nodes 2 and 3
+    expected_node = (w[:, 0, :, None, None] * w[:, 1, None, :, None] * w[:, 2, None, None, :]).reshape(P, 27)
+    np.testing.assert_allclose(wn, expected_node, rtol=1e-6, atol=1e-9)
+    np.testing.assert_allclose(wn.sum(1), 1.0, atol=1e-6)
+    b_np, w_np = bspline_stencil(g.astype(np.float64))
+    np.testing.assert_array_equal(b, b_np)
+    np.testing.assert_allclose(w, w_np, atol=1e-6)
 
 
 # ============================================================================================ conservation

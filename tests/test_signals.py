@@ -8,17 +8,15 @@ import pytest
 
 from conf.schema import ForceConfig, SignalConfig, SmoothingConfig
 from tasks.control.force_coefficients import force_coefficients, loading_curve
-from tasks.control.signal_smoothing import ema, resample_antialiased, smooth_signals
-from tasks.control.squeeze_signals import (
+from tasks.control.recording import (
     PERCENT_BENT_FULL_SCALE,
     REQUIRED_COLUMNS,
-    SESSION_KINDS,
     SignalError,
-    grasp_targets,
     read_recording,
-    synthesize_session,
     write_recording,
 )
+from tasks.control.signal_smoothing import ema, resample_antialiased, smooth_signals
+from tasks.control.squeeze_signals import SESSION_KINDS, grasp_targets, synthesize_session
 from tasks.core.artifacts import Array
 
 RADIUS, HEIGHT = 0.033, 0.12  # soda can, m

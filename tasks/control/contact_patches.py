@@ -79,9 +79,11 @@ signals onto the surface), so a finger pointing at the object from afar is activ
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from tasks.core.artifacts import Array, as_numpy, config_value
 from tasks.core.step import artifact_step
@@ -287,6 +289,61 @@ def _refine_points(x0, n0, u1, u2, k, p, a, trust):
 
 
 # ----------------------------------------------------------------------------------------------- main
+@dataclass(frozen=True)
+class PatchSearch:
+    """Finger model and search options of SC-CAE (see the module doc); the objective's weights are in ``cfg``.
+
+    pad_radius: m, finger pad radius of curvature for the Hertz aspect of sigma0.
+    standoff: m, reach = 2 sigma_max + standoff.
+    sweeps: maximum coordinate-descent sweeps over the fingers per frame.
+    refine: continuous refinement of the centre on the local surface quadric.
+    hysteresis: 1, objective head start of the candidate nearest the previous frame's centre (0 = off).
+    """
+
+    pad_radius: float = DEFAULT_PAD_RADIUS
+    standoff: float = DEFAULT_STANDOFF
+    sweeps: int = 6
+    refine: bool = True
+    hysteresis: float = DEFAULT_HYSTERESIS
+
+
+@dataclass
+class _Surface:
+    """Per-sample precomputation: coordinates relative to ``origin`` (m, for round-off), unit outward normals,
+    principal curvatures (k1 >= k2, 1/m), tangent frames, curvature cost phi, the force prior's aspect factors and
+    the sample spacing (m)."""
+
+    origin: np.ndarray  # (xyz,)
+    x: np.ndarray  # (S, 3)
+    n: np.ndarray  # (S, 3)
+    k: np.ndarray  # (S, 2)
+    u1: np.ndarray  # (S, 3)
+    u2: np.ndarray  # (S, 3)
+    phi: np.ndarray  # (S,)
+    aspect: np.ndarray  # (S, 2)
+    spacing: float
+
+
+@dataclass
+class _Candidates:
+    """Candidate patches of every ray (frame t, finger k), Q per ray (stage 1 of the solver): centres x (m),
+    normals, tangent axes, separable cost e, force-prior sigma0 s0 (m), the independent optimum ``best``, the
+    candidates' spread around it and largest sigma0 (m), their ray distances (m) and reachability."""
+
+    x: np.ndarray  # (T, F, Q, 3)
+    n: np.ndarray  # (T, F, Q, 3)
+    u1: np.ndarray  # (T, F, Q, 3)
+    u2: np.ndarray  # (T, F, Q, 3)
+    u: np.ndarray  # (T, F, Q, 3, 2) tangent axes as columns
+    e: np.ndarray  # (T, F, Q)
+    s0: np.ndarray  # (T, F, Q, 2)
+    best: np.ndarray  # (T, F)
+    spread: np.ndarray  # (T, F)
+    s0max: np.ndarray  # (T, F)
+    ray_d: np.ndarray  # (T, F, Q)
+    reachable: np.ndarray  # (T, F, Q)
+
+
 def contact_patches(
     surface_points,
     surface_normals,
@@ -297,12 +354,7 @@ def contact_patches(
     squeeze_directions,
     force_coefficients,
     cfg: Any,
-    *,
-    pad_radius: float = DEFAULT_PAD_RADIUS,
-    standoff: float = DEFAULT_STANDOFF,
-    sweeps: int = 6,
-    refine: bool = True,
-    hysteresis: float = DEFAULT_HYSTERESIS,
+    search: PatchSearch = PatchSearch(),
 ) -> dict[str, Array]:
     """SC-CAE contact patches, eq. 2, for every frame and finger (see the module doc for the objective).
 
@@ -316,11 +368,7 @@ def contact_patches(
         squeeze_directions: (T, F, 3) 1, a_k,t, pointing from the fingertip into the object.
         force_coefficients: (T, F) 1, c_k,t of eq. 1.
         cfg: ContactConfig-like (lambdas, sigma_min/max in m, candidates, activation).
-        pad_radius: m, finger pad radius of curvature for the Hertz aspect of sigma0.
-        standoff: m, reach = 2 sigma_max + standoff (see module doc).
-        sweeps: maximum coordinate-descent sweeps over the fingers per frame.
-        refine: continuous refinement of the centre on the local surface quadric.
-        hysteresis: 1, objective head start of the candidate nearest the previous frame's centre (0 = off).
+        search: finger model and search options (:class:`PatchSearch`).
 
     Returns:
         ``patch_centers`` (frame, finger, xyz) m, ``patch_normals`` (frame, finger, xyz) 1 (outward),
@@ -329,15 +377,31 @@ def contact_patches(
         (frame, finger) m^2 (pi sigma1 sigma2, 0 when inactive), ``patch_active`` (frame, finger) bool,
         ``patch_cost`` (frame, finger) 1 (value of the eq. 2 objective at the solution).
     """
-    X = as_numpy(surface_points)
-    N_in = as_numpy(surface_normals)
-    K = as_numpy(surface_curvature).copy()
-    D = as_numpy(surface_principal_dirs).copy()
-    A = as_numpy(surface_area)
-    P = as_numpy(fingertip_positions)
-    a_raw = as_numpy(squeeze_directions)
-    c = as_numpy(force_coefficients)
+    # 1. inputs and the objective's constants
+    X, N_in, K, D, A, P, a_raw, c = _checked_inputs(surface_points, surface_normals, surface_curvature,
+                                                    surface_principal_dirs, surface_area, fingertip_positions,
+                                                    squeeze_directions, force_coefficients)
+    prob = _Problem(cfg, search.pad_radius, search.standoff)
+    # 2. per-sample precomputation
+    surf = _prepare_surface(X, N_in, K, D, A, prob)
+    # 3. rays and the force prior
+    a, a_norm = _normalise(a_raw)
+    valid = a_norm > 1e-6
+    a[~valid] = 0.0
+    active_force = valid & (c > prob.activation)
+    # 4. candidates of every ray, then 5. the per-frame coordinate descent
+    cands = _find_candidates(prob, surf, P - surf.origin, a, prob.r0(c), search.refine)
+    centers, normals, axes, radii, costs, active = _solve_frames(prob, cands, c, active_force, surf.spacing,
+                                                                 search.sweeps, search.hysteresis)
+    # 6. the artifact arrays
+    return _patch_arrays(centers + surf.origin, normals, axes, radii, costs, active)
 
+
+def _checked_inputs(*arrays) -> tuple[np.ndarray, ...]:
+    """The eight array inputs of :func:`contact_patches` as numpy (curvatures and directions copied), checked
+    for shape and finiteness (ValueError naming the input)."""
+    X, N_in, K, D, A, P, a_raw, c = (as_numpy(v) for v in arrays)
+    K, D = K.copy(), D.copy()
     S = X.shape[0]
     if X.ndim != 2 or X.shape[1] != 3 or S == 0:
         raise ValueError(f"surface_points must be (S, 3) with S > 0, got {X.shape}")
@@ -353,35 +417,46 @@ def contact_patches(
                       ("squeeze_directions", a_raw), ("force_coefficients", c)):
         if not np.all(np.isfinite(arr)):
             raise ValueError(f"{name} contains non-finite values")
-    T, F = c.shape
-    prob = _Problem(cfg, pad_radius, standoff)
+    return X, N_in, K, D, A, P, a_raw, c
 
-    # ---- per-sample precomputation (coordinates relative to the centroid for round-off)
+
+def _prepare_surface(X: np.ndarray, N_in: np.ndarray, K: np.ndarray, D: np.ndarray, A: np.ndarray,
+                     prob: _Problem) -> _Surface:
+    """Per-sample precomputation (coordinates relative to the centroid for round-off); ``K`` and ``D`` are
+    reordered in place so that k1 >= k2."""
     origin = X.mean(axis=0)
     X = X - origin
-    P = P - origin
     N, _ = _normalise(N_in)
     swap = K[:, 0] < K[:, 1]  # enforce k1 >= k2 together with the directions
     K[swap] = K[swap][:, ::-1]
     D[swap] = D[swap][:, ::-1]
     U1, U2 = _tangent_frames(N, D)
-    phi_c = prob.curvature_cost(K)
-    aspect = prob.aspect(K)  # (S, 2), sigma0 = r0 * aspect
     good_area = A[np.isfinite(A) & (A > 0)]
     if good_area.size:
         spacing = float(np.sqrt(np.median(good_area)))
     else:  # fall back to the median nearest-neighbour distance
-        from scipy.spatial import cKDTree
-
         spacing = float(np.median(cKDTree(X).query(X, k=2)[0][:, 1]))
+    return _Surface(origin=origin, x=X, n=N, k=K, u1=U1, u2=U2, phi=prob.curvature_cost(K), aspect=prob.aspect(K),
+                    spacing=spacing)
 
-    a, a_norm = _normalise(a_raw)
-    valid = a_norm > 1e-6
-    a[~valid] = 0.0
-    r0 = prob.r0(c)  # (T, F) m
-    active_force = valid & (c > prob.activation)
 
-    # ---- candidates for every ray at once: the samples of lowest separable cost (chunked over rays)
+def _exact_cost(prob: _Problem, first_hit: np.ndarray, x, n, phi, p, d):
+    """Separable cost (1) and reachability of points x (M, ..., 3) for rays (p, d) (M, ..., 3); ``first_hit``
+    (M,) m is each ray's first surface crossing."""
+    nd = np.sum(n * d, axis=-1)
+    along = np.sum((x - p) * d, axis=-1)
+    blocked = prob.unreachable(nd, along, first_hit.reshape(first_hit.shape + (1,) * (nd.ndim - 1)))
+    return prob.separable(_ray_distance(x, p, d) ** 2, nd, phi, blocked), ~blocked
+
+
+def _find_candidates(prob: _Problem, surf: _Surface, P: np.ndarray, a: np.ndarray, r0: np.ndarray,
+                     refine: bool) -> _Candidates:
+    """Solver stage 1 (module doc): the ``cfg.candidates`` samples of lowest separable cost of every ray
+    (fingertips ``P`` (T, F, 3) m relative to the surface origin, unit directions ``a``), plus the continuous
+    refinement of the best one; ``r0`` (T, F) m the force prior's equivalent radius."""
+    X, N, S = surf.x, surf.n, len(surf.x)
+    T, F = r0.shape
+    # 1. the samples of lowest separable cost, for every ray at once (chunked over rays)
     n_cand = min(prob.n_candidates, S)
     M = T * F
     Pm = P.reshape(M, 3)
@@ -396,138 +471,162 @@ def contact_patches(
         v2 = X2[:, None] - 2.0 * (X @ p.T) + np.sum(p ** 2, axis=1)[None, :]
         d2 = np.maximum(v2 - np.where(s > 0.0, s * s, 0.0), 0.0)
         # first surface crossing ahead of the fingertip: nearest sample within one spacing of the ray
-        hit = np.where((d2 < spacing ** 2) & (s > 0.0), s, np.inf).min(axis=0)
+        hit = np.where((d2 < surf.spacing ** 2) & (s > 0.0), s, np.inf).min(axis=0)
         first_hit[lo:lo + chunk] = hit
         nd = N @ d.T
-        cost = prob.separable(d2, nd, phi_c[:, None], prob.unreachable(nd, s, hit[None, :]))
+        cost = prob.separable(d2, nd, surf.phi[:, None], prob.unreachable(nd, s, hit[None, :]))
         if n_cand < S:
             part = np.argpartition(cost, n_cand - 1, axis=0)[:n_cand]
         else:
             part = np.broadcast_to(np.arange(S)[:, None], cost.shape)
         cand[lo:lo + chunk] = part.T
-    def exact_cost(x, n, phi, p, d):
-        """Separable cost (1) and reachability of points x (M, ..., 3) for rays (p, d) (M, ..., 3)."""
-        nd = np.sum(n * d, axis=-1)
-        along = np.sum((x - p) * d, axis=-1)
-        blocked = prob.unreachable(nd, along, first_hit.reshape(first_hit.shape + (1,) * (nd.ndim - 1)))
-        return prob.separable(_ray_distance(x, p, d) ** 2, nd, phi, blocked), ~blocked
 
-    # exact separable cost of the candidates (the expansion above is only used for ranking)
-    cand_e, _ = exact_cost(X[cand], N[cand], phi_c[cand], Pm[:, None], am[:, None])
+    # 2. exact separable cost of the candidates (the expansion above is only used for ranking)
+    cand_e, _ = _exact_cost(prob, first_hit, X[cand], N[cand], surf.phi[cand], Pm[:, None], am[:, None])
 
-    # candidate geometry (M, Q, ...): the samples, plus the continuous refinement of the best one
+    # 3. candidate geometry (M, Q, ...): the samples, plus the continuous refinement of the best one
     g_base = cand
-    g_x, g_n, g_u1, g_u2, g_e = X[cand], N[cand], U1[cand], U2[cand], cand_e
+    g_x, g_n, g_u1, g_u2, g_e = X[cand], N[cand], surf.u1[cand], surf.u2[cand], cand_e
     if refine:
         b = cand[np.arange(M), np.argmin(cand_e, axis=1)]
-        xr, nr, r1, r2 = _refine_points(X[b], N[b], U1[b], U2[b], K[b], Pm, am, spacing)
-        er, _ = exact_cost(xr, nr, phi_c[b], Pm, am)
+        xr, nr, r1, r2 = _refine_points(X[b], N[b], surf.u1[b], surf.u2[b], surf.k[b], Pm, am, surf.spacing)
+        er, _ = _exact_cost(prob, first_hit, xr, nr, surf.phi[b], Pm, am)
         g_base = np.concatenate([cand, b[:, None]], axis=1)
         g_x = np.concatenate([g_x, xr[:, None]], axis=1)
         g_n = np.concatenate([g_n, nr[:, None]], axis=1)
         g_u1 = np.concatenate([g_u1, r1[:, None]], axis=1)
         g_u2 = np.concatenate([g_u2, r2[:, None]], axis=1)
         g_e = np.concatenate([g_e, er[:, None]], axis=1)
+
+    # 4. what the frame solver needs per candidate, as (T, F, Q, ...)
     g_u = np.stack([g_u1, g_u2], axis=-1)  # (M, Q, 3, 2) tangent axes as columns
-    g_s0 = r0.reshape(M, 1, 1) * aspect[g_base]  # (M, Q, 2) m
+    g_s0 = r0.reshape(M, 1, 1) * surf.aspect[g_base]  # (M, Q, 2) m
     g_best = np.argmin(g_e, axis=1)  # independent (overlap-free) optimum of each ray
     g_spread = np.linalg.norm(g_x - g_x[np.arange(M), g_best][:, None], axis=-1).max(axis=1)
     g_s0max = g_s0.max(axis=(1, 2))
     ray_d = _ray_distance(g_x, Pm[:, None], am[:, None])  # (M, Q) m
-    _, reachable = exact_cost(g_x, g_n, 0.0, Pm[:, None], am[:, None])  # (M, Q)
-    shp = (T, F)
-    g_base, g_x, g_n, g_u1, g_u2, g_u, g_e = (v.reshape(shp + v.shape[1:])
-                                               for v in (g_base, g_x, g_n, g_u1, g_u2, g_u, g_e))
-    g_s0, g_best, g_spread, g_s0max, ray_d, reachable = (v.reshape(shp + v.shape[1:]) for v in
-                                                         (g_s0, g_best, g_spread, g_s0max, ray_d, reachable))
+    _, reachable = _exact_cost(prob, first_hit, g_x, g_n, 0.0, Pm[:, None], am[:, None])  # (M, Q)
+    per_ray = {"x": g_x, "n": g_n, "u1": g_u1, "u2": g_u2, "u": g_u, "e": g_e, "s0": g_s0, "best": g_best,
+               "spread": g_spread, "s0max": g_s0max, "ray_d": ray_d, "reachable": reachable}
+    return _Candidates(**{k: v.reshape((T, F) + v.shape[1:]) for k, v in per_ray.items()})
 
-    # ---- outputs
+
+class _FrameState:
+    """The patches of the frame being solved (carried over to the next frame as warm start): chosen candidate
+    slot q, centre x (m), normal n, axes u (rows), radii s (m) and eligibility (active and within reach: the
+    patch enters the other fingers' overlap terms)."""
+
+    def __init__(self, prob: _Problem, cands: _Candidates, active_force: np.ndarray, spacing: float,
+                 hysteresis: float):
+        F = active_force.shape[1]
+        self.prob, self.cands, self.active_force, self.hysteresis = prob, cands, active_force, hysteresis
+        self.q = np.full(F, -1, dtype=np.int64)  # chosen candidate slot
+        self.x = np.zeros((F, 3))
+        self.n = np.zeros((F, 3))
+        self.u = np.zeros((F, 2, 3))
+        self.s = np.zeros((F, 2))
+        self.eligible = np.zeros(F, dtype=bool)  # active and within reach: enters the others' overlap terms
+        self.prev_x = np.zeros((F, 3))  # centres of the previous frame (hysteresis)
+        self.tol_x = 0.25 * spacing  # m, a patch that moved less than this (and ...
+        self.tol_s = 0.01  # 1, ... whose radii changed by less than 1 %) counts as unchanged: the sweeps stop
+
+    def assign(self, t: int, i: int, q: int, sig: np.ndarray) -> bool:
+        """Place finger i's patch on candidate q with radii sig (m); returns True when the patch changed."""
+        g = self.cands
+        changed = float(np.abs(self.s[i] - sig).max()) > self.tol_s * float(sig.max()) \
+            or float(np.abs(self.x[i] - g.x[t, i, q]).max()) > self.tol_x
+        self.q[i] = q
+        self.x[i] = g.x[t, i, q]
+        self.n[i] = g.n[t, i, q]
+        self.u[i, 0] = g.u1[t, i, q]
+        self.u[i, 1] = g.u2[t, i, q]
+        self.s[i] = sig
+        self.eligible[i] = self.active_force[t, i] and g.ray_d[t, i, q] <= self.prob.reach and g.reachable[t, i, q]
+        return changed
+
+    def update(self, t: int, i: int, nb: np.ndarray) -> bool:
+        """Re-solve finger i against the placed neighbours nb; returns True when its patch changed."""
+        g = self.cands
+        e = g.e[t, i]
+        if t > 0 and self.hysteresis > 0.0:  # the candidate nearest last frame's centre gets a head start
+            e = e.copy()
+            e[np.argmin(np.sum((g.x[t, i] - self.prev_x[i]) ** 2, axis=1))] -= self.hysteresis
+        if nb.size and self.active_force[t, i]:
+            # cheap bound: can any candidate come within overlap range of any neighbour?
+            gap = np.linalg.norm(self.x[nb] - g.x[t, i, g.best[t, i]], axis=1) - g.spread[t, i]
+            if np.any(gap < g.s0max[t, i] + self.s[nb].max(axis=1)):
+                terms = _pair_terms(g.x[t, i], g.n[t, i], g.u[t, i], self.x[nb], self.n[nb], self.u[nb], self.s[nb])
+                q, sig, _, _ = _solve_sigma(self.prob, e, g.s0[t, i], terms)
+                return self.assign(t, i, q, sig)
+        q0 = int(np.argmin(e))
+        return self.assign(t, i, q0, g.s0[t, i, q0])
+
+    def objective(self, t: int, i: int) -> float:
+        """Value of the eq. 2 objective of finger i at the final state (overlap against the final neighbours)."""
+        g, F = self.cands, len(self.q)
+        cost = g.e[t, i, self.q[i]]
+        nb = np.arange(F)[(np.arange(F) != i) & self.eligible]
+        if self.active_force[t, i] and nb.size:
+            near = np.linalg.norm(self.x[nb] - self.x[i], axis=1) < g.s0max[t, i] + self.s[nb].max(axis=1)
+            nb = nb[near]
+        if self.active_force[t, i] and nb.size:
+            terms = _pair_terms(self.x[i:i + 1], self.n[i:i + 1], np.swapaxes(self.u[i:i + 1], 1, 2),
+                                self.x[nb], self.n[nb], self.u[nb], self.s[nb])
+            s0 = g.s0[t, i, self.q[i]][None]
+            cost += _sigma_cost(self.prob, terms, s0, self.s[i:i + 1, :1], self.s[i:i + 1, 1:])[0, 0, 0]
+        return cost
+
+
+def _solve_frames(prob: _Problem, cands: _Candidates, c: np.ndarray, active_force: np.ndarray, spacing: float,
+                  sweeps: int, hysteresis: float) -> tuple[np.ndarray, ...]:
+    """Solver stages 2-3 (module doc), frame by frame: Gauss-Seidel sweeps over the fingers in order of
+    decreasing force coefficient ``c`` (T, F), warm-started from the previous frame.  Returns centres (T, F, 3)
+    m relative to the surface origin, normals (T, F, 3), axes (T, F, 2, 3), radii (T, F, 2) m (0 when inactive),
+    objective values (T, F) and activity (T, F)."""
+    T, F = c.shape
     centers = np.zeros((T, F, 3))
     normals = np.zeros((T, F, 3))
     axes = np.zeros((T, F, 2, 3))
     radii = np.zeros((T, F, 2))
     costs = np.zeros((T, F))
     active = np.zeros((T, F), dtype=bool)
-
-    # ---- state of the current frame (carried over to the next frame as warm start)
-    st_q = np.full(F, -1, dtype=np.int64)  # chosen candidate slot
-    st_x = np.zeros((F, 3))
-    st_n = np.zeros((F, 3))
-    st_u = np.zeros((F, 2, 3))
-    st_s = np.zeros((F, 2))
-    st_eligible = np.zeros(F, dtype=bool)  # active and within reach: enters the others' overlap terms
-    tol_x = 0.25 * spacing  # m, a patch that moved less than this (and ...
-    tol_s = 0.01  # 1, ... whose radii changed by less than 1 %) counts as unchanged: the sweeps stop
-
-    def assign(t: int, i: int, q: int, sig: np.ndarray) -> bool:
-        changed = float(np.abs(st_s[i] - sig).max()) > tol_s * float(sig.max()) \
-            or float(np.abs(st_x[i] - g_x[t, i, q]).max()) > tol_x
-        st_q[i] = q
-        st_x[i] = g_x[t, i, q]
-        st_n[i] = g_n[t, i, q]
-        st_u[i, 0] = g_u1[t, i, q]
-        st_u[i, 1] = g_u2[t, i, q]
-        st_s[i] = sig
-        st_eligible[i] = active_force[t, i] and ray_d[t, i, q] <= prob.reach and reachable[t, i, q]
-        return changed
-
-    def update(t: int, i: int, nb: np.ndarray) -> bool:
-        """Re-solve finger i against the placed neighbours nb; returns True when its patch changed."""
-        e = g_e[t, i]
-        if t > 0 and hysteresis > 0.0:  # the candidate nearest last frame's centre gets a head start
-            e = e.copy()
-            e[np.argmin(np.sum((g_x[t, i] - prev_x[i]) ** 2, axis=1))] -= hysteresis
-        if nb.size and active_force[t, i]:
-            # cheap bound: can any candidate come within overlap range of any neighbour?
-            gap = np.linalg.norm(st_x[nb] - g_x[t, i, g_best[t, i]], axis=1) - g_spread[t, i]
-            if np.any(gap < g_s0max[t, i] + st_s[nb].max(axis=1)):
-                terms = _pair_terms(g_x[t, i], g_n[t, i], g_u[t, i], st_x[nb], st_n[nb], st_u[nb], st_s[nb])
-                q, sig, _, _ = _solve_sigma(prob, e, g_s0[t, i], terms)
-                return assign(t, i, q, sig)
-        q0 = int(np.argmin(e))
-        return assign(t, i, q0, g_s0[t, i, q0])
-
+    st = _FrameState(prob, cands, active_force, spacing, hysteresis)
     all_f = np.arange(F)
-    prev_x = np.zeros((F, 3))
     for t in range(T):
-        prev_x[:] = st_x
+        st.prev_x[:] = st.x
         order = np.argsort(-c[t], kind="stable")
-        # warm start: fingers eligible in the previous frame and still pushing enter the overlap terms with
+        # 1. warm start: fingers eligible in the previous frame and still pushing enter the overlap terms with
         # their previous patches until this frame's first sweep reaches them
-        placed = st_eligible & active_force[t] if t > 0 else np.zeros(F, dtype=bool)
-        st_eligible &= placed
+        placed = st.eligible & active_force[t] if t > 0 else np.zeros(F, dtype=bool)
+        st.eligible &= placed
         n_active = int(active_force[t].sum())
+        # 2. coordinate-descent sweeps until no patch changes or no two patches can interact
         for sweep in range(max(1, sweeps)):
             changed = False
             for i in order:
                 if sweep > 0 and not active_force[t, i]:
                     continue
-                nb = all_f[(all_f != i) & placed & st_eligible]
-                changed |= update(t, i, nb)
+                nb = all_f[(all_f != i) & placed & st.eligible]
+                changed |= st.update(t, i, nb)
                 placed[i] = True
             if n_active <= 1 or not changed:
                 break
-            prior = g_s0max[t]
-            if not _any_interaction(st_x, st_n, np.maximum(prior, st_s.max(axis=1)), st_eligible):
+            prior = cands.s0max[t]
+            if not _any_interaction(st.x, st.n, np.maximum(prior, st.s.max(axis=1)), st.eligible):
                 break
-        # objective of every finger at the final state (overlap against the final neighbours)
+        # 3. the frame's patches and their objective values
         for i in range(F):
-            costs[t, i] = g_e[t, i, st_q[i]]
-            nb = all_f[(all_f != i) & st_eligible]
-            if active_force[t, i] and nb.size:
-                near = np.linalg.norm(st_x[nb] - st_x[i], axis=1) < g_s0max[t, i] + st_s[nb].max(axis=1)
-                nb = nb[near]
-            if active_force[t, i] and nb.size:
-                terms = _pair_terms(st_x[i:i + 1], st_n[i:i + 1], np.swapaxes(st_u[i:i + 1], 1, 2),
-                                    st_x[nb], st_n[nb], st_u[nb], st_s[nb])
-                s0 = g_s0[t, i, st_q[i]][None]
-                costs[t, i] += _sigma_cost(prob, terms, s0, st_s[i:i + 1, :1], st_s[i:i + 1, 1:])[0, 0, 0]
-        centers[t] = st_x + origin
-        normals[t] = st_n
-        axes[t] = st_u
-        active[t] = st_eligible
-        radii[t] = np.where(st_eligible[:, None], st_s, 0.0)
+            costs[t, i] = st.objective(t, i)
+        centers[t] = st.x
+        normals[t] = st.n
+        axes[t] = st.u
+        active[t] = st.eligible
+        radii[t] = np.where(st.eligible[:, None], st.s, 0.0)
+    return centers, normals, axes, radii, costs, active
 
+
+def _patch_arrays(centers, normals, axes, radii, costs, active) -> dict[str, Array]:
+    """The contact_patches artifact arrays (axes and units named) from the solved patches (frame, finger, ...)."""
     areas = np.pi * radii[..., 0] * radii[..., 1]
     return {
         "patch_centers": Array(centers, ("frame", "finger", "xyz"), "m",

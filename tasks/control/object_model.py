@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import math
 import zlib
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -97,7 +98,12 @@ class ObjectModelError(ValueError):
 
 # ----------------------------------------------------------------------------------------------- helpers
 def _get(node: Any, name: str, default: Any = None) -> Any:
-    return getattr(node, name, default) if node is not None else default
+    """``node.name`` of a config node or dataclass, ``node[name]`` of a plain mapping (step params)."""
+    if node is None:
+        return default
+    if isinstance(node, Mapping):
+        return node.get(name, default)
+    return getattr(node, name, default)
 
 
 def _unit(v: np.ndarray, fallback=(0.0, 0.0, 1.0)) -> np.ndarray:

@@ -3,7 +3,7 @@
 The paper synchronises flexion, fingertip positions and palm pose "along a unified timeline", applies "an
 exponential moving average ... to suppress noise induced by hand jitter" and uses the "de-biased flexion"
 u~ in eq. 1.  :func:`smooth_signals` does these three steps on raw sensor-rate arrays (as produced by
-:func:`tasks.control.squeeze_signals.read_recording` / ``synthesize_session``) and returns frame-rate
+:func:`tasks.control.recording.read_recording` / ``synthesize_session``) and returns frame-rate
 :class:`tasks.core.artifacts.Array` objects.  Pure numpy/scipy; all units SI.
 
 1. Timeline.  Frames ``t_f = t0 + f / frame_rate`` (s) for every f with ``t_f <= t_end``; t0 and t_end are the
@@ -42,7 +42,7 @@ import numpy as np
 from scipy.signal import lfilter
 
 from conf.hand import FINGERS
-from tasks.control.squeeze_signals import SignalError, validate_signals
+from tasks.control.recording import SignalError, validate_signals
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step
 
@@ -177,7 +177,7 @@ def smooth_signals(
     ----------
     raw:
         Raw sensor-rate arrays (``time`` s, ``flexion`` 1, ``fingertip_positions`` m, ``palm_position`` m,
-        ``palm_orientation`` wxyz), as from :func:`tasks.control.squeeze_signals.read_recording`.
+        ``palm_orientation`` wxyz), as from :func:`tasks.control.recording.read_recording`.
     frame_rate:
         Output frame rate (Hz), ``control.smoothing.frame_rate``.
     ema_alpha:

@@ -59,27 +59,44 @@ def imported_modules(name: str, source: str, root: Path = REPO_ROOT) -> set[str]
     return {m for m in found if module_file(m, root) is not None}
 
 
-def import_closure(name: str, root: Path = REPO_ROOT) -> list[str]:
-    """Sorted names of every project module reachable from module ``name`` through imports (``name`` included)."""
+_PARSED: dict[tuple[str, str, int, int], frozenset[str]] = {}  # (module, path, mtime_ns, size) -> its imports
+
+
+def _imports_of(name: str, path: Path, root: Path) -> frozenset[str]:
+    st = path.stat()
+    key = (name, str(path), st.st_mtime_ns, st.st_size)
+    if key not in _PARSED:
+        _PARSED[key] = frozenset(imported_modules(name, path.read_text(), root))
+    return _PARSED[key]
+
+
+def import_closure(name: str, root: Path = REPO_ROOT, path: Path | None = None) -> list[str]:
+    """Sorted names of every project module reachable from module ``name`` through imports (``name`` included).
+
+    ``path`` is the source file of ``name`` when it is not a project module (e.g. a step defined in a test)."""
     seen: set[str] = set()
     todo = [name]
+    files = {name: path} if path is not None else {}
     while todo:
         current = todo.pop()
         if current in seen:
             continue
-        path = module_file(current, root)
-        if path is None:
+        source = files.get(current) or module_file(current, root)
+        if source is None:
             raise ModuleNotFoundError(f"project module {current!r} has no source file under {root}")
+        files[current] = source
         seen.add(current)
-        todo.extend(imported_modules(current, path.read_text(), root) - seen)
+        todo.extend(_imports_of(current, source, root) - seen)
     return sorted(seen)
 
 
-def code_version(name: str, root: Path | None = None) -> str:
-    """sha256 over the names and sources of :func:`import_closure` of module ``name``."""
+def code_version(name: str, root: Path | None = None, path: Path | None = None) -> str:
+    """sha256 over the names and sources of :func:`import_closure` of module ``name`` (source file ``path`` when
+    ``name`` is not a project module)."""
     root = (root or REPO_ROOT).resolve()
     h = hashlib.sha256()
-    for module in import_closure(name, root):
+    for module in import_closure(name, root, path):
+        source = path if (module == name and path is not None) else module_file(module, root)
         h.update(module.encode() + b"\0")
-        h.update(module_file(module, root).read_bytes() + b"\0")
+        h.update(source.read_bytes() + b"\0")
     return h.hexdigest()

@@ -29,6 +29,7 @@ The Prefect task made from the declaration
 """
 from __future__ import annotations
 
+import inspect
 import json
 import time
 from contextvars import ContextVar
@@ -51,7 +52,7 @@ from tasks.core.artifacts import (
     read_group_attrs,
     write_artifact,
 )
-from tasks.core.code_version import code_version
+from tasks.core.code_version import code_version, module_file
 from tasks.core.params import Params
 
 log = get_logger("virsqueezer")
@@ -270,7 +271,9 @@ def artifact_step(name: str, *, inputs: tuple[str, ...] = (), reads: tuple[str, 
     spec = StepSpec(name=name, inputs=tuple(inputs), reads=tuple(reads), files=tuple(files), outputs=tuple(outputs))
 
     def decorate(compute: ComputeFn) -> StepTask:
-        version = code_version(compute.__module__)
+        module = compute.__module__
+        own_file = None if module_file(module) else Path(inspect.getsourcefile(compute))  # a step outside tasks/
+        version = code_version(module, path=own_file)
         holder: dict[str, StepTask] = {}
 
         def run(root: str, scope: str, params: dict, inputs: dict, label: str) -> ArtifactRef:

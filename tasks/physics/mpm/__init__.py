@@ -1,5 +1,5 @@
 """MLS-MPM physics core (NVIDIA Warp): materials, constitutive models, kernels and the solver driver."""
-from .materials import Material, MaterialError, MODEL_CODES, canonical_model, material_from_dict  # noqa: F401
+from .materials import MODEL_CODES, Material, MaterialError, canonical_model, material_from_dict  # noqa: F401
 from .solver import (  # noqa: F401
     DirichletNodes,
     DirichletPoints,

@@ -34,7 +34,16 @@ from __future__ import annotations
 
 import warp as wp
 
+from .materials import MODEL_CODES
+
 wp.set_module_options({"enable_backward": False})
+
+# material model codes as compile-time constants (the kernels branch on them; see materials.MODEL_CODES)
+MODEL_FIXED_COROTATED = wp.constant(MODEL_CODES["fixed_corotated"])
+MODEL_NEO_HOOKEAN = wp.constant(MODEL_CODES["neo_hookean"])
+MODEL_VON_MISES = wp.constant(MODEL_CODES["von_mises"])
+MODEL_FOAM = wp.constant(MODEL_CODES["foam"])
+MODEL_FLUID = wp.constant(MODEL_CODES["fluid"])
 
 SQRT_2_3 = wp.constant(0.816496580927726)  # sqrt(2/3)
 MIN_SIGMA = wp.constant(1.0e-4)
@@ -224,7 +233,8 @@ def hencky_plastic_return(
     is_foam: int,
     dt: float,
 ) -> PlasticResult:
-    """Return mapping of StVK-Hencky + von Mises (model 2) or the viscoplastic foam (model 3).
+    """Return mapping of StVK-Hencky + von Mises (``MODEL_VON_MISES``) or the viscoplastic foam (``MODEL_FOAM``,
+    ``is_foam`` = 1).
 
     Works on the signed singular values of the trial F_E (rotation-variant SVD, so inversion keeps its sign),
     returns the projected F_E together with its Kirchhoff stress (the SVD is shared).

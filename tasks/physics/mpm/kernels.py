@@ -8,13 +8,20 @@ all fixed-corotated (no model branches).  The first P2G of a frame (:func:`k_p2g
 affine matrices are stored only at frame boundaries.  Every P2G records the bounding box of the stencils it
 touched (``bbox``) and the grid update runs only over the union of the current and previous boxes.
 
+Kernel arguments are bundled in structs: :class:`Particles` (the per-particle state arrays),
+:class:`MaterialTable` (model code and parameter row of each material), :class:`GridInfo` (grid geometry),
+:class:`StepParams` (per-launch scalars of the particle kernels), :class:`GridStep` (per-launch scalars of the
+grid update), :class:`GridConditions` (gravity, domain walls, floor), :class:`DirichletGrid` (the node arrays
+of the Dirichlet constraints) and :class:`DirichletPointSet` (one set of constrained points).  A recorded launch
+is updated through its one per-launch struct (``sp`` or ``gs``), by name.
+
 Grid layout: ``wp.array3d(dtype=wp.vec4)``, node (i, j, k) at ``lo + (i, j, k) dx``; after P2G a node holds
 (momentum, mass), after the grid update (velocity, mass).
 
 Index safety: every particle or point coordinate is checked against the safe band of the grid before any grid
 access; an offending coordinate (including NaN) is clamped into the band and an error flag is raised in
-``flags`` (read by the host, which raises :class:`~tasks.physics.mpm.solver.SimulationError`).  No kernel ever writes
-outside the grid, in release or debug mode.
+``flags`` (read by the host, which raises :class:`~tasks.physics.mpm.solver.SimulationError`).  No kernel ever
+writes outside the grid, in release or debug mode.
 
 Flag layout (int32 array of length ``N_FLAGS``): for each code c in (OUT_OF_GRID, NONFINITE, EXTREME_J,
 TRACER_OUT): ``flags[c]`` = number of offences, ``flags[4 + c]`` = first substep index (atomic min),
@@ -26,6 +33,10 @@ import warp as wp
 
 from . import materials as M
 from .constitutive import (
+    MODEL_FIXED_COROTATED,
+    MODEL_FLUID,
+    MODEL_FOAM,
+    MODEL_NEO_HOOKEAN,
     fluid_reset,
     hencky_plastic_return,
     polar_rotation_quat,
@@ -73,6 +84,28 @@ class GridInfo:
 
 
 @wp.struct
+class Particles:
+    """Per-particle state, arrays of length N (``q``, ``alpha``: length 1 when no particle's model uses them)."""
+
+    x: wp.array(dtype=wp.vec3)  # position, m
+    v: wp.array(dtype=wp.vec3)  # velocity, m/s (stored at frame ends)
+    C: wp.array(dtype=wp.mat33)  # APIC affine velocity matrix (velocity gradient), 1/s (stored at frame ends)
+    F: wp.array(dtype=wp.mat33)  # elastic deformation gradient F_E
+    q: wp.array(dtype=wp.quat)  # rotation of F_E (fixed-corotated)
+    alpha: wp.array(dtype=float)  # equivalent plastic strain (von Mises, foam)
+    vol: wp.array(dtype=float)  # initial volume, m^3
+    mat_id: wp.array(dtype=wp.int32)  # row of the particle's material in the MaterialTable
+
+
+@wp.struct
+class MaterialTable:
+    """Packed materials (see :func:`~tasks.physics.mpm.materials.pack_table`), one row per material."""
+
+    model: wp.array(dtype=wp.int32)  # (material,) model code, one of the MODEL_* constants
+    par: wp.array2d(dtype=float)  # (material, N_COLS) parameters, columns C_* (SI units)
+
+
+@wp.struct
 class StepParams:
     """Per-launch scalars of the particle kernels."""
 
@@ -84,6 +117,60 @@ class StepParams:
     polar_iters: int
     polar_tol: float
     polar_newton: int  # 1: Newton iteration to polar_tol (frame start/end); 0: one cheap tracking step per iter
+
+
+@wp.struct
+class GridStep:
+    """Per-launch scalars of the grid update."""
+
+    origin: wp.vec3i  # lowest node of the active box (the launch covers origin + launch dims)
+    dt: float  # substep, s
+    has_bc: int  # 1: Dirichlet nodes are active this substep
+
+
+@wp.struct
+class GridConditions:
+    """Body force and fixed boundaries of the grid update (constant while the solver's materials are)."""
+
+    gravity: wp.vec3  # m/s^2 (already divided by the mass scale)
+    pad: int  # wall layer thickness, nodes
+    wall_sticky: int  # 1: walls stop the whole velocity; 0: only the component into the wall (slip)
+    floor_on: int
+    floor_g: float  # floor height in grid units
+    floor_mu: float  # Coulomb friction coefficient of the floor (0: frictionless slip)
+    floor_sticky: int
+
+
+@wp.struct
+class DirichletGrid:
+    """Node arrays of the Dirichlet constraints (grid-shaped, zero outside the constrained stencils)."""
+
+    target: wp.array3d(dtype=wp.vec4)  # (sum w v_target [m/s], sum w) over the points touching the node
+    normal: wp.array3d(dtype=wp.vec4)  # (sum w n, 0): slip normal, zero for a full (sticky) constraint
+    reaction: wp.array3d(dtype=wp.vec4)  # (m (v_bc - v*) / (dt W) [N per unit weight], 0)
+
+
+@wp.struct
+class DirichletPointSet:
+    """One set of constrained points: target velocities, optional slip normals, finger ids."""
+
+    x: wp.array(dtype=wp.vec3)  # (point,) position, m
+    v: wp.array(dtype=wp.vec3)  # (point,) target velocity, m/s
+    n: wp.array(dtype=wp.vec3)  # (point,) unit slip normal, or zero
+    finger: wp.array(dtype=wp.int32)  # (point,) finger id
+    min_w: float  # stencil nodes with a B-spline weight <= min_w are left free
+    advect: int  # 1: move the points by dt * target velocity every substep
+
+
+@wp.struct
+class Stencil:
+    """Quadratic B-spline stencil of a point: nodes base + (i, j, k), i, j, k in {0, 1, 2}."""
+
+    base: wp.vec3i  # lowest node, floor(g - 0.5)
+    f: wp.vec3  # g - base, in [0.5, 1.5) per axis (grid units)
+    wx: wp.vec3  # weights of the nodes base + (0, 1, 2) along x
+    wy: wp.vec3
+    wz: wp.vec3
 
 
 @wp.struct
@@ -139,6 +226,23 @@ def clamp_to_band(g: wp.vec3, gi: GridInfo) -> wp.vec3:
 
 
 @wp.func
+def checked_grid_coord(xp: wp.vec3, gi: GridInfo, flags: wp.array(dtype=wp.int32), code: int, substep: int,
+                       index: int) -> wp.vec3:
+    """Grid coordinate of the world point xp (m); outside the safe band it raises flag ``code`` and is clamped."""
+    g = to_grid(xp, gi)
+    if not in_band(g, gi):
+        raise_flag(flags, code, substep, index)
+        g = clamp_to_band(g, gi)
+    return g
+
+
+@wp.func
+def clamped_grid_coord(xp: wp.vec3, gi: GridInfo) -> wp.vec3:
+    """Grid coordinate of xp clamped into the safe band, without a flag (the point was checked earlier)."""
+    return clamp_to_band(to_grid(xp, gi), gi)
+
+
+@wp.func
 def bspline_w(f: float) -> wp.vec3:
     """Quadratic B-spline weights of the 3 nodes base, base+1, base+2 for f = g - base in [0.5, 1.5)."""
     a = 1.5 - f
@@ -159,17 +263,41 @@ def frac(g: wp.vec3, b: wp.vec3i) -> wp.vec3:
 
 
 @wp.func
-def gather_apic(grid: wp.array3d(dtype=wp.vec4), g: wp.vec3, inv_dx: float) -> G2PResult:
+def stencil_at(g: wp.vec3) -> Stencil:
+    """Quadratic B-spline stencil (base node and per-axis weights) of the grid coordinate g (grid units)."""
+    s = Stencil()
+    s.base = base_index(g)
+    s.f = frac(g, s.base)
+    s.wx = bspline_w(s.f[0])
+    s.wy = bspline_w(s.f[1])
+    s.wz = bspline_w(s.f[2])
+    return s
+
+
+@wp.func
+def stencil_weight(s: Stencil, i: int, j: int, k: int) -> float:
+    """Weight of node base + (i, j, k): the product of the three axis weights."""
+    return s.wx[i] * s.wy[j] * s.wz[k]
+
+
+@wp.func
+def point_stencil(xp: wp.vec3, gi: GridInfo, flags: wp.array(dtype=wp.int32), substep: int, idx: int) -> Stencil:
+    """Stencil of a boundary point or tracer at xp (m); a point outside the safe band raises TRACER_OUT."""
+    return stencil_at(checked_grid_coord(xp, gi, flags, TRACER_OUT, substep, idx))
+
+
+@wp.func
+def gather_apic(grid: wp.array3d(dtype=wp.vec4), s: Stencil, inv_dx: float) -> G2PResult:
     """Interpolate velocity and the APIC/MLS affine matrix C = 4/dx^2 sum_i w_i v_i (x_i - x_p)^T.
 
     Separable form: with offsets o = (i, j, k) and f = g - base, x_i - x_p = dx (o - f), so
     C = 4/dx (S - v f^T) with S[:, c] = sum_i w_i v_i o_c.  Sums run in vec4 (the 4th lane is unused).
     """
-    b = base_index(g)
-    f = frac(g, b)
-    wx = bspline_w(f[0])
-    wy = bspline_w(f[1])
-    wz = bspline_w(f[2])
+    b = s.base
+    f = s.f
+    wx = s.wx
+    wy = s.wy
+    wz = s.wz
     v = wp.vec4(0.0)
     s0 = wp.vec4(0.0)  # sum w v i
     s1 = wp.vec4(0.0)  # sum w v j
@@ -193,28 +321,25 @@ def gather_apic(grid: wp.array3d(dtype=wp.vec4), g: wp.vec3, inv_dx: float) -> G
                 s1 = s1 + 2.0 * acc
     r = G2PResult()
     r.v = wp.vec3(v[0], v[1], v[2])
-    s = 4.0 * inv_dx
+    c = 4.0 * inv_dx
     # C[row, col] = 4/dx (s_col[row] - v[row] f[col]), built element by element (row-major scalars)
     r.C = wp.mat33(
-        s * (s0[0] - v[0] * f[0]), s * (s1[0] - v[0] * f[1]), s * (s2[0] - v[0] * f[2]),
-        s * (s0[1] - v[1] * f[0]), s * (s1[1] - v[1] * f[1]), s * (s2[1] - v[1] * f[2]),
-        s * (s0[2] - v[2] * f[0]), s * (s1[2] - v[2] * f[1]), s * (s2[2] - v[2] * f[2]),
+        c * (s0[0] - v[0] * f[0]), c * (s1[0] - v[0] * f[1]), c * (s2[0] - v[0] * f[2]),
+        c * (s0[1] - v[1] * f[0]), c * (s1[1] - v[1] * f[1]), c * (s2[1] - v[1] * f[2]),
+        c * (s0[2] - v[2] * f[0]), c * (s1[2] - v[2] * f[1]), c * (s2[2] - v[2] * f[2]),
     )
     return r
 
 
 @wp.func
-def scatter_apic(grid: wp.array3d(dtype=wp.vec4), g: wp.vec3, dx: float, mass: float, v: wp.vec3, A: wp.mat33,
+def scatter_apic(grid: wp.array3d(dtype=wp.vec4), s: Stencil, dx: float, mass: float, v: wp.vec3, A: wp.mat33,
                  bbox: wp.array(dtype=wp.int32)):
     """P2G: node i receives w_i (m v + A (x_i - x_p)) momentum and w_i m mass; records the stencil bounding box.
 
     A (x_i - x_p) = dx A (o - f) = p0 + i a0 + j a1 + k a2, evaluated in vec4 with the mass in the 4th lane.
     """
-    b = base_index(g)
-    f = frac(g, b)
-    wx = bspline_w(f[0])
-    wy = bspline_w(f[1])
-    wz = bspline_w(f[2])
+    b = s.base
+    f = s.f
     a0 = dx * wp.vec4(A[0, 0], A[1, 0], A[2, 0], 0.0)
     a1 = dx * wp.vec4(A[0, 1], A[1, 1], A[2, 1], 0.0)
     a2 = dx * wp.vec4(A[0, 2], A[1, 2], A[2, 2], 0.0)
@@ -222,10 +347,10 @@ def scatter_apic(grid: wp.array3d(dtype=wp.vec4), g: wp.vec3, dx: float, mass: f
     p0 = wp.vec4(mv[0], mv[1], mv[2], mass) - (f[0] * a0 + f[1] * a1 + f[2] * a2)
     for i in range(3):
         for j in range(3):
-            wij = wx[i] * wy[j]
+            wij = s.wx[i] * s.wy[j]
             pij = p0 + float(i) * a0 + float(j) * a1
             for k in range(3):
-                wp.atomic_add(grid, b[0] + i, b[1] + j, b[2] + k, (wij * wz[k]) * (pij + float(k) * a2))
+                wp.atomic_add(grid, b[0] + i, b[1] + j, b[2] + k, (wij * s.wz[k]) * (pij + float(k) * a2))
     wp.atomic_min(bbox, 0, b[0])
     wp.atomic_min(bbox, 1, b[1])
     wp.atomic_min(bbox, 2, b[2])
@@ -235,31 +360,39 @@ def scatter_apic(grid: wp.array3d(dtype=wp.vec4), g: wp.vec3, dx: float, mass: f
 
 
 @wp.func
-def stress_from_state(
-    model: int,
-    F: wp.mat33,
-    q: wp.quat,
-    C: wp.mat33,
-    mat_par: wp.array2d(dtype=float),
-    mid: int,
-    polar_iters: int,
-    polar_tol: float,
-) -> G2PResult:
-    """Kirchhoff stress of an already return-mapped state (used by the frame's first P2G, Newton rotation)."""
+def particle_mass(p: int, mid: int, ps: Particles, mats: MaterialTable) -> float:
+    """Mass of particle p (kg): initial volume x (mass-scaled) density of its material ``mid``."""
+    return ps.vol[p] * mats.par[mid, C_DENSITY]
+
+
+@wp.func
+def fluid_stress(F: wp.mat33, gradv: wp.mat33, mid: int, mats: MaterialTable) -> wp.mat33:
+    """Kirchhoff stress (Pa) of the Tait fluid ``mid`` at F_E with velocity gradient gradv (1/s)."""
+    return tau_fluid(wp.determinant(F), gradv, mats.par[mid, C_BULK], mats.par[mid, C_GAMMA],
+                     mats.par[mid, C_VISCOSITY])
+
+
+@wp.func
+def stored_state(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable, sp: StepParams) -> G2PResult:
+    """Stored state of particle p (x, v, C, F_E, rotation q) and the Kirchhoff stress of its already
+    return-mapped F_E (used by the frame's first P2G; fixed-corotated refines q by Newton iteration)."""
     r = G2PResult()
-    r.q = q
-    mu = mat_par[mid, C_MU]
-    lam = mat_par[mid, C_LAMBDA]
-    if model == 0:
-        qn = polar_rotation_quat(F, q, polar_iters, polar_tol)
-        r.q = qn
-        r.tau = tau_fixed_corotated(F, wp.quat_to_matrix(qn), mu, lam)
-    elif model == 1:
-        r.tau = tau_neo_hookean(F, mu, lam)
-    elif model == 4:
-        r.tau = tau_fluid(wp.determinant(F), C, mat_par[mid, C_BULK], mat_par[mid, C_GAMMA], mat_par[mid, C_VISCOSITY])
+    r.x = ps.x[p]
+    r.v = ps.v[p]
+    r.C = ps.C[p]
+    r.F = ps.F[p]
+    r.q = wp.quat_identity()
+    mu = mats.par[mid, C_MU]
+    lam = mats.par[mid, C_LAMBDA]
+    if model == MODEL_FIXED_COROTATED:
+        r.q = polar_rotation_quat(r.F, ps.q[p], sp.polar_iters, sp.polar_tol)
+        r.tau = tau_fixed_corotated(r.F, wp.quat_to_matrix(r.q), mu, lam)
+    elif model == MODEL_NEO_HOOKEAN:
+        r.tau = tau_neo_hookean(r.F, mu, lam)
+    elif model == MODEL_FLUID:
+        r.tau = fluid_stress(r.F, r.C, mid, mats)
     else:
-        r.tau = tau_hencky(F, mu, lam)
+        r.tau = tau_hencky(r.F, mu, lam)
     return r
 
 
@@ -287,43 +420,27 @@ def check_particle(r: G2PResult, p: int, sp: StepParams, flags: wp.array(dtype=w
 
 
 @wp.func
-def gather_at(xp: wp.vec3, p: int, grid: wp.array3d(dtype=wp.vec4), gi: GridInfo, sp: StepParams,
+def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles, mats: MaterialTable,
+                     gi: GridInfo, sp: StepParams, grid: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32),
+                     bbox: wp.array(dtype=wp.int32)):
+    """MLS-MPM P2G of particle p at r.x with velocity r.v, affine matrix r.C and Kirchhoff stress r.tau, over
+    dt = ``sp.dt_p2g``: affine momentum A = -dt V0 4/dx^2 tau + m C (Hu et al. 2018, eq. 29)."""
+    g = checked_grid_coord(r.x, gi, flags, OUT_OF_GRID, substep, p)
+    vol = ps.vol[p]
+    mass = particle_mass(p, mid, ps, mats)
+    A = (-sp.dt_p2g * vol * 4.0 * gi.inv_dx * gi.inv_dx) * r.tau + mass * r.C
+    scatter_apic(grid, stencil_at(g), gi.dx, mass, r.v, A, bbox)
+
+
+@wp.func
+def g2p_begin(p: int, ps: Particles, gi: GridInfo, sp: StepParams, grid: wp.array3d(dtype=wp.vec4),
               flags: wp.array(dtype=wp.int32)) -> G2PResult:
-    g = to_grid(xp, gi)
-    if not in_band(g, gi):
-        raise_flag(flags, OUT_OF_GRID, sp.substep, p)
-        g = clamp_to_band(g, gi)
-    return gather_apic(grid, g, gi.inv_dx)
-
-
-@wp.func
-def scatter_at(xp: wp.vec3, p: int, substep: int, grid: wp.array3d(dtype=wp.vec4), gi: GridInfo, dt: float,
-               vol: float, mass: float, v: wp.vec3, C: wp.mat33, tau: wp.mat33, flags: wp.array(dtype=wp.int32),
-               bbox: wp.array(dtype=wp.int32)):
-    """MLS-MPM P2G of one particle: affine momentum A = -dt V0 4/dx^2 tau + m C (Hu et al. 2018, eq. 29)."""
-    g = to_grid(xp, gi)
-    if not in_band(g, gi):
-        raise_flag(flags, OUT_OF_GRID, substep, p)
-        g = clamp_to_band(g, gi)
-    A = (-dt * vol * 4.0 * gi.inv_dx * gi.inv_dx) * tau + mass * C
-    scatter_apic(grid, g, gi.dx, mass, v, A, bbox)
-
-
-@wp.func
-def g2p_begin(
-    p: int,
-    grid: wp.array3d(dtype=wp.vec4),
-    gi: GridInfo,
-    sp: StepParams,
-    x: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33),
-    flags: wp.array(dtype=wp.int32),
-) -> G2PResult:
     """First part of the G2P of particle p, common to every model: gather v (m/s) and C (1/s), the advected position
     x + dt v (m) and the trial elastic deformation gradient (I + dt C) F_E, before the model's update."""
-    xp = x[p]
-    r = gather_at(xp, p, grid, gi, sp, flags)
-    r.F = (wp.identity(n=3, dtype=float) + sp.dt_g2p * r.C) @ F[p]
+    xp = ps.x[p]
+    g = checked_grid_coord(xp, gi, flags, OUT_OF_GRID, sp.substep, p)
+    r = gather_apic(grid, stencil_at(g), gi.inv_dx)
+    r.F = (wp.identity(n=3, dtype=float) + sp.dt_g2p * r.C) @ ps.F[p]
     r.x = xp + sp.dt_g2p * r.v
     r.q = wp.quat_identity()
     r.alpha = 0.0
@@ -331,213 +448,128 @@ def g2p_begin(
 
 
 @wp.func
-def g2p_end(r: G2PResult, p: int, sp: StepParams, x: wp.array(dtype=wp.vec3), F: wp.array(dtype=wp.mat33),
-            flags: wp.array(dtype=wp.int32)):
+def g2p_end(r: G2PResult, p: int, ps: Particles, sp: StepParams, flags: wp.array(dtype=wp.int32)):
     """Last part of the G2P of particle p: guards on the new state, then store x and F_E."""
     check_particle(r, p, sp, flags)
-    x[p] = r.x
-    F[p] = r.F
+    ps.x[p] = r.x
+    ps.F[p] = r.F
 
 
 @wp.func
-def corotated_update(r: G2PResult, p: int, q: wp.array(dtype=wp.quat), sp: StepParams, mu: float,
-                     lam: float) -> G2PResult:
+def corotated_update(r: G2PResult, p: int, ps: Particles, sp: StepParams, mu: float, lam: float) -> G2PResult:
     """Fixed-corotated part of the G2P: rotation of the trial F_E (warm-started from, and stored into, q[p]) and
     the Kirchhoff stress (Pa; mu, lam in Pa)."""
-    r.q = rotation_update(r.F, q[p], sp)
+    r.q = rotation_update(r.F, ps.q[p], sp)
     r.tau = tau_fixed_corotated(r.F, wp.quat_to_matrix(r.q), mu, lam)
-    q[p] = r.q
+    ps.q[p] = r.q
     return r
 
 
 @wp.func
-def g2p_update(
-    p: int,
-    grid: wp.array3d(dtype=wp.vec4),
-    gi: GridInfo,
-    sp: StepParams,
-    x: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33),
-    q: wp.array(dtype=wp.quat),
-    alpha: wp.array(dtype=float),
-    mid: int,
-    model: int,
-    mat_par: wp.array2d(dtype=float),
-    flags: wp.array(dtype=wp.int32),
-) -> G2PResult:
+def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable, gi: GridInfo, sp: StepParams,
+               grid: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32)) -> G2PResult:
     """G2P of one particle, any model: gather v and C, F_E <- (I + dt C) F_E, return mapping (eq. 5), Kirchhoff
     stress of the new state (eq. 4), advection, guards; stores x, F_E and the model's state (rotation q of
     fixed-corotated, plastic strain alpha of von Mises / foam).  Velocity and C are returned, not stored."""
-    r = g2p_begin(p, grid, gi, sp, x, F, flags)
-    mu = mat_par[mid, C_MU]
-    lam = mat_par[mid, C_LAMBDA]
-    if model == 0:
-        r = corotated_update(r, p, q, sp, mu, lam)
-    elif model == 1:
+    r = g2p_begin(p, ps, gi, sp, grid, flags)
+    mu = mats.par[mid, C_MU]
+    lam = mats.par[mid, C_LAMBDA]
+    if model == MODEL_FIXED_COROTATED:
+        r = corotated_update(r, p, ps, sp, mu, lam)
+    elif model == MODEL_NEO_HOOKEAN:
         r.tau = tau_neo_hookean(r.F, mu, lam)
-    elif model == 4:
-        r.tau = tau_fluid(wp.determinant(r.F), r.C, mat_par[mid, C_BULK], mat_par[mid, C_GAMMA],
-                          mat_par[mid, C_VISCOSITY])
+    elif model == MODEL_FLUID:
+        r.tau = fluid_stress(r.F, r.C, mid, mats)
         r.F = fluid_reset(r.F)
     else:
         pr = hencky_plastic_return(
-            r.F, mu, lam, mat_par[mid, C_YIELD], mat_par[mid, C_HARDENING], alpha[p],
-            mat_par[mid, C_VISCOSITY], mat_par[mid, C_CRUSH], int(model == 3), sp.dt_g2p,
+            r.F, mu, lam, mats.par[mid, C_YIELD], mats.par[mid, C_HARDENING], ps.alpha[p],
+            mats.par[mid, C_VISCOSITY], mats.par[mid, C_CRUSH], int(model == MODEL_FOAM), sp.dt_g2p,
         )
         r.F = pr.F
         r.tau = pr.tau
         r.alpha = pr.alpha
-        alpha[p] = r.alpha
-    g2p_end(r, p, sp, x, F, flags)
+        ps.alpha[p] = r.alpha
+    g2p_end(r, p, ps, sp, flags)
     return r
 
 
 @wp.func
-def g2p_update_fc(
-    p: int,
-    grid: wp.array3d(dtype=wp.vec4),
-    gi: GridInfo,
-    sp: StepParams,
-    x: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33),
-    q: wp.array(dtype=wp.quat),
-    mu: float,
-    lam: float,
-    flags: wp.array(dtype=wp.int32),
-) -> G2PResult:
+def g2p_update_fc(p: int, mid: int, ps: Particles, mats: MaterialTable, gi: GridInfo, sp: StepParams,
+                  grid: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32)) -> G2PResult:
     """:func:`g2p_update` specialised for a fixed-corotated particle (the common fast path, no model branches)."""
-    r = corotated_update(g2p_begin(p, grid, gi, sp, x, F, flags), p, q, sp, mu, lam)
-    g2p_end(r, p, sp, x, F, flags)
+    r = corotated_update(g2p_begin(p, ps, gi, sp, grid, flags), p, ps, sp, mats.par[mid, C_MU],
+                         mats.par[mid, C_LAMBDA])
+    g2p_end(r, p, ps, sp, flags)
     return r
+
+
+@wp.func
+def elastic_energy_density(model: int, r: G2PResult, mid: int, mats: MaterialTable) -> float:
+    """Psi(F_E) per unit reference volume of the returned state (fixed-corotated uses the tracked rotation)."""
+    mu = mats.par[mid, C_MU]
+    lam = mats.par[mid, C_LAMBDA]
+    if model == MODEL_FIXED_COROTATED:
+        return psi_fixed_corotated(r.F, wp.quat_to_matrix(r.q), mu, lam)
+    elif model == MODEL_NEO_HOOKEAN:
+        return psi_neo_hookean(r.F, mu, lam)
+    elif model == MODEL_FLUID:
+        return psi_fluid(wp.determinant(r.F), mats.par[mid, C_BULK], mats.par[mid, C_GAMMA])
+    return psi_hencky(r.F, mu, lam)
 
 
 # ============================================================================================ particle kernels
 @wp.kernel
-def k_p2g(
-    gi: GridInfo,
-    sp: StepParams,
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    q: wp.array(dtype=wp.quat),
-    vol: wp.array(dtype=float),
-    mat_id: wp.array(dtype=wp.int32),
-    mat_model: wp.array(dtype=wp.int32),
-    mat_par: wp.array2d(dtype=float),
-    grid_out: wp.array3d(dtype=wp.vec4),
-    flags: wp.array(dtype=wp.int32),
-    bbox: wp.array(dtype=wp.int32),
-):
+def k_p2g(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid_out: wp.array3d(dtype=wp.vec4),
+          flags: wp.array(dtype=wp.int32), bbox: wp.array(dtype=wp.int32)):
     """Stand-alone P2G (first substep of a frame), stress from the stored F_E (any model)."""
     p = wp.tid()
-    mid = int(mat_id[p])
-    model = mat_model[mid]
-    qp = wp.quat_identity()
-    if model == 0:
-        qp = q[p]
-    r = stress_from_state(model, F[p], qp, C[p], mat_par, mid, sp.polar_iters, sp.polar_tol)
-    if model == 0:
-        q[p] = r.q
-    scatter_at(x[p], p, sp.substep, grid_out, gi, sp.dt_p2g, vol[p], vol[p] * mat_par[mid, C_DENSITY], v[p], C[p],
-               r.tau, flags, bbox)
+    mid = int(ps.mat_id[p])
+    model = mats.model[mid]
+    r = stored_state(p, mid, model, ps, mats, sp)
+    if model == MODEL_FIXED_COROTATED:
+        ps.q[p] = r.q
+    scatter_particle(r, p, mid, sp.substep, ps, mats, gi, sp, grid_out, flags, bbox)
 
 
 @wp.kernel
-def k_g2p_p2g(
-    gi: GridInfo,
-    sp: StepParams,
-    grid_in: wp.array3d(dtype=wp.vec4),
-    grid_out: wp.array3d(dtype=wp.vec4),
-    x: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33),
-    q: wp.array(dtype=wp.quat),
-    alpha: wp.array(dtype=float),
-    vol: wp.array(dtype=float),
-    mat_id: wp.array(dtype=wp.int32),
-    mat_model: wp.array(dtype=wp.int32),
-    mat_par: wp.array2d(dtype=float),
-    flags: wp.array(dtype=wp.int32),
-    bbox: wp.array(dtype=wp.int32),
-):
+def k_g2p_p2g(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid_in: wp.array3d(dtype=wp.vec4),
+              grid_out: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32), bbox: wp.array(dtype=wp.int32)):
     """Fused G2P (substep n, from ``grid_in``) + P2G (substep n+1, into ``grid_out``), any model."""
     p = wp.tid()
-    mid = int(mat_id[p])
-    r = g2p_update(p, grid_in, gi, sp, x, F, q, alpha, mid, mat_model[mid], mat_par, flags)
-    scatter_at(r.x, p, sp.substep + 1, grid_out, gi, sp.dt_p2g, vol[p], vol[p] * mat_par[mid, C_DENSITY], r.v, r.C,
-               r.tau, flags, bbox)
+    mid = int(ps.mat_id[p])
+    r = g2p_update(p, mid, mats.model[mid], ps, mats, gi, sp, grid_in, flags)
+    scatter_particle(r, p, mid, sp.substep + 1, ps, mats, gi, sp, grid_out, flags, bbox)
 
 
 @wp.kernel
-def k_g2p_p2g_fc(
-    gi: GridInfo,
-    sp: StepParams,
-    grid_in: wp.array3d(dtype=wp.vec4),
-    grid_out: wp.array3d(dtype=wp.vec4),
-    x: wp.array(dtype=wp.vec3),
-    F: wp.array(dtype=wp.mat33),
-    q: wp.array(dtype=wp.quat),
-    vol: wp.array(dtype=float),
-    mat_id: wp.array(dtype=wp.int32),
-    mat_par: wp.array2d(dtype=float),
-    flags: wp.array(dtype=wp.int32),
-    bbox: wp.array(dtype=wp.int32),
-):
+def k_g2p_p2g_fc(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable,
+                 grid_in: wp.array3d(dtype=wp.vec4), grid_out: wp.array3d(dtype=wp.vec4),
+                 flags: wp.array(dtype=wp.int32), bbox: wp.array(dtype=wp.int32)):
     """Fused G2P + P2G when every particle is fixed-corotated (no model branches, no plastic state)."""
     p = wp.tid()
-    mid = int(mat_id[p])
-    r = g2p_update_fc(p, grid_in, gi, sp, x, F, q, mat_par[mid, C_MU], mat_par[mid, C_LAMBDA], flags)
-    scatter_at(r.x, p, sp.substep + 1, grid_out, gi, sp.dt_p2g, vol[p], vol[p] * mat_par[mid, C_DENSITY], r.v, r.C,
-               r.tau, flags, bbox)
-
-
-@wp.func
-def elastic_energy_density(model: int, r: G2PResult, mat_par: wp.array2d(dtype=float), mid: int) -> float:
-    """Psi(F_E) per unit reference volume of the returned state (fixed-corotated uses the tracked rotation)."""
-    mu = mat_par[mid, C_MU]
-    lam = mat_par[mid, C_LAMBDA]
-    if model == 0:
-        return psi_fixed_corotated(r.F, wp.quat_to_matrix(r.q), mu, lam)
-    elif model == 1:
-        return psi_neo_hookean(r.F, mu, lam)
-    elif model == 4:
-        return psi_fluid(wp.determinant(r.F), mat_par[mid, C_BULK], mat_par[mid, C_GAMMA])
-    return psi_hencky(r.F, mu, lam)
+    mid = int(ps.mat_id[p])
+    r = g2p_update_fc(p, mid, ps, mats, gi, sp, grid_in, flags)
+    scatter_particle(r, p, mid, sp.substep + 1, ps, mats, gi, sp, grid_out, flags, bbox)
 
 
 @wp.kernel
-def k_g2p(
-    gi: GridInfo,
-    sp: StepParams,
-    grid_in: wp.array3d(dtype=wp.vec4),
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    q: wp.array(dtype=wp.quat),
-    alpha: wp.array(dtype=float),
-    vol: wp.array(dtype=float),
-    mat_id: wp.array(dtype=wp.int32),
-    mat_model: wp.array(dtype=wp.int32),
-    mat_par: wp.array2d(dtype=float),
-    flags: wp.array(dtype=wp.int32),
-    sums: wp.array(dtype=wp.float64),
-    ext: wp.array(dtype=float),
-):
+def k_g2p(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid_in: wp.array3d(dtype=wp.vec4),
+          flags: wp.array(dtype=wp.int32), sums: wp.array(dtype=wp.float64), ext: wp.array(dtype=float)):
     """Stand-alone G2P (last substep of a frame): stores x, v, C, F_E and the plastic state, and accumulates the
     frame statistics: sums = [KE, IE, px, py, pz, mass] (float64), ext = [J min, J max, max speed]."""
     p = wp.tid()
-    mid = int(mat_id[p])
-    model = mat_model[mid]
-    r = g2p_update(p, grid_in, gi, sp, x, F, q, alpha, mid, model, mat_par, flags)
-    v[p] = r.v
-    C[p] = r.C
-    mass = vol[p] * mat_par[mid, C_DENSITY]
-    psi = elastic_energy_density(model, r, mat_par, mid)
+    mid = int(ps.mat_id[p])
+    model = mats.model[mid]
+    r = g2p_update(p, mid, model, ps, mats, gi, sp, grid_in, flags)
+    ps.v[p] = r.v
+    ps.C[p] = r.C
+    mass = particle_mass(p, mid, ps, mats)
+    psi = elastic_energy_density(model, r, mid, mats)
     J = wp.determinant(r.F)
     vp = r.v
     wp.atomic_add(sums, 0, wp.float64(0.5 * mass * wp.dot(vp, vp)))
-    wp.atomic_add(sums, 1, wp.float64(vol[p] * psi))
+    wp.atomic_add(sums, 1, wp.float64(ps.vol[p] * psi))
     wp.atomic_add(sums, 2, wp.float64(mass * vp[0]))
     wp.atomic_add(sums, 3, wp.float64(mass * vp[1]))
     wp.atomic_add(sums, 4, wp.float64(mass * vp[2]))
@@ -549,51 +581,37 @@ def k_g2p(
 
 # ============================================================================================ grid kernel
 @wp.kernel
-def k_grid_update(
-    grid: wp.array3d(dtype=wp.vec4),
-    other: wp.array3d(dtype=wp.vec4),
-    origin: wp.vec3i,
-    dt: float,
-    gravity: wp.vec3,
-    pad: int,
-    wall_sticky: int,
-    floor_on: int,
-    floor_g: float,
-    floor_mu: float,
-    floor_sticky: int,
-    has_bc: int,
-    bc_v: wp.array3d(dtype=wp.vec4),
-    bc_n: wp.array3d(dtype=wp.vec4),
-    react: wp.array3d(dtype=wp.vec4),
-    gstats: wp.array(dtype=float),
-):
+def k_grid_update(gs: GridStep, cond: GridConditions, grid: wp.array3d(dtype=wp.vec4),
+                  other: wp.array3d(dtype=wp.vec4), bc: DirichletGrid, gstats: wp.array(dtype=float)):
     """Momentum -> velocity, gravity, domain walls, floor, Dirichlet nodes (+ reaction), clear ``other``.
 
-    Launched over the active box only (``origin`` + launch dims): the union of the node boxes touched by the
+    Launched over the active box only (``gs.origin`` + launch dims): the union of the node boxes touched by the
     current and the previous P2G, so ``other`` (the previous substep's buffer) is fully cleared.
     Walls: nodes within ``pad`` nodes of the grid faces; the velocity component into the wall is removed
     (slip) or the whole velocity (sticky).  Floor: nodes at or below the plane z = floor (``floor_g`` in grid
     units); the normal component is removed only when moving into the floor, the tangential part gets Coulomb
     friction |dv_t| <= mu |v_n| (``floor_mu`` = 0: frictionless slip) or is zeroed (sticky).
-    Dirichlet nodes (``bc_v.w`` > 0): velocity <- weighted mean target (full vector, or only its component along
-    the mean normal when ``bc_n`` carries one); the reaction m (v_bc - v*) / dt is stored per node divided by the
-    node's total weight, to be split among the fingers by :func:`k_bc_reaction`.
+    Dirichlet nodes (``bc.target.w`` > 0): velocity <- weighted mean target (full vector, or only its component
+    along the mean normal when ``bc.normal`` carries one); the reaction m (v_bc - v*) / dt is stored per node
+    divided by the node's total weight, to be split among the fingers by :func:`k_bc_reaction`.
     """
     ti, tj, tk = wp.tid()
-    i = ti + origin[0]
-    j = tj + origin[1]
-    k = tk + origin[2]
+    i = ti + gs.origin[0]
+    j = tj + gs.origin[1]
+    k = tk + gs.origin[2]
+    dt = gs.dt
+    pad = cond.pad
     other[i, j, k] = wp.vec4(0.0)
     n = grid[i, j, k]
     m = n[3]
     if m <= 0.0:
         return
-    v = wp.vec3(n[0], n[1], n[2]) / m + dt * gravity
+    v = wp.vec3(n[0], n[1], n[2]) / m + dt * cond.gravity
     nx = grid.shape[0]
     ny = grid.shape[1]
     nz = grid.shape[2]
-    # --- domain walls
-    if wall_sticky != 0:
+    # 1. domain walls
+    if cond.wall_sticky != 0:
         if i < pad or i >= nx - pad or j < pad or j >= ny - pad or k < pad or k >= nz - pad:
             v = wp.vec3(0.0)
     else:
@@ -603,27 +621,28 @@ def k_grid_update(
             v = wp.vec3(v[0], 0.0, v[2])
         if (k < pad and v[2] < 0.0) or (k >= nz - pad and v[2] > 0.0):
             v = wp.vec3(v[0], v[1], 0.0)
-    # --- floor plane z = floor, normal +z
-    if floor_on != 0 and float(k) <= floor_g + 1.0e-4:
-        if floor_sticky != 0:
+    # 2. floor plane z = floor, normal +z
+    if cond.floor_on != 0 and float(k) <= cond.floor_g + 1.0e-4:
+        if cond.floor_sticky != 0:
             v = wp.vec3(0.0)
         elif v[2] < 0.0:
             vn = -v[2]
             vt = wp.vec3(v[0], v[1], 0.0)
             lt = wp.length(vt)
-            if floor_mu > 0.0:
-                if lt <= floor_mu * vn:
+            mu = cond.floor_mu
+            if mu > 0.0:
+                if lt <= mu * vn:
                     vt = wp.vec3(0.0)
                 else:
-                    vt = vt * (1.0 - floor_mu * vn / lt)
+                    vt = vt * (1.0 - mu * vn / lt)
             v = vt
-    # --- Dirichlet nodes
-    if has_bc != 0:
-        b = bc_v[i, j, k]
+    # 3. Dirichlet nodes
+    if gs.has_bc != 0:
+        b = bc.target[i, j, k]
         W = b[3]
         if W > 0.0:
             vt = wp.vec3(b[0], b[1], b[2]) / W
-            bn = bc_n[i, j, k]
+            bn = bc.normal[i, j, k]
             nn = wp.vec3(bn[0], bn[1], bn[2])
             vnew = vt
             ln = wp.length(nn)
@@ -631,146 +650,88 @@ def k_grid_update(
                 nh = nn / ln
                 vnew = v + nh * (wp.dot(nh, vt) - wp.dot(nh, v))
             r = (m / (dt * W)) * (vnew - v)
-            react[i, j, k] = wp.vec4(r[0], r[1], r[2], 0.0)
+            bc.reaction[i, j, k] = wp.vec4(r[0], r[1], r[2], 0.0)
             v = vnew
     grid[i, j, k] = wp.vec4(v[0], v[1], v[2], m)
     wp.atomic_max(gstats, 0, wp.length(v))
 
 
 # ============================================================================================ boundary points
-@wp.func
-def point_stencil(xp: wp.vec3, gi: GridInfo, flags: wp.array(dtype=wp.int32), substep: int, idx: int) -> wp.vec3:
-    g = to_grid(xp, gi)
-    if not in_band(g, gi):
-        raise_flag(flags, TRACER_OUT, substep, idx)
-        g = clamp_to_band(g, gi)
-    return g
-
-
 @wp.kernel
-def k_bc_scatter(
-    gi: GridInfo,
-    px: wp.array(dtype=wp.vec3),
-    pv: wp.array(dtype=wp.vec3),
-    pn: wp.array(dtype=wp.vec3),
-    min_w: float,
-    bc_v: wp.array3d(dtype=wp.vec4),
-    bc_n: wp.array3d(dtype=wp.vec4),
-    flags: wp.array(dtype=wp.int32),
-    substep: int,
-):
+def k_bc_scatter(gi: GridInfo, pts: DirichletPointSet, bc: DirichletGrid, flags: wp.array(dtype=wp.int32),
+                 substep: int):
     """Project constrained points (target velocity, optional slip normal) onto the nodes of their stencils."""
     p = wp.tid()
-    g = point_stencil(px[p], gi, flags, substep, p)
-    b = base_index(g)
-    f = frac(g, b)
-    wx = bspline_w(f[0])
-    wy = bspline_w(f[1])
-    wz = bspline_w(f[2])
-    vt = pv[p]
-    nt = pn[p]
+    s = point_stencil(pts.x[p], gi, flags, substep, p)
+    b = s.base
+    vt = pts.v[p]
+    nt = pts.n[p]
     for i in range(3):
         for j in range(3):
             for k in range(3):
-                w = wx[i] * wy[j] * wz[k]
-                if w > min_w:
-                    wp.atomic_add(bc_v, b[0] + i, b[1] + j, b[2] + k, wp.vec4(w * vt[0], w * vt[1], w * vt[2], w))
-                    wp.atomic_add(bc_n, b[0] + i, b[1] + j, b[2] + k, wp.vec4(w * nt[0], w * nt[1], w * nt[2], 0.0))
+                w = stencil_weight(s, i, j, k)
+                if w > pts.min_w:
+                    wp.atomic_add(bc.target, b[0] + i, b[1] + j, b[2] + k,
+                                  wp.vec4(w * vt[0], w * vt[1], w * vt[2], w))
+                    wp.atomic_add(bc.normal, b[0] + i, b[1] + j, b[2] + k,
+                                  wp.vec4(w * nt[0], w * nt[1], w * nt[2], 0.0))
 
 
 @wp.kernel
-def k_bc_reaction(
-    gi: GridInfo,
-    px: wp.array(dtype=wp.vec3),
-    pfinger: wp.array(dtype=wp.int32),
-    min_w: float,
-    dt: float,
-    react: wp.array3d(dtype=wp.vec4),
-    finger_impulse: wp.array(dtype=wp.vec3),
-):
+def k_bc_reaction(gi: GridInfo, pts: DirichletPointSet, dt: float, bc: DirichletGrid,
+                  finger_impulse: wp.array(dtype=wp.vec3)):
     """finger_impulse[k] += dt * sum over the finger's points and stencil nodes of w * reaction/W."""
     p = wp.tid()
-    g = clamp_to_band(to_grid(px[p], gi), gi)
-    b = base_index(g)
-    f = frac(g, b)
-    wx = bspline_w(f[0])
-    wy = bspline_w(f[1])
-    wz = bspline_w(f[2])
+    s = stencil_at(clamped_grid_coord(pts.x[p], gi))
+    b = s.base
     acc = wp.vec3(0.0)
     for i in range(3):
         for j in range(3):
             for k in range(3):
-                w = wx[i] * wy[j] * wz[k]
-                if w > min_w:
-                    r = react[b[0] + i, b[1] + j, b[2] + k]
+                w = stencil_weight(s, i, j, k)
+                if w > pts.min_w:
+                    r = bc.reaction[b[0] + i, b[1] + j, b[2] + k]
                     acc = acc + w * wp.vec3(r[0], r[1], r[2])
-    wp.atomic_add(finger_impulse, int(pfinger[p]), dt * acc)
+    wp.atomic_add(finger_impulse, int(pts.finger[p]), dt * acc)
 
 
 @wp.kernel
-def k_bc_clear_advance(
-    gi: GridInfo,
-    px: wp.array(dtype=wp.vec3),
-    pv: wp.array(dtype=wp.vec3),
-    dt: float,
-    advance: int,
-    bc_v: wp.array3d(dtype=wp.vec4),
-    bc_n: wp.array3d(dtype=wp.vec4),
-    react: wp.array3d(dtype=wp.vec4),
-):
+def k_bc_clear_advance(gi: GridInfo, pts: DirichletPointSet, dt: float, bc: DirichletGrid):
     """Clear the boundary arrays at the stencil nodes, then move the points by dt * target velocity."""
     p = wp.tid()
-    g = clamp_to_band(to_grid(px[p], gi), gi)
-    b = base_index(g)
+    b = base_index(clamped_grid_coord(pts.x[p], gi))
     for i in range(3):
         for j in range(3):
             for k in range(3):
-                bc_v[b[0] + i, b[1] + j, b[2] + k] = wp.vec4(0.0)
-                bc_n[b[0] + i, b[1] + j, b[2] + k] = wp.vec4(0.0)
-                react[b[0] + i, b[1] + j, b[2] + k] = wp.vec4(0.0)
-    if advance != 0:
-        px[p] = px[p] + dt * pv[p]
+                bc.target[b[0] + i, b[1] + j, b[2] + k] = wp.vec4(0.0)
+                bc.normal[b[0] + i, b[1] + j, b[2] + k] = wp.vec4(0.0)
+                bc.reaction[b[0] + i, b[1] + j, b[2] + k] = wp.vec4(0.0)
+    if pts.advect != 0:
+        pts.x[p] = pts.x[p] + dt * pts.v[p]
 
 
 @wp.kernel
-def k_force_weights(
-    gi: GridInfo,
-    px: wp.array(dtype=wp.vec3),
-    pfinger: wp.array(dtype=wp.int32),
-    grid: wp.array3d(dtype=wp.vec4),
-    finger_w: wp.array(dtype=float),
-    flags: wp.array(dtype=wp.int32),
-    substep: int,
-):
+def k_force_weights(gi: GridInfo, px: wp.array(dtype=wp.vec3), pfinger: wp.array(dtype=wp.int32),
+                    grid: wp.array3d(dtype=wp.vec4), finger_w: wp.array(dtype=float),
+                    flags: wp.array(dtype=wp.int32), substep: int):
     """Total mass-weighted B-spline weight sum(w m_i) of each finger's points (force-mode normaliser)."""
     p = wp.tid()
-    g = point_stencil(px[p], gi, flags, substep, p)
-    b = base_index(g)
-    f = frac(g, b)
-    wx = bspline_w(f[0])
-    wy = bspline_w(f[1])
-    wz = bspline_w(f[2])
+    s = point_stencil(px[p], gi, flags, substep, p)
+    b = s.base
     acc = float(0.0)
     for i in range(3):
         for j in range(3):
             for k in range(3):
                 m = grid[b[0] + i, b[1] + j, b[2] + k][3]
                 if m > 0.0:
-                    acc += wx[i] * wy[j] * wz[k] * m
+                    acc += stencil_weight(s, i, j, k) * m
     wp.atomic_add(finger_w, int(pfinger[p]), acc)
 
 
 @wp.kernel
-def k_force_apply(
-    gi: GridInfo,
-    px: wp.array(dtype=wp.vec3),
-    pfinger: wp.array(dtype=wp.int32),
-    finger_force: wp.array(dtype=wp.vec3),
-    finger_w: wp.array(dtype=float),
-    dt: float,
-    grid: wp.array3d(dtype=wp.vec4),
-    finger_impulse: wp.array(dtype=wp.vec3),
-):
+def k_force_apply(gi: GridInfo, px: wp.array(dtype=wp.vec3), pfinger: wp.array(dtype=wp.int32),
+                  finger_force: wp.array(dtype=wp.vec3), finger_w: wp.array(dtype=float), dt: float,
+                  grid: wp.array3d(dtype=wp.vec4), finger_impulse: wp.array(dtype=wp.vec3)):
     """Add dt F_k w m_i / W_k momentum to the stencil nodes (W_k = sum w m): the total impulse per finger is
     exactly F_k dt, whatever the number of points or particles, and every node under the patch gets the same
     acceleration (a light fringe node is not flung away, as it would be with a weight-only split)."""
@@ -780,19 +741,15 @@ def k_force_apply(
     if W <= 0.0:
         return
     Fk = finger_force[kf] * (dt / W)
-    g = clamp_to_band(to_grid(px[p], gi), gi)
-    b = base_index(g)
-    f = frac(g, b)
-    wx = bspline_w(f[0])
-    wy = bspline_w(f[1])
-    wz = bspline_w(f[2])
+    s = stencil_at(clamped_grid_coord(px[p], gi))
+    b = s.base
     acc = float(0.0)
     for i in range(3):
         for j in range(3):
             for k in range(3):
                 m = grid[b[0] + i, b[1] + j, b[2] + k][3]
                 if m > 0.0:
-                    w = wx[i] * wy[j] * wz[k] * m
+                    w = stencil_weight(s, i, j, k) * m
                     wp.atomic_add(grid, b[0] + i, b[1] + j, b[2] + k, wp.vec4(w * Fk[0], w * Fk[1], w * Fk[2], 0.0))
                     acc += w
     wp.atomic_add(finger_impulse, kf, acc * Fk)
@@ -800,27 +757,17 @@ def k_force_apply(
 
 # ============================================================================================ tracers
 @wp.kernel
-def k_tracer_g2p(
-    gi: GridInfo,
-    grid: wp.array3d(dtype=wp.vec4),
-    dt: float,
-    tx: wp.array(dtype=wp.vec3),
-    tF: wp.array(dtype=wp.mat33),
-    flags: wp.array(dtype=wp.int32),
-    substep: int,
-):
+def k_tracer_g2p(gi: GridInfo, grid: wp.array3d(dtype=wp.vec4), dt: float, tx: wp.array(dtype=wp.vec3),
+                 tF: wp.array(dtype=wp.mat33), flags: wp.array(dtype=wp.int32), substep: int):
     """Massless tracers (surface Gaussians): advect with the grid velocity, F <- (I + dt grad v) F.
 
     Interpolation is normalised over the stencil nodes that carry mass, so a tracer slightly outside the
     particle cloud follows the nearest material instead of being slowed by empty nodes.
     """
     p = wp.tid()
-    g = point_stencil(tx[p], gi, flags, substep, p)
-    b = base_index(g)
-    f = frac(g, b)
-    wx = bspline_w(f[0])
-    wy = bspline_w(f[1])
-    wz = bspline_w(f[2])
+    s = point_stencil(tx[p], gi, flags, substep, p)
+    b = s.base
+    f = s.f
     v = wp.vec3(0.0)
     B = wp.mat33(0.0)
     dbar = wp.vec3(0.0)
@@ -830,7 +777,7 @@ def k_tracer_g2p(
             for k in range(3):
                 n = grid[b[0] + i, b[1] + j, b[2] + k]
                 if n[3] > 0.0:
-                    w = wx[i] * wy[j] * wz[k]
+                    w = stencil_weight(s, i, j, k)
                     gv = wp.vec3(n[0], n[1], n[2])
                     d = wp.vec3(float(i) - f[0], float(j) - f[1], float(k) - f[2])
                     v = v + w * gv

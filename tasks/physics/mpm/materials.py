@@ -4,7 +4,8 @@ A :class:`Material` names a constitutive model and its parameters.  The solver p
 into a small parameter table (one row per material, see :func:`pack_table`) and every particle carries the
 row index of its material, so a shell and an interior of different materials share one grid.
 
-Models (the integer code is what the kernels branch on; see ``constitutive.py`` for the formulas):
+Models (the integer code is what the kernels branch on, as the Warp constants ``MODEL_*`` of ``constitutive.py``,
+which also holds the formulas):
 
 ======  ==================  ===================================================================================
 code    name                description

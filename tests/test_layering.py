@@ -1,0 +1,86 @@
+"""The layering rules, read from the imports of every module (AST), so that they cannot rot:
+
+* ``conf`` declares and imports nothing of ours but ``conf`` itself (no tasks, no flows);
+* ``tasks`` never imports ``flows``;
+* no step module imports another step module (shared helpers live in non-step modules of a stage);
+* package ``__init__`` files under ``tasks`` hold only a docstring (a step's code version is the import closure
+  of its module: code in a parent package would run without being part of it), except the engine's re-exports.
+"""
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+from tasks.core.code_version import imported_modules
+
+REPO = Path(__file__).resolve().parents[1]
+REEXPORTING_PACKAGES = {"tasks.physics.mpm"}  # `from tasks.physics.mpm import MPMSolver` is the engine's API
+
+
+def _modules(package: str) -> dict[str, Path]:
+    out = {}
+    for path in sorted((REPO / package).rglob("*.py")):
+        rel = path.relative_to(REPO).with_suffix("")
+        parts = rel.parts[:-1] if rel.name == "__init__" else rel.parts
+        out[".".join(parts)] = path
+    return out
+
+
+def _all_imports(path: Path) -> set[str]:
+    """Every module name imported anywhere in the file (absolute names; relative imports resolved)."""
+    names = set()
+    tree = ast.parse(path.read_text())
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            names.add(node.module)
+    return names
+
+
+def _is_step_module(path: Path) -> bool:
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.FunctionDef):
+            for dec in node.decorator_list:
+                target = dec.func if isinstance(dec, ast.Call) else dec
+                if isinstance(target, ast.Name) and target.id == "artifact_step":
+                    return True
+    return False
+
+
+STEP_MODULES = sorted(name for name, path in _modules("tasks").items() if _is_step_module(path))
+
+
+def test_the_step_modules_are_found():
+    assert {"tasks.control.object_model", "tasks.physics.mpm_rollout",
+            "tasks.evaluation.deformation_metrics"} <= set(STEP_MODULES)
+
+
+@pytest.mark.parametrize("name,path", sorted(_modules("conf").items()))
+def test_conf_imports_nothing_of_ours(name, path):
+    ours = {m for m in _all_imports(path) if m.split(".")[0] in ("tasks", "flows")}
+    assert not ours, f"{name} imports {sorted(ours)}: conf only declares (move the code to tasks/ or flows/)"
+
+
+@pytest.mark.parametrize("name,path", sorted(_modules("tasks").items()))
+def test_tasks_never_import_flows(name, path):
+    flows = {m for m in _all_imports(path) if m.split(".")[0] == "flows"}
+    assert not flows, f"{name} imports {sorted(flows)}: flows wire tasks, never the other way round"
+
+
+@pytest.mark.parametrize("name", STEP_MODULES)
+def test_no_step_module_imports_another(name):
+    path = _modules("tasks")[name]
+    others = imported_modules(name, path.read_text()) & (set(STEP_MODULES) - {name})
+    assert not others, (f"step module {name} imports step module(s) {sorted(others)}: move the shared helper into a "
+                        "non-step module of the stage")
+
+
+@pytest.mark.parametrize("name,path", [(n, p) for n, p in sorted(_modules("tasks").items())
+                                       if p.name == "__init__.py" and n not in REEXPORTING_PACKAGES])
+def test_package_inits_hold_only_a_docstring(name, path):
+    body = ast.parse(path.read_text()).body
+    assert len(body) == 1 and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant), (
+        f"{path} must hold only a docstring")
