@@ -480,3 +480,29 @@ def test_api_key_is_in_no_artifact_cache_file_or_log(server, tmp_path, key_env, 
     out, err = capfd.readouterr()
     assert "task failed" in caplog.text and "***" in caplog.text
     assert SECRET not in caplog.text + out + err
+
+
+# ------------------------------------------------------------------------------------------ the table file
+def test_table_file_errors_name_the_entry_and_field(tmp_path):
+    from tasks.physics.oracle.table import TABLE_PATH, MaterialTableError, load_table
+
+    text = TABLE_PATH.read_text(encoding="utf-8")
+    entries, interiors = load_table(TABLE_PATH)
+    assert [e.key for e in entries] == [e.key for e in TABLE] and list(interiors) == list(INTERIORS)
+    cases = {"      density: 1000.0\n": ("      density: 0.5\n", "entries.tomato.shell.density 0.5"),
+             "interior: tomato_juice": ("interior: tomato_jus", "entries.tomato.interior 'tomato_jus'"),
+             "effect: juice": ("effect: jus", "entries.tomato.effect 'jus'"),
+             "    bulk_modulus: 2.2e+9": ("    bulk_modulus: -2.2e+9", "interiors.cola.material.youngs_modulus")}
+    for old, (new, expected) in cases.items():
+        assert old in text
+        bad = tmp_path / "materials.yaml"
+        bad.write_text(text.replace(old, new, 1), encoding="utf-8")
+        with pytest.raises(MaterialTableError) as info:
+            load_table(bad)
+        assert expected in str(info.value) and "\n" not in str(info.value)
+
+
+def test_table_fluids_store_their_bulk_modulus():
+    """A fluid's E, nu in the table encode the liquid's bulk modulus K = E / (3 (1 - 2 nu)) given in the file."""
+    assert INTERIORS["water"].material.bulk_modulus == pytest.approx(2.2e9, rel=1e-12)
+    assert INTERIORS["polyester_fibrefill"].material.bulk_modulus == pytest.approx(5e3, rel=1e-12)

@@ -11,13 +11,11 @@ from omegaconf import OmegaConf
 
 from conf.schema import Config, SimulationConfig
 from tasks.core.artifacts import read_artifact
-from tasks.physics.mpm_rollout import (
+from tasks.physics.labels import CORE, INTERIOR, RUPTURED, SHELL
+from tasks.physics.material_oracle import material_oracle
+from tasks.physics.mpm_rollout import cauchy_free_measures, interior_plan, resistive_feedback
+from tasks.physics.regions import (
     CONTACT_CORE_PHI,
-    CORE,
-    INTERIOR,
-    RUPTURED,
-    SHELL,
-    cauchy_free_measures,
     finger_regions,
     region_weights,
     squeeze_strain,
@@ -85,6 +83,31 @@ def test_von_mises_of_hencky_strain():
     assert vm[0] == pytest.approx(0.0, abs=1e-6)
     # uniaxial Hencky strain l = ln 1.1: dev = l (2/3, -1/3, -1/3), eps_eq = 2l/3, sigma_vm = 3 mu eps_eq = 2 mu l
     assert vm[1] == pytest.approx(2 * 2.0e5 * math.log(1.1), rel=1e-6)
+
+
+def test_interior_plan_simulates_the_interior_only_when_the_threshold_can_be_reached():
+    tomato = material_oracle("a ripe tomato with thin skin and juicy pulp", "tomato", interior="juice")
+    assert tomato.squeeze_threshold == pytest.approx(0.15) and tomato.core is not None
+    assert interior_plan(tomato, True, np.full((3, 5), 0.2)) == (True, True, [])
+    with_core, with_interior, notes = interior_plan(tomato, True, np.full((3, 5), 0.1))
+    assert (with_core, with_interior) == (True, False)
+    assert "predicted peak strain 0.100 < 0.150" in notes[0] and "core is simulated" in notes[0]
+    assert interior_plan(tomato, False, np.full((3, 5), 0.2))[:2] == (False, False)  # no cavity to fill
+    ball = material_oracle("a hollow rubber ball", "rubber_ball")
+    assert interior_plan(ball, True, np.full((3, 5), 0.9))[:2] == (False, False)
+
+
+def test_resistive_feedback_is_yield_stress_times_area_or_the_contact_force():
+    patches = {"patch_areas": np.array([[1e-4, 2e-4]]), "patch_active": np.array([[True, False]])}
+    contact = np.array([[[3.0, 4.0, 0.0], [0.0, 0.0, 2.0]]])  # N: |.| = 5, 2
+    clay = material_oracle("a block of soft modelling clay", "clay")  # yield stress 40 kPa
+    feedback, rule = resistive_feedback(clay, contact, patches, max_force=100.0)
+    np.testing.assert_allclose(feedback, [[4e4 * 1e-4, 0.0]], rtol=1e-6)  # inactive patch: no area
+    assert rule == "tau_y * area"
+    ball = material_oracle("a hollow rubber ball", "rubber_ball")  # elastic: no yield stress
+    feedback, rule = resistive_feedback(ball, contact, patches, max_force=3.0)
+    np.testing.assert_allclose(feedback, [[3.0, 2.0]])  # |contact| clipped at max_force
+    assert rule.startswith("|contact force|")
 
 
 # ------------------------------------------------------------------------------------------ real rollouts

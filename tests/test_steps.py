@@ -23,6 +23,11 @@ STEP_MODULES = {
     "material_oracle": "tasks.physics.material_oracle",
     "mpm_rollout": "tasks.physics.mpm_rollout",
     "deformation_metrics": "tasks.evaluation.deformation_metrics",
+    "gbuffer": "tasks.render.gbuffer",
+    "conditions": "tasks.render.conditions",
+    "effect": "tasks.generation.effect",
+    "appearance_refinement": "tasks.generation.appearance_refinement",
+    "video_metrics": "tasks.evaluation.video_metrics",
 }
 
 
@@ -52,9 +57,11 @@ def _edit(root: Path, rel: str) -> None:
     ("tasks/physics/regions.py", {"mpm_rollout", "deformation_metrics"}),
     # the glove: every step that counts fingers
     ("conf/hand.py", {"squeeze_signals", "signal_smoothing", "force_coefficients", "mpm_rollout",
-                      "deformation_metrics"}),
+                      "deformation_metrics", "video_metrics"}),
     # the framework: every step
     ("tasks/core/artifacts.py", set(STEP_MODULES)),
+    # a data file named in DATA_FILES of the oracle's table module: the oracle and the rollout that uses it
+    ("tasks/physics/oracle/materials.yaml", {"material_oracle"}),
 ])
 def test_editing_a_module_changes_exactly_the_steps_whose_imports_reach_it(tree_copy, edited, expected):
     before = _versions(tree_copy)

@@ -9,6 +9,10 @@ when ``name`` is a submodule, that module.  Parent packages that a dotted import
 followed: their ``__init__.py`` files hold only a docstring (``tests/test_layering.py`` keeps it so), except the
 re-exporting ones a module imports from explicitly.
 
+A module that reads data files shipped beside it (e.g. the material table ``materials.yaml``) names them in a
+module-level ``DATA_FILES = ("materials.yaml", ...)`` tuple of string literals; their bytes join the version of
+every step whose closure contains that module.
+
 Reading the files (not ``sys.modules``) makes the version independent of import order and lets a test compute
 the versions of a modified copy of the tree without importing it.
 """
@@ -90,6 +94,16 @@ def import_closure(name: str, root: Path = REPO_ROOT, path: Path | None = None) 
     return sorted(seen)
 
 
+def data_files(source_path: Path) -> list[Path]:
+    """The files named by the module-level ``DATA_FILES`` tuple of the module at ``source_path`` (next to it)."""
+    for node in ast.parse(source_path.read_text()).body:
+        if (isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "DATA_FILES" for t in node.targets)
+                and isinstance(node.value, (ast.Tuple, ast.List))):
+            return [source_path.parent / elt.value for elt in node.value.elts
+                    if isinstance(elt, ast.Constant) and isinstance(elt.value, str)]
+    return []
+
+
 def code_version(name: str, root: Path | None = None, path: Path | None = None) -> str:
     """sha256 over the names and sources of :func:`import_closure` of module ``name`` (source file ``path`` when
     ``name`` is not a project module)."""
@@ -99,4 +113,6 @@ def code_version(name: str, root: Path | None = None, path: Path | None = None) 
         source = path if (module == name and path is not None) else module_file(module, root)
         h.update(module.encode() + b"\0")
         h.update(source.read_bytes() + b"\0")
+        for data in data_files(source):
+            h.update(data.name.encode() + b"\0" + data.read_bytes() + b"\0")
     return h.hexdigest()

@@ -39,21 +39,35 @@ the simulated contact force |reaction_k| is used instead, clipped the same way.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
-from typing import Any, Mapping
+from dataclasses import dataclass, replace
+from typing import Any, Mapping, Optional
 
 import numpy as np
 
-from conf.mpm_schema import mpm_config_from
 from conf.hand import N_FINGERS
+from conf.mpm_schema import MPMConfig, mpm_config_from
 from tasks.core.artifacts import Array
-from tasks.physics.material_oracle import materials_from_dict, mpm_material_kwargs
-from tasks.physics.mpm.materials import Material, material_from_dict
-from tasks.physics.mpm.solver import (DirichletPoints, ForcePatch, MPMSolver, deform_covariances, mass_scale_for,
-                              polar_rotation, rotate_quaternions)
 from tasks.core.step import artifact_step, report_progress
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
+from tasks.physics.mpm.materials import Material, material_from_dict
+from tasks.physics.mpm.solver import (
+    DirichletPoints,
+    ForcePatch,
+    MPMSolver,
+    deform_covariances,
+    mass_scale_for,
+    polar_rotation,
+    rotate_quaternions,
+)
+from tasks.physics.oracle.convert import materials_from_dict, mpm_material_kwargs
+from tasks.physics.oracle.schema import ObjectMaterials
 from tasks.physics.regions import finger_regions, region_weights, squeeze_strain
+
+STATS_KEYS = ("substeps", "dt_min", "courant", "max_speed", "j_min", "j_max", "kinetic_energy", "internal_energy",
+              "ke_ie_ratio")  # per-frame solver statistics (``MPMSolver.step_frame``), stored as arrays
+STATS_UNITS = {"dt_min": "s", "courant": "1", "max_speed": "m/s", "j_min": "1", "j_max": "1", "kinetic_energy": "J",
+               "internal_energy": "J", "ke_ie_ratio": "1", "substeps": "1"}
+
 
 def cauchy_free_measures(F: np.ndarray, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """J = det F and the von Mises stress 3 mu eps_eq of the Hencky strain (Pa) per particle.
@@ -81,29 +95,106 @@ def _sym6(cov: np.ndarray) -> np.ndarray:
     return np.stack([cov[:, 0, 0], cov[:, 0, 1], cov[:, 0, 2], cov[:, 1, 1], cov[:, 1, 2], cov[:, 2, 2]], axis=1)
 
 
+@dataclass
+class SqueezeRegions:
+    """Where each finger squeezes (sec. 3.2 squeezing threshold), from the eq. 3 field and the contact patches.
+
+    ``region`` (frame, finger, point) bool: finger k's surface points (remembered after release);
+    ``direction`` (frame, finger, xyz) 1: inward squeeze direction d_k; ``phi`` (frame, finger, point) 1: patch
+    weights of the region; ``half`` (xyz,) m: the object's half extents; ``predicted`` (frame, finger) 1: the
+    squeeze strain the prescribed field alone would give (decides whether the interior is needed)."""
+
+    region: np.ndarray
+    direction: np.ndarray
+    phi: np.ndarray
+    half: np.ndarray
+    predicted: np.ndarray
+
+
+@dataclass
+class Scene:
+    """Stage 1 of the rollout: the MPM scene of one object, ready to step.
+
+    ``materials`` are the solver's materials (index ``slot[label]``), ``labels`` (particle,) the initial particle
+    labels (SHELL, INTERIOR, RUPTURED, CORE), ``dx`` m the grid spacing, ``frame_dt`` s the output frame
+    interval, ``surface0`` (point, xyz) m the rest positions of the tracked surface points (the 3D Gaussians)."""
+
+    oracle: ObjectMaterials
+    solver: MPMSolver
+    materials: list[Material]
+    slot: np.ndarray
+    labels: np.ndarray
+    with_interior: bool
+    dx: float
+    config: MPMConfig
+    frame_dt: float
+    surface0: np.ndarray
+    regions: SqueezeRegions
+    notes: list[str]
+
+
+@dataclass
+class FrameRecord:
+    """Stage 2 of the rollout: what the frame loop recorded, per output frame (axes as in the artifact).
+
+    ``labels`` are the particle labels after the run (a release changes them), ``released`` (particle,) bool
+    the particles released at the threshold crossing (None without interior), ``event`` the crossing."""
+
+    particle_positions: np.ndarray  # (frame, particle, xyz) m
+    particle_J: np.ndarray  # (frame, particle) 1
+    particle_von_mises: np.ndarray  # (frame, particle) Pa
+    plastic_strain: Optional[np.ndarray]  # (frame, particle) 1, only with a plastic material
+    gaussian_positions: np.ndarray  # (frame, point, xyz) m
+    gaussian_covariances: np.ndarray  # (frame, point, sym6) m^2
+    gaussian_rotations: np.ndarray  # (frame, point, quat) 1
+    reaction: np.ndarray  # (frame, finger, xyz) N
+    applied: np.ndarray  # (frame, finger, xyz) N
+    strain: np.ndarray  # (frame, finger) 1
+    tracking: np.ndarray  # (frame,) m
+    stats: dict[str, np.ndarray]  # STATS_KEYS -> (frame,)
+    labels: np.ndarray
+    released: Optional[np.ndarray]
+    event: dict[str, Any]
+
+
 def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], field: Mapping[str, np.ndarray],
                 forces: np.ndarray, patches: Mapping[str, np.ndarray], times: np.ndarray,
                 materials: Mapping[str, Any], mpm: Mapping[str, Any], sim: Mapping[str, Any],
                 boundary: str) -> tuple[dict[str, Array], dict[str, Any]]:
-    """Simulate one object through its squeeze session; returns the rollout arrays and attributes."""
+    """Simulate one object through its squeeze session (sec. 3.2); returns the rollout arrays and attributes.
+
+    ``times`` (frame,) s; ``forces`` (frame, finger) the force coefficients c_k,t of eq. 1; ``field`` the eq. 3
+    Dirichlet field, ``patches`` the eq. 2 contact patches, ``materials`` the oracle's attributes."""
     if boundary not in ("dirichlet", "force"):
         raise ValueError(f"variant.boundary must be dirichlet or force, got {boundary!r}")
-    mats = materials_from_dict(materials)
-    shell = material_from_dict(mpm_material_kwargs(mats.shell, "shell"))
-    T = len(times)
-    frame_dt = float(times[1] - times[0]) if T > 1 else 1.0 / 30.0
+    scene = build_scene(obj, obj_attrs, field, patches, times, materials, mpm, sim)
+    frames = run_frames(scene, obj, field, forces, patches, times, sim, boundary)
+    return collect_outputs(scene, frames, times, patches, sim, boundary)
+
+
+# ----------------------------------------------------------------------------------------------- 1. the scene
+def squeeze_regions(obj_attrs: Mapping[str, Any], field: Mapping[str, np.ndarray], patches: Mapping[str, np.ndarray],
+                    n_frames: int) -> SqueezeRegions:
+    """The fingers' squeeze regions and the strain the prescribed field predicts over ``n_frames`` frames
+    (``eps_k`` of the module doc with u the eq. 3 displacement of the constrained points): (frame, finger)."""
     half = 0.5 * (np.asarray(obj_attrs["bbox_max"]) - np.asarray(obj_attrs["bbox_min"]))
     disp, finger_of = field["displacement"], field["finger"]
-    notes: list[str] = []
-
-    # ---- what this scene needs: interior particles only if they can be released
-    threshold = mats.squeeze_threshold
     region, direction = finger_regions(finger_of, patches["patch_normals"])
     phi = region_weights(finger_of, field["weight"])
     constrained_now = finger_of >= 0
     predicted = np.stack([squeeze_strain(np.where(constrained_now[f][:, None], disp[f], 0.0), region[f],
-                                         direction[f], half, phi[f]) for f in range(T)])
-    has_cavity = len(obj["interior_positions"]) > 0
+                                         direction[f], half, phi[f]) for f in range(n_frames)])
+    return SqueezeRegions(region=region, direction=direction, phi=phi, half=half, predicted=predicted)
+
+
+def interior_plan(mats: ObjectMaterials, has_cavity: bool, predicted: np.ndarray) -> tuple[bool, bool, list[str]]:
+    """Which interior particles the scene needs: (with_core, with_interior, notes).
+
+    The core (pulp, stuffing) is body and always simulated when the object has one and a cavity; the releasable
+    interior only when the material has a squeeze threshold that the ``predicted`` strain (frame, finger)
+    reaches."""
+    notes: list[str] = []
+    threshold = mats.squeeze_threshold
     with_core = mats.core is not None and has_cavity  # the pulp / stuffing is body: always simulated
     with_interior = mats.interior is not None and has_cavity
     core_note = f"; the {mats.core.name} core is simulated as part of the body" if with_core else ""
@@ -116,8 +207,14 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         with_interior = False
         notes.append(f"interior and release skipped: the controls never reach the squeeze threshold "
                      f"(predicted peak strain {predicted.max():.3f} < {threshold:.3f})" + core_note)
+    return with_core, with_interior, notes
 
-    # materials by label (SHELL, INTERIOR, RUPTURED, CORE); the solver indexes the list of those present
+
+def scene_particles(obj: Mapping[str, np.ndarray], mats: ObjectMaterials, with_core: bool, with_interior: bool,
+                    sim: Mapping[str, Any]) -> tuple[dict[int, Material], np.ndarray, np.ndarray, np.ndarray]:
+    """Solver materials by label and the particles: (materials by label, x0 (particle, xyz) m float32,
+    volumes (particle,) m^3 float32, labels (particle,) int32 of SHELL, INTERIOR, RUPTURED, CORE)."""
+    shell = material_from_dict(mpm_material_kwargs(mats.shell, "shell"))
     by_label: dict[int, Material] = {SHELL: shell}
     positions = [obj["particle_positions"]]
     volumes = [obj["particle_volumes"]]
@@ -141,15 +238,30 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         # torn skin carried off by the released interior: neo-Hookean's ln J barrier keeps the soft flakes from
         # inverting where the spray piles up (fixed-corotated's (J - 1)^2 term barely resists J -> 0)
         by_label[RUPTURED] = replace(by_label[RUPTURED], model="neo_hookean")
+    x0 = np.concatenate(positions).astype(np.float32)
+    vol = np.concatenate(volumes).astype(np.float32)
+    return by_label, x0, vol, np.concatenate(ids)
+
+
+def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], field: Mapping[str, np.ndarray],
+                patches: Mapping[str, np.ndarray], times: np.ndarray, materials: Mapping[str, Any],
+                mpm: Mapping[str, Any], sim: Mapping[str, Any]) -> Scene:
+    """Stage 1: the MPM scene of one object (materials by label, particles, grid, time scaling, solver)."""
+    # 1. what the scene needs: interior particles only if they can be released
+    mats = materials_from_dict(materials)
+    T = len(times)
+    frame_dt = float(times[1] - times[0]) if T > 1 else 1.0 / 30.0
+    regions = squeeze_regions(obj_attrs, field, patches, T)
+    with_core, with_interior, notes = interior_plan(mats, len(obj["interior_positions"]) > 0, regions.predicted)
+
+    # 2. materials by label (SHELL, INTERIOR, RUPTURED, CORE); the solver indexes the list of those present
+    by_label, x0, vol, mid = scene_particles(obj, mats, with_core, with_interior, sim)
     labels = sorted(by_label)
     mat_list: list[Material] = [by_label[lab] for lab in labels]
     slot = np.full(N_LABELS, -1, np.int32)
-    slot[labels] = np.arange(len(labels))
-    x0 = np.concatenate(positions).astype(np.float32)
-    vol = np.concatenate(volumes).astype(np.float32)
-    mid = np.concatenate(ids)  # labels; the solver's material ids are slot[mid]
+    slot[labels] = np.arange(len(labels))  # the solver's material ids are slot[mid]
 
-    # ---- grid and time scaling
+    # 3. grid and time scaling
     cfg = mpm_config_from(dict(mpm))
     spacing = float(obj_attrs["particle_spacing"])
     dx = cfg.dx or spacing * cfg.particles_per_cell ** (1.0 / 3.0)
@@ -169,143 +281,205 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
                      f"x{mass_scale:.3g}: Mach {v / c_fluid:.2g} at {v:g} m/s) instead of "
                      f"{mats.interior.bulk_modulus:.3g} Pa")
         mat_list[slot[INTERIOR]] = replace(mat_list[slot[INTERIOR]], bulk_modulus=k_fluid)
-    solver = MPMSolver(x0, vol, mat_list, material_ids=slot[mid], config=cfg, tracers=obj["surface_points"])
-    contact_tolerance = 0.25 * dx  # m: a point this much deeper than its finger is still in contact
 
-    # ---- outputs (only what the scene needs)
-    P, S = len(x0), len(obj["surface_points"])
-    plastic = any(m.is_plastic for m in mat_list)
-    out_x = np.zeros((T, P, 3), np.float32)
-    out_J = np.ones((T, P), np.float32)
-    out_vm = np.zeros((T, P), np.float32)
-    out_ep = np.zeros((T, P), np.float32) if plastic else None
-    g_pos = np.zeros((T, S, 3), np.float32)
-    g_cov = np.zeros((T, S, 6), np.float32)
-    g_rot = np.zeros((T, S, 4), np.float32)
-    reaction = np.zeros((T, N_FINGERS, 3), np.float32)
-    applied = np.zeros((T, N_FINGERS, 3), np.float32)
-    strain = np.zeros((T, N_FINGERS), np.float32)
-    tracking = np.zeros(T, np.float32)
-    stats_keys = ("substeps", "dt_min", "courant", "max_speed", "j_min", "j_max", "kinetic_energy",
-                  "internal_energy", "ke_ie_ratio")
-    stats = {k: np.zeros(T, np.float64) for k in stats_keys}
-    mu_phys = np.array([m.mu for m in mat_list])[slot[mid]]
+    # 4. the solver, with the surface points (3D Gaussians) as massless tracers
+    solver = MPMSolver(x0, vol, mat_list, material_ids=slot[mid], config=cfg, tracers=obj["surface_points"])
+    return Scene(oracle=mats, solver=solver, materials=mat_list, slot=slot, labels=mid, with_interior=with_interior,
+                 dx=dx, config=cfg, frame_dt=frame_dt, surface0=obj["surface_points"].astype(np.float64),
+                 regions=regions, notes=notes)
+
+
+# ----------------------------------------------------------------------------------------------- 2. the frames
+def _allocate_record(scene: Scene, T: int, S: int) -> FrameRecord:
+    """Zeroed outputs for T frames, S surface points and the scene's particles (only what the scene needs)."""
+    P = len(scene.labels)
+    plastic = any(m.is_plastic for m in scene.materials)
+    return FrameRecord(
+        particle_positions=np.zeros((T, P, 3), np.float32), particle_J=np.ones((T, P), np.float32),
+        particle_von_mises=np.zeros((T, P), np.float32),
+        plastic_strain=np.zeros((T, P), np.float32) if plastic else None,
+        gaussian_positions=np.zeros((T, S, 3), np.float32), gaussian_covariances=np.zeros((T, S, 6), np.float32),
+        gaussian_rotations=np.zeros((T, S, 4), np.float32), reaction=np.zeros((T, N_FINGERS, 3), np.float32),
+        applied=np.zeros((T, N_FINGERS, 3), np.float32), strain=np.zeros((T, N_FINGERS), np.float32),
+        tracking=np.zeros(T, np.float32), stats={k: np.zeros(T, np.float64) for k in STATS_KEYS},
+        labels=scene.labels, released=np.zeros(P, bool) if scene.with_interior else None,
+        event={"crossed": False, "threshold": scene.oracle.squeeze_threshold})
+
+
+def record_frame(rec: FrameRecord, f: int, scene: Scene, mu_phys: np.ndarray, cov0: np.ndarray, q0: np.ndarray,
+                 torn: np.ndarray) -> None:
+    """Store frame f of the solver's state in ``rec``: particles (x, J, von Mises with the per-particle shear
+    moduli ``mu_phys`` Pa, plastic strain), the Gaussians (positions, covariances F cov0 F^T, rotations
+    polar(F) q0) and the squeeze strain of each finger (torn skin no longer counts)."""
+    solver, reg = scene.solver, scene.regions
+    F = solver.deformation_gradients().astype(np.float64)
+    rec.particle_positions[f] = solver.positions()
+    rec.particle_J[f], rec.particle_von_mises[f] = cauchy_free_measures(F, mu_phys)
+    if rec.plastic_strain is not None:
+        rec.plastic_strain[f] = solver.plastic_strain()
+    tx, tF = solver.tracer_positions(), solver.tracer_F().astype(np.float64)
+    rec.gaussian_positions[f] = tx
+    rec.gaussian_covariances[f] = _sym6(deform_covariances(tF, cov0))
+    rec.gaussian_rotations[f] = rotate_quaternions(polar_rotation(tF), q0)
+    moved = tx - scene.surface0
+    # torn skin (around an opening) is no longer under a finger: the released interior may carry it off
+    rec.strain[f] = squeeze_strain(moved, reg.region[f] & ~torn, reg.direction[f], reg.half, reg.phi[f])
+
+
+def dirichlet_points(scene: Scene, field: Mapping[str, np.ndarray], f: int, torn: np.ndarray,
+                     contact_tolerance: float) -> tuple[Optional[DirichletPoints], np.ndarray, np.ndarray]:
+    """The Dirichlet conditions of frame f (module doc): the constrained, untorn points a finger pushes or holds,
+    driven to their eq. 3 targets within one frame.  Returns (conditions or None, point indices, targets (m))."""
+    disp, finger_of = field["displacement"], field["finger"]
+    idx = np.flatnonzero(field["constrained"][f] & ~torn)
+    target_x = np.zeros((0, 3))
+    if len(idx):
+        current = scene.solver.tracer_positions()[idx].astype(np.float64)
+        target_x = scene.surface0[idx] + disp[f, idx]
+        # unilateral contact: a finger pushes or holds, it never pulls material outwards
+        inward = scene.regions.direction[f, finger_of[f, idx]]
+        gap = np.einsum("ij,ij->i", target_x - current, inward)
+        retreating = np.einsum("ij,ij->i", disp[f, idx] - disp[f - 1, idx], inward) < 0.0
+        push_or_hold = gap >= np.where(retreating, 0.0, -contact_tolerance)
+        idx, current, target_x = idx[push_or_hold], current[push_or_hold], target_x[push_or_hold]
+    if not len(idx):
+        return None, idx, target_x
+    bc = DirichletPoints(positions=current, velocities=(target_x - current) / scene.frame_dt,
+                         finger_ids=finger_of[f, idx].astype(np.int32))
+    return bc, idx, target_x
+
+
+def force_patch(scene: Scene, field: Mapping[str, np.ndarray], forces: np.ndarray,
+                patches: Mapping[str, np.ndarray], f: int, torn: np.ndarray,
+                sim: Mapping[str, Any]) -> Optional[ForcePatch]:
+    """The force-mode push of frame f (the no_dirichlet ablation): a total force ``force_per_coefficient *
+    c_k,t`` N per active finger along its inward patch normal, spread over its constrained, untorn points (a
+    finger that punctured the skin no longer presses on the torn part, as in dirichlet mode)."""
+    finger_of = field["finger"]
+    idx = np.flatnonzero(field["constrained"][f] & ~torn)
+    if not len(idx):
+        return None
+    total = np.zeros((N_FINGERS, 3))
+    for k in range(N_FINGERS):
+        if patches["patch_active"][f, k] and (finger_of[f, idx] == k).any():
+            total[k] = float(sim["force_per_coefficient"]) * forces[f, k] * -patches["patch_normals"][f, k]
+    return ForcePatch(positions=scene.solver.tracer_positions()[idx], finger_ids=finger_of[f, idx].astype(np.int32),
+                      forces=total)
+
+
+def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, np.ndarray], forces: np.ndarray,
+               patches: Mapping[str, np.ndarray], times: np.ndarray, sim: Mapping[str, Any],
+               boundary: str) -> FrameRecord:
+    """Stage 2: the frame loop.  Per frame: the boundary condition (Dirichlet points or force patches), one
+    solver frame, the record, and the threshold release the first time a finger's strain reaches the threshold."""
+    solver, reg, slot = scene.solver, scene.regions, scene.slot
+    T, threshold = len(times), scene.oracle.squeeze_threshold
+    rec = _allocate_record(scene, T, len(obj["surface_points"]))
+    mid = scene.labels
+    mu_phys = np.array([m.mu for m in scene.materials])[slot[mid]]
     cov0 = _covariances(obj["gaussian_scales"], obj["gaussian_rotations"])
     q0 = obj["gaussian_rotations"].astype(np.float64)
-    released = np.zeros(P, bool) if with_interior else None
     torn = np.zeros(len(obj["surface_points"]), bool)  # surface points whose skin ruptured: no longer constrained
-    event: dict[str, Any] = {"crossed": False, "threshold": threshold}
-    surface0 = obj["surface_points"].astype(np.float64)
+    contact_tolerance = 0.25 * scene.dx  # m: a point this much deeper than its finger is still in contact
 
-    def record(f: int) -> None:
-        F = solver.deformation_gradients().astype(np.float64)
-        out_x[f] = solver.positions()
-        out_J[f], out_vm[f] = cauchy_free_measures(F, mu_phys)
-        if out_ep is not None:
-            out_ep[f] = solver.plastic_strain()
-        tx, tF = solver.tracer_positions(), solver.tracer_F().astype(np.float64)
-        g_pos[f] = tx
-        g_cov[f] = _sym6(deform_covariances(tF, cov0))
-        g_rot[f] = rotate_quaternions(polar_rotation(tF), q0)
-        moved = tx - surface0
-        # torn skin (around an opening) is no longer under a finger: the released interior may carry it off
-        strain[f] = squeeze_strain(moved, region[f] & ~torn, direction[f], half, phi[f])
-
-    record(0)
+    record_frame(rec, 0, scene, mu_phys, cov0, q0, torn)
     for f in range(1, T):
+        # 1. boundary condition of the frame
         bc, push = None, None
         if boundary == "dirichlet":
-            idx = np.flatnonzero(field["constrained"][f] & ~torn)
-            if len(idx):
-                current = solver.tracer_positions()[idx].astype(np.float64)
-                target_x = surface0[idx] + disp[f, idx]
-                # unilateral contact: a finger pushes or holds, it never pulls material outwards
-                inward = direction[f, finger_of[f, idx]]
-                gap = np.einsum("ij,ij->i", target_x - current, inward)
-                retreating = np.einsum("ij,ij->i", disp[f, idx] - disp[f - 1, idx], inward) < 0.0
-                push_or_hold = gap >= np.where(retreating, 0.0, -contact_tolerance)
-                idx, current, target_x = idx[push_or_hold], current[push_or_hold], target_x[push_or_hold]
-            if len(idx):
-                bc = DirichletPoints(positions=current, velocities=(target_x - current) / frame_dt,
-                                     finger_ids=finger_of[f, idx].astype(np.int32))
-        else:  # a finger that punctured the skin no longer presses on the torn part (as in dirichlet mode)
-            idx = np.flatnonzero(field["constrained"][f] & ~torn)
-            if len(idx):
-                total = np.zeros((N_FINGERS, 3))
-                for k in range(N_FINGERS):
-                    if patches["patch_active"][f, k] and (finger_of[f, idx] == k).any():
-                        total[k] = float(sim["force_per_coefficient"]) * forces[f, k] * -patches["patch_normals"][f, k]
-                push = ForcePatch(positions=solver.tracer_positions()[idx], finger_ids=finger_of[f, idx].astype(np.int32),
-                                  forces=total)
-        st = solver.step_frame(frame_dt, dirichlet=bc, forces=push)  # KE/IE per frame: summarised in the attrs
-        for k in stats_keys:
-            stats[k][f] = float(getattr(st, k))
-        reaction[f] = np.asarray(st.reaction)[:N_FINGERS]
-        applied[f] = np.asarray(st.applied_force)[:N_FINGERS]
-        record(f)
+            bc, idx, target_x = dirichlet_points(scene, field, f, torn, contact_tolerance)
+        else:
+            push = force_patch(scene, field, forces, patches, f, torn, sim)
+        # 2. one output frame of the solver (KE/IE per frame: summarised in the attrs)
+        st = solver.step_frame(scene.frame_dt, dirichlet=bc, forces=push)
+        for k in STATS_KEYS:
+            rec.stats[k][f] = float(getattr(st, k))
+        rec.reaction[f] = np.asarray(st.reaction)[:N_FINGERS]
+        rec.applied[f] = np.asarray(st.applied_force)[:N_FINGERS]
+        # 3. record
+        record_frame(rec, f, scene, mu_phys, cov0, q0, torn)
         report_progress(f, T - 1)
         if bc is not None:  # RMS distance of the imposed points from their targets at the end of the frame
-            tracking[f] = np.sqrt(np.mean(np.sum((g_pos[f][idx] - target_x) ** 2, axis=1)))
-        if with_interior and not event["crossed"] and threshold is not None and strain[f].max() >= threshold:
+            rec.tracking[f] = np.sqrt(np.mean(np.sum((rec.gaussian_positions[f][idx] - target_x) ** 2, axis=1)))
+        # 4. the threshold release (once)
+        if (scene.with_interior and not rec.event["crossed"] and threshold is not None
+                and rec.strain[f].max() >= threshold):
             tx = solver.tracer_positions()
-            centers = np.array([tx[region[f, k]].mean(axis=0) if region[f, k].any() else patches["patch_centers"][f, k]
-                                for k in range(N_FINGERS)])
-            event = _release(solver, f, times[f], strain[f], threshold, patches, centers, reaction[f], applied[f],
-                             boundary, mid, slot, released, sim)
+            centers = np.array([tx[reg.region[f, k]].mean(axis=0) if reg.region[f, k].any()
+                                else patches["patch_centers"][f, k] for k in range(N_FINGERS)])
+            rec.event = _release(solver, f, times[f], rec.strain[f], threshold, patches, centers, rec.reaction[f],
+                                 rec.applied[f], boundary, mid, slot, rec.released, sim)
             # the finger punctured the skin: it no longer presses on its patch, and no finger constrains the
             # surface within release_radius + 1.5 dx of the opening (a constrained point's B-spline stencil reaches
             # 1.5 dx deep: it would hold the released interior in place under the opening)
-            opening = float(sim["release_radius"]) + 1.5 * dx
-            for k in event["fingers"]:
-                torn |= region[f, k] | (np.linalg.norm(tx - centers[k], axis=1) <= opening)
-            mid = event.pop("labels")
-            mu_phys = np.array([m.mu for m in mat_list])[slot[mid]]
+            opening = float(sim["release_radius"]) + 1.5 * scene.dx
+            for k in rec.event["fingers"]:
+                torn |= reg.region[f, k] | (np.linalg.norm(tx - centers[k], axis=1) <= opening)
+            mid = rec.event.pop("labels")
+            mu_phys = np.array([m.mu for m in scene.materials])[slot[mid]]
+    rec.labels = mid
+    return rec
 
-    # ---- resistive force feedback (per finger, N)
+
+# ----------------------------------------------------------------------------------------------- 3. the outputs
+def resistive_feedback(oracle: ObjectMaterials, contact: np.ndarray, patches: Mapping[str, np.ndarray],
+                       max_force: float) -> tuple[np.ndarray, str]:
+    """Resistive force feedback (sec. 3.2) per frame and finger, N: ``clip(tau_y A_k, 0, max_force)`` with
+    tau_y the shell's yield stress (Pa) and A_k the active patch area (m^2), or the contact force |``contact``|
+    (frame, finger, xyz) N for a shell without a yield stress.  Returns (feedback (frame, finger), rule)."""
     area = patches["patch_areas"] * patches["patch_active"]
-    contact = np.linalg.norm(reaction if boundary == "dirichlet" else applied, axis=-1)
-    tau_y = mats.shell.yield_stress
-    raw_feedback = tau_y * area if tau_y else contact
-    feedback = np.clip(raw_feedback, 0.0, float(sim["feedback_max_force"])).astype(np.float32)
+    tau_y = oracle.shell.yield_stress
+    raw_feedback = tau_y * area if tau_y else np.linalg.norm(contact, axis=-1)
+    feedback = np.clip(raw_feedback, 0.0, max_force).astype(np.float32)
+    return feedback, "tau_y * area" if tau_y else "|contact force| (no yield stress)"
 
+
+def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: Mapping[str, np.ndarray],
+                    sim: Mapping[str, Any], boundary: str) -> tuple[dict[str, Array], dict[str, Any]]:
+    """Stage 3: the rollout artifact: the recorded arrays with axes and units, the resistive feedback and the
+    attributes (materials, scaling, threshold event, notes, quasi-static summary)."""
+    solver, mid = scene.solver, rec.labels
+    contact = rec.reaction if boundary == "dirichlet" else rec.applied
+    feedback, feedback_rule = resistive_feedback(scene.oracle, contact, patches, float(sim["feedback_max_force"]))
     arrays: dict[str, Array] = {
         "time": Array(times.astype(np.float64), ("frame",), "s"),
-        "particle_positions": Array(out_x, ("frame", "particle", "xyz"), "m"),
+        "particle_positions": Array(rec.particle_positions, ("frame", "particle", "xyz"), "m"),
         "particle_material": Array(mid.astype(np.int8), ("particle",), "1",
                                    "0 shell, 1 interior (released juice / cola / stuffing), 2 ruptured shell, "
                                    "3 core (pulp / stuffing: part of the body)"),
-        "particle_J": Array(out_J, ("frame", "particle"), "1", "det F (volume ratio)"),
-        "particle_von_mises": Array(out_vm, ("frame", "particle"), "Pa", "3 mu eps_eq of the elastic Hencky strain"),
-        "gaussian_positions": Array(g_pos, ("frame", "point", "xyz"), "m"),
-        "gaussian_covariances": Array(g_cov, ("frame", "point", "sym6"), "m^2", "F Sigma F^T: xx xy xz yy yz zz"),
-        "gaussian_rotations": Array(g_rot, ("frame", "point", "quat"), "1", "polar(F) q0, w first"),
-        "reaction_force": Array(reaction, ("frame", "finger", "xyz"), "N",
+        "particle_J": Array(rec.particle_J, ("frame", "particle"), "1", "det F (volume ratio)"),
+        "particle_von_mises": Array(rec.particle_von_mises, ("frame", "particle"), "Pa",
+                                    "3 mu eps_eq of the elastic Hencky strain"),
+        "gaussian_positions": Array(rec.gaussian_positions, ("frame", "point", "xyz"), "m"),
+        "gaussian_covariances": Array(rec.gaussian_covariances, ("frame", "point", "sym6"), "m^2",
+                                      "F Sigma F^T: xx xy xz yy yz zz"),
+        "gaussian_rotations": Array(rec.gaussian_rotations, ("frame", "point", "quat"), "1", "polar(F) q0, w first"),
+        "reaction_force": Array(rec.reaction, ("frame", "finger", "xyz"), "N",
                                 "sum m (v_bc - v*) / dt over the finger's constrained nodes, frame mean"),
-        "applied_force": Array(applied, ("frame", "finger", "xyz"), "N", "force mode push, frame mean"),
+        "applied_force": Array(rec.applied, ("frame", "finger", "xyz"), "N", "force mode push, frame mean"),
         "feedback_force": Array(feedback, ("frame", "finger"), "N", "resistive force for the glove"),
-        "squeeze_strain": Array(strain, ("frame", "finger"), "1"),
-        "dirichlet_tracking_error": Array(tracking, ("frame",), "m",
+        "squeeze_strain": Array(rec.strain, ("frame", "finger"), "1"),
+        "dirichlet_tracking_error": Array(rec.tracking, ("frame",), "m",
                                           "RMS |x - (x0 + dx)| over the points imposed in that frame"),
-        "predicted_squeeze_strain": Array(predicted.astype(np.float32), ("frame", "finger"), "1"),
+        "predicted_squeeze_strain": Array(scene.regions.predicted.astype(np.float32), ("frame", "finger"), "1"),
     }
-    units = {"dt_min": "s", "courant": "1", "max_speed": "m/s", "j_min": "1", "j_max": "1", "kinetic_energy": "J",
-             "internal_energy": "J", "ke_ie_ratio": "1", "substeps": "1"}
-    for k in stats_keys:
-        arrays[k] = Array(stats[k], ("frame",), units[k])
-    if out_ep is not None:
-        arrays["plastic_strain"] = Array(out_ep, ("frame", "particle"), "1", "equivalent plastic strain")
-    if released is not None:
-        arrays["released"] = Array(released, ("particle",), "1", "released at the threshold crossing")
+    for k in STATS_KEYS:
+        arrays[k] = Array(rec.stats[k], ("frame",), STATS_UNITS[k])
+    if rec.plastic_strain is not None:
+        arrays["plastic_strain"] = Array(rec.plastic_strain, ("frame", "particle"), "1", "equivalent plastic strain")
+    if rec.released is not None:
+        arrays["released"] = Array(rec.released, ("particle",), "1", "released at the threshold crossing")
     attrs = {
-        "boundary": boundary, "materials": [m.name for m in mat_list], "n_particles": int(P),
+        "boundary": boundary, "materials": [m.name for m in scene.materials], "n_particles": int(len(mid)),
         "n_interior": int((mid == INTERIOR).sum()),
-        "with_interior": bool(with_interior), "dx": float(dx), "mass_scale": solver.mass_scale,
-        "gravity_effective": solver.gravity, "device": solver.device, "substeps_total": int(stats["substeps"].sum()),
-        "threshold_event": event, "notes": notes,
-        "feedback_rule": "tau_y * area" if tau_y else "|contact force| (no yield stress)",
+        "with_interior": bool(scene.with_interior), "dx": float(scene.dx), "mass_scale": solver.mass_scale,
+        "gravity_effective": solver.gravity, "device": solver.device,
+        "substeps_total": int(rec.stats["substeps"].sum()),
+        "threshold_event": rec.event, "notes": scene.notes,
+        "feedback_rule": feedback_rule,
         "bytes_per_particle": float(solver.bytes_per_particle()),
-        "quasi_static": _quasi_static_summary(stats["ke_ie_ratio"], reaction if boundary == "dirichlet" else applied,
-                                              solver.mass_scale, float(cfg.quasi_static_ke_ie_max)),
+        "quasi_static": _quasi_static_summary(rec.stats["ke_ie_ratio"], contact, solver.mass_scale,
+                                              float(scene.config.quasi_static_ke_ie_max)),
     }
     return arrays, attrs
 
