@@ -30,7 +30,7 @@ from prefect import flow
 from prefect.logging import get_logger
 
 from flows.preflight import preflight
-from flows.runtime import RunTable, make_task_runner, result_storage_settings
+from flows.runtime import RunTable, make_task_runner, profile_table, result_storage_settings, runner_workers
 from tasks.control.contact_patches import contact_patches_step
 from tasks.control.dirichlet_field import dirichlet_field_step
 from tasks.control.force_coefficients import force_coefficients_step
@@ -62,6 +62,7 @@ PER_OBJECT: tuple[StepTask, ...] = (
 PER_VARIANT: tuple[StepTask, ...] = (mpm_rollout_step, deformation_metrics_step, gbuffer_step, conditions_step)
 PER_BACKEND: tuple[StepTask, ...] = (effect_step, appearance_refinement_step, video_metrics_step)
 STEPS: tuple[StepTask, ...] = PER_OBJECT + PER_VARIANT + PER_BACKEND
+STAGE_OF: dict[str, str] = {s.name: s.compute.__module__.split(".")[1] for s in STEPS}  # e.g. gbuffer -> render
 
 
 def _reads_generation(step: StepTask) -> bool:
@@ -130,6 +131,14 @@ def selected_backends(cfg: DictConfig) -> list[str]:
 def backend_config(cfg: DictConfig, backend: str) -> DictConfig:
     """``cfg`` with ``generation.backend`` set to ``backend``."""
     return cfg if cfg.generation.backend == backend else OmegaConf.merge(cfg, {"generation": {"backend": backend}})
+
+
+def missing_backends(cfg: DictConfig) -> dict[str, str]:
+    """The diffusion backends this run did not use, and why (Table 1's n/a rows)."""
+    ran = set(selected_backends(cfg))
+    why = ("weights not present: generation.weights is not set (README: Diffusion weights)" if not cfg.generation.weights
+           else "not selected: add it to grid.backends")
+    return {b: why for b in ("diffusers", "text_only") if b not in ran}
 
 
 def variant_key(variant: str, backend: str | None = None) -> str:
@@ -208,8 +217,10 @@ def virsqueezer_flow(config: dict, flow_label: str = "evaluate", report_dir: str
     report_dir = Path(report_dir) if report_dir else Path(cfg.paths.reports) / (cfg.run_name or _fresh_run_name(
         Path(cfg.paths.reports), flow_label))
     labels = {v.name: v.label or v.name for v in variants}
-    write_run_report(report_dir, cfg=config, table=table, refs=refs, variants=labels,
-                     wall_seconds=time.perf_counter() - t0)
+    wall = time.perf_counter() - t0
+    write_run_report(report_dir, cfg=config, table=table, refs=refs, variants=labels, wall_seconds=wall,
+                     missing_backends=missing_backends(cfg),
+                     profile=profile_table(table, STAGE_OF, wall, runner_workers(cfg.runner)))
     print(f"\nper-task table ({table.summary()}), wall {time.perf_counter() - t0:.1f} s\n{table.to_text()}")
     print(f"report: {report_dir.resolve() / 'report.md'}")
     failed = [r for r in table.rows if r.status == "failed"]
@@ -247,6 +258,10 @@ def sweep_job_dir() -> str | None:
 def run(cfg: DictConfig, flow_label: str) -> dict:
     """Entry used by the Hydra mains: check the config and inputs, pick the runner, run the flow."""
     preflight(cfg)
+    if "physics" in selected_backends(cfg) and not cfg.generation.weights:
+        print("effect backend: physics-rendered (weight-free). For the paper's diffusion backend put SD-1.5, an "
+              "AnimateDiff motion adapter and a depth ControlNet under one folder and run generation=diffusers "
+              "generation.weights=/path/to/models (README: Diffusion weights).")
     runner = make_task_runner(cfg.runner)
     config = OmegaConf.to_container(cfg, resolve=True)
     job_dir = sweep_job_dir()

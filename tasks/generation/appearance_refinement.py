@@ -28,8 +28,7 @@ from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
 from tasks.render.colour import srgb_uint8_to_linear, to_srgb_uint8
 from tasks.render.device import torch_device
-from tasks.render.gbuffer import released_appearance, rollout_particle_volumes
-from tasks.render.scene import RELEASED_SCALE_FACTOR
+from tasks.render.scene import RELEASED_SCALE_FACTOR, released_appearance, rollout_particle_volumes
 from tasks.render.splat import rasterization
 
 

@@ -24,7 +24,7 @@ from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
 from tasks.generation.physics_effect import appearance_for_effect, composite_effect, render_effect
 from tasks.render.colour import srgb_uint8_to_linear, to_srgb_uint8
-from tasks.render.gbuffer import rollout_particle_volumes
+from tasks.render.scene import rollout_particle_volumes
 
 PARTICLE_RADIUS_FACTOR = 0.75  # sphere radius of a released particle = this x cbrt(its volume): neighbours overlap
 

@@ -30,18 +30,8 @@ from tasks.physics.labels import INTERIOR
 from tasks.render.cameras import distance_for_object, orbit_cameras
 from tasks.render.colour import to_srgb_uint8
 from tasks.render.device import torch_device
-from tasks.render.scene import frame_scene, released_visibility
+from tasks.render.scene import frame_scene, released_appearance, released_visibility, rollout_particle_volumes
 from tasks.render.splat import rasterization
-
-
-def released_appearance(render: Mapping[str, Any], interior_name: str | None) -> dict[str, Any]:
-    """The look of released interior material: the first key of ``render.released`` that is a word of the
-    oracle's interior name (case-insensitive), else ``render.released_default``."""
-    name = (interior_name or "").lower()
-    for key, look in render["released"].items():
-        if key.lower() in name:
-            return dict(look)
-    return dict(render["released_default"])
 
 
 def orbit_rig(render: Mapping[str, Any], bbox_min: np.ndarray, bbox_max: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -51,12 +41,6 @@ def orbit_rig(render: Mapping[str, Any], bbox_min: np.ndarray, bbox_max: np.ndar
     radius = distance_for_object(0.5 * (hi - lo), render["fov_deg"], render["fill"])
     return orbit_cameras(0.5 * (lo + hi), radius, render["views"], render["elevation_deg"], render["fov_deg"],
                          render["width"], render["height"], render["azimuth0_deg"])
-
-
-def rollout_particle_volumes(obj: Mapping[str, np.ndarray], n_particles: int) -> np.ndarray:
-    """(particle,) m^3 of the rollout's particles: the object's own particles, then its cavity particles (core or
-    interior), in the order the rollout concatenates them."""
-    return np.concatenate([obj["particle_volumes"], obj["interior_volumes"]])[:n_particles]
 
 
 def render_gbuffer(surface_positions: np.ndarray, surface_covariances: np.ndarray, surface_colors: np.ndarray,

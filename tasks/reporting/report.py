@@ -17,6 +17,8 @@ import numpy as np
 
 from conf.hand import FINGERS
 from tasks.core.artifacts import ArtifactError, ArtifactRef, read_artifact
+from tasks.reporting.video_tables import PAPER_ONLY, table1, table3, video_metric_definitions, video_metric_rows
+from tasks.reporting.watch import STYLE, SYNC_SCRIPT, object_html, object_media, overview_html
 
 
 def code_revision() -> str:
@@ -183,8 +185,23 @@ def rollout_summary(refs: Mapping[str, Mapping[str, Any]]) -> Optional[str]:
     return head + "\n" + "\n".join(rows)
 
 
-NOT_BUILT = ("G-buffer rendering, mask refinement, diffusion and 4D refinement (paper sec. 3.3-3.4) are not part "
-             "of this version: no run performs them.")
+def effect_notes(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """Per object, variant and backend: which effect was generated (and how it is labelled), or why it was
+    skipped (no released material, generation=none)."""
+    lines = []
+    for obj, variant, pair in _variant_refs(refs):
+        for backend, brefs in pair.get("backends", {}).items():
+            ref = brefs.get("effect")
+            if ref is None:
+                continue
+            try:
+                attrs = read_artifact(ref, names=[]).attrs
+            except ArtifactError:
+                continue
+            what = (f"effect skipped: {attrs['skipped']}" if attrs.get("skipped")
+                    else f"effect: {attrs.get('label')}")
+            lines.append(f"- {obj} [{variant}, {backend}]: {what}")
+    return lines
 
 
 def left_out(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
@@ -251,12 +268,15 @@ def _embed(png: Path) -> str:
 
 def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: Mapping[str, Mapping[str, Any]],
                      wall_seconds: float, variants: Optional[Mapping[str, str]] = None,
-                     sections: Optional[list[tuple[str, str]]] = None) -> Path:
+                     sections: Optional[list[tuple[str, str]]] = None,
+                     missing_backends: Optional[Mapping[str, str]] = None, profile: str = "") -> Path:
     """Write the report folder for one flow run and return the path of ``report.md``.
 
     ``refs[object]`` holds the shared steps' references and ``refs[object]["variants"][variant]`` the
-    per-variant ones; ``variants`` maps variant names to their labels (Table 2's "Method").  ``sections`` are
-    extra (title, markdown) blocks contributed by later stages.
+    per-variant ones (``...["backends"][backend]`` the per-backend ones); ``variants`` maps variant names to their
+    labels (Table 2's "Method").  ``sections`` are extra (title, markdown) blocks; ``missing_backends`` names the
+    effect backends the run could not use and why (Table 1's n/a rows); ``profile`` is the compute-per-stage
+    table of the run.
     """
     from tasks.reporting.report_tables import (
         TABLE2,
@@ -277,7 +297,9 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     (report_dir / "config.json").write_text(json.dumps(cfg, indent=2, default=str))
     revision = code_revision()
     metrics = metric_rows(refs)
-    write_metric_files(metrics, report_dir)
+    video = video_metric_rows(refs)
+    write_metric_files(metrics.merge(video, on=["object", "variant"], how="left") if len(video) and len(metrics)
+                       else metrics, report_dir)
     objects = list(refs)
     for v in (metrics["variant"].unique() if len(metrics) else []):
         labels.setdefault(v, v)
@@ -288,6 +310,13 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     physical_cols = [c for c in metrics.columns if c not in {"object", "variant"} | {k for k, _, _ in TABLE2 + TRAJECTORY}]
     physical = metrics[["object", "variant", *physical_cols]] if len(metrics) else metrics
     definitions = metric_definitions(refs)
+    definitions.update(video_metric_definitions(refs))
+    video_tables = [
+        ("Video metrics, paper Table 1 layout (mean over the objects where a metric applies; bold: best)",
+         *table1(video, labels, missing_backends or {})),
+        ("Video metrics per object, paper Table 3 layout", *table3(video, objects, labels)),
+    ]
+    media = [m for m in (object_media(obj, refs[obj], report_dir) for obj in objects) if m is not None]
 
     figures: dict[str, list[Path]] = {}
     for obj in objects:
@@ -307,13 +336,20 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
           "- accuracy preset: " + ("; ".join(f"{k} {v}" for k, v in cfg.get("accuracy", {}).items())
                                    or "none stated (no preset selected)"),
           "- variants: " + ", ".join(f"`{k}` = {v}" for k, v in labels.items()), ""]
-    for title, header, rows, best in tables:
+    md += ["## Watch the squeezes", "", "Open `index.html` for the videos: per object and variant the simulated "
+           "render, the conditions of eq. 6, the final composite and the refined 4D Gaussians, with the control "
+           "signals in sync.  Files: " + ", ".join(f"`{s.stages_video.name}`" for m in media for s in m.scenes
+                                                  if s.stages_video), ""]
+    for title, header, rows, best in tables + video_tables:
         md += [f"## {title}", "", markdown_table(header, rows, best) if rows else "(no metrics: see the task table)", ""]
+    md += ["Paper metrics not computed here: " + "; ".join(f"{k}: {v}" for k, v in PAPER_ONLY.items()), ""]
+    if profile:
+        md += ["## Profile: compute per stage and object", "", profile, ""]
     if len(physical):
         md += ["## Physical figures per object and variant", "",
                markdown_table(list(physical.columns), [[_fmt(x) for x in r] for r in physical.itertuples(index=False)]), ""]
     walls = wall_findings(refs)
-    omitted = [*left_out(refs), f"- all objects: {NOT_BUILT}"]
+    omitted = [*left_out(refs), *effect_notes(refs)]
     md += ["## Left out of each scene, and why", "", *omitted, ""]
     if walls:
         md += ["## Walls thinner than the grid resolves (python -m flows.stability)", "", *walls, ""]
@@ -324,8 +360,11 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     if definitions:
         md += ["## Metric definitions", ""] + [f"- **{k}**: {v}" for k, v in definitions.items()] + [""]
     md += ["## Objects", ""]
+    by_obj = {m.obj: m for m in media}
     for obj in objects:
         md.append(f"### {obj}")
+        if obj in by_obj and by_obj[obj].contact_sheet:
+            md.append(f"![{obj} contact sheet]({by_obj[obj].contact_sheet.name})")
         md += [f"![{png.stem}]({png.name})" for png in figures.get(obj, [])]
         md += ["", "| step | variant | artifact |", "|---|---|---|"]
         md += [f"| {r.step} | {r.variant or '-'} | `{r.artifact or '(not produced)'}` |"
@@ -338,8 +377,14 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
             f"<code>{html.escape(revision)}</code>; metric rows in metrics.csv / metrics.parquet</p>",
             "<p>accuracy preset: " + html.escape("; ".join(f"{k} {v}" for k, v in cfg.get("accuracy", {}).items())
                                                  or "none stated") + "</p>"]
-    for title, header, rows, best in tables:
+    if media:
+        body += ["<h2>Overview: the final video of every squeeze (view 0)</h2>", overview_html(media, labels)]
+    for title, header, rows, best in tables + video_tables:
         body += [f"<h2>{html.escape(title)}</h2>", html_table(header, rows, best) if rows else "<p>(no metrics)</p>"]
+    body.append("<p>Paper metrics not computed here: " + html.escape(
+        "; ".join(f"{k}: {v}" for k, v in PAPER_ONLY.items())) + "</p>")
+    if profile:
+        body += ["<h2>Profile: compute per stage and object</h2>", f"<pre>{html.escape(profile)}</pre>"]
     if len(physical):
         body += ["<h2>Physical figures per object and variant</h2>",
                  html_table(list(physical.columns), [[_fmt(x) for x in r] for r in physical.itertuples(index=False)])]
@@ -358,6 +403,8 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     body.append("<h2>Objects</h2>")
     for obj in objects:
         body.append(f"<h3>{html.escape(obj)}</h3>")
+        if obj in by_obj:
+            body.append(object_html(by_obj[obj], labels))
         for png in figures.get(obj, []):
             body.append(f'<img alt="{html.escape(png.stem)}" src="{_embed(png)}" style="max-width:800px">')
         body.append("<ul>" + "".join(
@@ -367,8 +414,8 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     body += ["<h2>Config</h2>", f"<pre>{html.escape(json.dumps(cfg, indent=2, default=str))}</pre>"]
     page = ("<!doctype html><html><head><meta charset='utf-8'><title>VirSqueezer report</title>"
             "<style>body{font-family:sans-serif;max-width:1100px;margin:auto}table{border-collapse:collapse}"
-            "td,th{border:1px solid #ccc;padding:2px 6px;font-size:13px}</style></head><body>"
-            + "\n".join(body) + "</body></html>")
+            "td,th{border:1px solid #ccc;padding:2px 6px;font-size:13px}" + STYLE + "</style></head><body>"
+            + "\n".join(body) + SYNC_SCRIPT + "</body></html>")
     (report_dir / "index.html").write_text(page)
     return report_dir / "report.md"
 

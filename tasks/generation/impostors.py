@@ -1,0 +1,113 @@
+"""Released particles seen by a pinhole camera: projection and sphere-impostor splatting (z-buffer and thickness).
+
+The shared first stage of the weight-free effect renderers (:mod:`tasks.generation.fluid_render`,
+:mod:`tasks.generation.strand_render`).  Camera conventions are gsplat's / OpenCV's: ``viewmat`` (4, 4) maps world
+to camera coordinates with x right, y down, z forward (metres); ``K`` (3, 3) holds fx, fy, cx, cy in pixels; the
+pixel in row i, column j covers [j, j + 1) x [i, i + 1), so its centre is at (j + 0.5, i + 0.5).  A sphere of
+radius r at camera depth z projects to a disc of radius fx r / z pixels (the small-angle form used by screen-space
+fluid rendering; the exact outline is a slightly larger ellipse off-axis).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+
+class EffectFrame(NamedTuple):
+    """One rendered frame of a secondary effect, laid out like the G-buffer it replaces.
+
+    rgb: (y, x, channel=3) float32 linear RGB in [0, 1], the background with the effect drawn over it.
+    depth: (y, x) float32 metres along the camera axis, the effect's depth where it covers the pixel, else the
+        surface depth passed in (+inf where nothing is seen).
+    coverage: (y, x) float32 in [0, 1], the effect's opacity per pixel (0 where it is absent).
+    """
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    coverage: np.ndarray
+
+
+@dataclass(frozen=True)
+class ProjectedParticles:
+    """Particles in front of the camera, projected; every array is (particle,) and ``index`` maps back to the
+    caller's particle order (used to seed per-particle randomness so it does not change between frames)."""
+
+    index: np.ndarray  # int64, position in the caller's particle array
+    u: np.ndarray  # px, image x of the centre
+    v: np.ndarray  # px, image y of the centre
+    z: np.ndarray  # m, camera depth of the centre
+    radius_m: np.ndarray  # m
+    radius_px: np.ndarray  # px, fx * radius_m / z
+
+
+def check_frame_inputs(background_rgb: np.ndarray, surface_depth: np.ndarray) -> tuple[int, int]:
+    """Validate a frame's ``background_rgb`` (y, x, 3) in [0, 1] and ``surface_depth`` (y, x) metres; returns (H, W)."""
+    if background_rgb.ndim != 3 or background_rgb.shape[2] != 3:
+        raise ValueError(f"background_rgb must be (y, x, 3) linear RGB, got shape {background_rgb.shape}")
+    if surface_depth.shape != background_rgb.shape[:2]:
+        raise ValueError(f"surface_depth must be (y, x) = {background_rgb.shape[:2]}, got {surface_depth.shape}")
+    if np.isnan(surface_depth).any():
+        raise ValueError("surface_depth holds NaN: use +inf where no surface is rendered")
+    return background_rgb.shape[0], background_rgb.shape[1]
+
+
+def project_particles(positions: np.ndarray, radii: np.ndarray | float, viewmat: np.ndarray, K: np.ndarray,
+                      near_m: float = 1e-3) -> ProjectedParticles:
+    """Pinhole projection of particle centres (OpenCV / gsplat camera, see the module doc).
+
+    positions: (particle, xyz) world metres; radii: (particle,) or scalar, metres; viewmat: (4, 4) world-to-camera;
+    K: (3, 3) intrinsics in pixels.  Particles whose front (z - r) is closer than ``near_m`` are dropped.
+    """
+    positions = np.asarray(positions, np.float64)
+    if positions.ndim != 2 or positions.shape[1] != 3:
+        raise ValueError(f"positions must be (particle, 3) metres, got shape {positions.shape}")
+    radii = np.broadcast_to(np.asarray(radii, np.float64), positions.shape[:1])
+    if (radii <= 0).any() or not np.isfinite(positions).all():
+        raise ValueError("radii must be > 0 metres and positions finite")
+    viewmat, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
+    if viewmat.shape != (4, 4) or K.shape != (3, 3):
+        raise ValueError(f"viewmat must be (4, 4) and K (3, 3), got {viewmat.shape} and {K.shape}")
+    camera = positions @ viewmat[:3, :3].T + viewmat[:3, 3]
+    front = camera[:, 2] - radii > near_m
+    camera, index = camera[front], np.flatnonzero(front)
+    z = camera[:, 2]
+    return ProjectedParticles(index=index, u=K[0, 0] * camera[:, 0] / z + K[0, 2],
+                              v=K[1, 1] * camera[:, 1] / z + K[1, 2], z=z, radius_m=radii[front],
+                              radius_px=K[0, 0] * radii[front] / z)
+
+
+def splat_sphere_impostors(particles: ProjectedParticles, surface_depth: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray]:
+    """Sphere-impostor splatting (van der Laan, Green & Sainz, I3D 2009): z-buffered front depth and
+    summed thickness of the particles, each drawn as the disc of its screen radius.
+
+    At a pixel centre a normalised distance d (0 at the disc centre, 1 on its rim) from a particle, the sphere's
+    front is at depth ``z - r sqrt(1 - d^2)`` and the chord through it is ``2 r sqrt(1 - d^2)`` long.  Fragments at
+    or behind ``surface_depth`` (y, x) metres (the object's surface, +inf where none) are hidden.
+    Returns ``(depth, thickness)``: (y, x) float64 metres; depth is +inf where no particle is seen, thickness 0.
+    """
+    height, width = surface_depth.shape
+    # 1. enumerate the pixels of each particle's bounding box (one row per (particle, pixel) pair)
+    x0 = np.clip(np.floor(particles.u - particles.radius_px).astype(np.int64), 0, width)
+    x1 = np.clip(np.ceil(particles.u + particles.radius_px).astype(np.int64) + 1, 0, width)
+    y0 = np.clip(np.floor(particles.v - particles.radius_px).astype(np.int64), 0, height)
+    y1 = np.clip(np.ceil(particles.v + particles.radius_px).astype(np.int64) + 1, 0, height)
+    box_w, box_h = x1 - x0, np.maximum(y1 - y0, 0)
+    count = np.where(box_w > 0, box_w * box_h, 0)
+    owner = np.repeat(np.arange(len(count)), count)
+    local = np.arange(owner.size) - np.repeat(np.cumsum(count) - count, count)
+    px = x0[owner] + local % np.maximum(box_w[owner], 1)
+    py = y0[owner] + local // np.maximum(box_w[owner], 1)
+    # 2. keep the pixel centres inside the disc and in front of the surface
+    d2 = ((px + 0.5 - particles.u[owner]) ** 2 + (py + 0.5 - particles.v[owner]) ** 2) / particles.radius_px[owner] ** 2
+    half_chord = particles.radius_m[owner] * np.sqrt(np.clip(1.0 - d2, 0.0, None))
+    front = particles.z[owner] - half_chord
+    keep = (d2 < 1.0) & (front < surface_depth[py, px])
+    pixel = (py * width + px)[keep]
+    # 3. z-buffer the front depth and sum the chords
+    depth = np.full(height * width, np.inf)
+    np.minimum.at(depth, pixel, front[keep])
+    thickness = np.bincount(pixel, weights=2.0 * half_chord[keep], minlength=height * width)
+    return depth.reshape(height, width), thickness.reshape(height, width)

@@ -1,0 +1,241 @@
+"""What a researcher watches in the report: videos of every squeeze, contact sheets, and the control signals drawn
+in sync under the videos (paper sec. 3.2-3.3: the G-buffer, the conditions of eq. 6, the effect and its 4D
+refinement of eq. 7).
+
+Per object and variant one "stages" video tiles, for every view (rows), the simulated render I, the conditions
+(normalised depth, the refined mask M~ in orange), the final composite with the effect, and the renders of the
+refined 4D Gaussians.  Per object a contact sheet (rest, peak squeeze, after release; across views) and a control
+plot (flexion and force coefficient per finger) with a time cursor that follows whichever video plays.  Pure
+functions of artifacts; :mod:`tasks.reporting.report` places what they return.
+"""
+from __future__ import annotations
+
+import base64
+import html
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import matplotlib.pyplot as plt
+import numpy as np
+
+from conf.hand import FINGERS
+from tasks.core.artifacts import ArtifactError, read_artifact
+from tasks.reporting.video import contact_sheet, encode_video, side_by_side
+
+MASK_TINT = np.array([255, 140, 0], np.float32)  # sRGB orange over the depth condition
+
+
+@dataclass
+class SceneMedia:
+    """The media of one object and variant (paths inside the report folder), and what they show."""
+
+    variant: str
+    backend: str | None = None
+    effect_label: str | None = None
+    stages_video: Path | None = None
+    final_video: Path | None = None
+    loss_plot: Path | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class ObjectMedia:
+    obj: str
+    scenes: list[SceneMedia] = field(default_factory=list)
+    contact_sheet: Path | None = None
+    control_plot: Path | None = None
+    plot_span: tuple[float, float] = (0.0, 1.0)  # axes' x extent in figure fraction (for the cursor)
+    duration_s: float = 0.0
+
+
+def conditions_image(normalised_depth: np.ndarray, refined_mask: np.ndarray) -> np.ndarray:
+    """uint8 sRGB (..., y, x, 3): the depth condition Norm(D) in grey with the refined mask M~ tinted orange."""
+    grey = np.repeat((255.0 * normalised_depth)[..., None], 3, axis=-1).astype(np.float32)
+    tinted = np.where(refined_mask[..., None], 0.45 * grey + 0.55 * MASK_TINT, grey)
+    return np.clip(tinted, 0, 255).astype(np.uint8)
+
+
+def _load(ref, names=None):
+    if ref is None:
+        return None
+    try:
+        return read_artifact(ref, names=names)
+    except ArtifactError:
+        return None
+
+
+def scene_media(obj: str, variant: str, pair: Mapping[str, Any], backend_refs: Mapping[str, Mapping[str, Any]],
+                out_dir: Path, fps: float) -> SceneMedia | None:
+    """Encode the stages video (rows: views; columns: render, conditions, final, refined 4D) and the final
+    composite video of view 0, plus the eq. 7 loss curve, for one object and variant (first backend)."""
+    g = _load(pair.get("gbuffer"))
+    cond = _load(pair.get("conditions"), ["normalised_depth", "refined_mask"])
+    if g is None or cond is None:
+        return None
+    backend, refs = next(iter(backend_refs.items()), (None, {}))
+    effect = _load(refs.get("effect"))
+    refined = _load(refs.get("appearance_refinement"), ["rgb", "loss"])
+    media = SceneMedia(variant=variant, backend=backend)
+    final = effect["frames"] if effect is not None and "frames" in effect else g["rgb"]
+    if effect is not None:
+        media.effect_label = effect.attrs.get("label")
+        if effect.attrs.get("skipped"):
+            media.notes.append(f"effect skipped: {effect.attrs['skipped']}")
+    columns = {"simulated render I": g["rgb"], "conditions: Norm(D), M~": conditions_image(
+        cond["normalised_depth"], cond["refined_mask"]), "final composite": final}
+    if refined is not None and "rgb" in refined:
+        columns["refined 4D Gaussians (eq. 7)"] = refined["rgb"]
+    n_views = g["rgb"].shape[0]
+    tiles = [columns[c][v] for v in range(n_views) for c in columns]
+    labels = [f"view {v}: {c}" for v in range(n_views) for c in columns]
+    media.stages_video = encode_video(side_by_side(tiles, labels, columns=len(columns)),
+                                      out_dir / f"{obj}_{variant}_stages.mp4", fps)
+    media.final_video = encode_video(final[0], out_dir / f"{obj}_{variant}_final.mp4", fps)
+    if refined is not None and "loss" in refined and len(refined["loss"]):
+        fig, ax = plt.subplots(figsize=(3.6, 2.2))
+        ax.plot(np.arange(1, len(refined["loss"]) + 1), refined["loss"])
+        ax.set_xlabel("iteration")
+        ax.set_ylabel("L_rec (mean |R - I*|)")
+        ax.set_title(f"{obj} [{variant}]: eq. 7 refinement", fontsize=9)
+        fig.tight_layout()
+        media.loss_plot = out_dir / f"{obj}_{variant}_refinement.png"
+        fig.savefig(media.loss_plot, dpi=100)
+        plt.close(fig)
+    return media
+
+
+def moments(strain: np.ndarray, event: Mapping[str, Any], frame_index: np.ndarray) -> dict[str, int]:
+    """Rendered-frame indices of rest (0), peak squeeze (max strain) and after release (the last frame, or the
+    last frame before the fingers let go when nothing was released)."""
+    peak_sim = int(np.argmax(strain.max(axis=1)))
+    after = len(frame_index) - 1
+    return {"rest": 0, "peak squeeze": int(np.argmin(np.abs(frame_index - peak_sim))),
+            ("after release" if event.get("crossed") else "end"): after}
+
+
+def object_media(obj: str, obj_refs: Mapping[str, Any], out_dir: Path) -> ObjectMedia | None:
+    """All media of one object: every variant's scene media, the contact sheet of the first variant, the
+    synchronised control plot."""
+    variants = obj_refs.get("variants", {})
+    media = ObjectMedia(obj)
+    fps = None
+    for variant, vrefs in variants.items():
+        g = _load(vrefs.get("gbuffer"), ["time"])
+        if g is None:
+            continue
+        times = g["time"]
+        fps = 1.0 / float(times[1] - times[0]) if len(times) > 1 else 1.0
+        media.duration_s = float(len(times) / fps)
+        scene = scene_media(obj, variant, {**obj_refs, **vrefs}, vrefs.get("backends", {}), out_dir, fps)
+        if scene is not None:
+            media.scenes.append(scene)
+    if not media.scenes:
+        return None
+    # contact sheet of the first variant: rows views, columns rest / peak / after release
+    first = next(iter(variants.values()))
+    g = _load(first.get("gbuffer"), ["rgb", "frame_index"])
+    rollout = _load(first.get("mpm_rollout"), ["squeeze_strain"])
+    backend_refs = next(iter(first.get("backends", {}).values()), {})
+    effect = _load(backend_refs.get("effect"), ["frames"])
+    final = effect["frames"] if effect is not None and "frames" in effect else g["rgb"]
+    picks = moments(rollout["squeeze_strain"], rollout.attrs.get("threshold_event") or {}, g["frame_index"])
+    sheet = contact_sheet(final[:, list(picks.values())], [f"view {v}" for v in range(final.shape[0])],
+                          list(picks))
+    media.contact_sheet = out_dir / f"{obj}_contact_sheet.png"
+    plt.imsave(media.contact_sheet, sheet)
+    media.control_plot, media.plot_span = control_plot(obj, obj_refs, out_dir / f"{obj}_signals.png",
+                                                       media.duration_s)
+    return media
+
+
+def control_plot(obj: str, obj_refs: Mapping[str, Any], path: Path, duration_s: float
+                 ) -> tuple[Path | None, tuple[float, float]]:
+    """Flexion and force coefficient per finger over the rendered clip's time span; returns the path and the axes'
+    x extent in figure fraction, where the report's time cursor runs."""
+    frames = _load(obj_refs.get("signal_smoothing"), ["time", "flexion"])
+    forces = _load(obj_refs.get("force_coefficients"), ["force_coefficients"])
+    if frames is None or forces is None:
+        return None, (0.0, 1.0)
+    t = frames["time"] - frames["time"][0]
+    fig, axes = plt.subplots(2, 1, figsize=(7.2, 2.8), sharex=True)
+    for k, finger in enumerate(FINGERS):
+        axes[0].plot(t, frames["flexion"][:, k], label=finger, lw=1)
+        axes[1].plot(t, forces["force_coefficients"][:, k], lw=1)
+    axes[0].set_ylabel("flexion (1)", fontsize=8)
+    axes[1].set_ylabel("force coeff. (1)", fontsize=8)
+    axes[1].set_xlabel("time (s)", fontsize=8)
+    axes[0].legend(fontsize=6, ncol=5, loc="upper left")
+    for ax in axes:
+        ax.set_xlim(0.0, duration_s)
+        ax.tick_params(labelsize=7)
+    fig.subplots_adjust(left=0.09, right=0.99, top=0.97, bottom=0.16, hspace=0.12)
+    box = axes[0].get_position()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path, (float(box.x0), float(box.x1))
+
+
+def _data_uri(path: Path, mime: str) -> str:
+    return f"data:{mime};base64," + base64.b64encode(Path(path).read_bytes()).decode()
+
+
+def video_tag(path: Path, obj: str, width: int, controls: bool = True) -> str:
+    """A looping, muted, autoplaying <video> embedded in the page (plays offline), tied to its object's cursor."""
+    return (f'<video class="sync" data-obj="{html.escape(obj)}" width="{width}" autoplay muted loop playsinline'
+            f'{" controls" if controls else ""} src="{_data_uri(path, "video/mp4")}"></video>')
+
+
+def overview_html(media: list[ObjectMedia], labels: Mapping[str, str]) -> str:
+    """One row per object, the variants side by side (final composite, view 0)."""
+    variants = list(dict.fromkeys(s.variant for m in media for s in m.scenes))
+    head = "".join(f"<th>{html.escape(labels.get(v, v))}</th>" for v in variants)
+    rows = []
+    for m in media:
+        by = {s.variant: s for s in m.scenes}
+        cells = "".join(f"<td>{video_tag(by[v].final_video, m.obj, 220, controls=False)}</td>" if v in by
+                        and by[v].final_video else "<td>-</td>" for v in variants)
+        rows.append(f"<tr><th>{html.escape(m.obj)}</th>{cells}</tr>")
+    return f"<table class='overview'><tr><th>object</th>{head}</tr>{''.join(rows)}</table>"
+
+
+def object_html(m: ObjectMedia, labels: Mapping[str, str]) -> str:
+    """An object's media block: contact sheet, then per variant the stages video with the control plot and its
+    time cursor underneath, and the refinement loss."""
+    out = []
+    if m.contact_sheet:
+        out.append(f'<p><img alt="{html.escape(m.obj)} contact sheet" style="max-width:100%" '
+                   f'src="{_data_uri(m.contact_sheet, "image/png")}"></p>')
+    for s in m.scenes:
+        label = labels.get(s.variant, s.variant)
+        effect = f"; effect: {html.escape(s.effect_label)}" if s.effect_label else ""
+        out.append(f"<h4>{html.escape(label)}{effect}</h4>")
+        if s.notes:
+            out.append("<p>" + html.escape("; ".join(s.notes)) + "</p>")
+        out.append(video_tag(s.stages_video, m.obj, 760))
+        if m.control_plot:
+            x0, x1 = m.plot_span
+            out.append(f'<div class="plot" data-obj="{html.escape(m.obj)}" data-x0="{x0:.4f}" data-x1="{x1:.4f}" '
+                       f'data-duration="{m.duration_s:.4f}"><img src="{_data_uri(m.control_plot, "image/png")}">'
+                       f'<div class="cursor"></div></div>')
+        if s.loss_plot:
+            out.append(f'<img alt="refinement loss" src="{_data_uri(s.loss_plot, "image/png")}">')
+    return "\n".join(out)
+
+
+# The cursor of every control plot follows the last video of its object that advanced.
+SYNC_SCRIPT = """<script>
+document.querySelectorAll('video.sync').forEach(function (v) {
+  v.addEventListener('timeupdate', function () {
+    document.querySelectorAll('.plot[data-obj="' + v.dataset.obj + '"]').forEach(function (p) {
+      var f = Math.min(1, v.currentTime / parseFloat(p.dataset.duration));
+      var x = parseFloat(p.dataset.x0) + f * (parseFloat(p.dataset.x1) - parseFloat(p.dataset.x0));
+      p.querySelector('.cursor').style.left = (100 * x) + '%';
+    });
+  });
+});
+</script>"""
+STYLE = (".overview video{display:block}.plot{position:relative;display:inline-block;width:760px}"
+         ".plot img{width:100%;display:block}.cursor{position:absolute;top:0;bottom:0;width:2px;"
+         "background:#d00;left:0}")
