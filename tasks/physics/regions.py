@@ -11,6 +11,7 @@ import numpy as np
 
 from conf.hand import N_FINGERS
 
+
 def support_half_extent(direction: np.ndarray, half: np.ndarray) -> np.ndarray:
     """h(d) = sum_i |d_i| half_i: half-width (m) of the object's bounding box along unit direction(s) d."""
     return np.abs(direction) @ half
