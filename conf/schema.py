@@ -221,7 +221,7 @@ class RunnerConfig:
     kind: str = "threads"
     max_workers: int = 2
     address: Optional[str] = None  # dask scheduler address, e.g. tcp://10.0.0.5:8786
-    n_workers: int = 2
+    n_workers: Optional[int] = None  # dask local cluster: worker processes (None: one per core)
     threads_per_worker: int = 1
 
 

@@ -2,6 +2,7 @@
 
     python -m flows.benchmark                      # 64^3 grid, ~130k particles, 100 substeps x 3 repeats
     python -m flows.benchmark --n-grid 32 --quick  # small and fast
+    python -m flows.benchmark --render             # the Gaussian rasteriser: time per frame against its floor
 
 Scene (identical for both solvers): a fixed-corotated elastic cube (E, nu, rho below), 2 x 2 x 2 particles per
 cell, falling with an initial downward velocity onto the floor of an n^3 grid (dx = 1/n, slip walls on a 3-node
@@ -120,10 +121,16 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--skip-taichi", action="store_true")
     ap.add_argument("--quick", action="store_true", help="32^3 grid, 40 substeps, 1 round")
     ap.add_argument("--out", default="reports/benchmark")
+    ap.add_argument("--render", action="store_true",
+                    help="benchmark the Gaussian rasteriser against its physical floor instead (tasks/render/benchmark.py)")
     ap.add_argument("--_worker", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--_scene", default=None, help=argparse.SUPPRESS)
     ap.add_argument("--_save", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
+    if a.render:
+        from tasks.render.benchmark import main as render_benchmark
+
+        return {"render": render_benchmark()}
     if a._worker:  # subprocess: one warp run
         res = run_warp(a._scene, a._worker, a.substeps, a.repeats, a._save, a.polar_iters)
         print(json.dumps(res))

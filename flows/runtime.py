@@ -1,6 +1,7 @@
 """What every flow shares: task runner from config, result storage, the per-task status table."""
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,7 +33,7 @@ def make_task_runner(runner: DictConfig):
             return DaskTaskRunner(address=runner.address)
         return DaskTaskRunner(
             cluster_kwargs={
-                "n_workers": int(runner.n_workers),
+                "n_workers": dask_workers(runner),
                 "threads_per_worker": int(runner.threads_per_worker),
                 "processes": True,
                 "dashboard_address": None,
@@ -41,12 +42,17 @@ def make_task_runner(runner: DictConfig):
     raise SystemExit(f"runner.kind={kind!r} is unknown: use sequential, threads or dask")
 
 
+def dask_workers(runner: DictConfig) -> int:
+    """Worker processes of the local Dask cluster: ``runner.n_workers``, or one per core."""
+    return int(runner.n_workers) if runner.n_workers else max(1, os.cpu_count() or 1)
+
+
 def runner_workers(runner: DictConfig) -> int:
     """How many tasks the runner executes at once (for the parallel efficiency)."""
     if runner.kind == "threads":
         return int(runner.max_workers)
     if runner.kind == "dask":
-        return int(runner.n_workers) * int(runner.threads_per_worker)
+        return dask_workers(runner) * int(runner.threads_per_worker)
     return 1
 
 
