@@ -44,6 +44,7 @@ class GenerationConfig:
     seed: int = 0
     device: str = "auto"
     dtype: str = "auto"
+    weights_digest: Optional[str] = None  # set by the pre-flight check: identity of the weights (cache key)
 
 
 @dataclass

@@ -18,6 +18,9 @@ for _key, _value in {
     # whatever Prefect persists (e.g. a failed flow's exception) is JSON: nothing under artifacts/ is a pickle
     "PREFECT_RESULTS_DEFAULT_SERIALIZER": "json",
     "PREFECT_RESULTS_LOCAL_STORAGE_PATH": _os.path.join(_root, ".prefect", "results"),
+    # transformers (imported by diffusers) logs optional-package hints at import: keep the run's output to ours
+    "TRANSFORMERS_VERBOSITY": "error",
+    "HF_HUB_OFFLINE": "1",  # nothing is downloaded at run time
 }.items():
     _os.environ.setdefault(_key, _value)
 # Prefect creates its home without parents (a new artifacts folder would leave its server without a database)

@@ -7,7 +7,10 @@ A bad input stops the run with one line naming the input (its config key) and th
 2. the SenseGlove recording (``signal=csv``): it exists, is at most ``MAX_RECORDING_BYTES``, and parses
    completely (columns, numbers, ranges, truncation), with the reader the step uses;
 3. every selected object's geometry file (``kind: mesh`` or ``ply``): it exists and is a closed,
-   self-intersection-free mesh or a 3DGS PLY in the Inria layout, with the loader the step uses.
+   self-intersection-free mesh or a 3DGS PLY in the Inria layout, with the loader the step uses;
+4. the diffusion weights when a diffusion backend runs: every model present in ``generation.weights`` (a message
+   naming each missing model, the folder expected and how to fetch it); their identity (configs + file digests)
+   is recorded in ``generation.weights_digest``, which is part of the effect step's cache key.
 """
 from __future__ import annotations
 
@@ -28,7 +31,8 @@ def _objects(cfg: DictConfig) -> list[tuple[str, Any]]:
 
 
 def preflight(cfg: DictConfig) -> None:
-    """Refuse a bad config or input file with one line (``SystemExit``) before anything heavy starts."""
+    """Refuse a bad config or input file with one line (``SystemExit``) before anything heavy starts; record the
+    diffusion weights' identity in the config."""
     # 1. config ranges
     try:
         validate(cfg)
@@ -47,3 +51,15 @@ def preflight(cfg: DictConfig) -> None:
                 check_geometry_file(obj.geometry.kind, obj.geometry.path)
             except (ObjectModelError, GaussianPlyError) as exc:
                 raise SystemExit(f"input error: {key}.geometry.path: {exc}") from None
+    # 4. diffusion weights
+    backends = list(cfg.grid.backends) if cfg.grid.backends else [cfg.generation.backend]
+    if {"diffusers", "text_only"} & set(backends):
+        from tasks.core.artifacts import digest_of
+        from tasks.generation.backend import diffusion_weights
+        from tasks.generation.components import check_weights, missing_weights_message, weights_identity
+
+        weights = diffusion_weights(cfg.generation)
+        missing = check_weights(weights)
+        if missing:
+            raise SystemExit(f"input error: generation.weights: {missing_weights_message(missing)}")
+        cfg.generation.weights_digest = digest_of(weights_identity(weights))

@@ -59,7 +59,7 @@ def diffusion_effect(generation: Mapping[str, Any], sim_rgb: np.ndarray, refined
     """``diffusers`` / ``text_only`` for every view: frames (view, frame, y, x, 3) linear RGB and run info.
 
     diffusers is imported here, not at the top: the default (physics) backend never loads it."""
-    from tasks.generation.components import auto_device_dtype, diffusion_weights, load_components_cached
+    from tasks.generation.backend import components_for
     from tasks.generation.masked_diffusion import (
         DiffusionSettings,
         build_effect_pipelines,
@@ -67,8 +67,7 @@ def diffusion_effect(generation: Mapping[str, Any], sim_rgb: np.ndarray, refined
         generate_text_only,
     )
 
-    device, dtype = auto_device_dtype(generation["dtype"] == "bfloat16", generation["device"], generation["dtype"])
-    pipelines = build_effect_pipelines(load_components_cached(diffusion_weights(generation), device, dtype))
+    pipelines = build_effect_pipelines(components_for(generation))
     settings = DiffusionSettings(num_inference_steps=generation["steps"], strength=generation["strength"],
                                  guidance_scale=generation["guidance_scale"],
                                  controlnet_conditioning_scale=generation["controlnet_scale"],
