@@ -13,6 +13,7 @@ from omegaconf import MISSING
 
 from conf.generation_schema import GenerationConfig, RefinementConfig, VideoMetricsConfig, validate_generation
 from conf.hand import FINGERS
+from conf.judge_schema import LLMJudgeConfig
 from conf.metrics_schema import MetricsConfig, validate_metrics
 from conf.mpm_schema import MPMConfig
 from conf.oracle_schema import OracleConfig
@@ -265,6 +266,7 @@ class Config:
     generation: GenerationConfig = field(default_factory=GenerationConfig)
     refinement: RefinementConfig = field(default_factory=RefinementConfig)
     video_metrics: VideoMetricsConfig = field(default_factory=VideoMetricsConfig)
+    llm_judge: LLMJudgeConfig = field(default_factory=LLMJudgeConfig)
     run_name: Optional[str] = None  # report folder name; default: flow name + time stamp
     accuracy: dict[str, str] = field(default_factory=dict)  # the preset's measured error (conf/preset/), reported
 

@@ -16,7 +16,7 @@ sec. 3.2-3.3 and Table 2:
 Per object, variant and effect backend (``grid.backends``, default ``[generation.backend]``), sec. 3.3 and
 Tables 1 and 3:
 
-    effect -> appearance_refinement (eq. 7) -> video_metrics
+    effect -> appearance_refinement (eq. 7) -> video_metrics; llm_evaluation
 """
 from __future__ import annotations
 
@@ -41,6 +41,7 @@ from tasks.core.artifacts import ArtifactRef
 from tasks.core.params import resolve_reads
 from tasks.core.step import StepTask, WiringError
 from tasks.evaluation.deformation_metrics import deformation_metrics_step
+from tasks.evaluation.llm_evaluation import llm_evaluation_step
 from tasks.evaluation.video_metrics import video_metrics_step
 from tasks.generation.appearance_refinement import appearance_refinement_step
 from tasks.generation.effect import effect_step
@@ -60,7 +61,8 @@ PER_OBJECT: tuple[StepTask, ...] = (
     dirichlet_field_step, material_oracle_step,
 )
 PER_VARIANT: tuple[StepTask, ...] = (mpm_rollout_step, deformation_metrics_step, gbuffer_step, conditions_step)
-PER_BACKEND: tuple[StepTask, ...] = (effect_step, appearance_refinement_step, video_metrics_step)
+PER_BACKEND: tuple[StepTask, ...] = (effect_step, appearance_refinement_step, video_metrics_step,
+                                     llm_evaluation_step)
 STEPS: tuple[StepTask, ...] = PER_OBJECT + PER_VARIANT + PER_BACKEND
 STAGE_OF: dict[str, str] = {s.name: s.compute.__module__.split(".")[1] for s in STEPS}  # e.g. gbuffer -> render
 

@@ -25,14 +25,16 @@ VIDEO_COLUMNS = (
     ("effect_placement_iou", "Effect placement IoU", True),
     ("multiview_psnr_db", "Multi-view consistency PSNR (dB)", True),
     ("control_coupling_pearson", "Control coupling (Pearson)", True),
+    ("llm_visual_quality", "LLM visual quality (1-5)", True),
+    ("llm_motion_realism", "LLM motion realism (1-5)", True),
+    ("llm_motion_consistency", "LLM motion consistency (1-5)", True),
 )
 PAPER_ONLY = {
     "Physical commonsense (VideoPhy-2 / VideoCon-Physics)": "not computed: weights not present (a 7B "
     "VideoCon-Physics checkpoint is needed)",
     "VBench imaging quality (MUSIQ, SPAQ)": "not computed: weights not present (MUSIQ SPAQ checkpoint)",
     "VBench motion smoothness (AMT-S)": "not computed: weights not present (AMT-S checkpoint)",
-    "Human evaluation (1-5)": "not collected in this run",
-    "LLM evaluation (1-5)": "not computed: no vision LLM endpoint configured",
+    "Human evaluation (1-5)": "not collected in this run (python -m flows.human_study builds the blinded kit)",
 }
 BACKEND_LABELS = {"physics": "physics-rendered effect", "diffusers": "diffusion effect",
                   "text_only": "w/o physics-guided conditions (text-only diffusion)", "none": "no effect"}
@@ -52,9 +54,13 @@ def video_metric_rows(refs: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
                 if ref is None:
                     continue
                 try:
-                    metrics = read_group_attrs(ref.path)["attrs"]["metrics"]
+                    metrics = dict(read_group_attrs(ref.path)["attrs"]["metrics"])
+                    llm = brefs.get("llm_evaluation")
+                    scores = (read_group_attrs(llm.path)["attrs"].get("scores") or {}) if llm is not None else {}
                 except (ArtifactError, KeyError):
                     continue
+                metrics.update({f"llm_{q}": scores.get(q) for q in ("visual_quality", "motion_realism",
+                                                                    "motion_consistency")})
                 rows.append({"object": obj, "variant": variant, "backend": backend,
                              **{k: (math.nan if v is None else float(v)) for k, v in metrics.items()}})
     return pd.DataFrame(rows)
