@@ -54,7 +54,7 @@ def convergence_flow(configs: dict[str, dict], sweep: dict, report_dir: str) -> 
     """Submit every setting's pipeline, collect its artifacts, measure against the reference, write the report."""
     from flows.pipeline import submit_object
     from flows.runtime import RunTable
-    from tasks import convergence as conv
+    from tasks.verification import convergence as conv
 
     cfgs = {name: OmegaConf.create(c) for name, c in configs.items()}
     futures = {name: submit_object(c, c.object, [c.variant]) for name, c in cfgs.items()}

@@ -55,8 +55,12 @@ def preflight(cfg: DictConfig) -> None:
     backends = list(cfg.grid.backends) if cfg.grid.backends else [cfg.generation.backend]
     if {"diffusers", "text_only"} & set(backends):
         from tasks.core.artifacts import digest_of
-        from tasks.generation.backend import diffusion_weights
-        from tasks.generation.components import check_weights, missing_weights_message, weights_identity
+        from tasks.generation.components import (
+            check_weights,
+            diffusion_weights,
+            missing_weights_message,
+            weights_identity,
+        )
 
         weights = diffusion_weights(cfg.generation)
         missing = check_weights(weights)

@@ -97,7 +97,8 @@ def import_closure(name: str, root: Path = REPO_ROOT, path: Path | None = None) 
 def data_files(source_path: Path) -> list[Path]:
     """The files named by the module-level ``DATA_FILES`` tuple of the module at ``source_path`` (next to it)."""
     for node in ast.parse(source_path.read_text()).body:
-        if (isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "DATA_FILES" for t in node.targets)
+        targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+        if (any(isinstance(t, ast.Name) and t.id == "DATA_FILES" for t in targets)
                 and isinstance(node.value, (ast.Tuple, ast.List))):
             return [source_path.parent / elt.value for elt in node.value.elts
                     if isinstance(elt, ast.Constant) and isinstance(elt.value, str)]

@@ -54,12 +54,13 @@ def physics_effect(sim_rgb: np.ndarray, surface_depth: np.ndarray, refined_mask:
     return out
 
 
-def diffusion_effect(generation: Mapping[str, Any], sim_rgb: np.ndarray, refined_mask: np.ndarray,
+def diffusion_effect(generation: Mapping[str, Any], sim_srgb: np.ndarray, refined_mask: np.ndarray,
                      gated_depth: np.ndarray, prompt: str, negative_prompt: str) -> tuple[np.ndarray, dict]:
-    """``diffusers`` / ``text_only`` for every view: frames (view, frame, y, x, 3) linear RGB and run info.
+    """``diffusers`` / ``text_only`` for every view: frames (view, frame, y, x, 3) sRGB in [0, 1] (Stable
+    Diffusion works on sRGB-encoded images) from the simulated render ``sim_srgb`` (same layout), and run info.
 
     diffusers is imported here, not at the top: the default (physics) backend never loads it."""
-    from tasks.generation.backend import components_for
+    from tasks.generation.components import auto_device_dtype, diffusion_weights, load_components_cached
     from tasks.generation.masked_diffusion import (
         DiffusionSettings,
         build_effect_pipelines,
@@ -67,19 +68,20 @@ def diffusion_effect(generation: Mapping[str, Any], sim_rgb: np.ndarray, refined
         generate_text_only,
     )
 
-    pipelines = build_effect_pipelines(components_for(generation))
+    device, dtype = auto_device_dtype(generation["dtype"] == "bfloat16", generation["device"], generation["dtype"])
+    pipelines = build_effect_pipelines(load_components_cached(diffusion_weights(generation), device, dtype))
     settings = DiffusionSettings(num_inference_steps=generation["steps"], strength=generation["strength"],
                                  guidance_scale=generation["guidance_scale"],
                                  controlnet_conditioning_scale=generation["controlnet_scale"],
                                  window=generation["window"], overlap=generation["overlap"], seed=generation["seed"],
                                  refine_pass=generation["refine_pass"], refine_strength=generation["refine_strength"])
-    out, infos = np.empty_like(sim_rgb), []
+    out, infos = np.empty_like(sim_srgb), []
     n_views, n_frames, height, width = refined_mask.shape
     for v in range(n_views):
         if generation["backend"] == "text_only":
             out[v], info = generate_text_only(pipelines, n_frames, height, width, prompt, negative_prompt, settings)
         else:
-            out[v], info = generate_effect(pipelines, sim_rgb[v], refined_mask[v], gated_depth[v], prompt,
+            out[v], info = generate_effect(pipelines, sim_srgb[v], refined_mask[v], gated_depth[v], prompt,
                                            negative_prompt, settings)
         infos.append(info)
         report_progress(v + 1, n_views, unit="view")
@@ -100,10 +102,10 @@ def effect_step(inputs, params):
     if not g.attrs["has_released_material"] and backend != "text_only":
         return {}, {"backend": backend, "skipped": "no released material: " + "; ".join(g.attrs["notes"])}
     started = time.perf_counter()
-    sim_rgb = srgb_uint8_to_linear(g["rgb"])
     info: dict[str, Any] = {}
     # 2. generate
     if backend == "physics":
+        sim_rgb = srgb_uint8_to_linear(g["rgb"])
         rollout, obj = inputs["mpm_rollout"], inputs["object_model"]
         frames = g["frame_index"]
         volumes = rollout_particle_volumes(obj.arrays, len(rollout["particle_material"]))
@@ -111,6 +113,7 @@ def effect_step(inputs, params):
         out = physics_effect(sim_rgb, g["surface_depth"], cond["refined_mask"], rollout["particle_positions"][frames],
                              PARTICLE_RADIUS_FACTOR * np.cbrt(volumes), visible, g["viewmats"], g["Ks"],
                              g.attrs["effect"], generation["seed"])
+        frames_out = to_srgb_uint8(out)
         label = "physics-rendered (screen-space fluid / strand rendering; no diffusion)"
     else:
         from tasks.generation.prompts import effect_prompt
@@ -119,12 +122,15 @@ def effect_step(inputs, params):
         text = effect_prompt(params["object.display_name"], params["object.description"],
                              g.attrs["released_material"] or "juice", look["effect"], generation["prompt"],
                              generation["negative_prompt"])
-        out, info = diffusion_effect(generation, sim_rgb, cond["refined_mask"], cond["gated_depth"], text.prompt,
-                                     text.negative_prompt)
+        out, info = diffusion_effect(generation, g["rgb"].astype(np.float32) / 255.0, cond["refined_mask"],
+                                     cond["gated_depth"], text.prompt, text.negative_prompt)
+        frames_out = np.clip(np.rint(out * 255.0), 0, 255).astype(np.uint8)
         info.update(prompt=text.prompt, negative_prompt=text.negative_prompt)
         label = ("text-only diffusion (w/o physics-guided conditions)" if backend == "text_only"
                  else "diffusion (AnimateDiff + SD img2img + depth ControlNet)")
-    arrays = {"frames": Array(to_srgb_uint8(out), ("view", "frame", "y", "x", "channel"), "1",
+    if backend != "text_only":  # every pixel outside the refined mask is the simulated render, byte for byte
+        frames_out = np.where(cond["refined_mask"][..., None], frames_out, g["rgb"])
+    arrays = {"frames": Array(frames_out, ("view", "frame", "y", "x", "channel"), "1",
                               f"final frames, 8-bit sRGB: {label}")}
     return arrays, {"backend": backend, "label": label, "skipped": None, "seconds": time.perf_counter() - started,
                     "info": info}
