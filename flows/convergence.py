@@ -52,12 +52,14 @@ def preset_configs(cfg: DictConfig) -> dict[str, DictConfig]:
 @flow(name="virsqueezer-convergence", log_prints=True, validate_parameters=False, persist_result=False)
 def convergence_flow(configs: dict[str, dict], sweep: dict, report_dir: str) -> dict:
     """Submit every setting's pipeline, collect its artifacts, measure against the reference, write the report."""
-    from flows.pipeline import submit_object
+    from flows.pipeline import deformation_metrics_step, mpm_rollout_step, submit_object
     from flows.runtime import RunTable
     from tasks.verification import convergence as conv
 
     cfgs = {name: OmegaConf.create(c) for name, c in configs.items()}
-    futures = {name: submit_object(c, c.object, [c.variant]) for name, c in cfgs.items()}
+    deformation = (mpm_rollout_step, deformation_metrics_step)  # no rendering: the study compares the physics
+    futures = {name: submit_object(c, c.object, [c.variant], backends=[], per_variant=deformation)
+               for name, c in cfgs.items()}
     table = RunTable(total=sum(len(f) for f in futures.values()))
     refs: dict[str, dict[str, Any]] = {}
     statuses: dict[str, str] = {}

@@ -148,13 +148,14 @@ def variant_key(variant: str, backend: str | None = None) -> str:
     return variant if backend is None else f"{variant}/{backend}"
 
 
-def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig],
-                  backends: list[str] | None = None) -> dict[tuple[str, str], Any]:
+def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], backends: list[str] | None = None,
+                  per_variant: tuple[StepTask, ...] = PER_VARIANT) -> dict[tuple[str, str], Any]:
     """Submit one object's steps: the per-object chain once, the per-variant chain for each variant, and the
     per-backend chain for each variant and backend.
 
     Returns the futures keyed by (step, chain): ``""`` for per-object steps, the variant name for per-variant
-    steps and ``variant/backend`` for per-backend ones."""
+    steps and ``variant/backend`` for per-backend ones.  ``per_variant`` may be a leading part of
+    :data:`PER_VARIANT` (e.g. the deformation chain alone, with ``backends=[]``)."""
     kw = dict(root=cfg.paths.artifacts, scope=obj.name)
     shared: dict[str, Any] = {}
     for step in PER_OBJECT:
@@ -163,7 +164,7 @@ def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig],
     out: dict[tuple[str, str], Any] = {(name, ""): fut for name, fut in shared.items()}
     for variant in variants:
         available = dict(shared)
-        for step in PER_VARIANT:
+        for step in per_variant:
             available[step.name] = step.submit(
                 params=step_params(step, cfg, obj, variant), inputs={n: available[n] for n in step.spec.inputs},
                 label=f"{obj.name}[{variant.name}]", **kw)
