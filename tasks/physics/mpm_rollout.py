@@ -49,8 +49,9 @@ from conf.hand import N_FINGERS
 from tasks.core.artifacts import Array
 from tasks.physics.material_oracle import materials_from_dict, mpm_material_kwargs
 from tasks.physics.mpm.materials import Material, material_from_dict
-from tasks.physics.mpm.solver import (DirichletPoints, ForcePatch, MPMSolver, deform_covariances, mass_scale_for,
-                              polar_rotation, rotate_quaternions)
+from tasks.physics.free_flight import free_flying, released_flight
+from tasks.physics.mpm.solver import (DirichletPoints, ForcePatch, MPMSolver, deform_covariances,
+                              material_mass_scales, polar_rotation, rotate_quaternions)
 from tasks.core.step import artifact_step, report_progress
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
 from tasks.physics.regions import finger_regions, region_weights, squeeze_strain
@@ -153,23 +154,27 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     cfg = mpm_config_from(dict(mpm))
     spacing = float(obj_attrs["particle_spacing"])
     dx = cfg.dx or spacing * cfg.particles_per_cell ** (1.0 / 3.0)
-    cfg = replace(cfg, dx=dx)  # the solver applies mpm.mass_scaling (densities x s, gravity / s)
+    cfg = replace(cfg, dx=dx)  # the solver applies mpm.mass_scaling (per material; weights stay physical)
+    if with_interior:  # released material keeps its physical inertia under selective mass scaling
+        mat_list[slot[INTERIOR]] = replace(mat_list[slot[INTERIOR]], mass_scaled=False)
     if with_interior and mat_list[slot[INTERIOR]].model == "fluid":
-        # weakly compressible: sound speed 10 x the reference flow speed AFTER mass scaling (Mach 0.1, ~1 %
-        # density error), instead of water's 1450 m/s; s as the solver will compute it (fluids do not drive s).
-        # Capped at the solids' scaled P-wave speed: juice made from burst pulp appears mid-run, after the
-        # solver fixed its time step from the materials present at the start, and must not need a smaller one.
+        # weakly compressible: sound speed = the fastest speed the released fluid reaches / fluid_mach, that speed
+        # being the larger of fluid_reference_speed and a release at max_release_speed followed by a fall from the
+        # object's top to the table, instead of water's 1450 m/s.  K = s_f rho c^2 with s_f the mass scale the solver
+        # gives the fluid (1 under selective scaling), so the sound speed is c whatever the scaling.
         present = [mat_list[i] for i in np.unique(slot[mid])]
-        mass_scale = mass_scale_for(present, dx, frame_dt, cfg)
-        v = float(sim["fluid_reference_speed"])
-        c_solid = max(m.p_wave_speed(cfg.stiffness_scaling, mass_scale) for m in present if m.model != "fluid")
-        c_fluid = min(10.0 * v, c_solid)
-        k_fluid = mass_scale * mat_list[slot[INTERIOR]].density * c_fluid ** 2 / cfg.stiffness_scaling
+        scale_fluid = float(material_mass_scales(mat_list, present, dx, frame_dt, cfg)[slot[INTERIOR]])
+        height = float(obj_attrs["bbox_max"][2] - obj_attrs["bbox_min"][2])
+        v = max(float(sim["fluid_reference_speed"]),
+                math.sqrt(float(sim["max_release_speed"]) ** 2 + 2.0 * abs(float(cfg.gravity[2])) * height))
+        c_fluid = v / float(sim["fluid_mach"])
+        k_fluid = scale_fluid * mat_list[slot[INTERIOR]].density * c_fluid ** 2 / cfg.stiffness_scaling
         notes.append(f"interior fluid bulk modulus {k_fluid:.3g} Pa (sound speed {c_fluid:.3g} m/s at mass scale "
-                     f"x{mass_scale:.3g}: Mach {v / c_fluid:.2g} at {v:g} m/s) instead of "
+                     f"x{scale_fluid:.3g}: Mach {sim['fluid_mach']:g} at {v:.3g} m/s) instead of "
                      f"{mats.interior.bulk_modulus:.3g} Pa")
         mat_list[slot[INTERIOR]] = replace(mat_list[slot[INTERIOR]], bulk_modulus=k_fluid)
-    solver = MPMSolver(x0, vol, mat_list, material_ids=slot[mid], config=cfg, tracers=obj["surface_points"])
+    solver = MPMSolver(x0, vol, mat_list, material_ids=slot[mid], config=cfg, tracers=obj["surface_points"],
+                       label=str(obj_attrs.get("name", "")))
     contact_tolerance = 0.25 * dx  # m: a point this much deeper than its finger is still in contact
 
     # ---- outputs (only what the scene needs)
@@ -238,6 +243,10 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
                 push = ForcePatch(positions=solver.tracer_positions()[idx], finger_ids=finger_of[f, idx].astype(np.int32),
                                   forces=total)
         st = solver.step_frame(frame_dt, dirichlet=bc, forces=push)  # KE/IE per frame: summarised in the attrs
+        if f == 1:
+            notes.append("stable substep per material (s): " + ", ".join(
+                f"{k} {v:.3g} ({math.ceil(frame_dt / v)} substeps per frame)"
+                for k, v in solver.stable_dt_per_material().items()))
         for k in stats_keys:
             stats[k][f] = float(getattr(st, k))
         reaction[f] = np.asarray(st.reaction)[:N_FINGERS]
@@ -296,12 +305,19 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         arrays["plastic_strain"] = Array(out_ep, ("frame", "particle"), "1", "equivalent plastic strain")
     if released is not None:
         arrays["released"] = Array(released, ("particle",), "1", "released at the threshold crossing")
+        free = free_flying(out_x, mid == INTERIOR, obj_attrs["bbox_min"], obj_attrs["bbox_max"],
+                           float(solver.floor_height if solver.floor_height is not None else -np.inf), 2.0 * dx)
+        height, free_fall = released_flight(out_x, free, frame_dt)
+        arrays["released_height"] = Array(height.astype(np.float32), ("frame",), "m",
+                                          "mean z of the released particles flying free (NaN: none)")
     attrs = {
         "boundary": boundary, "materials": [m.name for m in mat_list], "n_particles": int(P),
         "n_interior": int((mid == INTERIOR).sum()),
         "with_interior": bool(with_interior), "dx": float(dx), "mass_scale": solver.mass_scale,
         "gravity_effective": solver.gravity, "device": solver.device, "substeps_total": int(stats["substeps"].sum()),
         "threshold_event": event, "notes": notes,
+        "material_mass_scales": {m.name: float(k) for m, k in zip(mat_list, solver.material_mass_scale)},
+        "released_free_fall_acceleration": free_fall if released is not None else None,
         "feedback_rule": "tau_y * area" if tau_y else "|contact force| (no yield stress)",
         "bytes_per_particle": float(solver.bytes_per_particle()),
         "quasi_static": _quasi_static_summary(stats["ke_ie_ratio"], reaction if boundary == "dirichlet" else applied,
@@ -352,7 +368,7 @@ def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold:
     fingers = [k for k in range(N_FINGERS) if strain[k] >= threshold and patches["patch_active"][f, k]]
     fingers = fingers or [int(np.argmax(strain))]
     interior = solver.materials[int(slot[INTERIOR])]
-    c_released = interior.p_wave_speed(solver.stiffness_scale, solver.mass_scale)  # m/s, after mass scaling
+    c_released = interior.p_wave_speed(solver.stiffness_scale, float(solver.material_mass_scale[int(slot[INTERIOR])]))
     speeds = []
     for k in fingers:
         c = centers[k]
@@ -382,7 +398,8 @@ ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_
                    "gaussian_positions", "gaussian_covariances", "gaussian_rotations", "reaction_force",
                    "applied_force", "feedback_force", "squeeze_strain", "dirichlet_tracking_error",
                    "predicted_squeeze_strain", "substeps", "dt_min", "courant", "max_speed", "j_min", "j_max",
-                   "kinetic_energy", "internal_energy", "ke_ie_ratio", "plastic_strain?", "released?")
+                   "kinetic_energy", "internal_energy", "ke_ie_ratio", "plastic_strain?", "released?",
+                   "released_height?")
 
 
 @artifact_step("mpm_rollout",
@@ -394,7 +411,7 @@ def mpm_rollout_step(inputs, params):
     """The squeeze simulated with MLS-MPM (eqs. 4-5) under the eq. 3 field (``variant.boundary=dirichlet``) or the
     per-finger force (``force``, the no_dirichlet ablation), with the oracle's materials."""
     obj = inputs["object_model"]
-    return mpm_rollout(obj.arrays, obj.attrs, inputs["dirichlet_field"].arrays,
+    return mpm_rollout(obj.arrays, {**obj.attrs, "name": obj.ref.scope}, inputs["dirichlet_field"].arrays,
                        inputs["force_coefficients"]["force_coefficients"], inputs["contact_patches"].arrays,
                        inputs["signal_smoothing"]["time"], inputs["material_oracle"].attrs["materials"],
                        params["mpm"], params["simulation"], params["variant.boundary"])

@@ -453,14 +453,14 @@ class MPMSolver:
                 self.dt_visc = min(self.dt_visc, rho * self.dx ** 2 / (6.0 * m.viscosity))
 
     def stable_dt_per_material(self) -> dict[str, float]:
-        """The stable substep (s) each material present needs alone: C dx / c_p with its own (un)scaled P-wave
-        speed, and for a viscous fluid also rho dx^2 / (6 mu) (explicit viscosity)."""
+        """The stable substep (s) each material of the table needs alone, present or not yet (a ruptured skin, a
+        released interior): C dx / c_p with its own (un)scaled P-wave speed, and for a viscous fluid also
+        rho dx^2 / (6 mu) (explicit viscosity).  The solver steps with the smallest over the materials present."""
         out = {}
-        for i in self._present:
-            m = self.materials[i]
-            dt = self.cfg.courant * self.dx / self.wave_speeds[m.name]
+        for m, scale in zip(self.materials, self.material_mass_scale.tolist()):
+            dt = self.cfg.courant * self.dx / m.p_wave_speed(self.stiffness_scale, scale)
             if m.model == "fluid" and m.viscosity > 0:
-                dt = min(dt, m.density * float(self.material_mass_scale[i]) * self.dx ** 2 / (6.0 * m.viscosity))
+                dt = min(dt, m.density * scale * self.dx ** 2 / (6.0 * m.viscosity))
             out[m.name] = dt
         return out
 
