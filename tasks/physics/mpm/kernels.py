@@ -118,7 +118,8 @@ class StepParams:
     polar_iters: int
     polar_tol: float
     polar_newton: int  # 1: Newton iteration to polar_tol (frame start/end); 0: one cheap tracking step per iter
-    weight_g: wp.vec3  # m/s^2: gravity applied in P2G as the impulse dt_p2g m_phys g (zero when the grid adds it)
+    weight_g: wp.vec3  # m/s^2: gravity applied in P2G as the impulse dt_p2g m_phys g (mixed mass scales)
+    weight_in_p2g: int  # 1: add that impulse (mixed scales); 0: the grid update adds g / s (uniform scale)
 
 
 @wp.struct
@@ -438,7 +439,9 @@ def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles
     vol = ps.vol[p]
     mass = particle_mass(p, mid, ps, mats)
     A = (-sp.dt_p2g * vol * 4.0 * gi.inv_dx * gi.inv_dx) * r.tau + mass * r.C
-    mv = mass * r.v + (sp.dt_p2g * physical_mass(p, mid, ps, mats)) * sp.weight_g
+    mv = mass * r.v
+    if sp.weight_in_p2g != 0:
+        mv = mv + (sp.dt_p2g * physical_mass(p, mid, ps, mats)) * sp.weight_g
     scatter_apic(grid, stencil_at(g), gi.dx, mass, mv, A, bbox)
 
 

@@ -663,7 +663,8 @@ class MPMSolver:
         sp.polar_iters = int(self.cfg.polar_restart_iterations if restart else self.cfg.polar_iterations)
         sp.polar_tol = float(self.cfg.polar_tol)
         sp.polar_newton = int(restart or self.cfg.polar_method == "newton")
-        sp.weight_g = wp.vec3(*(self.cfg.gravity if self._weight_in_p2g else (0.0, 0.0, 0.0)))
+        sp.weight_g = wp.vec3(*self.cfg.gravity)
+        sp.weight_in_p2g = int(self._weight_in_p2g)
         return sp
 
     def _grid_conditions(self) -> K.GridConditions:
