@@ -39,18 +39,32 @@ class MPMConfig:
         floor_sticky: the floor holds the material (no slip, no separation).
         wall_sticky: domain walls are sticky instead of slip.
     Acceleration knobs (each changes the physics; reported in the frame statistics)
-        mass_scaling: time (mass) scaling, the one mechanism of the project: ``off``; ``manual`` (every density x
-            ``mass_scale``); ``auto`` (the smallest s >= 1 for which the elastic CFL of the non-fluid materials
-            needs at most ``target_substeps_per_frame`` substeps per output frame, fixed at the first frame:
-            s = max(1, (c_p frame_dt / (N C dx))^2), see :func:`tasks.physics.mpm.solver.mass_scale_for`).  Wave speeds
-            drop by sqrt(s); gravity is divided by s, so weights and quasi-static states under gravity are
-            unchanged (motion is sqrt(s) times slower).  With scaling on, a frame whose kinetic/internal energy
-            ratio exceeds ``quasi_static_ke_ie_max`` warns: the quasi-static assumption is violated.
+        mass_scaling: time (mass) scaling, the one acceleration mechanism of the project.  ``off``; ``manual`` (every
+            density x ``mass_scale``); ``global`` (every density x s, s the smallest factor >= 1 for which the
+            elastic CFL of the non-fluid materials needs at most ``target_substeps_per_frame`` substeps per output
+            frame, fixed at the first frame: s = max(1, (c_p frame_dt / (N C dx))^2), see
+            :func:`tasks.physics.mpm.solver.mass_scale_for`; ``auto`` is its former name); ``selective`` (default:
+            the same s, but only for the materials that deform quasi-statically, ``Material.is_mass_scaled``: every
+            model but fluids unless a material says otherwise; released material and fluids keep their physical
+            inertia, as Abaqus/Explicit variable mass scaling by element set or LS-DYNA selective mass scaling).
+            A scaled material's waves are sqrt(s) slower; gravity acts with the PHYSICAL weight (the grid node's
+            gravity impulse is dt g sum_p w_ip m_phys,p), so weights and quasi-static states under gravity are
+            unchanged and a scaled solid feels g / s while unscaled material falls at g.  The stable time step
+            takes every material's own (un)scaled wave speed.  With scaling on, a frame whose kinetic/internal
+            energy ratio (of the scaled materials) exceeds ``quasi_static_ke_ie_max`` warns: the quasi-static
+            assumption is violated.  The project's default (``conf/mpm/default.yaml``) is ``selective``; this
+            schema's default ``off`` serves unit tests and closed-form checks.
         mass_scale: the factor s of ``manual`` (>= 1, dimensionless).
-        target_substeps_per_frame: N of ``auto``: substeps per output frame the elastic CFL may need.
+        target_substeps_per_frame: N of ``global`` and ``selective``: substeps per output frame the elastic CFL
+            of the scaled materials may need.
         stiffness_scaling: factor on E (and K) of every material; yield stresses are unchanged.
     Guards
         j_min, j_max: admissible range of det(F_E); outside raises SimulationError.
+        energy_guard_tolerance: energy guard (0 = off): a frame whose total energy (kinetic + internal +
+            gravitational) exceeds the reference frame's plus the boundary work since by more than this fraction
+            of the run's energy scale raises SimulationError naming the frame and the materials whose energy grew
+            (see :class:`tasks.physics.mpm.solver.MPMSolver`).  0.25: an unstable Courant number (0.95, nu = 0.45)
+            gains 120x energy, while stable runs stay below their reference.
         check_every: read the kernels' error flags every this many substeps (and at every frame end).
         debug: compile the kernels in Warp debug mode (bounds checks) and check flags every substep.
     Solver details
@@ -90,12 +104,16 @@ class MPMConfig:
     stiffness_scaling: float = 1.0
     j_min: float = 0.05
     j_max: float = 20.0
+    energy_guard_tolerance: float = 0.25
     check_every: int = 50
     debug: bool = False
     polar_method: str = "newton"
     polar_iterations: int = 1
     polar_restart_iterations: int = 16
     polar_tol: float = 1.0e-6
+
+
+MASS_SCALING_MODES = ("selective", "global", "manual", "off")
 
 
 class MPMConfigError(ValueError):
@@ -131,8 +149,8 @@ def validate_mpm_config(cfg: MPMConfig) -> MPMConfig:
         bad("gravity", "must have 3 components")
     if cfg.floor_friction < 0:
         bad("floor_friction", "must be >= 0")
-    if cfg.mass_scaling not in ("off", "manual", "auto"):
-        bad("mass_scaling", f"'{cfg.mass_scaling}' is not off, manual or auto")
+    if cfg.mass_scaling not in MASS_SCALING_MODES:
+        bad("mass_scaling", f"'{cfg.mass_scaling}' is not one of {', '.join(MASS_SCALING_MODES)}")
     if not cfg.mass_scale >= 1.0 and cfg.mass_scaling == "manual":
         bad("mass_scale", f"must be >= 1 (got {cfg.mass_scale})")
     if cfg.target_substeps_per_frame < 1:
@@ -145,6 +163,8 @@ def validate_mpm_config(cfg: MPMConfig) -> MPMConfig:
         bad("polar_method", f"'{cfg.polar_method}' is not track or newton")
     if cfg.polar_iterations < 1 or cfg.polar_restart_iterations < 1:
         bad("polar_iterations", "must be >= 1")
+    if not cfg.energy_guard_tolerance >= 0:
+        bad("energy_guard_tolerance", f"must be >= 0 (0 = off; got {cfg.energy_guard_tolerance})")
     if cfg.check_every < 1:
         bad("check_every", "must be >= 1")
     for key in ("domain_lo", "domain_hi"):
@@ -178,6 +198,8 @@ def mpm_config_from(obj: Any = None, **overrides: Any) -> MPMConfig:
     unknown = set(data) - known
     if unknown:
         raise MPMConfigError(f"unknown mpm config keys {sorted(unknown)}; known: {sorted(known)}")
+    if data.get("mass_scaling") == "auto":  # the former name of global scaling
+        data["mass_scaling"] = "global"
     for key in ("gravity", "domain_lo", "domain_hi"):
         if data.get(key) is not None:
             data[key] = [float(x) for x in data[key]]

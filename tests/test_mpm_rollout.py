@@ -11,6 +11,7 @@ from omegaconf import OmegaConf
 
 from conf.schema import Config, SimulationConfig
 from tasks.core.artifacts import read_artifact
+from tasks.physics.free_flight import free_flying, released_flight
 from tasks.physics.labels import CORE, INTERIOR, RUPTURED, SHELL
 from tasks.physics.material_oracle import material_oracle
 from tasks.physics.mpm_rollout import cauchy_free_measures, interior_plan, resistive_feedback
@@ -108,6 +109,31 @@ def test_resistive_feedback_is_yield_stress_times_area_or_the_contact_force():
     feedback, rule = resistive_feedback(ball, contact, patches, max_force=3.0)
     np.testing.assert_allclose(feedback, [[3.0, 2.0]])  # |contact| clipped at max_force
     assert rule.startswith("|contact force|")
+
+
+def test_released_flight_of_a_parabola_recovers_g_and_the_mean_height():
+    """Synthetic released spray: 3 particles launched from the object's side 5 cm above the table with different
+    velocities follow z = z0 + v t - g t^2 / 2 exactly (sampled at 30 Hz), a 4th never leaves the object's box, a
+    5th is not released.  Known answers: only released particles outside the box (grown by the margin) and above
+    the table count as free; the fitted acceleration is -9.81 (exact for a parabola); the height is the free
+    particles' mean z, NaN before any flies free and once all have landed."""
+    frame_dt, g = 1 / 30, 9.81
+    t = frame_dt * np.arange(12)
+    x0 = np.array([[0.03, 0, 0.05], [0.03, 0.01, 0.05], [0.025, 0, 0.05], [0.0, 0, 0.0], [0.05, 0, 0.05]])
+    v0 = np.array([[0.5, 0, 0.8], [0.6, 0, 0.5], [0.4, 0.1, 1.0], [0, 0, 0], [0.5, 0, 0.8]])
+    x = x0[None] + v0[None] * t[:, None, None]
+    x[..., 2] -= 0.5 * g * t[:, None] ** 2
+    x[..., 2] = np.maximum(x[..., 2], 0.0)  # the table
+    released = np.array([True, True, True, True, False])
+    free = free_flying(x, released, np.array([-0.03, -0.03, 0.0]), np.array([0.03, 0.03, 0.06]), 0.0, 0.005)
+    assert not free[:, 3:].any()  # inside the box / not released
+    assert free[1, :3].all() and not free[-1, :3].any()  # flying after the launch, landed at the end
+    height, accel = released_flight(x, free, frame_dt)
+    assert accel == pytest.approx(-g, rel=1e-9)
+    f = 3
+    assert height[f] == pytest.approx(x[f, :3, 2][free[f, :3]].mean())
+    assert np.isnan(height[0]) and np.isnan(height[-1])
+    assert np.isnan(released_flight(x[:2], free[:2], frame_dt)[1])  # fewer than 3 frames: no acceleration
 
 
 # ------------------------------------------------------------------------------------------ real rollouts

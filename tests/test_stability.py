@@ -102,6 +102,19 @@ def test_instability_below_the_courant_limit_is_not_reported_stable(ctx):
     assert at_limit.energy_drift < 0.005 and 0.78 < at_limit.courant <= 0.8  # dt evenly splits each frame
 
 
+def test_energy_guard_names_the_frame_and_material_of_the_courant_095_instability(ctx):
+    """The same Courant 0.95 case: the solver's energy guard (kinetic + internal + gravitational energy against the
+    plates' work) now stops it with one line, long before the x120 growth, while the stable cases of this file
+    (Courant 0.3 gel, 0.8 at nu = 0.49) run through with their plates doing work on the column."""
+    row = run_case(case("courant_adaptive_0.95_nu0.45"), ctx)
+    assert row.outcome == "unstable", row
+    assert row.reason.startswith("energy guard at frame "), row.reason
+    assert "beyond the boundary work" in row.reason and "grew: 'material' +" in row.reason
+    assert "Courant number 0.9" in row.reason and ", limit 1," in row.reason
+    frame = int(row.reason.split("energy guard at frame ")[1].split()[0])
+    assert 2 <= frame < 40
+
+
 # ============================================================================================ thin walls
 def test_thin_walls_of_the_real_objects(ctx):
     rows = {o: run_case(case(f"thin_wall_{o}"), ctx) for o in ("can", "paper_cup", "rubber_ball")}

@@ -48,6 +48,7 @@ from conf.hand import N_FINGERS
 from conf.mpm_schema import MPMConfig, mpm_config_from
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
+from tasks.physics.free_flight import free_flying, released_flight
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
 from tasks.physics.mpm.materials import Material, material_from_dict
 from tasks.physics.mpm.solver import (
@@ -55,7 +56,7 @@ from tasks.physics.mpm.solver import (
     ForcePatch,
     MPMSolver,
     deform_covariances,
-    mass_scale_for,
+    material_mass_scales,
     polar_rotation,
     rotate_quaternions,
 )
@@ -117,7 +118,8 @@ class Scene:
 
     ``materials`` are the solver's materials (index ``slot[label]``), ``labels`` (particle,) the initial particle
     labels (SHELL, INTERIOR, RUPTURED, CORE), ``dx`` m the grid spacing, ``frame_dt`` s the output frame
-    interval, ``surface0`` (point, xyz) m the rest positions of the tracked surface points (the 3D Gaussians)."""
+    interval, ``surface0`` (point, xyz) m the rest positions of the tracked surface points (the 3D Gaussians),
+    ``bbox_min``/``bbox_max`` m the object's rest box."""
 
     oracle: ObjectMaterials
     solver: MPMSolver
@@ -131,6 +133,8 @@ class Scene:
     surface0: np.ndarray
     regions: SqueezeRegions
     notes: list[str]
+    bbox_min: np.ndarray
+    bbox_max: np.ndarray
 
 
 @dataclass
@@ -265,28 +269,33 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     cfg = mpm_config_from(dict(mpm))
     spacing = float(obj_attrs["particle_spacing"])
     dx = cfg.dx or spacing * cfg.particles_per_cell ** (1.0 / 3.0)
-    cfg = replace(cfg, dx=dx)  # the solver applies mpm.mass_scaling (densities x s, gravity / s)
+    cfg = replace(cfg, dx=dx)  # the solver applies mpm.mass_scaling (per material; weights stay physical)
+    if with_interior:  # released material keeps its physical inertia under selective mass scaling
+        mat_list[slot[INTERIOR]] = replace(mat_list[slot[INTERIOR]], mass_scaled=False)
     if with_interior and mat_list[slot[INTERIOR]].model == "fluid":
-        # weakly compressible: sound speed 10 x the reference flow speed AFTER mass scaling (Mach 0.1, ~1 %
-        # density error), instead of water's 1450 m/s; s as the solver will compute it (fluids do not drive s).
-        # Capped at the solids' scaled P-wave speed: juice made from burst pulp appears mid-run, after the
-        # solver fixed its time step from the materials present at the start, and must not need a smaller one.
+        # weakly compressible: sound speed = the fastest speed the released fluid reaches / fluid_mach, that speed
+        # being the larger of fluid_reference_speed and a release at max_release_speed followed by a fall from the
+        # object's top to the table, instead of water's 1450 m/s.  K = s_f rho c^2 with s_f the mass scale the solver
+        # gives the fluid (1 under selective scaling), so the sound speed is c whatever the scaling.
         present = [mat_list[i] for i in np.unique(slot[mid])]
-        mass_scale = mass_scale_for(present, dx, frame_dt, cfg)
-        v = float(sim["fluid_reference_speed"])
-        c_solid = max(m.p_wave_speed(cfg.stiffness_scaling, mass_scale) for m in present if m.model != "fluid")
-        c_fluid = min(10.0 * v, c_solid)
-        k_fluid = mass_scale * mat_list[slot[INTERIOR]].density * c_fluid ** 2 / cfg.stiffness_scaling
+        scale_fluid = float(material_mass_scales(mat_list, present, dx, frame_dt, cfg)[slot[INTERIOR]])
+        height = float(obj_attrs["bbox_max"][2] - obj_attrs["bbox_min"][2])
+        v = max(float(sim["fluid_reference_speed"]),
+                math.sqrt(float(sim["max_release_speed"]) ** 2 + 2.0 * abs(float(cfg.gravity[2])) * height))
+        c_fluid = v / float(sim["fluid_mach"])
+        k_fluid = scale_fluid * mat_list[slot[INTERIOR]].density * c_fluid ** 2 / cfg.stiffness_scaling
         notes.append(f"interior fluid bulk modulus {k_fluid:.3g} Pa (sound speed {c_fluid:.3g} m/s at mass scale "
-                     f"x{mass_scale:.3g}: Mach {v / c_fluid:.2g} at {v:g} m/s) instead of "
+                     f"x{scale_fluid:.3g}: Mach {sim['fluid_mach']:g} at {v:.3g} m/s) instead of "
                      f"{mats.interior.bulk_modulus:.3g} Pa")
         mat_list[slot[INTERIOR]] = replace(mat_list[slot[INTERIOR]], bulk_modulus=k_fluid)
 
     # 4. the solver, with the surface points (3D Gaussians) as massless tracers
-    solver = MPMSolver(x0, vol, mat_list, material_ids=slot[mid], config=cfg, tracers=obj["surface_points"])
+    solver = MPMSolver(x0, vol, mat_list, material_ids=slot[mid], config=cfg, tracers=obj["surface_points"],
+                       label=str(obj_attrs.get("name", "")))
     return Scene(oracle=mats, solver=solver, materials=mat_list, slot=slot, labels=mid, with_interior=with_interior,
                  dx=dx, config=cfg, frame_dt=frame_dt, surface0=obj["surface_points"].astype(np.float64),
-                 regions=regions, notes=notes)
+                 regions=regions, notes=notes, bbox_min=np.asarray(obj_attrs["bbox_min"], float),
+                 bbox_max=np.asarray(obj_attrs["bbox_max"], float))
 
 
 # ----------------------------------------------------------------------------------------------- 2. the frames
@@ -392,6 +401,10 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
             push = force_patch(scene, field, forces, patches, f, torn, sim)
         # 2. one output frame of the solver (KE/IE per frame: summarised in the attrs)
         st = solver.step_frame(scene.frame_dt, dirichlet=bc, forces=push)
+        if f == 1:
+            scene.notes.append("stable substep per material (s): " + ", ".join(
+                f"{k} {v:.3g} ({math.ceil(scene.frame_dt / v)} substeps per frame)"
+                for k, v in solver.stable_dt_per_material().items()))
         for k in STATS_KEYS:
             rec.stats[k][f] = float(getattr(st, k))
         rec.reaction[f] = np.asarray(st.reaction)[:N_FINGERS]
@@ -440,6 +453,7 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
     attributes (materials, scaling, threshold event, notes, quasi-static summary)."""
     solver, mid = scene.solver, rec.labels
     contact = rec.reaction if boundary == "dirichlet" else rec.applied
+    free_fall = None
     feedback, feedback_rule = resistive_feedback(scene.oracle, contact, patches, float(sim["feedback_max_force"]))
     arrays: dict[str, Array] = {
         "time": Array(times.astype(np.float64), ("frame",), "s"),
@@ -469,6 +483,11 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
         arrays["plastic_strain"] = Array(rec.plastic_strain, ("frame", "particle"), "1", "equivalent plastic strain")
     if rec.released is not None:
         arrays["released"] = Array(rec.released, ("particle",), "1", "released at the threshold crossing")
+        free = free_flying(rec.particle_positions, mid == INTERIOR, scene.bbox_min, scene.bbox_max,
+                           float(solver.floor_height if solver.floor_height is not None else -np.inf), 2.0 * scene.dx)
+        height, free_fall = released_flight(rec.particle_positions, free, scene.frame_dt)
+        arrays["released_height"] = Array(height.astype(np.float32), ("frame",), "m",
+                                          "mean z of the released particles flying free (NaN: none)")
     attrs = {
         "boundary": boundary, "materials": [m.name for m in scene.materials], "n_particles": int(len(mid)),
         "n_interior": int((mid == INTERIOR).sum()),
@@ -476,6 +495,8 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
         "gravity_effective": solver.gravity, "device": solver.device,
         "substeps_total": int(rec.stats["substeps"].sum()),
         "threshold_event": rec.event, "notes": scene.notes,
+        "material_mass_scales": {m.name: float(k) for m, k in zip(scene.materials, solver.material_mass_scale)},
+        "released_free_fall_acceleration": free_fall if rec.released is not None else None,
         "feedback_rule": feedback_rule,
         "bytes_per_particle": float(solver.bytes_per_particle()),
         "quasi_static": _quasi_static_summary(rec.stats["ke_ie_ratio"], contact, solver.mass_scale,
@@ -526,7 +547,7 @@ def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold:
     fingers = [k for k in range(N_FINGERS) if strain[k] >= threshold and patches["patch_active"][f, k]]
     fingers = fingers or [int(np.argmax(strain))]
     interior = solver.materials[int(slot[INTERIOR])]
-    c_released = interior.p_wave_speed(solver.stiffness_scale, solver.mass_scale)  # m/s, after mass scaling
+    c_released = interior.p_wave_speed(solver.stiffness_scale, float(solver.material_mass_scale[int(slot[INTERIOR])]))
     speeds = []
     for k in fingers:
         c = centers[k]
@@ -556,7 +577,8 @@ ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_
                    "gaussian_positions", "gaussian_covariances", "gaussian_rotations", "reaction_force",
                    "applied_force", "feedback_force", "squeeze_strain", "dirichlet_tracking_error",
                    "predicted_squeeze_strain", "substeps", "dt_min", "courant", "max_speed", "j_min", "j_max",
-                   "kinetic_energy", "internal_energy", "ke_ie_ratio", "plastic_strain?", "released?")
+                   "kinetic_energy", "internal_energy", "ke_ie_ratio", "plastic_strain?", "released?",
+                   "released_height?")
 
 
 @artifact_step("mpm_rollout",
@@ -568,7 +590,7 @@ def mpm_rollout_step(inputs, params):
     """The squeeze simulated with MLS-MPM (eqs. 4-5) under the eq. 3 field (``variant.boundary=dirichlet``) or the
     per-finger force (``force``, the no_dirichlet ablation), with the oracle's materials."""
     obj = inputs["object_model"]
-    return mpm_rollout(obj.arrays, obj.attrs, inputs["dirichlet_field"].arrays,
+    return mpm_rollout(obj.arrays, {**obj.attrs, "name": obj.ref.scope}, inputs["dirichlet_field"].arrays,
                        inputs["force_coefficients"]["force_coefficients"], inputs["contact_patches"].arrays,
                        inputs["signal_smoothing"]["time"], inputs["material_oracle"].attrs["materials"],
                        params["mpm"], params["simulation"], params["variant.boundary"])

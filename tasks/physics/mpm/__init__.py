@@ -9,6 +9,7 @@ from .solver import (  # noqa: F401
     SimulationError,
     deform_covariances,
     mass_scale_for,
+    material_mass_scales,
     polar_rotation,
     resolve_device,
     rotate_quaternions,

@@ -70,6 +70,7 @@ C_VISCOSITY = wp.constant(M.COL_VISCOSITY)
 C_BULK = wp.constant(M.COL_BULK)
 C_GAMMA = wp.constant(M.COL_GAMMA)
 C_CRUSH = wp.constant(M.COL_CRUSH)
+C_PHYSICAL_DENSITY = wp.constant(M.COL_PHYSICAL_DENSITY)
 
 
 @wp.struct
@@ -117,6 +118,8 @@ class StepParams:
     polar_iters: int
     polar_tol: float
     polar_newton: int  # 1: Newton iteration to polar_tol (frame start/end); 0: one cheap tracking step per iter
+    weight_g: wp.vec3  # m/s^2: gravity applied in P2G as the impulse dt_p2g m_phys g (mixed mass scales)
+    weight_in_p2g: int  # 1: add that impulse (mixed scales); 0: the grid update adds g / s (uniform scale)
 
 
 @wp.struct
@@ -132,7 +135,7 @@ class GridStep:
 class GridConditions:
     """Body force and fixed boundaries of the grid update (constant while the solver's materials are)."""
 
-    gravity: wp.vec3  # m/s^2 (already divided by the mass scale)
+    gravity: wp.vec3  # m/s^2 added to every node's velocity: g / s under a uniform mass scale s, else zero
     pad: int  # wall layer thickness, nodes
     wall_sticky: int  # 1: walls stop the whole velocity; 0: only the component into the wall (slip)
     floor_on: int
@@ -145,8 +148,8 @@ class GridConditions:
 class DirichletGrid:
     """Node arrays of the Dirichlet constraints (grid-shaped, zero outside the constrained stencils)."""
 
-    target: wp.array3d(dtype=wp.vec4)  # (sum w v_target [m/s], sum w) over the points touching the node
-    normal: wp.array3d(dtype=wp.vec4)  # (sum w n, 0): slip normal, zero for a full (sticky) constraint
+    target: wp.array3d(dtype=wp.vec4)  # (sum w P v_target [m/s], sum w) over the points touching the node
+    proj: wp.array3d(dtype=wp.mat33)  # sum w P, P = n n^T for a slip point (unit normal n), I for a sticky one
     reaction: wp.array3d(dtype=wp.vec4)  # (m (v_bc - v*) / (dt W) [N per unit weight], 0)
 
 
@@ -332,9 +335,10 @@ def gather_apic(grid: wp.array3d(dtype=wp.vec4), s: Stencil, inv_dx: float) -> G
 
 
 @wp.func
-def scatter_apic(grid: wp.array3d(dtype=wp.vec4), s: Stencil, dx: float, mass: float, v: wp.vec3, A: wp.mat33,
+def scatter_apic(grid: wp.array3d(dtype=wp.vec4), s: Stencil, dx: float, mass: float, mv: wp.vec3, A: wp.mat33,
                  bbox: wp.array(dtype=wp.int32)):
-    """P2G: node i receives w_i (m v + A (x_i - x_p)) momentum and w_i m mass; records the stencil bounding box.
+    """P2G: node i receives w_i (mv + A (x_i - x_p)) momentum (mv: the particle's momentum, kg m/s, plus any body
+    impulse) and w_i m mass; records the stencil bounding box.
 
     A (x_i - x_p) = dx A (o - f) = p0 + i a0 + j a1 + k a2, evaluated in vec4 with the mass in the 4th lane.
     """
@@ -343,7 +347,6 @@ def scatter_apic(grid: wp.array3d(dtype=wp.vec4), s: Stencil, dx: float, mass: f
     a0 = dx * wp.vec4(A[0, 0], A[1, 0], A[2, 0], 0.0)
     a1 = dx * wp.vec4(A[0, 1], A[1, 1], A[2, 1], 0.0)
     a2 = dx * wp.vec4(A[0, 2], A[1, 2], A[2, 2], 0.0)
-    mv = mass * v
     p0 = wp.vec4(mv[0], mv[1], mv[2], mass) - (f[0] * a0 + f[1] * a1 + f[2] * a2)
     for i in range(3):
         for j in range(3):
@@ -363,6 +366,12 @@ def scatter_apic(grid: wp.array3d(dtype=wp.vec4), s: Stencil, dx: float, mass: f
 def particle_mass(p: int, mid: int, ps: Particles, mats: MaterialTable) -> float:
     """Mass of particle p (kg): initial volume x (mass-scaled) density of its material ``mid``."""
     return ps.vol[p] * mats.par[mid, C_DENSITY]
+
+
+@wp.func
+def physical_mass(p: int, mid: int, ps: Particles, mats: MaterialTable) -> float:
+    """Physical (unscaled) mass of particle p (kg): initial volume x physical density; its weight is m_phys g."""
+    return ps.vol[p] * mats.par[mid, C_PHYSICAL_DENSITY]
 
 
 @wp.func
@@ -424,12 +433,16 @@ def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles
                      gi: GridInfo, sp: StepParams, grid: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32),
                      bbox: wp.array(dtype=wp.int32)):
     """MLS-MPM P2G of particle p at r.x with velocity r.v, affine matrix r.C and Kirchhoff stress r.tau, over
-    dt = ``sp.dt_p2g``: affine momentum A = -dt V0 4/dx^2 tau + m C (Hu et al. 2018, eq. 29)."""
+    dt = ``sp.dt_p2g``: affine momentum A = -dt V0 4/dx^2 tau + m C (Hu et al. 2018, eq. 29).  Momentum m v plus the
+    weight impulse dt m_phys ``sp.weight_g`` (selective mass scaling: each node then gains dt g sum w m_phys)."""
     g = checked_grid_coord(r.x, gi, flags, OUT_OF_GRID, substep, p)
     vol = ps.vol[p]
     mass = particle_mass(p, mid, ps, mats)
     A = (-sp.dt_p2g * vol * 4.0 * gi.inv_dx * gi.inv_dx) * r.tau + mass * r.C
-    scatter_apic(grid, stencil_at(g), gi.dx, mass, r.v, A, bbox)
+    mv = mass * r.v
+    if sp.weight_in_p2g != 0:
+        mv = mv + (sp.dt_p2g * physical_mass(p, mid, ps, mats)) * sp.weight_g
+    scatter_apic(grid, stencil_at(g), gi.dx, mass, mv, A, bbox)
 
 
 @wp.func
@@ -555,9 +568,12 @@ def k_g2p_p2g_fc(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTabl
 
 @wp.kernel
 def k_g2p(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid_in: wp.array3d(dtype=wp.vec4),
-          flags: wp.array(dtype=wp.int32), sums: wp.array(dtype=wp.float64), ext: wp.array(dtype=float)):
+          flags: wp.array(dtype=wp.int32), sums: wp.array(dtype=wp.float64), ext: wp.array(dtype=float),
+          g_phys: wp.vec3, mat_energy: wp.array2d(dtype=wp.float64)):
     """Stand-alone G2P (last substep of a frame): stores x, v, C, F_E and the plastic state, and accumulates the
-    frame statistics: sums = [KE, IE, px, py, pz, mass] (float64), ext = [J min, J max, max speed]."""
+    frame statistics: sums = [KE, IE, px, py, pz, mass] (float64), ext = [J min, J max, max speed], and per material
+    ``mat_energy[material] = [KE, IE, gravitational PE = -m_phys g_phys . x]`` (J; ``g_phys`` the physical gravity,
+    m/s^2)."""
     p = wp.tid()
     mid = int(ps.mat_id[p])
     model = mats.model[mid]
@@ -568,21 +584,51 @@ def k_g2p(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid
     psi = elastic_energy_density(model, r, mid, mats)
     J = wp.determinant(r.F)
     vp = r.v
-    wp.atomic_add(sums, 0, wp.float64(0.5 * mass * wp.dot(vp, vp)))
-    wp.atomic_add(sums, 1, wp.float64(ps.vol[p] * psi))
+    ke = wp.float64(0.5 * mass * wp.dot(vp, vp))
+    ie = wp.float64(ps.vol[p] * psi)
+    wp.atomic_add(sums, 0, ke)
+    wp.atomic_add(sums, 1, ie)
     wp.atomic_add(sums, 2, wp.float64(mass * vp[0]))
     wp.atomic_add(sums, 3, wp.float64(mass * vp[1]))
     wp.atomic_add(sums, 4, wp.float64(mass * vp[2]))
     wp.atomic_add(sums, 5, wp.float64(mass))
+    wp.atomic_add(mat_energy, mid, 0, ke)
+    wp.atomic_add(mat_energy, mid, 1, ie)
+    wp.atomic_add(mat_energy, mid, 2, wp.float64(-physical_mass(p, mid, ps, mats) * wp.dot(g_phys, r.x)))
     wp.atomic_min(ext, 0, J)
     wp.atomic_max(ext, 1, J)
     wp.atomic_max(ext, 2, wp.length(vp))
 
 
 # ============================================================================================ grid kernel
+@wp.func
+def dirichlet_velocity(v: wp.vec3, b: wp.vec3, A: wp.mat33, W: float) -> wp.vec3:
+    """Node velocity (m/s) under the constraints projected on it: the least-squares solution of the constrained
+    components, v + A^+ (b - A v), with A = sum w P and b = sum w P v_target over the constraint points (P = n n^T
+    for a slip point, I for a sticky one).  One normal: v's component along n becomes the weighted mean target
+    component, the tangential part stays free; two orthogonal normals (a plate against a wall) keep each normal's
+    own component, e.g. normal x with target 0 and normal z with target -0.05 give (0, v_y, -0.05); all sticky
+    (A = W I): the weighted mean target b / W.  Directions A does not constrain (singular values <= 1e-6 W) are
+    left free."""
+    if A[0, 1] == 0.0 and A[0, 2] == 0.0 and A[1, 2] == 0.0 and A[0, 0] == W and A[1, 1] == W and A[2, 2] == W:
+        return b / W
+    U = wp.mat33()
+    sig = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(A, U, sig, V)
+    r = wp.transpose(U) @ (b - A @ v)
+    for c in range(3):
+        if sig[c] > 1.0e-6 * W:
+            r[c] = r[c] / sig[c]
+        else:
+            r[c] = 0.0
+    return v + V @ r
+
+
 @wp.kernel
 def k_grid_update(gs: GridStep, cond: GridConditions, grid: wp.array3d(dtype=wp.vec4),
-                  other: wp.array3d(dtype=wp.vec4), bc: DirichletGrid, gstats: wp.array(dtype=float)):
+                  other: wp.array3d(dtype=wp.vec4), bc: DirichletGrid, gstats: wp.array(dtype=float),
+                  work: wp.array(dtype=wp.float64)):
     """Momentum -> velocity, gravity, domain walls, floor, Dirichlet nodes (+ reaction), clear ``other``.
 
     Launched over the active box only (``gs.origin`` + launch dims): the union of the node boxes touched by the
@@ -591,9 +637,11 @@ def k_grid_update(gs: GridStep, cond: GridConditions, grid: wp.array3d(dtype=wp.
     (slip) or the whole velocity (sticky).  Floor: nodes at or below the plane z = floor (``floor_g`` in grid
     units); the normal component is removed only when moving into the floor, the tangential part gets Coulomb
     friction |dv_t| <= mu |v_n| (``floor_mu`` = 0: frictionless slip) or is zeroed (sticky).
-    Dirichlet nodes (``bc.target.w`` > 0): velocity <- weighted mean target (full vector, or only its component
-    along the mean normal when ``bc.normal`` carries one); the reaction m (v_bc - v*) / dt is stored per node
-    divided by the node's total weight, to be split among the fingers by :func:`k_bc_reaction`.
+    Dirichlet nodes (``bc.target.w`` > 0): velocity <- :func:`dirichlet_velocity` (each constraint's prescribed
+    components, sticky or slip, several normals combined); the reaction m (v_bc - v*) / dt is stored per node
+    divided by the node's total weight, to be split among the fingers by :func:`k_bc_reaction`, and the work the
+    constraint did on the node, impulse . new velocity = m (v_bc - v*) . v_bc (J; the discrete work of symplectic
+    Euler, where a force does work on the velocity it leaves), is added to ``work[0]`` (energy guard).
     """
     ti, tj, tk = wp.tid()
     i = ti + gs.origin[0]
@@ -641,16 +689,10 @@ def k_grid_update(gs: GridStep, cond: GridConditions, grid: wp.array3d(dtype=wp.
         b = bc.target[i, j, k]
         W = b[3]
         if W > 0.0:
-            vt = wp.vec3(b[0], b[1], b[2]) / W
-            bn = bc.normal[i, j, k]
-            nn = wp.vec3(bn[0], bn[1], bn[2])
-            vnew = vt
-            ln = wp.length(nn)
-            if ln > 1.0e-6 * W:
-                nh = nn / ln
-                vnew = v + nh * (wp.dot(nh, vt) - wp.dot(nh, v))
+            vnew = dirichlet_velocity(v, wp.vec3(b[0], b[1], b[2]), bc.proj[i, j, k], W)
             r = (m / (dt * W)) * (vnew - v)
             bc.reaction[i, j, k] = wp.vec4(r[0], r[1], r[2], 0.0)
+            wp.atomic_add(work, 0, wp.float64(m * wp.dot(vnew - v, vnew)))
             v = vnew
     grid[i, j, k] = wp.vec4(v[0], v[1], v[2], m)
     wp.atomic_max(gstats, 0, wp.length(v))
@@ -660,12 +702,19 @@ def k_grid_update(gs: GridStep, cond: GridConditions, grid: wp.array3d(dtype=wp.
 @wp.kernel
 def k_bc_scatter(gi: GridInfo, pts: DirichletPointSet, bc: DirichletGrid, flags: wp.array(dtype=wp.int32),
                  substep: int):
-    """Project constrained points (target velocity, optional slip normal) onto the nodes of their stencils."""
+    """Project constrained points (target velocity, optional slip normal) onto the nodes of their stencils: the
+    node accumulates w P v_target and w P (P = n n^T for a slip point, I for a sticky one), see
+    :func:`dirichlet_velocity`."""
     p = wp.tid()
     s = point_stencil(pts.x[p], gi, flags, substep, p)
     b = s.base
     vt = pts.v[p]
     nt = pts.n[p]
+    P = wp.identity(n=3, dtype=float)
+    slip = wp.dot(nt, nt) > 0.0
+    if slip:
+        P = wp.outer(nt, nt)
+        vt = P @ vt
     for i in range(3):
         for j in range(3):
             for k in range(3):
@@ -673,8 +722,7 @@ def k_bc_scatter(gi: GridInfo, pts: DirichletPointSet, bc: DirichletGrid, flags:
                 if w > pts.min_w:
                     wp.atomic_add(bc.target, b[0] + i, b[1] + j, b[2] + k,
                                   wp.vec4(w * vt[0], w * vt[1], w * vt[2], w))
-                    wp.atomic_add(bc.normal, b[0] + i, b[1] + j, b[2] + k,
-                                  wp.vec4(w * nt[0], w * nt[1], w * nt[2], 0.0))
+                    wp.atomic_add(bc.proj, b[0] + i, b[1] + j, b[2] + k, w * P)
 
 
 @wp.kernel
@@ -704,7 +752,7 @@ def k_bc_clear_advance(gi: GridInfo, pts: DirichletPointSet, dt: float, bc: Diri
         for j in range(3):
             for k in range(3):
                 bc.target[b[0] + i, b[1] + j, b[2] + k] = wp.vec4(0.0)
-                bc.normal[b[0] + i, b[1] + j, b[2] + k] = wp.vec4(0.0)
+                bc.proj[b[0] + i, b[1] + j, b[2] + k] = wp.mat33(0.0)
                 bc.reaction[b[0] + i, b[1] + j, b[2] + k] = wp.vec4(0.0)
     if pts.advect != 0:
         pts.x[p] = pts.x[p] + dt * pts.v[p]
@@ -731,10 +779,12 @@ def k_force_weights(gi: GridInfo, px: wp.array(dtype=wp.vec3), pfinger: wp.array
 @wp.kernel
 def k_force_apply(gi: GridInfo, px: wp.array(dtype=wp.vec3), pfinger: wp.array(dtype=wp.int32),
                   finger_force: wp.array(dtype=wp.vec3), finger_w: wp.array(dtype=float), dt: float,
-                  grid: wp.array3d(dtype=wp.vec4), finger_impulse: wp.array(dtype=wp.vec3)):
+                  grid: wp.array3d(dtype=wp.vec4), finger_impulse: wp.array(dtype=wp.vec3),
+                  work: wp.array(dtype=wp.float64)):
     """Add dt F_k w m_i / W_k momentum to the stencil nodes (W_k = sum w m): the total impulse per finger is
     exactly F_k dt, whatever the number of points or particles, and every node under the patch gets the same
-    acceleration (a light fringe node is not flung away, as it would be with a weight-only split)."""
+    acceleration (a light fringe node is not flung away, as it would be with a weight-only split).  The work of
+    the push, impulse . (node velocity after it: before + dt F_k / W_k) (J), is added to ``work[0]``."""
     p = wp.tid()
     kf = int(pfinger[p])
     W = finger_w[kf]
@@ -744,15 +794,19 @@ def k_force_apply(gi: GridInfo, px: wp.array(dtype=wp.vec3), pfinger: wp.array(d
     s = stencil_at(clamped_grid_coord(px[p], gi))
     b = s.base
     acc = float(0.0)
+    power = float(0.0)
     for i in range(3):
         for j in range(3):
             for k in range(3):
-                m = grid[b[0] + i, b[1] + j, b[2] + k][3]
+                n = grid[b[0] + i, b[1] + j, b[2] + k]
+                m = n[3]
                 if m > 0.0:
                     w = stencil_weight(s, i, j, k) * m
+                    power += w * wp.dot(Fk, wp.vec3(n[0], n[1], n[2]) / m + Fk)
                     wp.atomic_add(grid, b[0] + i, b[1] + j, b[2] + k, wp.vec4(w * Fk[0], w * Fk[1], w * Fk[2], 0.0))
                     acc += w
     wp.atomic_add(finger_impulse, kf, acc * Fk)
+    wp.atomic_add(work, 0, wp.float64(power))
 
 
 # ============================================================================================ tracers

@@ -65,7 +65,8 @@ COL_VISCOSITY = 5  # Pa s
 COL_BULK = 6  # bulk modulus K (fluid), Pa
 COL_GAMMA = 7  # Tait exponent (fluid)
 COL_CRUSH = 8  # foam volumetric crush strain (>= 0)
-N_COLS = 9
+COL_PHYSICAL_DENSITY = 9  # physical (unscaled) density, kg/m^3: the weight m_phys g the particle feels
+N_COLS = 10
 
 
 class MaterialError(ValueError):
@@ -94,6 +95,10 @@ class Material:
         fluid_gamma: Tait exponent gamma for ``fluid`` (7 for water-like liquids, 1 gives p = K (1/J - 1)).
         crush_strain: ``foam`` only: compressive volumetric Hencky strain (>= 0) beyond which compression is
             permanent.  Use a large value (e.g. 10) to disable the cap.
+        mass_scaled: whether selective mass scaling (``mpm.mass_scaling=selective``) multiplies this material's
+            density (True: a solid that only deforms quasi-statically, e.g. a shell under the fingers) or leaves
+            it physical (False: released or flying material, fluids).  None = every model but ``fluid``.  The
+            other scaling modes ignore it.
     """
 
     name: str = "material"
@@ -107,6 +112,7 @@ class Material:
     bulk_modulus: Optional[float] = None
     fluid_gamma: float = 7.0
     crush_strain: float = 0.05
+    mass_scaled: Optional[bool] = None
 
     def __post_init__(self) -> None:
         self.model = canonical_model(self.model)
@@ -143,6 +149,11 @@ class Material:
     @property
     def code(self) -> int:
         return MODEL_CODES[self.model]
+
+    @property
+    def is_mass_scaled(self) -> bool:
+        """Selective mass scaling applies to this material (see ``mass_scaled``)."""
+        return self.model != "fluid" if self.mass_scaled is None else bool(self.mass_scaled)
 
     @property
     def is_plastic(self) -> bool:
@@ -212,23 +223,27 @@ def canonical_model(model: str | int) -> str:
     return key
 
 
-def pack_table(materials: Sequence[Material], stiffness_scale: float = 1.0, mass_scale: float = 1.0
-               ) -> tuple[np.ndarray, np.ndarray]:
+def pack_table(materials: Sequence[Material], stiffness_scale: float = 1.0,
+               mass_scale: float | Sequence[float] = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Pack materials into ``(models int32 [M], params float32 [M, N_COLS])`` for the kernels.
 
-    ``stiffness_scale`` multiplies E (hence mu, lambda) and K; ``mass_scale`` multiplies the density.  Yield stress
-    and hardening are not scaled (stiffness scaling of a plastic material changes its yield strain).
+    ``stiffness_scale`` multiplies E (hence mu, lambda) and K; ``mass_scale`` (one factor, or one per material)
+    multiplies the density of column ``COL_DENSITY`` (the inertia); ``COL_PHYSICAL_DENSITY`` keeps the physical
+    density (the weight).  Yield stress and hardening are not scaled (stiffness scaling of a plastic material
+    changes its yield strain).
     """
     if len(materials) == 0:
         raise MaterialError("at least one material is needed")
+    scales = np.broadcast_to(np.asarray(mass_scale, np.float64), (len(materials),))
     models = np.zeros(len(materials), dtype=np.int32)
     params = np.zeros((len(materials), N_COLS), dtype=np.float32)
-    for i, m in enumerate(materials):
+    for i, (m, s) in enumerate(zip(materials, scales.tolist())):
         m.validate()
         models[i] = m.code
         params[i, COL_MU] = m.mu * stiffness_scale
         params[i, COL_LAMBDA] = m.lam * stiffness_scale
-        params[i, COL_DENSITY] = m.density * mass_scale
+        params[i, COL_DENSITY] = m.density * s
+        params[i, COL_PHYSICAL_DENSITY] = m.density
         params[i, COL_YIELD] = m.yield_stress
         params[i, COL_HARDENING] = m.hardening
         params[i, COL_VISCOSITY] = m.viscosity

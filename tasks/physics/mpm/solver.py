@@ -7,7 +7,9 @@ return mapping.  See :mod:`tasks.physics.mpm.kernels` for the kernels and :mod:`
 Boundary conditions (generic; the finger field is connected by the caller)
     * :class:`DirichletPoints`: constrained points (positions, target velocities, finger ids, optional slip
       normals).  Every substep they are projected onto the nodes their quadratic B-spline stencils touch; a
-      node's prescribed velocity is the weight-averaged target of the points touching it.  Before the
+      node's prescribed velocity is the weight-averaged target of the points touching it, per constrained
+      direction (sticky points: all three; slip points: their normal; constraints with different normals on one
+      node each keep their own component, see :func:`tasks.physics.mpm.kernels.dirichlet_velocity`).  Before the
       overwrite the solver accumulates the reaction  F_k = sum_{i in nodes of k} m_i (v_bc - v*_i) / dt
       (a node shared by several fingers is split in proportion to their weights).  F_k is the force the
       constraint applies to the material (N); the finger feels -F_k.
@@ -34,7 +36,7 @@ import warp as wp
 from conf.mpm_schema import MPMConfig, mpm_config_from
 
 from . import kernels as K
-from .materials import COL_DENSITY, MODEL_CODES, N_COLS, PLASTIC_MODELS, Material, pack_table
+from .materials import COL_DENSITY, COL_PHYSICAL_DENSITY, MODEL_CODES, N_COLS, PLASTIC_MODELS, Material, pack_table
 
 FIXED_COROTATED = MODEL_CODES["fixed_corotated"]
 
@@ -119,6 +121,8 @@ class FrameStats:
     stiffness_scale: float
     quasi_static_ok: bool
     wall_seconds: float
+    gravitational_energy: float  # J, -sum m_phys g . x (physical weights), end of frame
+    boundary_work: float  # J, work the Dirichlet nodes and force patches did on the material during the frame
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -151,25 +155,42 @@ def bspline_stencil(g: np.ndarray):
 
 
 def mass_scale_for(materials: Sequence[Material], dx: float, frame_dt: float | None, cfg: MPMConfig) -> float:
-    """The density factor s >= 1 that ``cfg.mass_scaling`` prescribes (dimensionless).
+    """The density factor s >= 1 that ``cfg.mass_scaling`` prescribes for the scaled materials (dimensionless).
 
-    ``off``: 1.  ``manual``: ``cfg.mass_scale``.  ``auto``: the smallest s for which the elastic CFL of the
-    non-fluid ``materials`` needs at most N = ``cfg.target_substeps_per_frame`` substeps per output frame:
+    ``off``: 1.  ``manual``: ``cfg.mass_scale``.  ``global`` / ``selective``: the smallest s for which the elastic
+    CFL of the scaled ``materials`` (``global``: every non-fluid one; ``selective``: those with
+    ``Material.is_mass_scaled``) needs at most N = ``cfg.target_substeps_per_frame`` substeps per output frame:
     s = max(1, (c_p (frame_dt / N) / (C dx))^2), c_p the largest P-wave speed (m/s, after stiffness scaling) of
     those materials, C = ``cfg.courant``, ``dx`` the grid spacing (m), ``frame_dt`` the frame duration (s).
     Scaling rho by s slows every wave by sqrt(s).  Fluids do not drive s: a weakly compressible fluid's bulk
-    modulus is an artificial choice that the caller sets relative to s (so its sound speed stays at its target).
+    modulus is an artificial choice that the caller sets for its Mach number (so its sound speed stays at its target).
     """
     if cfg.mass_scaling == "off":
         return 1.0
     if cfg.mass_scaling == "manual":
         return float(cfg.mass_scale)
     if frame_dt is None:
-        raise ValueError("mass_scaling=auto needs the frame duration")
-    solids = [m.p_wave_speed(cfg.stiffness_scaling) for m in materials if m.model != "fluid"]
-    if not solids:
+        raise ValueError(f"mass_scaling={cfg.mass_scaling} needs the frame duration")
+    driving = [m.p_wave_speed(cfg.stiffness_scaling) for m in materials
+               if (m.is_mass_scaled if cfg.mass_scaling == "selective" else m.model != "fluid")]
+    if not driving:
         return 1.0
-    return max(1.0, (max(solids) * (frame_dt / cfg.target_substeps_per_frame) / (cfg.courant * dx)) ** 2)
+    return max(1.0, (max(driving) * (frame_dt / cfg.target_substeps_per_frame) / (cfg.courant * dx)) ** 2)
+
+
+def material_mass_scales(materials: Sequence[Material], present: Sequence[Material], dx: float,
+                         frame_dt: float | None, cfg: MPMConfig) -> np.ndarray:
+    """Per-material density factors (material,) under ``cfg.mass_scaling`` (dimensionless).
+
+    ``selective``: each material with ``Material.is_mass_scaled`` gets its own smallest factor
+    :func:`mass_scale_for` ``([material])`` (the stiffest gets the s of ``global``, a softer solid less, a torn skin
+    softened 100x needs 100x less), the others 1 (physical inertia): mass is scaled only where it buys time, which
+    keeps the mass ratio between released material and the solids it must push past small.  Every other mode: the
+    one factor :func:`mass_scale_for` ``(present)`` of the materials ``present`` for every material.
+    """
+    if cfg.mass_scaling != "selective":
+        return np.full(len(materials), mass_scale_for(present, dx, frame_dt, cfg))
+    return np.array([mass_scale_for([m], dx, frame_dt, cfg) for m in materials], np.float64)
 
 
 def deform_covariances(F: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -215,15 +236,31 @@ class MPMSolver:
         tracers: (T, 3) massless tracer positions (surface Gaussians), advected with their own F.
         device: overrides ``config.device``.
         n_fingers: size of the per-finger reaction/force arrays (grows automatically with the finger ids seen).
+        label: name of the simulated object, quoted by the energy guard's message.
 
-    Mass (time) scaling (``config.mass_scaling``; s from :func:`mass_scale_for`, fixed once: at construction,
-    or for ``auto`` at the first :meth:`step_frame`): every density is multiplied by s and gravity is divided by
-    s (``self.gravity``, m/s^2), so weights rho g and every quasi-static state under gravity and boundary loads
-    are unchanged, while wave speeds, hence the stable dt, scale by 1/sqrt(s) and sqrt(s).  For elastic materials
-    driven only by gravity and static boundaries the scaled motion is exactly the unscaled one slowed down by
-    sqrt(s): x_s(t) = x(t / sqrt(s)).  Inertia-driven motion (impacts, rebounds, free flight) is slowed by
-    that factor, so a boundary moving at a prescribed speed meets a material that responds sqrt(s) times slower;
-    the kinetic/internal energy ratio per frame (``FrameStats``) flags frames where that matters.
+    Mass (time) scaling (``config.mass_scaling``; s from :func:`mass_scale_for`, fixed once: at construction, or for
+    ``global``/``selective`` at the first :meth:`step_frame`): the densities of the scaled materials (all of them by
+    s, or under ``selective`` those with ``Material.is_mass_scaled`` each by its own factor <= s, see
+    :func:`material_mass_scales`; per material in ``material_mass_scale``) are multiplied, while every particle's
+    weight stays physical, m_phys g: under a uniform scale the grid adds g / s (``self.gravity``, m/s^2) to every
+    node's velocity; under mixed scales each particle's P2G adds the impulse dt m_phys g, so a node gains dt g sum_p
+    w_ip m_phys,p divided by its (scaled) mass: a scaled solid feels g / s exactly as under uniform scaling and an
+    unscaled blob falls at g.  Weights and every quasi-static state under gravity and boundary loads are unchanged,
+    while a scaled material's wave speed, hence the stable dt it needs, scales by 1/sqrt(s) and sqrt(s); the stable
+    step is the smallest over the materials present with their own scales.  For elastic materials driven only by
+    gravity and static boundaries the uniformly scaled motion is exactly the unscaled one slowed down by sqrt(s):
+    x_s(t) = x(t / sqrt(s)). Inertia-driven motion of a scaled material (impacts, rebounds, free flight) is slowed
+    by that factor, so a boundary moving at a prescribed speed meets a material that responds sqrt(s) times slower;
+    the kinetic/internal energy ratio of the scaled materials per frame (``FrameStats``) flags frames where that
+    matters.
+
+    Energy guard (``config.energy_guard_tolerance``): after every frame the total energy E = kinetic + internal +
+    gravitational (-m_phys g . x) is compared with its value at the reference frame (construction, or the end of the
+    first frame after a state setter) plus the work the boundary did since (Dirichlet nodes: impulse . new velocity,
+    m (v_bc - v*) . v_bc per node and substep; force patches: impulse . node velocity).  Walls, floor, friction,
+    plasticity and viscosity only remove energy, so growth beyond tolerance x energy scale (the largest kinetic +
+    internal energy, boundary work or gravitational energy change seen since the reference) is a numerical
+    instability: :class:`SimulationError` naming the frame and the materials whose energy grew.
     """
 
     def __init__(
@@ -237,8 +274,10 @@ class MPMSolver:
         tracers: Optional[np.ndarray] = None,
         device: Optional[str] = None,
         n_fingers: int = 5,
+        label: str = "",
     ) -> None:
         self.cfg: MPMConfig = mpm_config_from(config)
+        self.label = str(label)
         self.device = resolve_device(device or self.cfg.device)
         if self.cfg.debug:
             wp.set_module_options({"mode": "debug"}, K)
@@ -312,8 +351,10 @@ class MPMSolver:
 
         # ---------------- scaling and material table
         self.stiffness_scale = float(cfg.stiffness_scaling)
-        self._mass_scale_pending = cfg.mass_scaling == "auto"  # auto: fixed by the first step_frame's duration
+        # global / selective: fixed by the first step_frame's duration
+        self._mass_scale_pending = cfg.mass_scaling in ("global", "selective")
         self.mass_scale = 1.0 if self._mass_scale_pending else mass_scale_for(self._present_materials(), dx, None, cfg)
+        self.material_mass_scale = np.full(len(self.materials), self.mass_scale)
         d = self.device
         self.mat_model = wp.zeros(len(self.materials), dtype=wp.int32, device=d)
         self.mat_par = wp.zeros((len(self.materials), N_COLS), dtype=float, device=d)
@@ -344,7 +385,8 @@ class MPMSolver:
         self._bc_alloc = False
         dummy3 = wp.zeros((1, 1, 1), dtype=wp.vec4, device=d)
         self.bc_grid = K.DirichletGrid()
-        self.bc_grid.target = self.bc_grid.normal = self.bc_grid.reaction = dummy3
+        self.bc_grid.target = self.bc_grid.reaction = dummy3
+        self.bc_grid.proj = wp.zeros((1, 1, 1), dtype=wp.mat33, device=d)
 
         # ---------------- tracers
         self.n_tracers = 0 if tr is None else len(tr)
@@ -369,7 +411,12 @@ class MPMSolver:
         self.sums = wp.zeros(6, dtype=wp.float64, device=d)
         self.ext = wp.zeros(3, dtype=float, device=d)
         self.ext_init = wp.array(np.array([np.inf, -np.inf, 0.0], np.float32), dtype=float, device=d)
+        self.mat_energy = wp.zeros((len(self.materials), 3), dtype=wp.float64, device=d)
+        self.boundary_work = wp.zeros(1, dtype=wp.float64, device=d)  # J, this frame (energy guard)
         self._alloc_finger_arrays(self.n_fingers)
+        self._work_total = 0.0  # J, boundary work since construction
+        self._energy_ref: Optional[dict] = None  # energy guard reference (see _check_energy)
+        self._energy_initial = True  # the reference is the initial state (F = I, C = 0: no internal energy)
 
         self.time = 0.0
         self.frame = 0
@@ -383,18 +430,39 @@ class MPMSolver:
         return [self.materials[i] for i in self._present]
 
     def _upload_materials(self) -> None:
-        """Material table, wave speeds and the compensated gravity g / s of the current mass scale s."""
-        models, params = pack_table(self.materials, self.stiffness_scale, self.mass_scale)
+        """Material table with the per-material mass scales, wave speeds, and where gravity acts: uniform scale s
+        among the materials present -> the grid adds g / s (``self.gravity``); mixed -> the P2G adds dt m_phys g."""
+        models, params = pack_table(self.materials, self.stiffness_scale, self.material_mass_scale)
         self.mat_model.assign(models)
         self.mat_par.assign(params)
-        self.c_max = max(m.p_wave_speed(self.stiffness_scale, self.mass_scale) for m in self._present_materials())
+        present = self._present
+        self.wave_speeds = {self.materials[i].name: self.materials[i].p_wave_speed(
+            self.stiffness_scale, float(self.material_mass_scale[i])) for i in present}  # m/s
+        self.c_max = max(self.wave_speeds.values())
         self.gravity = [g / self.mass_scale for g in self.cfg.gravity]
-        self._cmds = None  # the recorded grid launch holds the gravity
+        scales = {float(self.material_mass_scale[i]) for i in present}
+        self._weight_in_p2g = len(scales) > 1
+        uniform = max(scales)
+        self._grid_gravity = [0.0, 0.0, 0.0] if self._weight_in_p2g else [g / uniform for g in self.cfg.gravity]
+        self._cmds = None  # the recorded launches hold the gravity
         self.dt_visc = math.inf
-        for i in self._present:
+        for i in present:
             m = self.materials[i]
             if m.model == "fluid" and m.viscosity > 0:
-                self.dt_visc = min(self.dt_visc, m.density * self.mass_scale * self.dx ** 2 / (6.0 * m.viscosity))
+                rho = m.density * float(self.material_mass_scale[i])
+                self.dt_visc = min(self.dt_visc, rho * self.dx ** 2 / (6.0 * m.viscosity))
+
+    def stable_dt_per_material(self) -> dict[str, float]:
+        """The stable substep (s) each material of the table needs alone, present or not yet (a ruptured skin, a
+        released interior): C dx / c_p with its own (un)scaled P-wave speed, and for a viscous fluid also
+        rho dx^2 / (6 mu) (explicit viscosity).  The solver steps with the smallest over the materials present."""
+        out = {}
+        for m, scale in zip(self.materials, self.material_mass_scale.tolist()):
+            dt = self.cfg.courant * self.dx / m.p_wave_speed(self.stiffness_scale, scale)
+            if m.model == "fluid" and m.viscosity > 0:
+                dt = min(dt, m.density * scale * self.dx ** 2 / (6.0 * m.viscosity))
+            out[m.name] = dt
+        return out
 
     def _alloc_finger_arrays(self, k: int) -> None:
         d = self.device
@@ -408,7 +476,7 @@ class MPMSolver:
         if not self._bc_alloc:
             d = self.device
             self.bc_grid.target = wp.zeros(self.dims, dtype=wp.vec4, device=d)
-            self.bc_grid.normal = wp.zeros(self.dims, dtype=wp.vec4, device=d)
+            self.bc_grid.proj = wp.zeros(self.dims, dtype=wp.mat33, device=d)
             self.bc_grid.reaction = wp.zeros(self.dims, dtype=wp.vec4, device=d)
             self._bc_alloc = True
             self._cmds = None  # recorded grid launches reference the boundary arrays
@@ -494,6 +562,8 @@ class MPMSolver:
             return
         self._mass_scale_pending = False
         self.mass_scale = mass_scale_for(self._present_materials(), self.dx, frame_dt, self.cfg)
+        self.material_mass_scale = material_mass_scales(self.materials, self._present_materials(), self.dx, frame_dt,
+                                                        self.cfg)
         self._upload_materials()
 
     # ------------------------------------------------------------------ boundary upload
@@ -513,9 +583,13 @@ class MPMSolver:
                                     None if it.normals is None else np.broadcast_to(
                                         np.asarray(it.normals, np.float32).reshape(-1, 3), (len(idx), 3))[keep])
                 idx = idx[keep]
-                pos = self.lo + idx * self.dx
-                # a point exactly on a node has weight 0.75^3 = 0.42 there and <= 0.75^2 0.125 = 0.07 on the other
-                # stencil nodes: min_weight 0.2 keeps exactly that node
+                # the point sits on its node, moved 1e-3 dx towards the grid centre: in float32 a node of layer 1
+                # would otherwise round to grid coordinate 0.99999976, outside the band [1, dims - 2] every point
+                # must lie in (the stencil, base floor(g - 0.5), is the same either way)
+                centre = 0.5 * (np.asarray(self.dims, np.float64) - 1.0)
+                pos = self.lo + (idx + 1e-3 * np.sign(centre - idx)) * self.dx
+                # a point on a node has weight 0.75^3 = 0.42 there and <= 0.75^2 0.125 = 0.07 on the other stencil
+                # nodes: min_weight 0.2 keeps exactly that node
                 it = DirichletPoints(pos, it.velocities, it.finger_ids, it.normals, min_weight=0.2, advect=False)
             pos = np.asarray(it.positions, np.float32).reshape(-1, 3)
             m = len(pos)
@@ -589,13 +663,16 @@ class MPMSolver:
         sp.polar_iters = int(self.cfg.polar_restart_iterations if restart else self.cfg.polar_iterations)
         sp.polar_tol = float(self.cfg.polar_tol)
         sp.polar_newton = int(restart or self.cfg.polar_method == "newton")
+        sp.weight_g = wp.vec3(*self.cfg.gravity)
+        sp.weight_in_p2g = int(self._weight_in_p2g)
         return sp
 
     def _grid_conditions(self) -> K.GridConditions:
-        """Gravity (m/s^2, divided by the mass scale), domain walls and floor of the grid update."""
+        """Gravity (m/s^2: g / s under a uniform mass scale s, else zero: the P2G adds the weight), domain walls
+        and floor of the grid update."""
         cfg = self.cfg
         gc = K.GridConditions()
-        gc.gravity = wp.vec3(*self.gravity)
+        gc.gravity = wp.vec3(*self._grid_gravity)
         gc.pad = int(cfg.padding)
         gc.wall_sticky = int(cfg.wall_sticky)
         gc.floor_on = int(self.floor_height is not None)
@@ -618,7 +695,7 @@ class MPMSolver:
             fused = wp.launch(fused_kernel, dim=self.n_particles, device=d, record_cmd=True, inputs=[
                 self.gi, cmds["sp"], self.particles, self.mat_table, cur, other, self.flags, self.bbox])
             grid = wp.launch(K.k_grid_update, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
-                cmds["gs"], conditions, cur, other, self.bc_grid, self.gstats])
+                cmds["gs"], conditions, cur, other, self.bc_grid, self.gstats, self.boundary_work])
             cmds[id(cur)] = (fused, grid)
         self._cmds = cmds
         return cmds
@@ -679,6 +756,8 @@ class MPMSolver:
         fps = self._upload_forces(forces(0.0, None) if f_fn else forces)
         self.finger_react.zero_()
         self.finger_applied.zero_()
+        self.boundary_work.zero_()
+        self._energy_baseline()
         has_bc = int(len(bcs) > 0)
         bc_speed = max([b["speed"] for b in bcs], default=0.0)
         check_every = 1 if cfg.debug else cfg.check_every
@@ -711,7 +790,8 @@ class MPMSolver:
                 wp.launch(K.k_force_weights, dim=fp["count"], device=d, inputs=[
                     self.gi, fp["x"], fp["f"], cur, self.finger_w, self.flags, self.substep])
                 wp.launch(K.k_force_apply, dim=fp["count"], device=d, inputs=[
-                    self.gi, fp["x"], fp["f"], self.finger_force, self.finger_w, dt, cur, self.finger_applied])
+                    self.gi, fp["x"], fp["f"], self.finger_force, self.finger_w, dt, cur, self.finger_applied,
+                    self.boundary_work])
             for bc in bcs:
                 wp.launch(K.k_bc_scatter, dim=bc["count"], device=d, inputs=[
                     self.gi, bc["pts"], self.bc_grid, self.flags, self.substep])
@@ -731,10 +811,11 @@ class MPMSolver:
             remaining = frame_dt - t
             if remaining <= 1e-6 * frame_dt:
                 self.sums.zero_()
+                self.mat_energy.zero_()
                 wp.copy(self.ext, self.ext_init)
                 wp.launch(K.k_g2p, dim=n, device=d, inputs=[
                     self.gi, self._step_params(dt, 0.0, restart=True), self.particles, self.mat_table, cur,
-                    self.flags, self.sums, self.ext])
+                    self.flags, self.sums, self.ext, wp.vec3(*self.cfg.gravity), self.mat_energy])
                 self.substep += 1
                 self._times.append((self.substep, self.time + t))
                 self._last_box = box_cur
@@ -767,6 +848,7 @@ class MPMSolver:
         stats = self._frame_stats(nsub, dts, frame_dt, wall0)
         self._check_flags()
         self._check_state(stats)
+        self._check_energy(stats)
         self.last_stats = stats
         return stats
 
@@ -783,9 +865,17 @@ class MPMSolver:
         s = self.sums.numpy()
         e = self.ext.numpy()
         ke, ie = float(s[0]), float(s[1])
-        ratio = ke / ie if ie > 1e-30 else (math.inf if ke > 0 else 0.0)
+        per = self.mat_energy.numpy()  # (material, [KE, IE, PE]) J
+        work = float(self.boundary_work.numpy()[0])
+        self._work_total += work
+        if self._weight_in_p2g:  # mixed scales: the quasi-static check concerns the scaled materials only
+            scaled = self.material_mass_scale > 1.0
+            ke_s, ie_s = float(per[scaled, 0].sum()), float(per[scaled, 1].sum())
+        else:
+            ke_s, ie_s = ke, ie
+        ratio = ke_s / ie_s if ie_s > 1e-30 else (math.inf if ke_s > 0 else 0.0)
         qs_ok = True
-        if self.mass_scale > 1.0 and ratio > self.cfg.quasi_static_ke_ie_max and ie > 0:
+        if self.mass_scale > 1.0 and ratio > self.cfg.quasi_static_ke_ie_max and ie_s > 0:
             qs_ok = False
         if not qs_ok and not self._warned_quasi_static:  # once per solver; every frame's flag is in FrameStats
             self._warned_quasi_static = True
@@ -800,8 +890,61 @@ class MPMSolver:
             reaction=self.finger_react.numpy().astype(np.float64) / frame_dt,
             applied_force=self.finger_applied.numpy().astype(np.float64) / frame_dt,
             mass_scale=self.mass_scale, stiffness_scale=self.stiffness_scale, quasi_static_ok=qs_ok,
-            wall_seconds=time.perf_counter() - wall0,
+            wall_seconds=time.perf_counter() - wall0, gravitational_energy=float(per[:, 2].sum()),
+            boundary_work=work,
         )
+
+    # ------------------------------------------------------------------ energy guard
+    def _energy_baseline(self) -> None:
+        """Before the first frame: the reference energy of the initial state (F_E = I, C = 0: no internal energy),
+        per material: kinetic 1/2 m v^2 (scaled masses) + gravitational -m_phys g . x (J)."""
+        if not self._energy_initial:
+            return
+        self._energy_initial = False
+        m, m_phys = self.masses().astype(np.float64), self.physical_masses().astype(np.float64)
+        x, v = self.x.numpy().astype(np.float64), self.v.numpy().astype(np.float64)
+        e = 0.5 * m * np.einsum("ij,ij->i", v, v) - m_phys * (x @ np.asarray(self.cfg.gravity, np.float64))
+        per = np.bincount(self._mid_host, weights=e, minlength=len(self.materials))
+        ke = float((0.5 * m * np.einsum("ij,ij->i", v, v)).sum())
+        self._energy_ref = dict(frame=self.frame, energy=per, work=self._work_total,
+                                potential=float(per.sum()) - ke, scale=ke)
+
+    def _energy_state_changed(self) -> None:
+        """A state setter changed the energy from outside: the guard re-bases at the end of the next frame (the
+        initial state keeps its exact reference unless F_E was set)."""
+        if self.frame > 0:
+            self._energy_initial = False
+            self._energy_ref = None
+
+    def _check_energy(self, st: FrameStats) -> None:
+        """Energy guard (see the class doc): raise when E - E_ref - (boundary work since) > tolerance x scale."""
+        rel = float(self.cfg.energy_guard_tolerance)
+        per_split = self.mat_energy.numpy()
+        per = per_split.sum(axis=1)
+        ref = self._energy_ref
+        if ref is None:
+            self._energy_ref = dict(frame=self.frame, energy=per, work=self._work_total,
+                                    potential=st.gravitational_energy,
+                                    scale=st.kinetic_energy + st.internal_energy)
+            return
+        work = self._work_total - ref["work"]
+        ref["scale"] = max(ref["scale"], st.kinetic_energy + st.internal_energy, abs(work),
+                           abs(st.gravitational_energy - ref["potential"]))
+        growth = float(per.sum() - ref["energy"].sum()) - work
+        tol = rel * ref["scale"] + 1e-9
+        if rel <= 0 or growth <= tol:
+            return
+        grew = np.argsort(-(per - ref["energy"]))
+        names = ", ".join(f"'{self.materials[i].name}' +{per[i] - ref['energy'][i]:.3g} J (kinetic "
+                          f"{per_split[i, 0]:.3g}, internal {per_split[i, 1]:.3g})"
+                          for i in grew[:3] if per[i] > ref["energy"][i])
+        who = f"object '{self.label}': " if self.label else ""
+        raise SimulationError(
+            f"{who}energy guard at frame {st.frame} (t={st.time:.6g} s): the total energy (kinetic + internal + "
+            f"gravitational) grew by {growth:.4g} J since frame {ref['frame']} beyond the boundary work "
+            f"{work:.4g} J (tolerance {tol:.3g} J = {rel:g} x energy scale {ref['scale']:.3g} J); grew: {names}. "
+            f"Likely cause: numerical instability (Courant number {st.courant:.3g}, limit "
+            f"{self.cfg.courant_limit:.3g}, c_p={self.c_max:.4g} m/s, dx={self.dx:.4g} m); lower mpm.courant or dt")
 
     def _substep_time(self, sub: int) -> float:
         best = self.time
@@ -900,9 +1043,14 @@ class MPMSolver:
         return self.vol.numpy().copy()
 
     def masses(self) -> np.ndarray:
-        """Particle masses (kg), including the current mass scale."""
+        """Particle masses (kg), including the material's current mass scale (the inertia)."""
         par = self.mat_par.numpy()
         return self.vol.numpy() * par[self._mid_host, COL_DENSITY]
+
+    def physical_masses(self) -> np.ndarray:
+        """Physical particle masses (kg), without mass scaling (the weight is m_phys g)."""
+        par = self.mat_par.numpy()
+        return self.vol.numpy() * par[self._mid_host, COL_PHYSICAL_DENSITY]
 
     def material_ids(self) -> np.ndarray:
         return self._mid_host.copy()
@@ -918,17 +1066,22 @@ class MPMSolver:
         return float(self.grid_a.numpy()[..., 3].astype(np.float64).sum())
 
     def set_velocities(self, v: np.ndarray) -> None:
+        self._energy_state_changed()
         self.v.assign(np.asarray(v, np.float32).reshape(-1, 3))
         self._vmax = max(self._vmax, float(np.max(np.linalg.norm(v, axis=1))))
 
     def set_positions(self, x: np.ndarray) -> None:
+        self._energy_state_changed()
         self.x.assign(np.asarray(x, np.float32).reshape(-1, 3))
 
     def set_material_ids(self, ids: np.ndarray) -> None:
         """Re-assign particle materials (e.g. a ruptured shell).  The new materials must use models whose state
-        is already allocated and the same density (mass is conserved exactly).  The set of materials present,
-        the stable time step (their wave speeds, fluid viscosity) and the fixed-corotated fast path are updated;
-        the mass scale stays as it was."""
+        is already allocated and the same (physical) density: the physical mass, hence the weight, is conserved
+        exactly; under selective mass scaling the inertia follows the new material's scale (burst pulp that
+        becomes released juice gets its physical mass back).  The set of materials present, the stable time step
+        (their wave speeds, fluid viscosity) and the fixed-corotated fast path are updated; the scale s stays as
+        it was."""
+        self._energy_state_changed()
         ids = np.asarray(ids, np.int32).reshape(self.n_particles)
         if ids.min() < 0 or ids.max() >= len(self.materials):
             raise ValueError(f"material ids must be in [0, {len(self.materials)})")
@@ -945,7 +1098,23 @@ class MPMSolver:
         self.all_corotated = {self.materials[i].code for i in self._present} == {FIXED_COROTATED}
         self._upload_materials()
 
+    def affine_velocities(self) -> np.ndarray:
+        """APIC affine velocity matrices C (N, 3, 3), 1/s (the particle's velocity gradient, stored at frame ends)."""
+        return self.C.numpy().copy()
+
+    def set_affine_velocities(self, C: np.ndarray) -> None:
+        """Set the APIC affine velocity matrices C (N, 3, 3), 1/s, e.g. with :meth:`set_velocities` for an initial
+        rigid spin v = w x (x - c): C = [w]x (the skew matrix of w), so the first P2G carries the spin's full
+        angular momentum and kinetic energy (Jiang et al. 2015, APIC) instead of losing the part within each
+        particle's stencil.  The velocity field is unchanged, so the energy guard's reference stays."""
+        C = np.asarray(C, np.float32).reshape(self.n_particles, 3, 3)
+        if not np.isfinite(C).all():
+            raise ValueError("set_affine_velocities: C contains NaN/inf; pass finite velocity gradients (1/s)")
+        self.C.assign(C)
+
     def set_deformation_gradients(self, F: np.ndarray) -> None:
+        self._energy_initial = False
+        self._energy_ref = None
         self.F.assign(np.asarray(F, np.float32).reshape(-1, 3, 3))
 
     def state_nbytes(self) -> dict[str, int]:
@@ -958,5 +1127,7 @@ class MPMSolver:
         return sum(self.state_nbytes().values()) / self.n_particles
 
     def grid_nbytes(self) -> int:
-        per = 16 * int(np.prod(self.dims))
-        return per * (2 + (3 if self._bc_alloc else 0))
+        """Bytes of the grid arrays: two vec4 buffers, plus the Dirichlet target, reaction (vec4) and projector
+        (mat33) arrays once a constraint was used."""
+        nodes = int(np.prod(self.dims))
+        return nodes * (2 * 16 + ((16 + 16 + 36) if self._bc_alloc else 0))

@@ -1,0 +1,51 @@
+"""The released material's flight (paper sec. 3.2: released particles "subjected to viscosity, gravity, and other
+grid forces"): which released particles fly free, their mean height per frame and their vertical acceleration,
+to be plotted against the free-fall parabola and checked against g."""
+from __future__ import annotations
+
+import numpy as np
+
+
+def free_flying(positions: np.ndarray, released: np.ndarray, box_min: np.ndarray, box_max: np.ndarray,
+                floor: float, margin: float) -> np.ndarray:
+    """Which released particles fly free in each frame.
+
+    A particle flies free when it is released, lies outside the object's rest box grown by ``margin`` (m) on every
+    side, and is more than ``margin`` above the table plane z = ``floor`` (m).
+
+    Args:
+        positions: (frame, particle, xyz) m.
+        released: (particle,) bool, the released material.
+        box_min, box_max: (3,) m, the object's rest bounding box.
+    Returns:
+        (frame, particle) bool.
+    """
+    x = np.asarray(positions, np.float64)
+    lo, hi = np.asarray(box_min, np.float64) - margin, np.asarray(box_max, np.float64) + margin
+    outside = np.any((x < lo) | (x > hi), axis=-1)
+    return outside & (x[..., 2] > floor + margin) & np.asarray(released, bool)[None, :]
+
+
+def released_flight(positions: np.ndarray, free: np.ndarray, frame_dt: float) -> tuple[np.ndarray, float]:
+    """Mean height of the free-flying particles per frame and their fitted vertical acceleration.
+
+    Args:
+        positions: (frame, particle, xyz) m.
+        free: (frame, particle) bool from :func:`free_flying`.
+        frame_dt: s between frames.
+    Returns:
+        height: (frame,) m, mean z of the particles flying free in that frame (NaN when none);
+        acceleration: m/s^2, the median over particles of each particle's median second difference
+        (z[f+1] - 2 z[f] + z[f-1]) / frame_dt^2 over the frames f with f-1, f, f+1 all in free flight (NaN when
+        no particle flies free for three consecutive frames); g = -9.81 for material in free fall.
+    """
+    z = np.asarray(positions, np.float64)[..., 2]
+    count = free.sum(axis=1)
+    height = np.full(len(z), np.nan)
+    height[count > 0] = (z * free).sum(axis=1)[count > 0] / count[count > 0]
+    if len(z) < 3:
+        return height, float("nan")
+    accel = (z[2:] - 2.0 * z[1:-1] + z[:-2]) / frame_dt ** 2  # (frame - 2, particle)
+    flying = free[2:] & free[1:-1] & free[:-2]
+    per_particle = [np.median(accel[flying[:, p], p]) for p in np.flatnonzero(flying.any(axis=0))]
+    return height, float(np.median(per_particle)) if per_particle else float("nan")
