@@ -27,16 +27,16 @@ from pathlib import Path
 from typing import Any, Optional
 
 import cv2
-import httpx
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from tasks.core.chat_client import ChatEndpointError, EndpointWording, display_url, post_chat, redact, snippet
 
 log = logging.getLogger(__name__)
 
 PROMPT_VERSION = "virsqueezer-llm-judge-v1"
 CACHE_FORMAT = "virsqueezer-llm-judge-cache-v1"
 QUESTIONS: tuple[str, ...] = ("visual_quality", "motion_realism", "motion_consistency")
-MAX_RESPONSE_BYTES = 2_000_000
 JPEG_QUALITY = 90
 
 
@@ -149,7 +149,7 @@ def judge_video(frames: np.ndarray, controls_image: np.ndarray, object_name: str
     controls_url = encode_image(controls_image, "png", cfg.max_image_px)
     messages = judge_messages(frame_urls, controls_url, object_name, effect, indices, frames.shape[0])
     # 3. the cache, keyed by endpoint, model, prompt and images
-    key = {"format": CACHE_FORMAT, "prompt_version": PROMPT_VERSION, "url": _display_url(cfg.url),
+    key = {"format": CACHE_FORMAT, "prompt_version": PROMPT_VERSION, "url": display_url(cfg.url),
            "url_sha256": _sha256(cfg.url), "model": cfg.model,
            "prompt_sha256": _sha256(json.dumps(messages, sort_keys=True)),
            "image_sha256": [_sha256(u) for u in [controls_url, *frame_urls]],
@@ -169,7 +169,7 @@ def judge_video(frames: np.ndarray, controls_image: np.ndarray, object_name: str
 
 def _check_config(cfg: JudgeConfig) -> None:
     if not cfg.url or not str(cfg.url).startswith(("http://", "https://")):
-        raise LLMJudgeError(f"llm_judge.url {_display_url(str(cfg.url or ''))!r} must be the http:// or https:// "
+        raise LLMJudgeError(f"llm_judge.url {display_url(str(cfg.url or ''))!r} must be the http:// or https:// "
                             "base URL of an OpenAI-compatible API (e.g. http://127.0.0.1:8000/v1)")
     if not (isinstance(cfg.timeout_s, (int, float)) and math.isfinite(cfg.timeout_s) and cfg.timeout_s > 0):
         raise LLMJudgeError(f"llm_judge.timeout_s {cfg.timeout_s!r} must be a number of seconds > 0")
@@ -187,7 +187,7 @@ def _check_image(a: Any, name: str, ndim: int) -> None:
 
 
 def _ask_with_repair(messages: list[dict[str, Any]], cfg: JudgeConfig) -> JudgeScores:
-    shown = _display_url(_endpoint(cfg))
+    shown = display_url(_endpoint(cfg))
     content = _post_chat(messages, cfg)
     try:
         return _parse_scores(content)
@@ -200,9 +200,10 @@ def _ask_with_repair(messages: list[dict[str, Any]], cfg: JudgeConfig) -> JudgeS
         try:
             return _parse_scores(_post_chat(repair, cfg))
         except _Malformed as second:
-            raise LLMJudgeError(_redact(
+            raise LLMJudgeError(redact(
                 f"LLM judge endpoint {shown} answered malformed scores twice ({second}): use a model that follows "
-                f"JSON instructions and takes images, or set llm_judge.model", cfg)) from None
+                f"JSON instructions and takes images, or set llm_judge.model",
+                os.environ.get(cfg.api_key_env) or None)) from None
 
 
 class _Malformed(Exception):
@@ -217,7 +218,7 @@ def _parse_scores(content: str) -> JudgeScores:
     try:
         data = json.loads(text)
     except ValueError as exc:
-        raise _Malformed(f"invalid JSON: {exc.msg} at char {exc.pos}: {_snippet(text, 60)}") from None
+        raise _Malformed(f"invalid JSON: {exc.msg} at char {exc.pos}: {snippet(text, 60)}") from None
     if not isinstance(data, dict):
         raise _Malformed(f"JSON {type(data).__name__}, expected an object")
     try:
@@ -236,80 +237,42 @@ def _post_chat(messages: list[dict[str, Any]], cfg: JudgeConfig) -> str:
     """``choices[0].message.content`` of one chat completion (temperature 0, JSON answer requested)."""
     # 1. request with the key in the Authorization header only
     endpoint = _endpoint(cfg)
-    shown = _display_url(endpoint)
+    shown = display_url(endpoint)
     secret = os.environ.get(cfg.api_key_env) or None
-    headers = {"Content-Type": "application/json", "Accept": "application/json"}
-    if secret:
-        headers["Authorization"] = f"Bearer {secret}"
     payload = {"model": cfg.model, "messages": messages, "response_format": {"type": "json_object"},
                "temperature": 0}
 
     def fail(msg: str) -> LLMJudgeError:
-        return LLMJudgeError(_redact(msg, cfg))
+        return LLMJudgeError(redact(msg, secret))
 
-    timeout_msg = (f"LLM judge endpoint {shown} timed out after {cfg.timeout_s:g} s: raise llm_judge.timeout_s "
-                   "or check that the server is up")
     log.info("LLM judge: asking %s (model %s)", shown, cfg.model)
-    deadline = time.monotonic() + cfg.timeout_s
-    # 2. streamed read under one overall deadline; trust_env=False: no proxy or netrc from the environment
+    # 2. streamed read under one overall deadline (tasks.core.chat_client)
+    wording = EndpointWording("LLM judge endpoint", "raise llm_judge.timeout_s or check that the server is up",
+                              "start the server or fix llm_judge.url", "not a chat completion; check llm_judge.url")
     try:
-        with httpx.Client(timeout=httpx.Timeout(cfg.timeout_s), trust_env=False, follow_redirects=False) as client:
-            with client.stream("POST", endpoint, json=payload, headers=headers) as resp:
-                chunks, size = [], 0
-                for chunk in resp.iter_bytes():
-                    chunks.append(chunk)
-                    size += len(chunk)
-                    if time.monotonic() > deadline:
-                        raise fail(timeout_msg)
-                    if size > MAX_RESPONSE_BYTES:
-                        raise fail(f"LLM judge endpoint {shown} answered more than {MAX_RESPONSE_BYTES} bytes: "
-                                   "not a chat completion; check llm_judge.url")
-                body, status = b"".join(chunks), resp.status_code
-    except httpx.TimeoutException:
-        raise fail(timeout_msg) from None
-    except httpx.HTTPError as exc:
-        raise fail(f"LLM judge endpoint {shown} is unreachable ({type(exc).__name__}): start the server or fix "
-                   "llm_judge.url") from None
+        status, text = post_chat(endpoint, payload, secret, cfg.timeout_s, wording)
+    except ChatEndpointError as exc:
+        raise LLMJudgeError(str(exc)) from None
     # 3. the OpenAI envelope
-    text = body.decode("utf-8", errors="replace")
     if status != 200:
         hint = f"check the API key in ${cfg.api_key_env}" if status in (401, 403) else "check llm_judge.url/model"
-        raise fail(f"LLM judge endpoint {shown} answered HTTP {status} ({hint}): {_snippet(text)}")
+        raise fail(f"LLM judge endpoint {shown} answered HTTP {status} ({hint}): {snippet(text)}")
     try:
         message = json.loads(text)["choices"][0]["message"]
         content = message.get("content")
     except (ValueError, KeyError, IndexError, TypeError, AttributeError):
         raise fail(f"LLM judge endpoint {shown} answered without choices[0].message (not an OpenAI-compatible chat "
-                   f"completion; check llm_judge.url): {_snippet(text)}") from None
+                   f"completion; check llm_judge.url): {snippet(text)}") from None
     if content is None and message.get("refusal"):
-        raise fail(f"LLM judge endpoint {shown} refused: {_snippet(str(message['refusal']))}")
+        raise fail(f"LLM judge endpoint {shown} refused: {snippet(str(message['refusal']))}")
     if not isinstance(content, str):
         raise fail(f"LLM judge endpoint {shown} answered choices[0].message.content of type "
                    f"{type(content).__name__}: expected text")
-    return _redact(content, cfg)
-
-
-def _redact(text: str, cfg: JudgeConfig) -> str:
-    """``text`` with the API key replaced by ``***``."""
-    secret = os.environ.get(cfg.api_key_env)
-    return text.replace(secret, "***") if secret else text
-
-
-def _display_url(url: str) -> str:
-    """The URL without user info, query string and fragment (they may hold credentials)."""
-    try:
-        return str(httpx.URL(url).copy_with(username=None, password=None, query=None, fragment=None))
-    except Exception:  # noqa: BLE001 - a malformed URL is shown as given, minus anything after '?'
-        return url.split("?", 1)[0]
+    return redact(content, secret)
 
 
 def _sha256(text: str) -> str:
     return hashlib.sha256(text.encode("utf-8")).hexdigest()
-
-
-def _snippet(text: str, limit: int = 160) -> str:
-    text = " ".join(text.split())
-    return repr(text[:limit] + ("..." if len(text) > limit else ""))
 
 
 def _cache_read(path: Path, key: dict[str, Any]) -> Optional[JudgeScores]:

@@ -16,16 +16,15 @@ import uuid
 from pathlib import Path
 from typing import Any, Optional
 
-import httpx
 from pydantic import ValidationError
 
+from tasks.core.chat_client import ChatEndpointError, EndpointWording, display_url, post_chat, redact, snippet
 from tasks.physics.oracle.config import OracleSettings
 from tasks.physics.oracle.schema import LLMAnswer, MaterialOracleError, one_line
 
 log = logging.getLogger(__name__)
 
 PROMPT_VERSION = "virsqueezer-material-oracle-v1"
-MAX_RESPONSE_BYTES = 2_000_000
 
 _SYSTEM_PROMPT = """You are a materials engineer preparing inputs for a Material Point Method (MPM) simulation \
 of an object squeezed by a human hand. From the object's name, description and interior, infer real physical \
@@ -49,25 +48,6 @@ def _prompt_messages(description: str, name: str, interior: Optional[str]) -> li
     user = json.dumps({"name": name, "description": description, "interior": interior}, sort_keys=True)
     return [{"role": "system", "content": _SYSTEM_PROMPT.format(schema=schema)},
             {"role": "user", "content": f"Object (JSON): {user}"}]
-
-
-def _display_url(url: str) -> str:
-    """The URL without user info and query string (they may hold credentials)."""
-    try:
-        u = httpx.URL(url)
-        return str(u.copy_with(username=None, password=None, query=None, fragment=None))
-    except Exception:  # noqa: BLE001 - a malformed URL is reported as given, minus anything after '?'
-        return url.split("?", 1)[0]
-
-
-class _Redactor:
-    def __init__(self, secret: Optional[str]) -> None:
-        self.secret = secret
-
-    def __call__(self, text: str) -> str:
-        if self.secret:
-            text = text.replace(self.secret, "***")
-        return text
 
 
 def _cache_key(conf: OracleSettings, description: str, name: str,
@@ -109,10 +89,10 @@ def llm_answer(description: str, name: str, interior: Optional[str], conf: Oracl
         raise MaterialOracleError("oracle.llm_url is not set: give the base URL of an OpenAI-compatible "
                                   "API (e.g. http://127.0.0.1:8000/v1) or use backend=table")
     if not conf.llm_url.startswith(("http://", "https://")):
-        raise MaterialOracleError(f"oracle.llm_url {_display_url(conf.llm_url)!r} must start with "
+        raise MaterialOracleError(f"oracle.llm_url {display_url(conf.llm_url)!r} must start with "
                                   "http:// or https://")
     digest, key = _cache_key(conf, description, name, interior)
-    key_display = dict(key, url=_display_url(conf.llm_url), url_sha256=hashlib.sha256(
+    key_display = dict(key, url=display_url(conf.llm_url), url_sha256=hashlib.sha256(
         conf.llm_url.encode()).hexdigest())
     cache_path = Path(conf.cache_dir) / f"{digest}.json" if conf.cache_dir else None
     if cache_path is not None:
@@ -129,59 +109,37 @@ def llm_answer(description: str, name: str, interior: Optional[str], conf: Oracl
 def _ask_llm(description: str, name: str, interior: Optional[str], conf: OracleSettings) -> LLMAnswer:
     assert conf.llm_url is not None
     endpoint = conf.llm_url.rstrip("/") + "/chat/completions"
-    shown = _display_url(endpoint)
+    shown = display_url(endpoint)
     secret = os.environ.get(conf.api_key_env) or None
-    redact = _Redactor(secret)
-    headers = {"Content-Type": "application/json", "Accept": "application/json"}
-    if secret:
-        headers["Authorization"] = f"Bearer {secret}"
     payload = {"model": conf.llm_model, "messages": _prompt_messages(description, name, interior),
                "response_format": {"type": "json_object"}, "temperature": 0}
 
     def fail(msg: str) -> MaterialOracleError:
-        return MaterialOracleError(redact(msg))
+        return MaterialOracleError(redact(msg, secret))
 
-    timeout_msg = (f"LLM endpoint {shown} timed out after {conf.timeout_s:g} s: raise oracle.timeout_s "
-                   "or use backend=table")
     log.info("material oracle: asking %s (model %s) about %r", shown, conf.llm_model, name)
-    deadline = time.monotonic() + conf.timeout_s
+    wording = EndpointWording("LLM endpoint", "raise oracle.timeout_s or use backend=table",
+                              "start the server, fix oracle.llm_url or use backend=table", "not a material answer")
     try:
-        # trust_env=False: no proxy or netrc from the environment - only llm_url is ever contacted
-        with httpx.Client(timeout=httpx.Timeout(conf.timeout_s), trust_env=False, follow_redirects=False) as client:
-            with client.stream("POST", endpoint, json=payload, headers=headers) as resp:
-                chunks, size = [], 0
-                for chunk in resp.iter_bytes():
-                    chunks.append(chunk)
-                    size += len(chunk)
-                    if time.monotonic() > deadline:
-                        raise fail(timeout_msg)
-                    if size > MAX_RESPONSE_BYTES:
-                        raise fail(f"LLM endpoint {shown} answered more than {MAX_RESPONSE_BYTES} bytes: not a "
-                                   "material answer")
-                body = b"".join(chunks)
-                status = resp.status_code
-    except httpx.TimeoutException:
-        raise fail(timeout_msg) from None
-    except httpx.HTTPError as exc:
-        raise fail(f"LLM endpoint {shown} is unreachable ({type(exc).__name__}): start the server, fix "
-                   "oracle.llm_url or use backend=table") from None
-    text = body.decode("utf-8", errors="replace")
+        status, text = post_chat(endpoint, payload, secret, conf.timeout_s, wording)
+    except ChatEndpointError as exc:
+        raise MaterialOracleError(str(exc)) from None
     if status != 200:
         hint = f" (check the API key in ${conf.api_key_env})" if status in (401, 403) else ""
-        raise fail(f"LLM endpoint {shown} answered HTTP {status}{hint}: {_snippet(text)}")
+        raise fail(f"LLM endpoint {shown} answered HTTP {status}{hint}: {snippet(text)}")
     try:
         envelope = json.loads(text)
     except ValueError as exc:
         raise fail(f"LLM endpoint {shown} returned a body that is not JSON ({exc.msg} at char {exc.pos}): "
-                   f"{_snippet(text)}") from None
+                   f"{snippet(text)}") from None
     try:
         message = envelope["choices"][0]["message"]
         content = message.get("content")
     except (KeyError, IndexError, TypeError, AttributeError):
         raise fail(f"LLM endpoint {shown} answered without choices[0].message (not an OpenAI-compatible chat "
-                   f"completion): {_snippet(text)}") from None
+                   f"completion): {snippet(text)}") from None
     if content is None and message.get("refusal"):
-        raise fail(f"LLM endpoint {shown} refused: {_snippet(str(message['refusal']))}")
+        raise fail(f"LLM endpoint {shown} refused: {snippet(str(message['refusal']))}")
     if isinstance(content, str):
         stripped = content.strip()
         fence = re.fullmatch(r"```(?:json)?\s*(.*?)\s*```", stripped, flags=re.S)
@@ -191,7 +149,7 @@ def _ask_llm(description: str, name: str, interior: Optional[str], conf: OracleS
             data = json.loads(stripped)
         except ValueError as exc:
             raise fail(f"LLM endpoint {shown} answered invalid JSON in choices[0].message.content ({exc.msg} at "
-                       f"char {exc.pos}): {_snippet(stripped)}") from None
+                       f"char {exc.pos}): {snippet(stripped)}") from None
     elif isinstance(content, dict):
         data = content
     else:
@@ -204,8 +162,3 @@ def _ask_llm(description: str, name: str, interior: Optional[str], conf: OracleS
     except ValidationError as exc:
         raise fail(f"LLM endpoint {shown} answered JSON that violates the material schema: {one_line(exc)}") \
             from None
-
-
-def _snippet(text: str, limit: int = 160) -> str:
-    text = " ".join(text.split())
-    return repr(text[:limit] + ("..." if len(text) > limit else ""))
