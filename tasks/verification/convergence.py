@@ -36,8 +36,9 @@ import pandas as pd
 from conf.convergence_schema import ERROR_COLUMNS
 
 NOT_SWEPT = (
-    ("Generation (the number of denoising steps of the secondary-effect video models) is not swept: the pipeline "
-    "has no generation step yet."),
+    ("The render and effect knobs (render.width/height, render.frame_stride, refinement.iterations, "
+     "generation.steps) are not swept by this study yet: it compares the physics (the deformation chain) only; "
+     "their cost per stage is in every run report's profile table."),
     ("`sampling.surface_points` (the number of 3D Gaussians, also the contact surface) is not swept: it changes "
     "the tracked points themselves, so there is nothing to compare positions against."),
     ("`mpm.cells_across` does not act in the rollout: the grid spacing is always `mpm.dx` when set, otherwise "
