@@ -67,8 +67,9 @@ def video_metric_rows(refs: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
 
 
 def _mean(values: list[float]) -> float:
-    finite = [x for x in values if math.isfinite(x)]
-    return sum(finite) / len(finite) if finite else math.nan
+    """Mean over the values that are defined (NaN = does not apply); +inf (identical pixels) stays inf."""
+    defined = [x for x in values if not math.isnan(x)]
+    return sum(defined) / len(defined) if defined else math.nan
 
 
 def _cell(x: float) -> str:
@@ -93,9 +94,9 @@ def table1(df: pd.DataFrame, labels: Mapping[str, str], backends_missing: Mappin
     for vals in values:
         flags = [False]
         for col, (key, _, higher) in enumerate(VIDEO_COLUMNS):
-            column = [v[col] for v in values if math.isfinite(v[col])]
+            column = [v[col] for v in values if not math.isnan(v[col])]
             x = vals[col]
-            flags.append(len(column) > 1 and math.isfinite(x) and x == (max(column) if higher else min(column)))
+            flags.append(len(column) > 1 and not math.isnan(x) and x == (max(column) if higher else min(column)))
         best.append(flags + [False] * len(PAPER_ONLY))
     for backend, reason in backends_missing.items():
         rows.append([f"(not run) {BACKEND_LABELS.get(backend, backend)}: {reason}",
@@ -126,8 +127,8 @@ def table3(df: pd.DataFrame, objects: list[str], labels: Mapping[str, str]
             rows.append([method_label(labels.get(variant, variant), backend), name, *map(_cell, vals)])
             flags = [False, False]
             for col, x in enumerate(vals):
-                column = [values[(v, b, key)][col] for v, b in methods if math.isfinite(values[(v, b, key)][col])]
-                flags.append(len(methods) > 1 and math.isfinite(x) and len(column) > 1
+                column = [values[(v, b, key)][col] for v, b in methods if not math.isnan(values[(v, b, key)][col])]
+                flags.append(len(methods) > 1 and not math.isnan(x) and len(column) > 1
                              and x == (max(column) if higher else min(column)))
             best.append(flags)
     return header, rows, best
