@@ -238,6 +238,7 @@ class RunnerConfig:
 class PathsConfig:
     artifacts: str = "artifacts"  # zarr artifacts and Prefect's cache records
     reports: str = "reports"
+    export: Optional[str] = None  # python -m flows.export: PLY folder (None: reports/ply/<object>_<variant>)
 
 
 @dataclass

@@ -109,3 +109,29 @@ def test_released_appearance_is_found_by_a_word_of_the_interior_name():
     assert released_appearance(render, "Regular cola")["color"] == [0.1, 0.0, 0.0]
     assert released_appearance(render, "loose polyester fibrefill (torn out)")["effect"] == "stuffing"
     assert released_appearance(render, "honey")["opacity"] == 0.5
+
+
+def test_ply_sequence_round_trips_the_deformed_covariances(tmp_path):
+    from tasks.control.gaussian_ply import read_gaussian_ply
+    from tasks.generation.ply_sequence import covariance_to_scale_rotation, write_ply_sequence
+
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(5, 3, 3)) * 0.01
+    full = A @ A.transpose(0, 2, 1) + 1e-6 * np.eye(3)  # symmetric positive definite, like F Sigma F^T
+    cov6 = full[:, [0, 0, 0, 1, 1, 2], [0, 1, 2, 1, 2, 2]]
+    scales, quats = covariance_to_scale_rotation(cov6)
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_quat(np.concatenate([quats[:, 1:], quats[:, :1]], 1)).as_matrix()
+    np.testing.assert_allclose(R @ (scales[:, :, None] ** 2 * R.transpose(0, 2, 1)), full, atol=1e-12)
+    pos = rng.normal(size=(2, 5, 3)) * 0.02
+    released = rng.normal(size=(2, 3, 3)) * 0.02
+    visible = np.array([[False, False, False], [True, False, True]])
+    paths = write_ply_sequence(tmp_path, pos, np.repeat(cov6[None], 2, 0), np.full((5, 3), 0.4), np.full(5, 0.9),
+                               released, visible, np.full((3, 3), 0.7), np.full(3, 0.5), np.full((3, 3), 0.002),
+                               np.array([0, 2]))
+    assert [p.name for p in paths] == ["frame_0000.ply", "frame_0002.ply"]
+    first, second = read_gaussian_ply(paths[0]), read_gaussian_ply(paths[1])
+    assert len(first["means"]) == 5 and len(second["means"]) == 7  # the surface + the 2 visible particles
+    np.testing.assert_allclose(second["means"][5:], released[1][[0, 2]], atol=1e-7)
+    np.testing.assert_allclose(first["scales"], scales, rtol=1e-5)
