@@ -63,8 +63,10 @@ class MPMConfig:
         energy_guard_tolerance: energy guard (0 = off): a frame whose total energy (kinetic + internal +
             gravitational) exceeds the reference frame's plus the boundary work since by more than this fraction
             of the run's energy scale raises SimulationError naming the frame and the materials whose energy grew
-            (see :class:`tasks.physics.mpm.solver.MPMSolver`).  0.25: an unstable Courant number (0.95, nu = 0.45)
-            gains 120x energy, while stable runs stay below their reference.
+            (see :class:`tasks.physics.mpm.solver.MPMSolver`).  The energy scale is the largest of the kinetic +
+            internal energy seen, the boundary work and the weight of the whole body lifted by one grid cell
+            (sum m g dx: smaller exchanges, e.g. a body settling on the floor, are below what the grid resolves).
+            0.25: an unstable Courant number (0.95, nu = 0.45) gains 120x energy, while stable runs stay below.
         check_every: read the kernels' error flags every this many substeps (and at every frame end).
         debug: compile the kernels in Warp debug mode (bounds checks) and check flags every substep.
     Solver details
