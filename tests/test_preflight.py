@@ -54,3 +54,21 @@ def test_a_bad_input_is_one_line_before_any_flow_starts(tmp_path, case):
     assert "Traceback" not in out.stderr + out.stdout
     assert "temporary server" not in (out.stderr + out.stdout).lower()
     assert not list((tmp_path / "artifacts").glob("*/*/*.zarr"))
+
+
+def test_missing_diffusion_weights_name_each_model_and_where_it_goes(tmp_path, compose_cfg):
+    """generation=diffusers with an empty weights folder stops before the flow with one message naming each
+    missing model, the folder expected and the command that fetches it; nothing is loaded or written."""
+    from flows.preflight import preflight
+
+    cfg = compose_cfg("squeeze", ["generation=diffusers", f"generation.weights={tmp_path / 'models'}",
+                                  f"paths.artifacts={tmp_path / 'artifacts'}"])
+    with pytest.raises(SystemExit) as exc:
+        preflight(cfg)
+    msg = str(exc.value)
+    assert msg.startswith("input error: generation.weights: ")
+    for model, folder in (("an SD-1.5 base", "stable-diffusion"), ("an AnimateDiff motion adapter", "motion-adapter"),
+                          ("a depth ControlNet", "controlnet-depth")):
+        assert model in msg and str(tmp_path / "models" / folder) in msg
+    assert msg.count("huggingface-cli download") == 3 and "nothing is downloaded" in msg
+    assert not (tmp_path / "artifacts").exists()
