@@ -277,15 +277,22 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         # being the larger of fluid_reference_speed and a release at max_release_speed followed by a fall from the
         # object's top to the table, instead of water's 1450 m/s.  K = s_f rho c^2 with s_f the mass scale the solver
         # gives the fluid (1 under selective scaling), so the sound speed is c whatever the scaling.
+        # Under global (one-factor) scaling the former model is kept: c = 10 fluid_reference_speed, capped at the
+        # solids' scaled P-wave speed (juice made from burst pulp appears mid-run and must not need a smaller step).
         present = [mat_list[i] for i in np.unique(slot[mid])]
         scale_fluid = float(material_mass_scales(mat_list, present, dx, frame_dt, cfg)[slot[INTERIOR]])
-        height = float(obj_attrs["bbox_max"][2] - obj_attrs["bbox_min"][2])
-        v = max(float(sim["fluid_reference_speed"]),
-                math.sqrt(float(sim["max_release_speed"]) ** 2 + 2.0 * abs(float(cfg.gravity[2])) * height))
-        c_fluid = v / float(sim["fluid_mach"])
+        if cfg.mass_scaling == "selective":
+            height = float(obj_attrs["bbox_max"][2] - obj_attrs["bbox_min"][2])
+            v = max(float(sim["fluid_reference_speed"]),
+                    math.sqrt(float(sim["max_release_speed"]) ** 2 + 2.0 * abs(float(cfg.gravity[2])) * height))
+            c_fluid = v / float(sim["fluid_mach"])
+        else:
+            v = float(sim["fluid_reference_speed"])
+            c_solid = max(m.p_wave_speed(cfg.stiffness_scaling, scale_fluid) for m in present if m.model != "fluid")
+            c_fluid = min(10.0 * v, c_solid)
         k_fluid = scale_fluid * mat_list[slot[INTERIOR]].density * c_fluid ** 2 / cfg.stiffness_scaling
         notes.append(f"interior fluid bulk modulus {k_fluid:.3g} Pa (sound speed {c_fluid:.3g} m/s at mass scale "
-                     f"x{scale_fluid:.3g}: Mach {sim['fluid_mach']:g} at {v:.3g} m/s) instead of "
+                     f"x{scale_fluid:.3g}: Mach {v / c_fluid:.2g} at {v:.3g} m/s) instead of "
                      f"{mats.interior.bulk_modulus:.3g} Pa")
         mat_list[slot[INTERIOR]] = replace(mat_list[slot[INTERIOR]], bulk_modulus=k_fluid)
 
