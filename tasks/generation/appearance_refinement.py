@@ -81,27 +81,36 @@ def render_frame(frozen: FrozenFrames, theta: ReleasedAppearance, frame: int, vi
     return image
 
 
+def pair_loss(frozen: FrozenFrames, theta: ReleasedAppearance, targets: torch.Tensor, weights: torch.Tensor,
+              viewmats: torch.Tensor, Ks: torch.Tensor, background: torch.Tensor,
+              pairs: list[tuple[int, int]]) -> torch.Tensor:
+    """L_rec over the (view, frame) ``pairs``: the mean absolute error in linear RGB over their loss regions."""
+    height, width = targets.shape[2:4]
+    total, count = 0.0, 0.0
+    for v, f in pairs:
+        image = render_frame(frozen, theta, f, viewmats[v:v + 1], Ks[v:v + 1], width, height, background)[0]
+        w = weights[v, f][..., None]
+        total = total + (w * (image - targets[v, f]).abs()).sum()
+        count += float(w.sum()) * 3
+    return total / max(count, 1.0)
+
+
 def refine(frozen: FrozenFrames, theta: ReleasedAppearance, targets: torch.Tensor, weights: torch.Tensor,
            viewmats: torch.Tensor, Ks: torch.Tensor, background: torch.Tensor, train_views: list[int],
            frames: list[int], iterations: int, lr: float, samples: int, seed: int) -> list[float]:
-    """Adam on Theta_p; each iteration renders ``samples`` random (training view, frame) pairs.
+    """Adam on Theta_p; each iteration renders ``samples`` (training view, frame) pairs drawn at random among those
+    whose loss region is not empty.
 
     targets (view, frame, y, x, 3) linear RGB I*; weights (view, frame, y, x) 0/1 loss region.  Returns the loss
-    per iteration (mean absolute error over the region, linear RGB)."""
+    of the sampled pairs per iteration (a stochastic estimate of L_rec; see :func:`pair_loss` for the whole)."""
     rng = np.random.default_rng(seed)
     opt = torch.optim.Adam(theta.parameters(), lr=lr)
-    height, width = targets.shape[2:4]
+    pairs = [(v, f) for v in train_views for f in frames if bool(weights[v, f].any())]
     curve = []
-    for it in range(iterations):
+    for it in range(iterations if pairs else 0):
         opt.zero_grad()
-        total, count = 0.0, 0.0
-        for _ in range(samples):
-            v, f = int(rng.choice(train_views)), int(rng.choice(frames))
-            image = render_frame(frozen, theta, f, viewmats[v:v + 1], Ks[v:v + 1], width, height, background)[0]
-            w = weights[v, f][..., None]
-            total = total + (w * (image - targets[v, f]).abs()).sum()
-            count += float(w.sum()) * 3
-        loss = total / max(count, 1.0)
+        chosen = [pairs[i] for i in rng.integers(len(pairs), size=samples)]
+        loss = pair_loss(frozen, theta, targets, weights, viewmats, Ks, background, chosen)
         loss.backward()
         opt.step()
         curve.append(float(loss.detach()))
@@ -158,9 +167,20 @@ def appearance_refinement_step(inputs, params):
     targets = tensor(srgb_uint8_to_linear(effect["frames"]))
     weights = tensor(_dilate(cond["refined_mask"], r["mask_dilation_px"]))
     viewmats, Ks, background = tensor(g["viewmats"]), tensor(g["Ks"]), tensor(params["render.background"])
-    # 3. optimise
+    # 3. optimise; L_rec over every training pair and over the held-out views, before and after
+    train_pairs = [(v, f) for v in train_views for f in frames if bool(weights[v, f].any())]
+    held_pairs = [(v, f) for v in held_out for f in frames if bool(weights[v, f].any())]
+
+    def objective(pairs: list[tuple[int, int]]) -> float | None:
+        if not pairs:
+            return None
+        with torch.no_grad():
+            return float(pair_loss(frozen, theta, targets, weights, viewmats, Ks, background, pairs))
+
+    before = {"train": objective(train_pairs), "held_out": objective(held_pairs)}
     curve = refine(frozen, theta, targets, weights, viewmats, Ks, background, train_views, frames, r["iterations"],
                    r["lr"], r["samples_per_iteration"], r["seed"])
+    after = {"train": objective(train_pairs), "held_out": objective(held_pairs)}
     # 4. the refined 4D Gaussians rendered in every view and frame
     height, width = g["rgb"].shape[2:4]
     with torch.no_grad():
@@ -174,10 +194,11 @@ def appearance_refinement_step(inputs, params):
         "released_color": Array(colors, ("released", "channel"), "1", "refined colour, linear RGB"),
         "released_opacity": Array(opacities, ("released",), "1", "refined opacity"),
         "released_scale": Array(scales, ("released", "xyz"), "m", "refined standard deviation per world axis"),
-        "loss": Array(np.asarray(curve, np.float32), ("iteration",), "1", "L_rec: mean |R - I*| in the region"),
+        "loss": Array(np.asarray(curve, np.float32), ("iteration",), "1",
+                      "L_rec of the sampled pairs: mean |R - I*| in the region"),
     }
     attrs: dict[str, Any] = {"skipped": None, "train_views": train_views, "held_out_views": held_out,
-                             "initial_loss": curve[0] if curve else None, "final_loss": curve[-1] if curve else None,
+                             "loss_before": before, "loss_after": after,
                              "seconds": time.perf_counter() - started, "renders": len(curve) * r["samples_per_iteration"]}
     return arrays, attrs
 

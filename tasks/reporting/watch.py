@@ -97,8 +97,14 @@ def scene_media(obj: str, variant: str, pair: Mapping[str, Any], backend_refs: M
         fig, ax = plt.subplots(figsize=(3.6, 2.2))
         ax.plot(np.arange(1, len(refined["loss"]) + 1), refined["loss"])
         ax.set_xlabel("iteration")
-        ax.set_ylabel("L_rec (mean |R - I*|)")
-        ax.set_title(f"{obj} [{variant}]: eq. 7 refinement", fontsize=9)
+        ax.set_ylabel("sampled L_rec (mean |R - I*|)")
+        before, after = refined.attrs.get("loss_before") or {}, refined.attrs.get("loss_after") or {}
+
+        def fmt(x):
+            return "-" if x is None else f"{x:.4f}"
+
+        ax.set_title(f"{obj} [{variant}]: eq. 7; L_rec train {fmt(before.get('train'))} -> {fmt(after.get('train'))}, "
+                     f"held-out {fmt(before.get('held_out'))} -> {fmt(after.get('held_out'))}", fontsize=7)
         fig.tight_layout()
         media.loss_plot = out_dir / f"{obj}_{variant}_refinement.png"
         fig.savefig(media.loss_plot, dpi=100)
