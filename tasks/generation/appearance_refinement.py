@@ -16,7 +16,6 @@ the video metrics measure the multi-view consistency of the refined 4D Gaussians
 """
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from typing import Any
 
@@ -139,7 +138,6 @@ def appearance_refinement_step(inputs, params):
         return {}, {"skipped": effect.attrs.get("skipped") or "no generated frames"}
     r = params["refinement"]
     device = torch_device(params["render.device"])
-    started = time.perf_counter()
     # 1. the frozen scene and the initial Theta_p (the G-buffer's look of the released material)
     rollout, obj = inputs["mpm_rollout"], inputs["object_model"]
     frames_sim = g["frame_index"]
@@ -199,6 +197,6 @@ def appearance_refinement_step(inputs, params):
     }
     attrs: dict[str, Any] = {"skipped": None, "train_views": train_views, "held_out_views": held_out,
                              "loss_before": before, "loss_after": after,
-                             "seconds": time.perf_counter() - started, "renders": len(curve) * r["samples_per_iteration"]}
+                             "renders": len(curve) * r["samples_per_iteration"]}
     return arrays, attrs
 

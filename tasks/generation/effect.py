@@ -14,7 +14,6 @@ released material, or the ``none`` backend, writes no frames and says why (``ski
 """
 from __future__ import annotations
 
-import time
 from collections.abc import Mapping
 from typing import Any
 
@@ -101,7 +100,6 @@ def effect_step(inputs, params):
         return {}, {"backend": backend, "skipped": "generation=none: no effect generated"}
     if not g.attrs["has_released_material"] and backend != "text_only":
         return {}, {"backend": backend, "skipped": "no released material: " + "; ".join(g.attrs["notes"])}
-    started = time.perf_counter()
     info: dict[str, Any] = {}
     # 2. generate
     if backend == "physics":
@@ -132,5 +130,8 @@ def effect_step(inputs, params):
         frames_out = np.where(cond["refined_mask"][..., None], frames_out, g["rgb"])
     arrays = {"frames": Array(frames_out, ("view", "frame", "y", "x", "channel"), "1",
                               f"final frames, 8-bit sRGB: {label}")}
-    return arrays, {"backend": backend, "label": label, "skipped": None, "seconds": time.perf_counter() - started,
-                    "info": info}
+    # no wall time in the attrs: they are part of the content digest, which must not depend on the machine's load
+    info = {k: v for k, v in info.items() if k != "views"} | (
+        {"views": [{k: v for k, v in view.items() if k != "seconds"} for view in info["views"]]} if "views" in info
+        else {})
+    return arrays, {"backend": backend, "label": label, "skipped": None, "info": info}
