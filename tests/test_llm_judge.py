@@ -8,10 +8,8 @@ from __future__ import annotations
 import base64
 import json
 import logging
-import threading
 import time
 import traceback
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import cv2
 import numpy as np
@@ -24,6 +22,7 @@ from tasks.evaluation.llm_judge import (
     judge_video,
     sample_frame_indices,
 )
+from tests.chat_endpoint import ChatEndpoint
 
 SECRET = "sk-test-JUDGE-SECRET-0123456789"
 KEY_ENV = "VIRSQUEEZER_TEST_JUDGE_KEY"
@@ -31,73 +30,26 @@ VALID = {"visual_quality": 4, "motion_realism": 3, "motion_consistency": 5,
          "rationale": "Sharp frames; the juice follows the index finger's squeeze."}
 
 
-class _Server:
-    """An OpenAI-compatible chat endpoint on the loopback address, counting requests per mode."""
-
-    def __init__(self) -> None:
-        self.hits: dict[str, int] = {}
-        self.requests: list[dict] = []
-        outer = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def log_message(self, *args):  # keep test output clean
-                pass
-
-            def do_POST(self):  # noqa: N802
-                mode = self.path.strip("/").split("/")[0]
-                raw = self.rfile.read(int(self.headers.get("Content-Length", 0)))
-                n = outer.hits[mode] = outer.hits.get(mode, 0) + 1
-                auth = self.headers.get("Authorization", "")
-                outer.requests.append({"mode": mode, "path": self.path, "auth": auth, "raw": raw,
-                                       "json": json.loads(raw)})
-                status, content = 200, json.dumps(VALID)
-                if mode == "fenced":
-                    content = "```json\n" + json.dumps(VALID, indent=2) + "\n```"
-                elif mode == "badjson" or (mode == "repair" and n % 2 == 1):
-                    content = "Visual quality: 4/5, motion realism 3/5 " + auth
-                elif mode == "schema":
-                    content = json.dumps({**VALID, "visual_quality": 6, "mood": "good"})
-                elif mode == "echo":
-                    content = json.dumps({**VALID, "rationale": f"key was {auth}"})
-                elif mode == "slow":
-                    time.sleep(1.5)
-                elif mode == "unauthorized":
-                    status = 401
-                if status == 200:
-                    payload = json.dumps({"id": "x", "object": "chat.completion", "choices": [
-                        {"index": 0, "message": {"role": "assistant", "content": content},
-                         "finish_reason": "stop"}]}).encode()
-                else:
-                    payload = json.dumps({"error": {"message": f"invalid key {auth}"}}).encode()
-                try:
-                    self.send_response(status)
-                    self.send_header("Content-Type", "application/json")
-                    self.send_header("Content-Length", str(len(payload)))
-                    self.end_headers()
-                    self.wfile.write(payload)
-                except OSError:  # the client gave up (timeout test)
-                    pass
-
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.httpd.daemon_threads = True
-        self.port = self.httpd.server_address[1]
-        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
-        self.thread.start()
-
-    def url(self, mode: str) -> str:
-        return f"http://127.0.0.1:{self.port}/{mode}/v1"
-
-    def last(self, mode: str) -> dict:
-        return [r for r in self.requests if r["mode"] == mode][-1]
-
-    def close(self) -> None:
-        self.httpd.shutdown()
-        self.httpd.server_close()
+def _judge_answer(mode: str, n: int, auth: str) -> tuple[int, str | None]:
+    """The test endpoint's behaviour per mode (``n`` = the how-manieth request of the mode)."""
+    if mode == "fenced":
+        return 200, "```json\n" + json.dumps(VALID, indent=2) + "\n```"
+    if mode == "badjson" or (mode == "repair" and n % 2 == 1):
+        return 200, "Visual quality: 4/5, motion realism 3/5 " + auth
+    if mode == "schema":
+        return 200, json.dumps({**VALID, "visual_quality": 6, "mood": "good"})
+    if mode == "echo":
+        return 200, json.dumps({**VALID, "rationale": f"key was {auth}"})
+    if mode == "slow":
+        time.sleep(1.5)
+    if mode == "unauthorized":
+        return 401, None
+    return 200, json.dumps(VALID)
 
 
 @pytest.fixture(scope="module")
 def server():
-    s = _Server()
+    s = ChatEndpoint(_judge_answer, lambda auth: {"error": {"message": f"invalid key {auth}"}})
     yield s
     s.close()
 

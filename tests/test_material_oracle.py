@@ -6,10 +6,8 @@ is contacted.
 from __future__ import annotations
 
 import json
-import threading
 import time
 import traceback
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import pytest
@@ -31,6 +29,7 @@ from tasks.physics.material_oracle import (
     oracle_for_object,
     validate_material,
 )
+from tests.chat_endpoint import ChatEndpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -256,73 +255,30 @@ VALID_ANSWER = {
 }
 
 
-class _Server:
-    """A real OpenAI-compatible test endpoint; the first path segment selects the behaviour."""
-
-    def __init__(self) -> None:
-        self.hits: dict[str, int] = {}
-        self.requests: list[dict] = []
-        outer = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def log_message(self, *args):  # keep test output clean
-                pass
-
-            def do_POST(self):  # noqa: N802
-                mode = self.path.strip("/").split("/")[0]
-                body = self.rfile.read(int(self.headers.get("Content-Length", 0)))
-                outer.hits[mode] = outer.hits.get(mode, 0) + 1
-                auth = self.headers.get("Authorization", "")
-                outer.requests.append({"path": self.path, "auth": auth, "json": json.loads(body)})
-                status, content = 200, None
-                if mode in ("good", "good2"):
-                    content = json.dumps(VALID_ANSWER)
-                elif mode == "fenced":
-                    content = "```json\n" + json.dumps(VALID_ANSWER) + "\n```"
-                elif mode == "badjson":
-                    content = "Sure! Here are the properties: {shell: rubber, key " + auth
-                elif mode == "schema":
-                    bad = json.loads(json.dumps(VALID_ANSWER))
-                    bad["shell"]["poisson_ratio"] = 0.5
-                    bad["colour"] = "red"
-                    content = json.dumps(bad)
-                elif mode == "slow":
-                    time.sleep(1.5)
-                    content = json.dumps(VALID_ANSWER)
-                elif mode == "unauthorized":
-                    status = 401
-                if status == 200:
-                    payload = json.dumps({"id": "x", "object": "chat.completion", "choices": [
-                        {"index": 0, "message": {"role": "assistant", "content": content},
-                         "finish_reason": "stop"}]}).encode()
-                else:
-                    payload = json.dumps({"error": f"invalid key {auth}"}).encode()
-                try:
-                    self.send_response(status)
-                    self.send_header("Content-Type", "application/json")
-                    self.send_header("Content-Length", str(len(payload)))
-                    self.end_headers()
-                    self.wfile.write(payload)
-                except OSError:  # the client gave up (timeout test)
-                    pass
-
-        self.httpd = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.httpd.daemon_threads = True
-        self.port = self.httpd.server_address[1]
-        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
-        self.thread.start()
-
-    def url(self, mode: str) -> str:
-        return f"http://127.0.0.1:{self.port}/{mode}/v1"
-
-    def close(self) -> None:
-        self.httpd.shutdown()
-        self.httpd.server_close()
+def _oracle_answer(mode: str, n: int, auth: str) -> tuple[int, str | None]:
+    """The test endpoint's behaviour per mode."""
+    if mode in ("good", "good2"):
+        return 200, json.dumps(VALID_ANSWER)
+    if mode == "fenced":
+        return 200, "```json\n" + json.dumps(VALID_ANSWER) + "\n```"
+    if mode == "badjson":
+        return 200, "Sure! Here are the properties: {shell: rubber, key " + auth
+    if mode == "schema":
+        bad = json.loads(json.dumps(VALID_ANSWER))
+        bad["shell"]["poisson_ratio"] = 0.5
+        bad["colour"] = "red"
+        return 200, json.dumps(bad)
+    if mode == "slow":
+        time.sleep(1.5)
+        return 200, json.dumps(VALID_ANSWER)
+    if mode == "unauthorized":
+        return 401, None
+    return 200, None
 
 
 @pytest.fixture(scope="module")
 def server():
-    s = _Server()
+    s = ChatEndpoint(_oracle_answer, lambda auth: {"error": f"invalid key {auth}"})
     yield s
     s.close()
 
