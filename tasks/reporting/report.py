@@ -17,7 +17,7 @@ import numpy as np
 
 from conf.hand import FINGERS
 from tasks.core.artifacts import ArtifactError, ArtifactRef, read_artifact
-from tasks.reporting.video_tables import PAPER_ONLY, table1, table3, video_metric_definitions, video_metric_rows
+from tasks.reporting.video_tables import PAPER_ONLY, table1, table3, video_metric_rows
 from tasks.reporting.watch import STYLE, SYNC_SCRIPT, object_html, object_media, overview_html
 
 
@@ -283,9 +283,9 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
         TRAJECTORY,
         html_table,
         markdown_table,
-        metric_definitions,
         metric_rows,
         paper_layout,
+        stored_definitions,
         write_metric_files,
     )
 
@@ -309,8 +309,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
                 TRAJECTORY))]
     physical_cols = [c for c in metrics.columns if c not in {"object", "variant"} | {k for k, _, _ in TABLE2 + TRAJECTORY}]
     physical = metrics[["object", "variant", *physical_cols]] if len(metrics) else metrics
-    definitions = metric_definitions(refs)
-    definitions.update(video_metric_definitions(refs))
+    definitions = {**stored_definitions(refs, "deformation_metrics"), **stored_definitions(refs, "video_metrics")}
     video_tables = [
         ("Video metrics, paper Table 1 layout (mean over the objects where a metric applies; bold: best)",
          *table1(video, labels, missing_backends or {})),

@@ -38,12 +38,15 @@ def metric_rows(refs: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def metric_definitions(refs: Mapping[str, Mapping[str, Any]]) -> dict[str, str]:
-    """The metric definitions stored with the first metrics artifact (they travel with the code version)."""
+def stored_definitions(refs: Mapping[str, Mapping[str, Any]], step: str) -> dict[str, str]:
+    """The metric definitions stored with the first ``step`` artifact of a run (per-variant or per-backend; they
+    travel with the code version)."""
     for obj_refs in refs.values():
         for vrefs in obj_refs.get("variants", {}).values():
-            ref = vrefs.get("deformation_metrics")
-            if ref is not None:
+            for chain in (vrefs, *vrefs.get("backends", {}).values()):
+                ref = chain.get(step)
+                if ref is None:
+                    continue
                 try:
                     return dict(read_group_attrs(ref.path)["attrs"].get("definitions", {}))
                 except ArtifactError:

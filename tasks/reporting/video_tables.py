@@ -134,15 +134,3 @@ def table3(df: pd.DataFrame, objects: list[str], labels: Mapping[str, str]
     return header, rows, best
 
 
-def video_metric_definitions(refs: Mapping[str, Mapping[str, Any]]) -> dict[str, str]:
-    """The video metric definitions stored with the first ``video_metrics`` artifact of the run."""
-    for obj_refs in refs.values():
-        for vrefs in obj_refs.get("variants", {}).values():
-            for brefs in vrefs.get("backends", {}).values():
-                ref = brefs.get("video_metrics")
-                if ref is not None:
-                    try:
-                        return dict(read_group_attrs(ref.path)["attrs"].get("definitions", {}))
-                    except ArtifactError:
-                        continue
-    return {}
