@@ -32,6 +32,8 @@ class EndpointWording:
     timeout_fix: str
     unreachable_fix: str
     oversize_fix: str = ""
+    key_env: str = ""  # the environment variable holding the API key (named on HTTP 401/403)
+    status_fix: str = ""  # the fix for any other HTTP error or a body that is not a chat completion
 
 
 def display_url(url: str) -> str:
@@ -84,12 +86,24 @@ def post_chat(endpoint: str, payload: dict[str, Any], secret: Optional[str], tim
                                        f"{wording.unreachable_fix}", secret)) from None
 
 
-def first_message(text: str) -> dict[str, Any]:
-    """``choices[0].message`` of a chat-completion body; ValueError when the body is not one."""
+def chat_content(status: int, text: str, endpoint: str, secret: Optional[str], wording: EndpointWording) -> Any:
+    """``choices[0].message.content`` of the answer of :func:`post_chat` (text, or an object when a server sends
+    one).  Raises :class:`ChatEndpointError` (one line, key redacted) for an HTTP error status, a body that is not
+    an OpenAI-compatible chat completion, or a refusal."""
+    shown = display_url(endpoint)
+
+    def fail(msg: str) -> ChatEndpointError:
+        return ChatEndpointError(redact(msg, secret))
+
+    if status != 200:
+        fix = f"check the API key in ${wording.key_env}" if status in (401, 403) else wording.status_fix
+        raise fail(f"{wording.name} {shown} answered HTTP {status} ({fix}): {snippet(text)}")
     try:
         message = json.loads(text)["choices"][0]["message"]
-    except (ValueError, KeyError, IndexError, TypeError) as exc:
-        raise ValueError(str(exc)) from None
-    if not isinstance(message, dict):
-        raise ValueError("choices[0].message is not an object")
-    return message
+        content = message.get("content")
+    except (ValueError, KeyError, IndexError, TypeError, AttributeError):
+        raise fail(f"{wording.name} {shown} answered without choices[0].message (not an OpenAI-compatible chat "
+                   f"completion; {wording.status_fix}): {snippet(text)}") from None
+    if content is None and message.get("refusal"):
+        raise fail(f"{wording.name} {shown} refused: {snippet(str(message['refusal']))}")
+    return content

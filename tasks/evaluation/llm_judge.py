@@ -30,7 +30,15 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from tasks.core.chat_client import ChatEndpointError, EndpointWording, display_url, post_chat, redact, snippet
+from tasks.core.chat_client import (
+    ChatEndpointError,
+    EndpointWording,
+    chat_content,
+    display_url,
+    post_chat,
+    redact,
+    snippet,
+)
 
 log = logging.getLogger(__name__)
 
@@ -248,23 +256,14 @@ def _post_chat(messages: list[dict[str, Any]], cfg: JudgeConfig) -> str:
     log.info("LLM judge: asking %s (model %s)", shown, cfg.model)
     # 2. streamed read under one overall deadline (tasks.core.chat_client)
     wording = EndpointWording("LLM judge endpoint", "raise llm_judge.timeout_s or check that the server is up",
-                              "start the server or fix llm_judge.url", "not a chat completion; check llm_judge.url")
+                              "start the server or fix llm_judge.url", "not a chat completion; check llm_judge.url",
+                              key_env=cfg.api_key_env, status_fix="check llm_judge.url/model")
     try:
         status, text = post_chat(endpoint, payload, secret, cfg.timeout_s, wording)
+        # 3. the OpenAI envelope
+        content = chat_content(status, text, endpoint, secret, wording)
     except ChatEndpointError as exc:
         raise LLMJudgeError(str(exc)) from None
-    # 3. the OpenAI envelope
-    if status != 200:
-        hint = f"check the API key in ${cfg.api_key_env}" if status in (401, 403) else "check llm_judge.url/model"
-        raise fail(f"LLM judge endpoint {shown} answered HTTP {status} ({hint}): {snippet(text)}")
-    try:
-        message = json.loads(text)["choices"][0]["message"]
-        content = message.get("content")
-    except (ValueError, KeyError, IndexError, TypeError, AttributeError):
-        raise fail(f"LLM judge endpoint {shown} answered without choices[0].message (not an OpenAI-compatible chat "
-                   f"completion; check llm_judge.url): {snippet(text)}") from None
-    if content is None and message.get("refusal"):
-        raise fail(f"LLM judge endpoint {shown} refused: {snippet(str(message['refusal']))}")
     if not isinstance(content, str):
         raise fail(f"LLM judge endpoint {shown} answered choices[0].message.content of type "
                    f"{type(content).__name__}: expected text")

@@ -18,7 +18,15 @@ from typing import Any, Optional
 
 from pydantic import ValidationError
 
-from tasks.core.chat_client import ChatEndpointError, EndpointWording, display_url, post_chat, redact, snippet
+from tasks.core.chat_client import (
+    ChatEndpointError,
+    EndpointWording,
+    chat_content,
+    display_url,
+    post_chat,
+    redact,
+    snippet,
+)
 from tasks.physics.oracle.config import OracleSettings
 from tasks.physics.oracle.schema import LLMAnswer, MaterialOracleError, one_line
 
@@ -119,27 +127,13 @@ def _ask_llm(description: str, name: str, interior: Optional[str], conf: OracleS
 
     log.info("material oracle: asking %s (model %s) about %r", shown, conf.llm_model, name)
     wording = EndpointWording("LLM endpoint", "raise oracle.timeout_s or use backend=table",
-                              "start the server, fix oracle.llm_url or use backend=table", "not a material answer")
+                              "start the server, fix oracle.llm_url or use backend=table", "not a material answer",
+                              key_env=conf.api_key_env, status_fix="check oracle.llm_url and oracle.llm_model")
     try:
         status, text = post_chat(endpoint, payload, secret, conf.timeout_s, wording)
+        content = chat_content(status, text, endpoint, secret, wording)
     except ChatEndpointError as exc:
         raise MaterialOracleError(str(exc)) from None
-    if status != 200:
-        hint = f" (check the API key in ${conf.api_key_env})" if status in (401, 403) else ""
-        raise fail(f"LLM endpoint {shown} answered HTTP {status}{hint}: {snippet(text)}")
-    try:
-        envelope = json.loads(text)
-    except ValueError as exc:
-        raise fail(f"LLM endpoint {shown} returned a body that is not JSON ({exc.msg} at char {exc.pos}): "
-                   f"{snippet(text)}") from None
-    try:
-        message = envelope["choices"][0]["message"]
-        content = message.get("content")
-    except (KeyError, IndexError, TypeError, AttributeError):
-        raise fail(f"LLM endpoint {shown} answered without choices[0].message (not an OpenAI-compatible chat "
-                   f"completion): {snippet(text)}") from None
-    if content is None and message.get("refusal"):
-        raise fail(f"LLM endpoint {shown} refused: {snippet(str(message['refusal']))}")
     if isinstance(content, str):
         stripped = content.strip()
         fence = re.fullmatch(r"```(?:json)?\s*(.*?)\s*```", stripped, flags=re.S)
