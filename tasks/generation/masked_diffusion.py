@@ -273,17 +273,19 @@ def _video_pass(pipelines, rgb, mask, control, prompt, negative_prompt, settings
         negative_prompt=negative_prompt,
         height=rgb.shape[1],
         width=rgb.shape[2],
-        num_inference_steps=settings.num_inference_steps,
-        strength=settings.strength,
-        guidance_scale=settings.guidance_scale,
-        controlnet_conditioning_scale=float(settings.controlnet_conditioning_scale),
-        generator=generator,
-        output_type="np",
-        callback_on_step_end=confinement,
-        callback_on_step_end_tensor_inputs=["latents"],
         decode_chunk_size=VAE_CHUNK_FRAMES,
+        **_denoising_kwargs(settings, settings.strength, generator, confinement),
     )
     return output.frames[0], confinement.steps_run
+
+
+def _denoising_kwargs(settings, strength: float, generator, confinement: "_LatentConfinement") -> dict:
+    """The pipeline arguments both passes share: steps, strength, CFG and ControlNet scales, and the latent
+    confinement called after every step."""
+    return dict(num_inference_steps=settings.num_inference_steps, strength=strength,
+                guidance_scale=settings.guidance_scale,
+                controlnet_conditioning_scale=float(settings.controlnet_conditioning_scale), generator=generator,
+                output_type="np", callback_on_step_end=confinement, callback_on_step_end_tensor_inputs=["latents"])
 
 
 def _refine_pass(pipelines, frames, mask, control, prompt, negative_prompt, settings, generator):
@@ -306,14 +308,7 @@ def _refine_pass(pipelines, frames, mask, control, prompt, negative_prompt, sett
             latents=pipe.scheduler.add_noise(clean, noise, timesteps[:1]),
             height=frames.shape[1],
             width=frames.shape[2],
-            num_inference_steps=settings.num_inference_steps,
-            strength=settings.refine_strength,
-            guidance_scale=settings.guidance_scale,
-            controlnet_conditioning_scale=float(settings.controlnet_conditioning_scale),
-            generator=generator,
-            output_type="np",
-            callback_on_step_end=confinement,
-            callback_on_step_end_tensor_inputs=["latents"],
+            **_denoising_kwargs(settings, settings.refine_strength, generator, confinement),
         )
         refined.append(output.images)
         steps_run += confinement.steps_run
