@@ -66,7 +66,8 @@ def convergence_flow(configs: dict[str, dict], sweep: dict, report_dir: str) -> 
     for name, steps in futures.items():
         refs[name] = {}
         for (step, variant), fut in steps.items():
-            refs[name][step] = table.add_future(f"{cfgs[name].object.name}:{name}", step, fut, variant=variant)
+            refs[name][step] = table.add_future(f"{cfgs[name].object.name}:{name}", step, fut,
+                                                root=cfgs[name].paths.artifacts, variant=variant)
             statuses[f"{name}/{step}"] = table.rows[-1].status
     records = {name: conv.load_record(r) for name, r in refs.items() if None not in r.values()}
     reference = sweep["reference"]

@@ -37,7 +37,7 @@ from tasks.control.force_coefficients import force_coefficients_step
 from tasks.control.object_model import object_model_step
 from tasks.control.signal_smoothing import signal_smoothing_step
 from tasks.control.squeeze_signals import squeeze_signals_step
-from tasks.core.artifacts import ArtifactRef
+from tasks.core.artifacts import ArtifactRef, remove_stale_temporaries
 from tasks.core.params import resolve_reads
 from tasks.core.step import StepTask, WiringError
 from tasks.evaluation.deformation_metrics import deformation_metrics_step
@@ -209,7 +209,7 @@ def virsqueezer_flow(config: dict, flow_label: str = "evaluate", report_dir: str
     for name, steps in futures.items():
         refs[name] = {}
         for (step, chain), fut in steps.items():
-            ref = table.add_future(name, step, fut, variant=chain)
+            ref = table.add_future(name, step, fut, root=cfg.paths.artifacts, variant=chain)
             variant, _, backend = chain.partition("/")
             if backend:
                 refs[name]["variants"][variant].setdefault("backends", {}).setdefault(backend, {})[step] = ref
@@ -261,6 +261,10 @@ def sweep_job_dir() -> str | None:
 def run(cfg: DictConfig, flow_label: str) -> dict:
     """Entry used by the Hydra mains: check the config and inputs, pick the runner, run the flow."""
     preflight(cfg)
+    removed, freed = remove_stale_temporaries(cfg.paths.artifacts)
+    if removed:
+        print(f"removed {removed} temporary folder(s) ({freed / 1e6:.1f} MB) left in {cfg.paths.artifacts} by "
+              "runs that were killed")
     if "physics" in selected_backends(cfg) and not cfg.generation.weights:
         print("effect backend: physics-rendered (weight-free). For the paper's diffusion backend put SD-1.5, an "
               "AnimateDiff motion adapter and a depth ControlNet under one folder and run generation=diffusers "

@@ -152,35 +152,36 @@ class RunTable:
     started: float = field(default_factory=time.perf_counter)
     total: int = 0  # tasks expected (for the progress line); 0 = unknown
 
-    def add_future(self, obj: str, step: str, future, variant: str = "") -> Optional[ArtifactRef]:
-        """Wait for a submitted step and record ran / cached / failed; returns its reference or None.
+    def add_future(self, obj: str, step: str, future, *, root: str | Path, variant: str = "") -> Optional[ArtifactRef]:
+        """Wait for a submitted step and record ran / cached / failed; returns its reference, rooted at the
+        artifacts folder ``root`` of this run (cache records hold paths relative to it), or None.
 
         Prints one progress line per finished task (long steps log their own frame progress)."""
         future.wait()
-        row = self._row(obj, step, future, variant)
+        ref, row = self._row(obj, step, future, variant, root)
         self.rows.append(row)
         done = f"{len(self.rows)}/{self.total}" if self.total else str(len(self.rows))
         what = f"{obj} {step}" + (f" [{variant}]" if variant else "")
         took = f" {row.wall_seconds:.1f} s" if row.status == "ran" else ""
         print(f"[{done}] {what}: {row.status}{took}{(' - ' + row.note) if row.note else ''}"
               f" (elapsed {time.perf_counter() - self.started:.0f} s)", flush=True)
-        return future.result() if row.status in ("ran", "cached") else None
+        return ref
 
-    def _row(self, obj: str, step: str, future, variant: str) -> TaskRow:
+    def _row(self, obj: str, step: str, future, variant: str, root: str | Path) -> tuple[Optional[ArtifactRef], TaskRow]:
         state = future.state
         if not state.is_final():  # never ran (Prefect leaves it pending): a step it depends on failed
-            return TaskRow(obj, step, "skipped", 0.0, 0, "", "not run: a step it needs failed", variant)
+            return None, TaskRow(obj, step, "skipped", 0.0, 0, "", "not run: a step it needs failed", variant)
         if state.is_failed() or state.is_crashed() or state.is_cancelled():
             try:
                 future.result(raise_on_failure=True)
                 msg = state.message or "failed"
             except Exception as exc:  # the step's own error message
                 msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-            return TaskRow(obj, step, "failed", 0.0, 0, "", msg, variant)
-        ref: ArtifactRef = future.result()
+            return None, TaskRow(obj, step, "failed", 0.0, 0, "", msg, variant)
+        ref: ArtifactRef = future.result().at(root)
         cached = state.name == "Cached" or ref.reused
-        return TaskRow(obj, step, "cached" if cached else "ran", 0.0 if cached else ref.compute_seconds,
-                       directory_size(ref.path), ref.path, "reused from disk" if ref.reused else "", variant)
+        return ref, TaskRow(obj, step, "cached" if cached else "ran", 0.0 if cached else ref.compute_seconds,
+                            directory_size(ref.path), ref.path, "reused from disk" if ref.reused else "", variant)
 
     def frame(self) -> pd.DataFrame:
         return pd.DataFrame([r.__dict__ for r in self.rows],

@@ -427,7 +427,7 @@ def test_step_compute_runs_on_loaded_artifacts_and_writes(tmp_path):
     art = synthetic_artifacts(contact=True)
 
     def loaded(step: str, arrays: dict, attrs: dict | None = None) -> Artifact:
-        ref = ArtifactRef(path=str(tmp_path / step), digest="0" * 64, step=step, scope="synthetic")
+        ref = ArtifactRef(rel=step, digest="0" * 64, step=step, scope="synthetic").at(tmp_path)
         return Artifact(ref=ref, arrays=arrays, dims={}, units={}, attrs=attrs or {})
 
     inputs = {"mpm_rollout": loaded("mpm_rollout", art["rollout"], art["rollout_attrs"]),

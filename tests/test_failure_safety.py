@@ -106,7 +106,7 @@ def test_a_failed_step_leaves_no_artifact_and_the_fixed_rerun_reuses_upstream(pr
     docs = [json.loads(p.read_bytes()) for p in results.iterdir()]  # (a pickle would not parse)
     refs = [json.loads(d["result"])["data"] for d in docs if "ArtifactRef" in str(d.get("result"))]
     assert sorted(r["step"] for r in refs) == upstream_steps
-    assert all(read_group_attrs(r["path"])["digest"] == r["digest"] for r in refs)
+    assert all(read_group_attrs(tmp_path / "artifacts" / r["rel"])["digest"] == r["digest"] for r in refs)
 
     cfg = compose_cfg("evaluate", _overrides(tmp_path, ["rubber_ball"]))  # the user switches to the table
     status = {r["step"]: r["status"] for r in run(cfg, "test")["tasks"]}

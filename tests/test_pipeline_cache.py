@@ -5,12 +5,15 @@ Each test asserts which steps actually ran (status ``ran``) and which were serve
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+import pytest
 
 from tasks.core.artifacts import read_group_attrs
 
@@ -118,3 +121,168 @@ def test_sigkill_mid_run_resumes_only_unfinished_steps(prefect_server, tmp_path,
     # the resumed run ends with exactly the artifacts of an uninterrupted run
     run_grid(compose_cfg, tmp_path / "clean", objects)
     assert _digests(killed) == _digests(tmp_path / "clean")
+
+
+# ------------------------------------------------------------------ damaged artifacts, moved and copied folders
+CONTROL = SMALL[:4]  # the per-object control chain of rubber_ball up to dirichlet_field runs in seconds
+
+
+def warning_lines(caplog) -> list[str]:
+    """The warning lines logged since the last call (the console shows them after the time and level)."""
+    lines = [r.getMessage() for r in caplog.records if r.levelno >= logging.WARNING]
+    caplog.clear()
+    return lines
+
+
+def control_chain_local(compose_cfg, root: Path) -> dict:
+    from flows.pipeline import run_object_local
+
+    cfg = compose_cfg("evaluate", [f"paths.artifacts={root}", "object=rubber_ball", *CONTROL])
+    return run_object_local(cfg, cfg.object, None, root, until="dirichlet_field")
+
+
+@pytest.fixture(scope="module")
+def control_artifacts(tmp_path_factory) -> tuple[Path, dict[str, str]]:
+    """rubber_ball's control chain computed once: its artifacts folder and every step's digest."""
+    from tests.conftest import compose
+
+    root = tmp_path_factory.mktemp("control") / "artifacts"
+    refs = control_chain_local(compose, root)
+    assert list(refs)[-1] == "dirichlet_field"
+    return root, {step: ref.digest for step, ref in refs.items()}
+
+
+def _first_chunk(group: Path, array: str = "displacement") -> Path:
+    return sorted(p for p in (group / array / "c").rglob("*") if p.is_file())[0]
+
+
+def _delete_chunk(group: Path) -> str:
+    chunk = _first_chunk(group, "displacement")
+    chunk.unlink()
+    return f"missing file {chunk.relative_to(group)}"
+
+
+def _truncate_chunk(group: Path) -> str:
+    chunk = _first_chunk(group, "displacement")
+    data = chunk.read_bytes()
+    chunk.write_bytes(data[:-10])
+    return f"size mismatch of {chunk.relative_to(group)}: {len(data) - 10} bytes, written {len(data)}"
+
+
+def _corrupt_metadata(group: Path) -> str:
+    meta = group / "displacement" / "zarr.json"
+    size = meta.stat().st_size
+    meta.write_text(meta.read_text()[: size // 2])
+    return f"size mismatch of displacement/zarr.json: {size // 2} bytes, written {size}"
+
+
+def _flip_byte(group: Path, array: str = "displacement") -> str:
+    chunk = _first_chunk(group, array)
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0x10
+    chunk.write_bytes(bytes(data))
+    return f"checksum mismatch of {chunk.relative_to(group)}"
+
+
+@pytest.mark.parametrize("damage", [_delete_chunk, _truncate_chunk, _corrupt_metadata, _flip_byte],
+                         ids=lambda f: f.__name__.strip("_"))
+def test_a_damaged_artifact_is_recomputed_with_one_warning_naming_it(control_artifacts, tmp_path, compose_cfg,
+                                                                    caplog, damage):
+    """The issue's case: a chunk of dirichlet_field's displacement deleted (zarr would read zeros), truncated,
+    its array metadata cut, or one byte flipped at the same size.  The rerun finds it, says so in one line,
+    recomputes exactly that step, and the result is the original content again."""
+    import shutil
+
+    original, digests = control_artifacts
+    root = tmp_path / "artifacts"
+    shutil.copytree(original, root)
+    [group] = (root / "rubber_ball" / "dirichlet_field").glob("*.zarr")
+    problem = damage(group)
+    warning_lines(caplog)
+    refs = control_chain_local(compose_cfg, root)
+    assert warning_lines(caplog) == [f"rubber_ball/dirichlet_field: artifact {group} is damaged ({problem}): removed, "
+                             "the step is recomputed"]
+    assert {s: r.reused for s, r in refs.items()} == {s: s != "dirichlet_field" for s in digests}
+    assert {s: r.digest for s, r in refs.items()} == digests
+    assert read_group_attrs(group)["digest"] == digests["dirichlet_field"]
+
+
+def test_a_damaged_input_is_refused_with_one_line(control_artifacts, tmp_path):
+    """A step reading an input that was damaged after the cache check fails with one line naming the input."""
+    import shutil
+
+    from tasks.core.artifacts import ArtifactError, ArtifactRef, read_artifact
+
+    root = tmp_path / "artifacts"
+    shutil.copytree(control_artifacts[0], root)
+    [group] = (root / "rubber_ball" / "dirichlet_field").glob("*.zarr")
+    problem = _delete_chunk(group)
+    ref = ArtifactRef(rel=f"rubber_ball/dirichlet_field/{group.name}", digest=control_artifacts[1]["dirichlet_field"],
+                      step="dirichlet_field", scope="rubber_ball").at(root)
+    with pytest.raises(ArtifactError) as exc:
+        read_artifact(ref)
+    assert str(exc.value) == (f"input rubber_ball/dirichlet_field: artifact {group} is damaged ({problem}); rerun "
+                              "the flow to recompute it")
+
+
+def run_control_chain(compose_cfg, root: Path) -> dict[str, tuple[str, str]]:
+    """The same chain as a Prefect flow (cache records, RunTable): {step: (status, artifact path)}."""
+    from prefect import flow
+    from prefect.task_runners import ThreadPoolTaskRunner
+
+    from flows.pipeline import PER_OBJECT, step_params
+    from flows.runtime import RunTable, result_storage_settings
+
+    cfg = compose_cfg("evaluate", [f"paths.artifacts={root}", "object=rubber_ball", *CONTROL])
+    steps = PER_OBJECT[:[s.name for s in PER_OBJECT].index("dirichlet_field") + 1]
+
+    @flow(name="control-chain", persist_result=False, validate_parameters=False,
+          task_runner=ThreadPoolTaskRunner(max_workers=1))
+    def control_chain() -> dict[str, tuple[str, str]]:
+        futures: dict = {}
+        for step in steps:
+            futures[step.name] = step.submit(root=str(root), scope="rubber_ball", label="rubber_ball",
+                                             params=step_params(step, cfg, cfg.object),
+                                             inputs={n: futures[n] for n in step.spec.inputs})
+        table = RunTable(total=len(futures))
+        paths = {name: table.add_future("rubber_ball", name, fut, root=root).path for name, fut in futures.items()}
+        return {row.step: (row.status, paths[row.step]) for row in table.rows}
+
+    with result_storage_settings(root):
+        return control_chain()
+
+
+def test_a_moved_or_copied_artifacts_folder_works_from_its_new_place(prefect_server, tmp_path, compose_cfg, caplog):
+    """``mv A B``: the run on B is served from B's cache records and artifacts; a step recomputed there reads
+    its inputs from B (A no longer exists).  ``cp -a B C`` then damage B: C's run is unaffected, B's recomputes
+    the damaged step.  No cache record holds an absolute path."""
+    a, b, c = tmp_path / "A", tmp_path / "B", tmp_path / "C"
+    first = run_control_chain(compose_cfg, a)
+    assert {s for s, _ in first.values()} == {"ran"}
+    records = [json.loads(json.loads(r.read_text())["result"]) for r in (a / ".prefect" / "results").iterdir()]
+    assert sorted(r["data"]["step"] for r in records) == sorted(first)
+    assert not [r for r in records if str(tmp_path) in json.dumps(r)]  # relative: {"rel": "rubber_ball/...", ...}
+
+    subprocess.run(["mv", str(a), str(b)], check=True)
+    moved = run_control_chain(compose_cfg, b)
+    assert moved == {s: ("cached", p.replace(str(a.resolve()), str(b.resolve()))) for s, (_, p) in first.items()}
+    import shutil
+
+    [field] = (b / "rubber_ball" / "dirichlet_field").glob("*.zarr")
+    shutil.rmtree(field)  # recomputed from its inputs' cache records, rooted at B
+    again = run_control_chain(compose_cfg, b)
+    assert again["dirichlet_field"][0] == "ran" and field.is_dir()
+    assert {p.startswith(str(b.resolve())) for _, p in again.values()} == {True}
+
+    subprocess.run(["cp", "-a", str(b), str(c)], check=True)
+    [patches] = (b / "rubber_ball" / "contact_patches").glob("*.zarr")
+    problem = _flip_byte(patches, "patch_centers")
+    warning_lines(caplog)
+    copied = run_control_chain(compose_cfg, c)
+    assert copied == {s: ("cached", p.replace(str(b.resolve()), str(c.resolve()))) for s, (_, p) in again.items()}
+    assert warning_lines(caplog) == []
+    original = run_control_chain(compose_cfg, b)
+    assert warning_lines(caplog) == [f"rubber_ball/contact_patches: artifact {patches} is damaged ({problem}): removed, the "
+                             "step is recomputed"]
+    assert original["contact_patches"][0] == "ran" and original["dirichlet_field"][0] == "cached"
+

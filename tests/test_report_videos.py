@@ -19,8 +19,8 @@ def test_each_report_video_decodes_to_the_expected_frames_and_size(prefect_serve
     [g_path] = (tmp_path / "artifacts" / "tomato" / "gbuffer").glob("*.zarr")
     from tasks.core.artifacts import ArtifactRef, read_group_attrs
 
-    g = read_artifact(ArtifactRef(path=str(g_path), digest=read_group_attrs(g_path)["digest"], step="gbuffer",
-                                  scope="tomato"))
+    g = read_artifact(ArtifactRef(rel=f"tomato/gbuffer/{g_path.name}", digest=read_group_attrs(g_path)["digest"],
+                                  step="gbuffer", scope="tomato").at(tmp_path / "artifacts"))
     views, frames, height, width = g["mask"].shape
     final, fps = decode_video(report / "tomato_full_final.mp4")
     assert final.shape == (frames, height, width, 3) and fps == 15 / 5  # 15 Hz frames, every 5th rendered

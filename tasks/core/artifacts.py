@@ -5,42 +5,104 @@ A step's result is one zarr group.  It is written under a temporary name, every 
 its content digest and ``complete: true``, and only then renamed into place.  A half-written group is
 therefore never at the final path, and a group without ``complete`` is never read as valid.
 
-Steps pass :class:`ArtifactRef` (path + content digest) between each other, never open handles, so a cache
-key built from the digests changes whenever the data does.
+Steps pass :class:`ArtifactRef` (content digest + path *relative to the artifacts root*) between each other,
+never open handles, so a cache key built from the digests changes whenever the data does, and an artifacts
+folder that is moved or copied works from its new place: every consumer re-roots a reference at the root of
+its own run (:meth:`ArtifactRef.at`), and nothing absolute is stored in a reference or a cache record.
+
+Format (``format_version`` in the group attributes; a group of another version is not valid and is
+recomputed):
+
+* 2 - the group attributes hold a ``manifest`` {file path inside the group: [size in bytes, sha256]} of
+  every file of the group except the root ``zarr.json`` (which holds the manifest), recorded before the
+  ``complete`` stamp, and a ``seal`` = sha256 of the canonical JSON of all other group attributes.  A missing,
+  extra, resized or altered file, or edited group attributes, make the artifact invalid
+  (:func:`verify_artifact`): a cache hit on it is refused and the step recomputes, and reading it as an input
+  fails with a line naming it.  Arrays above 16 MiB are chunked along the leading axis in blocks of about
+  16 MiB (many frames per file, :func:`chunk_shape`).  Temporary and trash folders are named
+  ``.<name>.tmp-<host>-<pid>-<id>`` / ``.<name>.trash-<host>-<pid>-<id>`` so that a later run can remove those
+  of dead processes (:func:`remove_stale_temporaries`).
+* 1 - no manifest, one chunk per frame above 8 MiB, absolute paths in references (no longer read).
 """
 from __future__ import annotations
 
 import errno
 import hashlib
 import json
+import math
 import os
+import re
 import shutil
+import socket
 import uuid
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 import zarr
-from pydantic import BaseModel
+from pydantic import BaseModel, ConfigDict, PrivateAttr, field_validator
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
 
 
 class ArtifactError(RuntimeError):
-    """An artifact is missing, incomplete or does not match the digest a reference expects."""
+    """An artifact is missing, incomplete, damaged or does not match the digest a reference expects."""
+
+
+class ArtifactMissing(ArtifactError):
+    """No artifact at the path (never written, or removed): not an error of the artifact itself."""
+
+
+class ArtifactDamaged(ArtifactError):
+    """An artifact is at the path but is not what was written (see :func:`verify_artifact`).
+
+    ``problem`` says what is wrong in a few words (``missing file displacement/c/3/0``, ...)."""
+
+    def __init__(self, path: str | Path, problem: str) -> None:
+        self.path, self.problem = Path(path), problem
+        super().__init__(f"artifact {path} is damaged: {problem}")
 
 
 class ArtifactRef(BaseModel):
-    """A reference to a complete zarr artifact: where it is and what it contains (content digest)."""
+    """A reference to a complete zarr artifact: where it is under the artifacts root and what it contains.
 
-    path: str
+    ``rel`` is the group's path relative to the artifacts root.  The root itself is not part of the reference's
+    data (neither validated from nor serialized to a cache record): whoever uses a reference roots it at the
+    artifacts folder of its own run with :meth:`at`; ``path`` is then the absolute path of the group."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    rel: str
     digest: str
     step: str
     scope: str
     nbytes: int = 0
     compute_seconds: float = 0.0
     reused: bool = False  # found complete on disk (e.g. its cache record was lost to a kill): not recomputed
+    _root: str = PrivateAttr(default="")
+
+    @field_validator("rel")
+    @classmethod
+    def _inside_root(cls, rel: str) -> str:
+        p = PurePosixPath(rel)
+        if not rel or p.is_absolute() or ".." in p.parts or "\\" in rel:
+            raise ValueError(f"artifact path {rel!r} must be relative to the artifacts root, without '..'")
+        return rel
+
+    def at(self, root: str | Path) -> "ArtifactRef":
+        """This reference rooted at the artifacts folder ``root``."""
+        rooted = self.model_copy()
+        rooted._root = str(Path(root).resolve())
+        return rooted
+
+    @property
+    def path(self) -> str:
+        """Absolute path of the group (the reference must be rooted, see :meth:`at`)."""
+        if not self._root:
+            raise ArtifactError(f"reference to {self.scope}/{self.step} ({self.rel}) is not rooted at an artifacts "
+                                "folder: use ref.at(root)")
+        return str(Path(self._root) / self.rel)
 
     def exists(self) -> bool:
         """True when the group at ``path`` is complete and carries this reference's digest."""
@@ -123,16 +185,20 @@ def write_artifact(
     config_digest: str,
     attrs: Mapping[str, Any] | None = None,
     compute_seconds: float = 0.0,
+    root: str | Path | None = None,
 ) -> ArtifactRef:
-    """Write ``arrays`` as a zarr group at ``path`` atomically and return its reference.
+    """Write ``arrays`` as a zarr group at ``path`` atomically and return its reference, rooted at ``root``
+    (the artifacts folder; default the folder that holds ``path``).
 
     ``attrs`` are small descriptive values (JSON) stored on the group and included in the digest.
-    If a complete group with the same digest is already there (a concurrent run of the same step),
-    it is kept; an incomplete or different one is replaced.
+    If a valid group with the same digest is already there (a concurrent run of the same step),
+    it is kept; an incomplete, damaged or different one is replaced.
     """
-    final = Path(path)
+    final = Path(path).resolve()
+    root = Path(root).resolve() if root is not None else final.parent
+    rel = final.relative_to(root).as_posix()
     final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = final.with_name(f".{final.name}.tmp-{uuid.uuid4().hex[:12]}")
+    tmp = _scratch_name(final, "tmp")
     attrs = dict(attrs or {})
     digest = content_digest(arrays, attrs)
     try:
@@ -140,12 +206,11 @@ def write_artifact(
         nbytes = 0
         for name, a in arrays.items():
             data = a.data
-            chunks = _chunks(data)
             arr = group.create_array(
                 name,
                 shape=data.shape,
                 dtype=data.dtype,
-                chunks=chunks,
+                chunks=chunk_shape(data.shape, data.dtype.itemsize),
                 dimension_names=list(a.dims),
                 fill_value=0,
             )
@@ -163,45 +228,101 @@ def write_artifact(
                 "format_version": FORMAT_VERSION,
                 "attrs": attrs,
                 "compute_seconds": compute_seconds,
+                "manifest": _manifest(tmp),  # every file is written: their sizes and checksums
             }
         )
-        # stamped last: a group without these two keys is not an artifact
-        group.attrs.update({"digest": digest, "complete": True})
+        # stamped last: a group without these keys is not an artifact
+        stamp = {"digest": digest, "complete": True}
+        group.attrs.update({**stamp, "seal": _seal({**dict(group.attrs), **stamp})})
         _place(tmp, final, digest)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
-    return ArtifactRef(
-        path=str(final.resolve()), digest=digest, step=step, scope=scope, nbytes=nbytes,
-        compute_seconds=compute_seconds,
-    )
+    return ArtifactRef(rel=rel, digest=digest, step=step, scope=scope, nbytes=nbytes,
+                       compute_seconds=compute_seconds).at(root)
 
 
-def _chunks(data: np.ndarray) -> tuple[int, ...]:
-    """One chunk per leading index (frame) for big arrays, whole array for small ones."""
-    if data.ndim == 0 or data.nbytes <= 8 << 20:
-        return tuple(max(1, s) for s in data.shape) if data.ndim else ()
-    return (1,) + tuple(max(1, s) for s in data.shape[1:])
+CHUNK_BYTES = 16 << 20  # target size of one chunk (before compression)
+
+
+def chunk_shape(shape: Sequence[int], itemsize: int, target: int = CHUNK_BYTES) -> tuple[int, ...]:
+    """Chunks of at most ``target`` bytes: whole arrays up to ``target``, else blocks of as many leading indices
+    (frames) as fit; a single frame above ``target`` is split the same way along its own leading axis."""
+    chunks = [max(1, int(s)) for s in shape]
+    for axis in range(len(chunks)):
+        inner = itemsize * math.prod(chunks[axis + 1:])
+        if inner * chunks[axis] <= target:
+            break
+        chunks[axis] = max(1, target // inner)
+        if inner <= target:
+            break
+    return tuple(chunks)
+
+
+def _manifest(group: Path) -> dict[str, list]:
+    """{path inside the group: [size in bytes, sha256]} of every file except the root ``zarr.json``."""
+    return {rel: [os.path.getsize(group / rel), _file_sha256(group / rel)] for rel in _group_files(group)}
+
+
+def _group_files(group: Path, under: str = "") -> list[str]:
+    """Paths (posix, relative to ``group``) of the files below ``group/under``, the root ``zarr.json`` excepted."""
+    top = os.path.join(group, under) if under else str(group)
+    out = []
+    for dirpath, _, files in os.walk(top):
+        rel_dir = os.path.relpath(dirpath, group).replace(os.sep, "/")
+        out += files if rel_dir == "." else [f"{rel_dir}/{f}" for f in files]
+    return sorted(f for f in out if f != "zarr.json")
+
+
+def _file_sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while block := f.read(1 << 20):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _seal(attrs: Mapping[str, Any]) -> str:
+    """sha256 of the group attributes other than the seal itself (an edited attribute breaks it)."""
+    return digest_of({k: v for k, v in attrs.items() if k != "seal"})
+
+
+_HOST = re.sub(r"[^A-Za-z0-9_.]", "_", socket.gethostname()) or "host"
+_SCRATCH = re.compile(r"^\..+\.(?P<kind>tmp|trash)-(?:(?P<host>.+)-(?P<pid>\d+)-)?[0-9a-f]{12}$")
+
+
+def _scratch_name(final: Path, kind: str) -> Path:
+    """``.<name>.<kind>-<host>-<pid>-<id>`` next to ``final``: whose it is, so a later run can tell it stale."""
+    return final.with_name(f".{final.name}.{kind}-{_HOST}-{os.getpid()}-{uuid.uuid4().hex[:12]}")
+
+
+def _move_away(final: Path) -> None:
+    """Remove the group at ``final``: renamed first (one atomic step that readers see), then deleted."""
+    trash = _scratch_name(final, "trash")
+    try:
+        os.replace(final, trash)
+    except FileNotFoundError:  # another run moved it away first
+        return
+    shutil.rmtree(trash, ignore_errors=True)
+
+
+def discard_artifact(path: str | Path) -> None:
+    """Remove a damaged or incomplete artifact so that its step is recomputed."""
+    _move_away(Path(path))
 
 
 def _place(tmp: Path, final: Path, digest: str, attempts: int = 5) -> None:
     """Rename ``tmp`` to ``final``.  Two runs writing the same step at once race here: a directory rename
     onto an existing non-empty directory fails, and the other writer may place (or move away) ``final``
-    between our check and our rename.  Whoever loses re-checks: an identical artifact in place is kept."""
+    between our check and our rename.  Whoever loses re-checks: an identical valid artifact in place is kept."""
     for _ in range(attempts):
         if final.exists():
             try:
-                if read_group_attrs(final).get("digest") == digest:
+                if verify_artifact(final).get("digest") == digest:
                     return  # identical artifact already in place (concurrent writer)
             except ArtifactError:
                 pass
-            trash = final.with_name(f".{final.name}.trash-{uuid.uuid4().hex[:12]}")
-            try:
-                os.replace(final, trash)
-            except FileNotFoundError:  # another writer moved it away first
-                pass
-            else:
-                shutil.rmtree(trash, ignore_errors=True)
+            _move_away(final)
         try:
             os.replace(tmp, final)
             return
@@ -213,16 +334,58 @@ def _place(tmp: Path, final: Path, digest: str, attempts: int = 5) -> None:
 
 
 def read_group_attrs(path: str | Path) -> dict[str, Any]:
-    """The group attributes of a complete artifact; :class:`ArtifactError` if missing or incomplete."""
+    """The group attributes of a complete artifact of this format whose attributes are as written (cheap: the
+    files are not checked, see :func:`verify_artifact`).
+
+    :class:`ArtifactMissing` when there is no group, :class:`ArtifactDamaged` when it is unreadable,
+    incomplete, of another format version or its attributes were edited."""
     p = Path(path)
-    if not (p / "zarr.json").is_file():
-        raise ArtifactError(f"artifact {p} is missing; rerun the flow to recompute it")
+    meta = p / "zarr.json"
+    if not meta.is_file():
+        if p.exists():
+            raise ArtifactDamaged(p, "no zarr.json (incomplete or damaged group)")
+        raise ArtifactMissing(f"artifact {p} is missing; rerun the flow to recompute it")
     try:
-        attrs = dict(zarr.open_group(store=str(p), mode="r").attrs)
-    except Exception as exc:  # corrupt metadata
-        raise ArtifactError(f"artifact {p} is unreadable ({exc}); delete it and rerun") from exc
+        attrs = dict(json.loads(meta.read_bytes())["attributes"])
+    except Exception:  # noqa: BLE001 - any decoding failure is the same finding
+        raise ArtifactDamaged(p, "unreadable metadata zarr.json") from None
     if attrs.get("complete") is not True or "digest" not in attrs:
-        raise ArtifactError(f"artifact {p} is incomplete (interrupted write); delete it and rerun")
+        raise ArtifactDamaged(p, "incomplete (interrupted write)")
+    if attrs.get("format_version") != FORMAT_VERSION or "manifest" not in attrs:
+        raise ArtifactDamaged(p, f"written in artifact format {attrs.get('format_version')}, this code reads "
+                                 f"format {FORMAT_VERSION} (recomputed once)")
+    if attrs.get("seal") != _seal(attrs):
+        raise ArtifactDamaged(p, "group attributes in zarr.json were changed after the write")
+    return attrs
+
+
+def verify_artifact(path: str | Path, *, checksums: bool = True, arrays: Sequence[str] | None = None) -> dict[str, Any]:
+    """:func:`read_group_attrs` after checking the group's files against its manifest: none missing, none extra,
+    every size as written and (``checksums``) every sha256 as written.  ``arrays`` limits the check to the
+    files of those arrays (a reader that loads only some).  Raises :class:`ArtifactDamaged` naming the first
+    file that differs."""
+    p = Path(path)
+    attrs = read_group_attrs(p)
+    manifest: dict[str, list] = attrs["manifest"]
+    if arrays is not None:
+        prefixes = tuple(f"{a}/" for a in arrays)
+        manifest = {f: v for f, v in manifest.items() if f.startswith(prefixes)}
+        present = [f for a in arrays for f in _group_files(p, a)]
+    else:
+        present = _group_files(p)
+    extra = sorted(set(present) - set(manifest))
+    if extra:
+        raise ArtifactDamaged(p, f"unexpected file {extra[0]} (not written with the artifact)")
+    for name, (size, sha) in sorted(manifest.items()):
+        f = p / name
+        try:
+            actual = os.path.getsize(f)
+        except OSError:
+            raise ArtifactDamaged(p, f"missing file {name}") from None
+        if actual != size:
+            raise ArtifactDamaged(p, f"size mismatch of {name}: {actual} bytes, written {size}")
+        if checksums and _file_sha256(f) != sha:
+            raise ArtifactDamaged(p, f"checksum mismatch of {name}")
     return attrs
 
 
@@ -248,11 +411,19 @@ class Artifact:
 
 
 def read_artifact(ref: ArtifactRef, names: Sequence[str] | None = None) -> Artifact:
-    """Load an artifact, checking that it is complete and is the content ``ref`` points to."""
-    gattrs = read_group_attrs(ref.path)
+    """Load an artifact (all arrays, or only ``names``), checking that it is complete, that it is the content
+    ``ref`` points to, and that the files read are those written (:func:`verify_artifact`).  A missing or
+    damaged input is an :class:`ArtifactError` of one line naming it."""
+    what = f"input {ref.scope}/{ref.step}: artifact {ref.path}"
+    try:
+        gattrs = verify_artifact(ref.path, arrays=names)
+    except ArtifactDamaged as exc:
+        raise ArtifactError(f"{what} is damaged ({exc.problem}); rerun the flow to recompute it") from None
+    except ArtifactMissing:
+        raise ArtifactError(f"{what} is missing; rerun the flow to recompute it") from None
     if gattrs["digest"] != ref.digest:
         raise ArtifactError(
-            f"artifact {ref.path} holds digest {gattrs['digest'][:12]}, expected {ref.digest[:12]}; "
+            f"{what} holds digest {gattrs['digest'][:12]}, expected {ref.digest[:12]}; "
             "it was rewritten by another run: rerun the flow"
         )
     group = zarr.open_group(store=ref.path, mode="r")
@@ -264,6 +435,39 @@ def read_artifact(ref: ArtifactRef, names: Sequence[str] | None = None) -> Artif
         dims[name] = list(arr.metadata.dimension_names or [])
         units[name] = arr.attrs.get("units", "")
     return Artifact(ref=ref, arrays=arrays, dims=dims, units=units, attrs=dict(gattrs.get("attrs", {})))
+
+
+def remove_stale_temporaries(root: str | Path) -> tuple[int, int]:
+    """Remove the temporary and trash folders that killed runs left under the artifacts folder ``root``: those
+    named for a process of this host that is no longer alive, and those of format 1 (no owner in the name).
+    A live process's (a concurrent run) and another host's are kept.  Returns (folders removed, bytes freed)."""
+    count = freed = 0
+    for dirpath, dirnames, _ in os.walk(root):
+        descend = []
+        for d in dirnames:
+            m = _SCRATCH.match(d)
+            if m is None:
+                if not d.endswith(".zarr") and d != ".prefect":  # no need to look inside groups or Prefect's home
+                    descend.append(d)
+                continue
+            if m["pid"] is None or (m["host"] == _HOST and not _process_alive(int(m["pid"]))):
+                path = Path(dirpath) / d
+                size = directory_size(path)
+                shutil.rmtree(path, ignore_errors=True)
+                if not path.exists():
+                    count, freed = count + 1, freed + size
+        dirnames[:] = descend
+    return count, freed
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
 
 
 def directory_size(path: str | Path) -> int:

@@ -22,10 +22,13 @@ The Prefect task made from the declaration
 * computes a content-addressed key = sha256(step name, code version, scope, params, digests of the input
   artifacts) - nothing else (no run id, job number or output dir);
 * stores its result as a zarr group at ``<root>/<scope>/<step>/<key[:20]>.zarr`` (atomic, see
-  :mod:`tasks.core.artifacts`) and returns an :class:`ArtifactRef`;
-* is cached by Prefect under that key (JSON result records, no pickle).  The cache policy checks the
-  artifact on disk: if it was deleted or is incomplete, the stale cache record is removed and the step runs
-  again instead of returning a dangling reference.
+  :mod:`tasks.core.artifacts`) and returns an :class:`ArtifactRef` holding that path relative to ``root``;
+  the inputs it is given are re-rooted at its own ``root`` (a moved or copied artifacts folder works from its
+  new place and never reads the original's files);
+* is cached by Prefect under that key (JSON result records, no pickle, no absolute path).  The cache policy
+  checks the artifact on disk against the manifest written with it (every file's size and sha256): if it
+  was deleted, is incomplete or damaged, it is removed with one warning line, the stale cache record is
+  dropped and the step runs again instead of returning a dangling or wrong reference.
 """
 from __future__ import annotations
 
@@ -45,11 +48,13 @@ from prefect.logging import get_logger
 from tasks.core.artifacts import (
     Array,
     Artifact,
-    ArtifactError,
+    ArtifactDamaged,
+    ArtifactMissing,
     ArtifactRef,
     digest_of,
+    discard_artifact,
     read_artifact,
-    read_group_attrs,
+    verify_artifact,
     write_artifact,
 )
 from tasks.core.code_version import code_version, module_file
@@ -102,13 +107,35 @@ def step_key(step: str, version: str, scope: str, params: Mapping[str, Any], inp
     )
 
 
+def artifact_rel(scope: str, step: str, key: str) -> str:
+    """Where a step's artifact lives inside the artifacts folder."""
+    return f"{scope}/{step}/{key[:20]}.zarr"
+
+
 def artifact_path(root: str | Path, scope: str, step: str, key: str) -> Path:
-    return Path(root).resolve() / scope / step / f"{key[:20]}.zarr"
+    return Path(root).resolve() / artifact_rel(scope, step, key)
+
+
+def valid_artifact(path: Path, scope: str, step: str) -> dict[str, Any] | None:
+    """The group attributes of the artifact at ``path`` when it is there and is what was written (every file's
+    size and sha256 as in its manifest, :func:`tasks.core.artifacts.verify_artifact`); ``None`` when it is not
+    there.  A damaged or incomplete one is removed, with one warning line naming it and what was wrong, so that
+    the step is computed again."""
+    try:
+        return verify_artifact(path)
+    except ArtifactMissing:
+        return None
+    except ArtifactDamaged as exc:
+        discard_artifact(path)
+        log.warning("%s/%s: artifact %s is damaged (%s): removed, the step is recomputed", scope, step, path,
+                    exc.problem)
+        return None
 
 
 @dataclass
 class ArtifactCachePolicy(CachePolicy):
-    """Cache key = :func:`step_key`; a record whose artifact is gone from disk is dropped first."""
+    """Cache key = :func:`step_key`; a record whose artifact is gone from disk or damaged (:func:`valid_artifact`)
+    is dropped first."""
 
     step: str = ""
     version: str = ""
@@ -116,9 +143,7 @@ class ArtifactCachePolicy(CachePolicy):
     def compute_key(self, task_ctx: TaskRunContext, inputs: dict[str, Any], flow_parameters: dict[str, Any], **kwargs: Any) -> Optional[str]:
         key = step_key(self.step, self.version, inputs["scope"], inputs["params"], inputs.get("inputs") or {})
         path = artifact_path(inputs["root"], inputs["scope"], self.step, key)
-        try:
-            read_group_attrs(path)
-        except ArtifactError:
+        if valid_artifact(path, inputs["scope"], self.step) is None:
             _drop_record(task_ctx, key)
         else:
             _drop_unsafe_record(task_ctx, key)
@@ -137,7 +162,7 @@ def _drop_record(task_ctx: TaskRunContext, key: str) -> None:
     candidate = _record_path(task_ctx, key)
     if candidate is not None and candidate.exists():
         candidate.unlink()
-        log.info("cache record %s dropped: its artifact is missing on disk", key[:12])
+        log.info("cache record %s dropped: its artifact is missing or was damaged", key[:12])
 
 
 _PLAIN_SERIALIZER = {"type": "json", "jsonlib": "json",
@@ -242,14 +267,13 @@ def report_progress(done: int, total: int, unit: str = "frame") -> None:
 def _execute(step: StepTask, root: str, scope: str, params: dict, inputs: dict[str, ArtifactRef],
              label: str) -> ArtifactRef:
     name = step.name
+    inputs = {producer: ref.at(root) for producer, ref in inputs.items()}  # this run's folder, wherever written
     key = step_key(name, step.version, scope, params, inputs)
     path = artifact_path(root, scope, name, key)
-    try:  # the artifact survived although its cache record did not (e.g. result storage wiped)
-        attrs = read_group_attrs(path)
-        return ArtifactRef(path=str(path), digest=attrs["digest"], step=name, scope=scope,
-                           compute_seconds=float(attrs.get("compute_seconds", 0.0)), reused=True)
-    except ArtifactError:
-        pass
+    attrs = valid_artifact(path, scope, name)
+    if attrs is not None:  # the artifact survived although its cache record did not (e.g. result storage wiped)
+        return ArtifactRef(rel=artifact_rel(scope, name, key), digest=attrs["digest"], step=name, scope=scope,
+                           compute_seconds=float(attrs.get("compute_seconds", 0.0)), reused=True).at(root)
     loaded = {producer: read_artifact(ref) for producer, ref in inputs.items()}
     t0 = time.perf_counter()
     token = _PROGRESS.set(_Progress(f"{label}/{name}"))
@@ -260,7 +284,7 @@ def _execute(step: StepTask, root: str, scope: str, params: dict, inputs: dict[s
     step.spec.check_outputs(arrays)
     seconds = time.perf_counter() - t0
     ref = write_artifact(path, arrays, step=name, scope=scope, config_digest=digest_of(params), attrs=attrs,
-                         compute_seconds=seconds)
+                         compute_seconds=seconds, root=root)
     log.info("%-18s %-12s ran in %.2f s -> %s", name, label, seconds, path)
     return ref
 
