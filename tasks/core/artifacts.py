@@ -237,7 +237,8 @@ def write_artifact(
         )
         # stamped last: a group without these keys is not an artifact
         stamp = {"digest": digest, "complete": True}
-        group.attrs.update({**stamp, "seal": _seal({**dict(group.attrs), **stamp})})
+        written = json.loads((tmp / "zarr.json").read_bytes())["attributes"]  # as a reader will parse them
+        group.attrs.update({**stamp, "seal": _seal({**written, **stamp})})
         _place(tmp, final, digest)
     finally:
         if tmp.exists():
