@@ -12,6 +12,7 @@ from tasks.core.artifacts import (
     Array,
     ArtifactDamaged,
     ArtifactError,
+    ArtifactOutdated,
     ArtifactRef,
     _scratch_name,
     chunk_shape,
@@ -223,7 +224,7 @@ def test_an_artifact_of_the_previous_format_is_not_valid(tmp_path):
     for key in ("manifest", "seal"):
         del doc["attributes"][key]
     meta.write_text(json.dumps(doc))
-    with pytest.raises(ArtifactDamaged, match="written in artifact format 1, this code reads format 2"):
+    with pytest.raises(ArtifactOutdated, match="written in artifact format 1, this code reads format 2"):
         read_group_attrs(ref.path)
     again = write_artifact(tmp_path / "a.zarr", _arrays(), step="s", scope="o", config_digest="c")
     assert again.digest == ref.digest and verify_artifact(again.path)["format_version"] == 2  # replaced, not kept

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -98,7 +99,7 @@ def _digests(root: Path) -> dict[tuple[str, str], str]:
     return out
 
 
-def test_sigkill_mid_run_resumes_only_unfinished_steps(prefect_server, tmp_path, compose_cfg):
+def test_sigkill_mid_run_resumes_only_unfinished_steps(prefect_server, tmp_path, compose_cfg, capsys):
     objects = ["can", "plush_toy", "rubber_duck", "clay", "tomato", "orange", "rubber_ball", "paper_cup"]
     killed = tmp_path / "killed"
     env = dict(os.environ, PREFECT_API_URL=prefect_server, VIRSQUEEZER_ARTIFACTS=str(killed / "artifacts"))
@@ -114,8 +115,21 @@ def test_sigkill_mid_run_resumes_only_unfinished_steps(prefect_server, tmp_path,
     proc.wait()
     before = _digests(killed)
     assert 0 < len(before) < len(objects) * (len(STEPS) + 1), "kill did not land mid-run"
+    # a temporary the killed process was writing (named for it: this host, its pid) is removed at the next start
+    from tasks.core.artifacts import _scratch_name
+
+    [model] = (killed / "artifacts" / "can" / "object_model").glob("*.zarr")
+    stale = _scratch_name(model, "tmp")
+    stale = stale.with_name(stale.name.replace(f"-{os.getpid()}-", f"-{proc.pid}-"))
+    (stale / "points" / "c").mkdir(parents=True)
+    (stale / "points" / "c" / "0").write_bytes(b"x" * 1_000_000)
+    capsys.readouterr()
 
     status = run_grid(compose_cfg, killed, objects)
+    removed = re.search(r"removed (\d+) temporary folder\(s\) \(([\d.]+) MB\) left in \S+ by runs that were killed",
+                        capsys.readouterr().out)
+    assert removed and int(removed[1]) >= 1 and float(removed[2]) >= 1.0
+    assert not list((killed / "artifacts").glob("*/*/.*"))
     for key, st in status.items():
         assert st == ("cached" if key in before else "ran"), key
     # the resumed run ends with exactly the artifacts of an uninterrupted run
@@ -207,8 +221,9 @@ def test_a_damaged_artifact_is_recomputed_with_one_warning_naming_it(control_art
     assert read_group_attrs(group)["digest"] == digests["dirichlet_field"]
 
 
-def test_a_damaged_input_is_refused_with_one_line(control_artifacts, tmp_path):
-    """A step reading an input that was damaged after the cache check fails with one line naming the input."""
+def test_a_damaged_input_is_refused_with_one_line(control_artifacts, tmp_path, compose_cfg):
+    """A step reading an input that was damaged after the cache check fails with one line naming the input;
+    the next run's check finds it and recomputes it."""
     import shutil
 
     from tasks.core.artifacts import ArtifactError, ArtifactRef, read_artifact
@@ -223,6 +238,29 @@ def test_a_damaged_input_is_refused_with_one_line(control_artifacts, tmp_path):
         read_artifact(ref)
     assert str(exc.value) == (f"input rubber_ball/dirichlet_field: artifact {group} is damaged ({problem}); rerun "
                               "the flow to recompute it")
+    assert not control_chain_local(compose_cfg, root)["dirichlet_field"].reused  # the rerun recomputes it
+    assert read_artifact(ref)["displacement"].any()
+
+
+def test_an_artifact_of_the_previous_format_is_recomputed(control_artifacts, tmp_path, compose_cfg, caplog):
+    """Format 1 (no manifest): recomputed once with an info line, no warning, same content."""
+    import shutil
+
+    root = tmp_path / "artifacts"
+    shutil.copytree(control_artifacts[0], root)
+    [group] = (root / "rubber_ball" / "force_coefficients").glob("*.zarr")
+    meta = group / "zarr.json"
+    doc = json.loads(meta.read_text())
+    doc["attributes"]["format_version"] = 1
+    del doc["attributes"]["manifest"], doc["attributes"]["seal"]
+    meta.write_text(json.dumps(doc))
+    with caplog.at_level(logging.INFO, logger="prefect.virsqueezer"):
+        refs = control_chain_local(compose_cfg, root)
+    assert (f"rubber_ball/force_coefficients: artifact {group} was written in artifact format 1, this code reads "
+            "format 2: removed, the step is recomputed") in caplog.messages
+    assert warning_lines(caplog) == []
+    assert [s for s, r in refs.items() if not r.reused] == ["force_coefficients"]
+    assert {s: r.digest for s, r in refs.items()} == control_artifacts[1]
 
 
 def run_control_chain(compose_cfg, root: Path) -> dict[str, tuple[str, str]]:

@@ -64,6 +64,10 @@ class ArtifactDamaged(ArtifactError):
         super().__init__(f"artifact {path} is damaged: {problem}")
 
 
+class ArtifactOutdated(ArtifactDamaged):
+    """An artifact written in another format version (``problem`` names both): not trusted, recomputed."""
+
+
 class ArtifactRef(BaseModel):
     """A reference to a complete zarr artifact: where it is under the artifacts root and what it contains.
 
@@ -233,7 +237,8 @@ def write_artifact(
         )
         # stamped last: a group without these keys is not an artifact
         stamp = {"digest": digest, "complete": True}
-        group.attrs.update({**stamp, "seal": _seal({**dict(group.attrs), **stamp})})
+        written = json.loads((tmp / "zarr.json").read_bytes())["attributes"]  # as a reader will parse them
+        group.attrs.update({**stamp, "seal": _seal({**written, **stamp})})
         _place(tmp, final, digest)
     finally:
         if tmp.exists():
@@ -337,8 +342,8 @@ def read_group_attrs(path: str | Path) -> dict[str, Any]:
     """The group attributes of a complete artifact of this format whose attributes are as written (cheap: the
     files are not checked, see :func:`verify_artifact`).
 
-    :class:`ArtifactMissing` when there is no group, :class:`ArtifactDamaged` when it is unreadable,
-    incomplete, of another format version or its attributes were edited."""
+    :class:`ArtifactMissing` when there is no group, :class:`ArtifactOutdated` when it is of another format
+    version, :class:`ArtifactDamaged` when it is unreadable, incomplete or its attributes were edited."""
     p = Path(path)
     meta = p / "zarr.json"
     if not meta.is_file():
@@ -352,8 +357,8 @@ def read_group_attrs(path: str | Path) -> dict[str, Any]:
     if attrs.get("complete") is not True or "digest" not in attrs:
         raise ArtifactDamaged(p, "incomplete (interrupted write)")
     if attrs.get("format_version") != FORMAT_VERSION or "manifest" not in attrs:
-        raise ArtifactDamaged(p, f"written in artifact format {attrs.get('format_version')}, this code reads "
-                                 f"format {FORMAT_VERSION} (recomputed once)")
+        raise ArtifactOutdated(p, f"written in artifact format {attrs.get('format_version')}, this code reads "
+                                  f"format {FORMAT_VERSION}")
     if attrs.get("seal") != _seal(attrs):
         raise ArtifactDamaged(p, "group attributes in zarr.json were changed after the write")
     return attrs

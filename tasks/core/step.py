@@ -50,6 +50,7 @@ from tasks.core.artifacts import (
     Artifact,
     ArtifactDamaged,
     ArtifactMissing,
+    ArtifactOutdated,
     ArtifactRef,
     digest_of,
     discard_artifact,
@@ -120,10 +121,14 @@ def valid_artifact(path: Path, scope: str, step: str) -> dict[str, Any] | None:
     """The group attributes of the artifact at ``path`` when it is there and is what was written (every file's
     size and sha256 as in its manifest, :func:`tasks.core.artifacts.verify_artifact`); ``None`` when it is not
     there.  A damaged or incomplete one is removed, with one warning line naming it and what was wrong, so that
-    the step is computed again."""
+    the step is computed again (one of an older artifact format too, with an info line)."""
     try:
         return verify_artifact(path)
     except ArtifactMissing:
+        return None
+    except ArtifactOutdated as exc:
+        discard_artifact(path)
+        log.info("%s/%s: artifact %s was %s: removed, the step is recomputed", scope, step, path, exc.problem)
         return None
     except ArtifactDamaged as exc:
         discard_artifact(path)
