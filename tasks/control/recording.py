@@ -8,22 +8,28 @@ Recording format (CSV, one row per sensor sample)
 -------------------------------------------------
 * A header row is required.  Column names are matched exactly (surrounding spaces are ignored), column
   order is free and any extra column (e.g. per-joint angles, a frame counter) is ignored.
-* ``time`` - sample time in seconds (s), strictly increasing (no duplicates).  Any origin is accepted.
+* ``time`` - sample time in seconds (s), strictly increasing (no duplicates).  Any origin is accepted.  A median
+  sample interval of 0.5 or more (a sensor below 2 Hz) is refused as milliseconds, with the fix.
 * ``flex_thumb, flex_index, flex_middle, flex_ring, flex_pinky`` - flexion of each finger, either
   normalised to 0..1 (0 = open hand, 1 = fully closed) or SenseGlove "percent bent" 0..10000 (the sum of a
   finger's flexion joint angles normalised between the glove's open and closed presets, see
   field-notes.md "Real data").  The scale is detected once per file: if the largest flexion value of all
   five columns is > 1.5 the whole file is read as percent-bent and divided by 10000.  (A percent-bent
   recording whose every value is <= 1.5, i.e. an open hand that never bends by more than 0.015 %, would be
-  read as normalised; such a recording carries no squeeze.)  After scaling every value must lie in
+  read as normalised; such a recording carries no squeeze.)  A largest value in (1.5, 105] is refused: it is
+  flexion written as percent 0..100, which on the 0..10000 scale would be read as at most 1 % bent (nothing would be
+  squeezed); the message gives both fixes (the two scales cannot be told apart there, so nothing is guessed).
+  After scaling every value must lie in
   [-0.05, 1.05] (a small calibration overshoot is tolerated) and is then clipped to [0, 1].
 * ``tip_<finger>_x, tip_<finger>_y, tip_<finger>_z`` for the five fingers (thumb, index, middle, ring,
-  pinky) - fingertip positions in metres (m), in the object's frame (object centred at the origin, z up).
+  pinky) - fingertip positions in metres (m), in the object's frame (object centred at the origin, z up).  A
+  fingertip more than 1 m from the palm is refused as millimetres, with the fix.
 * ``palm_x, palm_y, palm_z`` - palm centre in metres (m), same frame.
 * ``palm_qw, palm_qx, palm_qy, palm_qz`` - palm orientation as a quaternion (w first) rotating palm-frame
   vectors into the object frame.  Non-unit quaternions are normalised; an all-zero quaternion is an error.
   Palm frame used by the synthetic sessions: z = palm normal pointing at the object, x = from the thumb
   side toward the four fingers, y = z x x.
+* Messages quote at most ``EXCERPT_CHARS`` characters of the file (a zero-filled tail is not echoed).
 * Every value must be a finite number.  Empty cells, ``nan`` and ``inf`` are errors naming the row.  Every row
   must have as many fields as the header (a longer row, e.g. two rows merged by a lost newline, is an error).
 * Reading uses pandas' C parser: 1e6 rows x 28 columns (360-560 MB) read in ~3-9 s on a 2-core machine, and
@@ -74,13 +80,27 @@ MAX_RECORDING_BYTES = 256 * 2**20  # largest recording read (see the module docs
 _SCALE_DETECT = 1.5  # flexion max above this => percent-bent file
 _FLEX_TOLERANCE = 0.05  # accepted overshoot outside [0, 1] after scaling
 _ZERO_QUAT = 1e-9
+_MAX_SAMPLE_INTERVAL = 0.5  # s; a median sample interval this long means the time column is not in seconds
+_MAX_REACH = 1.0  # m; fingertips farther than this from the palm mean the positions are not in metres
 
 _SIGNAL_NAMES = ("time", "flexion", "fingertip_positions", "palm_position", "palm_orientation")
 
 
 # ============================================================================================ recordings
+EXCERPT_CHARS = 80  # longest excerpt of a file's content or an exception text quoted in a message
+
+
 def _one_line(text: Any) -> str:
-    return " ".join(str(text).split())
+    """``text`` on one line, cut to ``EXCERPT_CHARS`` (a broken 250 MB file must not print a 1 GB line)."""
+    line = " ".join(str(text)[:4 * EXCERPT_CHARS].split())
+    return line if len(line) <= EXCERPT_CHARS else line[:EXCERPT_CHARS - 3] + "..."
+
+
+def _excerpt(value: str) -> str:
+    """``repr`` of a cell's text, cut to ``EXCERPT_CHARS`` with its full length named."""
+    if len(value) <= EXCERPT_CHARS:
+        return repr(value)
+    return f"{value[:EXCERPT_CHARS]!r}... ({len(value)} characters)"
 
 
 def check_recording_size(path: str | Path, max_bytes: int | None = MAX_RECORDING_BYTES) -> None:
@@ -152,7 +172,7 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
         present.setdefault(key, col)
     missing = [c for c in REQUIRED_COLUMNS if c not in present]
     if len(missing) == len(REQUIRED_COLUMNS):
-        first = ",".join(str(c) for c in list(header.columns)[:4])
+        first = _one_line(",".join(str(c) for c in list(header.columns)[:4]))
         raise SignalError(f"recording {name} has none of the required columns (the header row seems to be "
                           f"missing; line 1 reads '{first},...'); add a header row time,flex_<finger>,"
                           f"tip_<finger>_x/y/z,palm_x/y/z,palm_qw/qx/qy/qz (format: tasks/control/recording.py)")
@@ -207,6 +227,11 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
                           f"{float(time[i + 1])!r} s after {float(time[i])!r} s); timestamps must strictly "
                           f"increase - sort the rows by time")
     span = float(time[-1] - time[0])
+    step = float(np.median(dt))
+    if step >= _MAX_SAMPLE_INTERVAL:
+        raise SignalError(f"recording {name}: time steps by {step:g} per sample (median; {span:g} in all), a "
+                          f"{1 / step:.3g} Hz sensor where SenseGlove streams at 100-1000 Hz; the time column "
+                          f"looks like milliseconds: divide it by 1000 (seconds are expected)")
     if frame_rate is not None:
         if not frame_rate > 0:
             raise ValueError(f"control.smoothing.frame_rate must be > 0, got {frame_rate}")
@@ -218,6 +243,10 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
     # --- flexion scale and range
     fmax = float(flexion.max())
     scale = "normalised 0..1"
+    if _SCALE_DETECT < fmax <= 100 * (1 + _FLEX_TOLERANCE):
+        raise SignalError(f"recording {name}: flexion peaks at {fmax:.4g}, which on SenseGlove's percent-bent scale "
+                          f"0..10000 is {fmax / 100:.2g} % bent (nothing would be squeezed); the flex_ columns look "
+                          f"like percent 0..100: divide them by 100 (0..1) or multiply them by 100 (0..10000)")
     if fmax > _SCALE_DETECT:
         flexion = flexion / PERCENT_BENT_FULL_SCALE
         scale = "SenseGlove percent-bent 0..10000"
@@ -232,6 +261,12 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
                           f"read as {scale} that is {flexion[row, col]:.4g}, outside [{lo:g}, {hi:g}]; write "
                           f"flexion as 0..1 or as percent-bent 0..10000 consistently in all flex_ columns")
     flexion = np.clip(flexion, 0.0, 1.0)
+
+    # --- positions: a hand's fingertips stay within ~0.25 m of its palm
+    reach = float(np.linalg.norm(tips - palm[:, None, :], axis=-1).max())
+    if reach > _MAX_REACH:
+        raise SignalError(f"recording {name}: fingertip positions reach {reach:.4g} m from the palm (a hand spans "
+                          f"~0.2 m); the CSV looks like millimetres: divide the tip_ and palm_x/y/z columns by 1000")
 
     # --- quaternions
     norm = np.linalg.norm(quat, axis=1)
@@ -286,7 +321,7 @@ def _locate_bad_cell(p: Path, name: str, original: list, read_kw: dict, exc: Exc
     if row == len(df) - 1:
         _refuse_truncated(p, name, row, len(df.columns))
     raise SignalError(f"recording {name}: column {REQUIRED_COLUMNS[j]} row {row + 1} (line {row + 2}) holds "
-                      f"non-numeric {value!r}; write a plain number (decimal point, no units)")
+                      f"non-numeric {_excerpt(value)}; write a plain number (decimal point, no units)")
 
 
 def validate_signals(signals: Mapping[str, Any], where: str = "signals") -> dict[str, np.ndarray]:
