@@ -262,10 +262,10 @@ class GridConfig:
 class LimitsConfig:
     """Bounds on a run's work, checked against the estimate of :func:`flows.preflight.estimate_work` before the
     flow starts (a run beyond one is refused with the estimate and this knob).  The defaults pass the default grid
-    (91 frames, ~3e9 particle-substeps, ~60 MB rollouts) with a wide margin."""
+    (91 frames, 1.6e9 particle-substeps, a 130 MB artifact at most) with a wide margin."""
 
     max_frames: int = 9000  # output frames of one squeeze (5 min at 30 Hz)
-    max_particle_steps: float = 1e12  # particles x substeps x frames summed over the objects x variants of the run
+    max_particle_steps: float = 1e11  # particles x substeps x frames summed over the objects x variants of the run
     max_artifact_bytes: float = 8 * 2**30  # bytes of the largest artifact (the MPM rollout's per-frame arrays)
 
 

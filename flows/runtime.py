@@ -12,7 +12,7 @@ from omegaconf import DictConfig
 from prefect.logging import get_logger
 from prefect.task_runners import ThreadPoolTaskRunner
 
-from tasks.core.artifacts import ArtifactRef, directory_size
+from tasks.core.artifacts import ArtifactError, ArtifactRef, directory_size, read_group_attrs
 
 log = get_logger("virsqueezer")
 
@@ -142,6 +142,7 @@ class TaskRow:
     artifact: str
     note: str = ""
     variant: str = ""  # "" for the steps every variant shares
+    warning: str = ""  # the artifact's own ``warning`` attribute (e.g. nothing was squeezed, and the likely cause)
 
 
 @dataclass
@@ -179,8 +180,13 @@ class RunTable:
             return TaskRow(obj, step, "failed", 0.0, 0, "", msg, variant)
         ref: ArtifactRef = future.result()
         cached = state.name == "Cached" or ref.reused
+        try:
+            warning = str(read_group_attrs(ref.path).get("warning") or "")
+        except ArtifactError:
+            warning = ""
+        note = "; ".join(n for n in ("reused from disk" if ref.reused else "", warning and f"WARNING {warning}") if n)
         return TaskRow(obj, step, "cached" if cached else "ran", 0.0 if cached else ref.compute_seconds,
-                       directory_size(ref.path), ref.path, "reused from disk" if ref.reused else "", variant)
+                       directory_size(ref.path), ref.path, note, variant, warning)
 
     def frame(self) -> pd.DataFrame:
         return pd.DataFrame([r.__dict__ for r in self.rows],
