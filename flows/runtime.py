@@ -132,6 +132,14 @@ def claim_prefect_database(connection_url: str | None) -> dict:
     return {}
 
 
+def artifact_warning(path: str | Path) -> str:
+    """The ``warning`` attribute a step stored on its artifact (e.g. "nothing was squeezed: ..."), or ""."""
+    try:
+        return str(read_group_attrs(path).get("attrs", {}).get("warning") or "")
+    except ArtifactError:
+        return ""
+
+
 @dataclass
 class TaskRow:
     object: str
@@ -180,10 +188,7 @@ class RunTable:
             return TaskRow(obj, step, "failed", 0.0, 0, "", msg, variant)
         ref: ArtifactRef = future.result()
         cached = state.name == "Cached" or ref.reused
-        try:
-            warning = str(read_group_attrs(ref.path).get("warning") or "")
-        except ArtifactError:
-            warning = ""
+        warning = artifact_warning(ref.path)
         note = "; ".join(n for n in ("reused from disk" if ref.reused else "", warning and f"WARNING {warning}") if n)
         return TaskRow(obj, step, "cached" if cached else "ran", 0.0 if cached else ref.compute_seconds,
                        directory_size(ref.path), ref.path, note, variant, warning)
