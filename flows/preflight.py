@@ -90,7 +90,8 @@ def check_work(cfg: DictConfig, est: WorkEstimate, span_from: str) -> None:
                          f"lower mpm.target_substeps_per_frame or run fewer objects (or raise the limit)")
     if est.largest_bytes > lim.max_artifact_bytes:
         raise SystemExit(f"work limit: the {est.largest} would hold about {est.largest_bytes / 2**30:.3g} GiB, above "
-                         f"limits.max_artifact_bytes={lim.max_artifact_bytes:.4g} ({lim.max_artifact_bytes / 2**30:.3g} GiB): shorten the squeeze, raise "
+                         f"limits.max_artifact_bytes={lim.max_artifact_bytes:.4g} "
+                         f"({lim.max_artifact_bytes / 2**30:.3g} GiB): shorten the squeeze, raise "
                          f"sampling.particle_spacing or render.frame_stride (or raise the limit)")
 
 
@@ -103,7 +104,7 @@ def _check_reach(cfg: DictConfig, tips: np.ndarray, time: np.ndarray) -> None:
         i = int(np.argmin(gap.min(axis=1)))
         near = max(_NEAR, 2 * float(np.max(obj.geometry.size)))
         if gap[i].min() > near:
-            raise SystemExit(f"input error: signal.path: no fingertip comes within {near:g} m of {key} (closest "
+            raise SystemExit(f"input error: signal.path: no fingertip comes within {near:g} m of {obj.name} ({key}; closest "
                              f"{gap[i].min():.3g} m, at t = {time[i]:.3g} s): nothing would be squeezed; write the "
                              f"positions in the object's frame (metres, object centred at the origin, z up)")
 
@@ -120,7 +121,7 @@ def preflight(cfg: DictConfig) -> None:
         raise SystemExit(f"config error: {exc}") from None
     # 2. the recording, read exactly as the squeeze_signals step reads it
     span, span_from = float(cfg.signal.duration), f"signal.duration {cfg.signal.duration:g} s"
-    if cfg.signal.source == "csv":
+    if cfg.signal.source == "csv":  # imported here: pandas (and Prefect, below) only when a file is to be read
         from tasks.control.recording import SignalError, read_recording
 
         try:
@@ -130,7 +131,7 @@ def preflight(cfg: DictConfig) -> None:
         span = float(rec["time"][-1] - rec["time"][0])
         span_from = f"the recording's {span:g} s"
         _check_reach(cfg, rec["fingertip_positions"], rec["time"])
-    # 3. the work, before any file is loaded
+    # 3. the work, before any geometry file is loaded
     check_work(cfg, estimate_work(cfg, span), span_from)
     # 4. geometry files of the selected objects
     for key, obj in _objects(cfg):

@@ -211,7 +211,7 @@ def test_a_rescaled_mesh_is_stated_and_a_recording_far_from_the_object_is_refuse
     far = _recording(tmp_path / "far.csv", offset=1.0)
     with pytest.raises(SystemExit) as exc:
         preflight(compose_cfg("squeeze", ["object=can", "signal=csv", f"signal.path={far}"]))
-    assert str(exc.value).startswith("input error: signal.path: no fingertip comes within 0.25 m of object (closest ")
+    assert str(exc.value).startswith("input error: signal.path: no fingertip comes within 0.25 m of can (object; closest ")
     assert str(exc.value).endswith("nothing would be squeezed; write the positions in the object's frame (metres, "
                                    "object centred at the origin, z up)")
     preflight(compose_cfg("squeeze", ["object=can", "signal=csv", f"signal.path={_recording(tmp_path / 'ok.csv')}"]))
