@@ -556,7 +556,7 @@ def test_unit_and_scale_mistakes_are_refused_with_the_fix(tmp_path, sessions):
 def test_a_broken_tail_is_quoted_as_a_short_excerpt(tmp_path):
     """A recording whose tail is zero-filled (a crashed copy) or holds one huge garbage cell is reported with an
     excerpt of at most EXCERPT_CHARS characters, not echoed whole."""
-    from tasks.control.recording import EXCERPT_CHARS
+    from tasks.core.excerpt import EXCERPT_CHARS
 
     good = _write_table(tmp_path / "good.csv", _good_rows(6)).read_bytes()
     zeros = tmp_path / "zeros.csv"

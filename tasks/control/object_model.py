@@ -80,6 +80,7 @@ from tasks.control.geometry import (
     tangent_basis,
 )
 from tasks.core.artifacts import Array
+from tasks.core.excerpt import one_line
 from tasks.core.step import artifact_step
 
 __all__ = [
@@ -568,7 +569,7 @@ def load_checked_mesh(path: str | None):
     try:
         mesh = trimesh.load(str(p), force="mesh", process=True)
     except Exception as exc:  # trimesh raises many types
-        raise ObjectModelError(f"mesh {p} could not be loaded ({type(exc).__name__}: {exc}): "
+        raise ObjectModelError(f"mesh {p} could not be loaded ({type(exc).__name__}: {one_line(exc)}): "
                                "export it as OBJ, PLY, STL or GLB") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ObjectModelError(f"mesh {p} is empty (0 faces): export the object's surface as triangles "

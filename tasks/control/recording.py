@@ -29,7 +29,7 @@ Recording format (CSV, one row per sensor sample)
   vectors into the object frame.  Non-unit quaternions are normalised; an all-zero quaternion is an error.
   Palm frame used by the synthetic sessions: z = palm normal pointing at the object, x = from the thumb
   side toward the four fingers, y = z x x.
-* Messages quote at most ``EXCERPT_CHARS`` characters of the file (a zero-filled tail is not echoed).
+* Messages quote at most ``tasks.core.excerpt.EXCERPT_CHARS`` (80) characters of the file (a zero-filled tail is not echoed).
 * Every value must be a finite number.  Empty cells, ``nan`` and ``inf`` are errors naming the row.  Every row
   must have as many fields as the header (a longer row, e.g. two rows merged by a lost newline, is an error).
 * Reading uses pandas' C parser: 1e6 rows x 28 columns (360-560 MB) read in ~3-9 s on a 2-core machine, and
@@ -59,6 +59,7 @@ import numpy as np
 import pandas as pd
 
 from conf.hand import FINGERS
+from tasks.core.excerpt import excerpt, one_line
 
 log = logging.getLogger(__name__)
 
@@ -87,22 +88,6 @@ _SIGNAL_NAMES = ("time", "flexion", "fingertip_positions", "palm_position", "pal
 
 
 # ============================================================================================ recordings
-EXCERPT_CHARS = 80  # longest excerpt of a file's content or an exception text quoted in a message
-
-
-def _one_line(text: Any) -> str:
-    """``text`` on one line, cut to ``EXCERPT_CHARS`` (a broken 250 MB file must not print a 1 GB line)."""
-    line = " ".join(str(text)[:4 * EXCERPT_CHARS].split())
-    return line if len(line) <= EXCERPT_CHARS else line[:EXCERPT_CHARS - 3] + "..."
-
-
-def _excerpt(value: str) -> str:
-    """``repr`` of a cell's text, cut to ``EXCERPT_CHARS`` with its full length named."""
-    if len(value) <= EXCERPT_CHARS:
-        return repr(value)
-    return f"{value[:EXCERPT_CHARS]!r}... ({len(value)} characters)"
-
-
 def check_recording_size(path: str | Path, max_bytes: int | None = MAX_RECORDING_BYTES) -> None:
     """Refuse a recording larger than ``max_bytes`` (None: no limit) before anything reads or hashes it."""
     p = Path(path)
@@ -164,7 +149,7 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
         raise SignalError(f"recording {name} is empty (no header row); write a header row "
                           f"'{','.join(REQUIRED_COLUMNS[:3])},...' followed by samples") from None
     except (pd.errors.ParserError, UnicodeDecodeError, ValueError) as exc:
-        raise SignalError(f"recording {name} is not a readable CSV ({_one_line(exc)}); save it as "
+        raise SignalError(f"recording {name} is not a readable CSV ({one_line(exc)}); save it as "
                           f"comma-separated UTF-8 text with a header row") from None
     present: dict[str, Any] = {}
     for col in header.columns:
@@ -172,7 +157,7 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
         present.setdefault(key, col)
     missing = [c for c in REQUIRED_COLUMNS if c not in present]
     if len(missing) == len(REQUIRED_COLUMNS):
-        first = _one_line(",".join(str(c) for c in list(header.columns)[:4]))
+        first = one_line(",".join(str(c) for c in list(header.columns)[:4]))
         raise SignalError(f"recording {name} has none of the required columns (the header row seems to be "
                           f"missing; line 1 reads '{first},...'); add a header row time,flex_<finger>,"
                           f"tip_<finger>_x/y/z,palm_x/y/z,palm_qw/qx/qy/qz (format: tasks/control/recording.py)")
@@ -304,7 +289,7 @@ def _locate_bad_cell(p: Path, name: str, original: list, read_kw: dict, exc: Exc
     try:
         df = pd.read_csv(p, dtype=str, keep_default_na=True, **read_kw)
     except (ValueError, pd.errors.ParserError) as exc2:
-        raise SignalError(f"recording {name} is not a readable CSV ({_one_line(exc2)}); every row must "
+        raise SignalError(f"recording {name} is not a readable CSV ({one_line(exc2)}); every row must "
                           f"have as many comma-separated fields as the header") from None
     first: tuple[int, int, str] | None = None
     for j, col in enumerate(original):
@@ -315,13 +300,13 @@ def _locate_bad_cell(p: Path, name: str, original: list, read_kw: dict, exc: Exc
         if hits.size and (first is None or hits[0] < first[0]):
             first = (int(hits[0]), j, str(text.iloc[int(hits[0])]))
     if first is None:  # pandas refused for another reason
-        raise SignalError(f"recording {name} could not be parsed as numbers ({_one_line(exc)}); every "
+        raise SignalError(f"recording {name} could not be parsed as numbers ({one_line(exc)}); every "
                           f"required column must hold plain numbers") from None
     row, j, value = first
     if row == len(df) - 1:
         _refuse_truncated(p, name, row, len(df.columns))
     raise SignalError(f"recording {name}: column {REQUIRED_COLUMNS[j]} row {row + 1} (line {row + 2}) holds "
-                      f"non-numeric {_excerpt(value)}; write a plain number (decimal point, no units)")
+                      f"non-numeric {excerpt(value)}; write a plain number (decimal point, no units)")
 
 
 def validate_signals(signals: Mapping[str, Any], where: str = "signals") -> dict[str, np.ndarray]:
