@@ -528,12 +528,13 @@ def test_recording_above_the_size_limit_is_refused_unread(tmp_path):
 
 
 def test_unit_and_scale_mistakes_are_refused_with_the_fix(tmp_path, sessions):
-    """Percent 0..100 flexion, millisecond timestamps and millimetre positions would each squeeze nothing (or run
+    """Percent 0..100 flexion, millisecond timestamps and mm or cm positions would each squeeze nothing (or run
     for hours): each is one line naming the file, what it looks like and the conversion to apply."""
     s = sessions["pulses"]
     percent = dict(s, flexion=s["flexion"] * 100)
     millis = dict(s, time=s["time"] * 1000)
     mm = dict(s, fingertip_positions=s["fingertip_positions"] * 1000, palm_position=s["palm_position"] * 1000)
+    cm = dict(s, fingertip_positions=s["fingertip_positions"] * 100, palm_position=s["palm_position"] * 100)
     peak = float(np.max(s["flexion"]) * 100)
     reach = float(np.linalg.norm(mm["fingertip_positions"] - mm["palm_position"][:, None], axis=-1).max())
     step = float(np.median(np.diff(millis["time"])))
@@ -546,6 +547,8 @@ def test_unit_and_scale_mistakes_are_refused_with_the_fix(tmp_path, sessions):
                                f"time column looks like milliseconds: divide it by 1000 (seconds are expected)"),
         ("mm.csv", mm, f"fingertip positions reach {reach:.4g} m from the palm (a hand spans ~0.2 m); the CSV looks "
                        f"like millimetres: divide the tip_ and palm_x/y/z columns by 1000"),
+        ("cm.csv", cm, f"fingertip positions reach {reach / 10:.4g} m from the palm (a hand spans ~0.2 m); the CSV "
+                       f"looks like centimetres: divide the tip_ and palm_x/y/z columns by 100"),
     ):
         path = write_recording(tmp_path / name, sig)
         with pytest.raises(SignalError) as err:

@@ -23,7 +23,7 @@ Recording format (CSV, one row per sensor sample)
   [-0.05, 1.05] (a small calibration overshoot is tolerated) and is then clipped to [0, 1].
 * ``tip_<finger>_x, tip_<finger>_y, tip_<finger>_z`` for the five fingers (thumb, index, middle, ring,
   pinky) - fingertip positions in metres (m), in the object's frame (object centred at the origin, z up).  A
-  fingertip more than 1 m from the palm is refused as millimetres, with the fix.
+  fingertip more than 1 m from the palm is refused as millimetres (or centimetres), with the fix.
 * ``palm_x, palm_y, palm_z`` - palm centre in metres (m), same frame.
 * ``palm_qw, palm_qx, palm_qy, palm_qz`` - palm orientation as a quaternion (w first) rotating palm-frame
   vectors into the object frame.  Non-unit quaternions are normalised; an all-zero quaternion is an error.
@@ -250,8 +250,9 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
     # --- positions: a hand's fingertips stay within ~0.25 m of its palm
     reach = float(np.linalg.norm(tips - palm[:, None, :], axis=-1).max())
     if reach > _MAX_REACH:
+        unit, factor = ("millimetres", 1000) if reach > 30 else ("centimetres", 100)  # a hand: 8-20 cm, 80-200 mm
         raise SignalError(f"recording {name}: fingertip positions reach {reach:.4g} m from the palm (a hand spans "
-                          f"~0.2 m); the CSV looks like millimetres: divide the tip_ and palm_x/y/z columns by 1000")
+                          f"~0.2 m); the CSV looks like {unit}: divide the tip_ and palm_x/y/z columns by {factor}")
 
     # --- quaternions
     norm = np.linalg.norm(quat, axis=1)
