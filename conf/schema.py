@@ -266,7 +266,7 @@ class LimitsConfig:
 
     max_frames: int = 9000  # output frames of one squeeze (5 min at 30 Hz)
     max_particle_steps: float = 1e11  # particles x substeps x frames summed over the objects x variants of the run
-    max_artifact_bytes: float = 8 * 2**30  # bytes of the largest artifact (the MPM rollout's per-frame arrays)
+    max_artifact_bytes: float = 8 * 2**30  # bytes of the largest artifact (the MPM rollout or the render g-buffer)
 
 
 @dataclass
