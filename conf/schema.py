@@ -6,10 +6,12 @@ Range checks that the type system cannot express live in :func:`validate` and ru
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+import difflib
+import math
+from dataclasses import dataclass, field, fields, is_dataclass
 from typing import Any, Optional
 
-from omegaconf import MISSING
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
 from conf.generation_schema import GenerationConfig, RefinementConfig, VideoMetricsConfig, validate_generation
 from conf.hand import FINGERS
@@ -257,6 +259,17 @@ class GridConfig:
 
 
 @dataclass
+class LimitsConfig:
+    """Bounds on a run's work, checked against the estimate of :func:`flows.preflight.estimate_work` before the
+    flow starts (a run beyond one is refused with the estimate and this knob).  The defaults pass the default grid
+    (91 frames, 1.6e9 particle-substeps, a 130 MB artifact at most) with a wide margin."""
+
+    max_frames: int = 9000  # output frames of one squeeze (5 min at 30 Hz)
+    max_particle_steps: float = 1e11  # particles x substeps x frames summed over the objects x variants of the run
+    max_artifact_bytes: float = 8 * 2**30  # bytes of the largest artifact (the MPM rollout or the render g-buffer)
+
+
+@dataclass
 class Config:
     object: Optional[ObjectConfig] = None
     catalog: dict[str, ObjectConfig] = field(default_factory=dict)
@@ -279,6 +292,7 @@ class Config:
     llm_judge: LLMJudgeConfig = field(default_factory=LLMJudgeConfig)
     run_name: Optional[str] = None  # report folder name; default: flow name + time stamp
     accuracy: dict[str, str] = field(default_factory=dict)  # the preset's measured error (conf/preset/), reported
+    limits: LimitsConfig = field(default_factory=LimitsConfig)
 
 
 def register_configs() -> None:
@@ -298,6 +312,8 @@ def validate(cfg: Any) -> None:
         if not ok:
             raise ConfigError(f"{key} {msg}")
 
+    _refuse_unknown_keys(cfg)
+    _refuse_non_finite(cfg)
     s, c = cfg.signal, cfg.control
     need(s.source in ("synthetic", "csv"), "signal.source", f"must be synthetic or csv, got {s.source!r}")
     need(s.source != "csv" or bool(s.path), "signal.path", "is required with signal=csv: signal.path=/abs/rec.csv")
@@ -326,6 +342,11 @@ def validate(cfg: Any) -> None:
     need(0 < sim.ruptured_softening <= 1, "simulation.ruptured_softening",
          f"must be in (0, 1], got {sim.ruptured_softening}")
     _validate_inputs(cfg, need)
+    lim = cfg.limits
+    for key in ("max_frames", "max_particle_steps", "max_artifact_bytes"):
+        need(lim[key] > 0, f"limits.{key}", f"must be > 0, got {lim[key]}")
+    need(cfg.object is not None or len(cfg.grid.objects) > 0, "grid.objects",
+         f"is empty: name at least one object, e.g. [rubber_ball] (known {sorted(cfg.catalog)})")
     for name in cfg.grid.objects:
         need(name in cfg.catalog or (cfg.object is not None and cfg.object.name == name) or not cfg.catalog,
              "grid.objects", f"names unknown object {name!r}: known {sorted(cfg.catalog)}")
@@ -397,3 +418,46 @@ def _validate_inputs(cfg: Any, need: Any) -> None:
              "must be the http(s) base URL of an OpenAI-compatible API with oracle.backend=llm "
              "(e.g. http://127.0.0.1:8000/v1), or use oracle.backend=table")
         need(bool(o.api_key_env), "oracle.api_key_env", "must name the environment variable that holds the API key")
+
+
+def _nodes(node: Any, key: str = ""):
+    """Every (full key, node) of a composed config, depth first (None-valued groups are leaves)."""
+    yield key, node
+    if isinstance(node, (DictConfig, ListConfig)) and not node._is_none() and not node._is_missing():
+        items = node.items_ex(resolve=False) if isinstance(node, DictConfig) else enumerate(node._content)
+        for k, _ in items:
+            child = node._get_node(k)
+            yield from _nodes(child, f"{key}.{k}" if key and isinstance(node, DictConfig) else
+                              (f"{key}[{k}]" if key else str(k)))
+
+
+def _refuse_unknown_keys(cfg: Any) -> None:
+    """A key added with ``+`` to a structured group (``+control.force.gama=2``, which Hydra's own typo hint
+    suggests) would be stored and ignored: refuse it, naming the closest known key."""
+    for key, node in _nodes(cfg):
+        if not isinstance(node, DictConfig) or node._is_none():
+            continue
+        schema = OmegaConf.get_type(node)
+        if not (isinstance(schema, type) and is_dataclass(schema)):
+            continue
+        known = [f.name for f in fields(schema)]
+        for name in node.keys():
+            if name not in known:
+                full = f"{key}.{name}" if key else str(name)
+                close = difflib.get_close_matches(str(name), known, n=1)
+                hint = f"did you mean {(key + '.' if key else '') + close[0]}?" if close else f"known: {', '.join(known)}"
+                raise ConfigError(f"{full} is not a key of {schema.__name__} (it would be ignored): {hint}")
+
+
+def _refuse_non_finite(cfg: Any) -> None:
+    """``inf`` and ``nan`` pass every ``> 0`` check and reach the method as NaN fields: refuse any non-finite
+    number anywhere in the config, naming its key."""
+    for key, node in _nodes(cfg):
+        if isinstance(node, (DictConfig, ListConfig)):
+            continue
+        try:
+            value = node._dereference_node()._value() if node._is_interpolation() else node._value()
+        except Exception:  # noqa: BLE001 - an interpolation only Hydra's runtime resolves (e.g. ${now:...})
+            continue
+        if isinstance(value, float) and not math.isfinite(value):
+            raise ConfigError(f"{key} must be a finite number, got {value}")

@@ -101,11 +101,13 @@ def convergence_flow(configs: dict[str, dict], sweep: dict, report_dir: str) -> 
 
 def run_convergence(cfg: DictConfig) -> dict:
     """Entry used by the Hydra main and the tests: validate, build the settings, run the sweep flow."""
-    from conf.schema import ConfigError, validate
+    from conf.schema import ConfigError
+    from flows.preflight import preflight
+
+    preflight(cfg)  # the base config and its input files, one line before anything starts
     from flows.runtime import make_task_runner, result_storage_settings
 
     try:
-        validate(cfg)
         validate_convergence(cfg)
     except ConfigError as exc:
         raise SystemExit(f"config error: {exc}") from None

@@ -5,23 +5,28 @@ A bad input stops the run with one line naming the input (its config key) and th
 
 1. the config's ranges (:func:`conf.schema.validate`);
 2. the SenseGlove recording (``signal=csv``): it exists, is at most ``MAX_RECORDING_BYTES``, and parses
-   completely (columns, numbers, ranges, truncation), with the reader the step uses;
-3. every selected object's geometry file (``kind: mesh`` or ``ply``): it exists and is a closed,
-   self-intersection-free mesh or a 3DGS PLY in the Inria layout, with the loader the step uses;
-4. the diffusion weights when a diffusion backend runs: every model present in ``generation.weights`` (a message
+   completely (columns, numbers, ranges, truncation, units), with the reader the step uses; some fingertip comes
+   near every selected object (the recording is in the object's frame);
+3. every selected object's geometry file (``kind: mesh`` or ``ply``): it exists and is a closed, non-flat,
+   self-intersection-free mesh or a 3DGS PLY in the Inria layout, with the loader the step uses, and its fit
+   into ``geometry.size`` is a plausible scale (a line states the factor when it is not 1);
+4. the run's work (:func:`estimate_work`: frames, particle-substeps, bytes of the largest artifact) against
+   ``limits``: a run beyond one is refused with the estimate and the knob to change;
+5. the LLM judge's endpoint settings when ``llm_judge.url`` is set;
+6. the diffusion weights when a diffusion backend runs: every model present in ``generation.weights`` (a message
    naming each missing model, the folder expected and how to fetch it); their identity (configs + file digests)
    is recorded in ``generation.weights_digest``, which is part of the effect step's cache key.
 """
 from __future__ import annotations
 
+import math
+from dataclasses import dataclass
 from typing import Any
 
-from omegaconf import DictConfig
+import numpy as np
+from omegaconf import DictConfig, OmegaConf
 
 from conf.schema import ConfigError, validate
-from tasks.control.gaussian_ply import GaussianPlyError
-from tasks.control.object_model import ObjectModelError, check_geometry_file
-from tasks.control.recording import SignalError, read_recording
 
 
 def _objects(cfg: DictConfig) -> list[tuple[str, Any]]:
@@ -30,28 +35,125 @@ def _objects(cfg: DictConfig) -> list[tuple[str, Any]]:
     return [(f"catalog.{name}", cfg.catalog[name]) for name in cfg.grid.objects if name in cfg.catalog]
 
 
+# A hand's fingertips come closer than this to the object they squeeze (m; or twice the object's largest size)
+_NEAR = 0.25
+# bytes per frame and particle / surface point / pixel of the two largest artifacts (mpm_rollout: float32
+# positions, J, von Mises, plastic strain; Gaussian positions, covariances, rotations; gbuffer: sRGB + 4 float32 maps)
+_ROLLOUT_BYTES_PER_PARTICLE, _ROLLOUT_BYTES_PER_POINT, _GBUFFER_BYTES_PER_PIXEL = 24, 52, 19
+_PASSED: list[str] = []  # the config last checked (run() checks again what the main already checked)
+
+
+@dataclass(frozen=True)
+class WorkEstimate:
+    """A run's work, from the config alone: output frames of one squeeze, particle-substeps summed over the run's
+    objects x variants (particles bounded by each object's box / spacing^3), and the largest artifact's bytes."""
+
+    frames: int
+    particles: int  # of the largest object
+    substeps: int  # per frame
+    particle_steps: float
+    largest_bytes: float
+    largest: str  # which artifact of which object
+
+
+def estimate_work(cfg: DictConfig, span: float) -> WorkEstimate:
+    """The work of a run whose squeeze lasts ``span`` seconds (``signal.duration`` or the recording's span)."""
+    frames = int(span * cfg.control.smoothing.frame_rate) + 1
+    m = cfg.mpm
+    substeps = (math.ceil(1.0 / (cfg.control.smoothing.frame_rate * m.dt)) if m.dt
+                else int(m.target_substeps_per_frame))  # the mass-scaled budget (unscaled runs: the CFL decides)
+    n_variants = 1 if cfg.variant is not None else len(cfg.grid.variants)
+    r, points = cfg.render, int(cfg.sampling.surface_points)
+    gbuffer = math.ceil(frames / r.frame_stride) * r.views * r.width * r.height * _GBUFFER_BYTES_PER_PIXEL
+    steps, largest, particles_max = 0.0, (0.0, ""), 0
+    for key, obj in _objects(cfg):
+        particles = int(math.prod(obj.geometry.size) / cfg.sampling.particle_spacing ** 3)
+        particles_max = max(particles_max, particles)
+        steps += n_variants * particles * substeps * frames
+        rollout = frames * (particles * _ROLLOUT_BYTES_PER_PARTICLE + points * _ROLLOUT_BYTES_PER_POINT)
+        for nbytes, what in ((rollout, f"mpm_rollout of {key}"), (gbuffer, f"gbuffer of {key}")):
+            largest = max(largest, (float(nbytes), what))
+    return WorkEstimate(frames, particles_max, substeps, steps, largest[0], largest[1])
+
+
+def check_work(cfg: DictConfig, est: WorkEstimate, span_from: str) -> None:
+    """Refuse a run beyond ``limits`` with the estimate and the knobs to change (``SystemExit``)."""
+    lim = cfg.limits
+    if est.frames > lim.max_frames:
+        raise SystemExit(f"work limit: {est.frames} frames per squeeze ({span_from} x control.smoothing.frame_rate "
+                         f"{cfg.control.smoothing.frame_rate:g} Hz), above limits.max_frames={lim.max_frames}: shorten "
+                         f"the squeeze or lower the frame rate (or raise limits.max_frames)")
+    if est.particle_steps > lim.max_particle_steps:
+        raise SystemExit(f"work limit: about {est.particle_steps:.3g} particle-substeps (up to {est.particles} "
+                         f"particles x {est.substeps} substeps x {est.frames} frames per object and variant), above "
+                         f"limits.max_particle_steps={lim.max_particle_steps:g}: raise sampling.particle_spacing, "
+                         f"lower mpm.target_substeps_per_frame or run fewer objects (or raise the limit)")
+    if est.largest_bytes > lim.max_artifact_bytes:
+        raise SystemExit(f"work limit: the {est.largest} would hold about {est.largest_bytes / 2**30:.3g} GiB, above "
+                         f"limits.max_artifact_bytes={lim.max_artifact_bytes:.4g} "
+                         f"({lim.max_artifact_bytes / 2**30:.3g} GiB): shorten the squeeze, raise "
+                         f"sampling.particle_spacing or render.frame_stride (or raise the limit)")
+
+
+def _check_reach(cfg: DictConfig, tips: np.ndarray, time: np.ndarray) -> None:
+    """Refuse a recording whose fingertips never come near a selected object (centred at the origin): it was
+    recorded in another frame (e.g. the tracker's room coordinates) and would squeeze nothing."""
+    for key, obj in _objects(cfg):
+        half = 0.5 * np.asarray(obj.geometry.size, float)
+        gap = np.linalg.norm(np.maximum(np.abs(tips) - half, 0.0), axis=-1)  # (sample, finger) m to the box
+        i = int(np.argmin(gap.min(axis=1)))
+        near = max(_NEAR, 2 * float(np.max(obj.geometry.size)))
+        if gap[i].min() > near:
+            raise SystemExit(f"input error: signal.path: no fingertip comes within {near:g} m of {obj.name} ({key}; closest "
+                             f"{gap[i].min():.3g} m, at t = {time[i]:.3g} s): nothing would be squeezed; write the "
+                             f"positions in the object's frame (metres, object centred at the origin, z up)")
+
+
 def preflight(cfg: DictConfig) -> None:
     """Refuse a bad config or input file with one line (``SystemExit``) before anything heavy starts; record the
     diffusion weights' identity in the config."""
+    if _PASSED and _PASSED[0] == OmegaConf.to_yaml(cfg):
+        return
     # 1. config ranges
     try:
         validate(cfg)
     except ConfigError as exc:
         raise SystemExit(f"config error: {exc}") from None
     # 2. the recording, read exactly as the squeeze_signals step reads it
-    if cfg.signal.source == "csv":
+    span, span_from = float(cfg.signal.duration), f"signal.duration {cfg.signal.duration:g} s"
+    if cfg.signal.source == "csv":  # imported here: pandas (and Prefect, below) only when a file is to be read
+        from tasks.control.recording import SignalError, read_recording
+
         try:
-            read_recording(cfg.signal.path, frame_rate=cfg.control.smoothing.frame_rate)
+            rec = read_recording(cfg.signal.path, frame_rate=cfg.control.smoothing.frame_rate)
         except SignalError as exc:
             raise SystemExit(f"input error: signal.path: {exc}") from None
-    # 3. geometry files of the selected objects
+        span = float(rec["time"][-1] - rec["time"][0])
+        span_from = f"the recording's {span:g} s"
+        _check_reach(cfg, rec["fingertip_positions"], rec["time"])
+    # 3. the work, before any geometry file is loaded
+    check_work(cfg, estimate_work(cfg, span), span_from)
+    # 4. geometry files of the selected objects
     for key, obj in _objects(cfg):
         if obj.geometry.kind in ("mesh", "ply"):
+            from tasks.control.gaussian_ply import GaussianPlyError
+            from tasks.control.object_model import ObjectModelError, check_geometry_file
+
             try:
-                check_geometry_file(obj.geometry.kind, obj.geometry.path)
+                fitted = check_geometry_file(obj.geometry.kind, obj.geometry.path, list(obj.geometry.size))
             except (ObjectModelError, GaussianPlyError) as exc:
                 raise SystemExit(f"input error: {key}.geometry.path: {exc}") from None
-    # 4. diffusion weights
+            if fitted:
+                print(f"{key}.geometry.path: {fitted}", flush=True)
+    # 5. the LLM judge's endpoint settings (its requests come last, after the whole simulation)
+    if cfg.llm_judge.url:
+        from tasks.evaluation.llm_judge import JudgeConfig, LLMJudgeError, check_judge_config
+
+        try:
+            check_judge_config(JudgeConfig(**OmegaConf.to_container(cfg.llm_judge, resolve=True)))
+        except LLMJudgeError as exc:
+            raise SystemExit(f"config error: {exc}") from None
+    # 6. diffusion weights
     backends = list(cfg.grid.backends) if cfg.grid.backends else [cfg.generation.backend]
     if {"diffusers", "text_only"} & set(backends):
         from tasks.core.artifacts import digest_of
@@ -67,3 +169,4 @@ def preflight(cfg: DictConfig) -> None:
         if missing:
             raise SystemExit(f"input error: generation.weights: {missing_weights_message(missing)}")
         cfg.generation.weights_digest = digest_of(weights_identity(weights))
+    _PASSED[:] = [OmegaConf.to_yaml(cfg)]

@@ -12,7 +12,7 @@ from omegaconf import DictConfig
 from prefect.logging import get_logger
 from prefect.task_runners import ThreadPoolTaskRunner
 
-from tasks.core.artifacts import ArtifactRef, directory_size
+from tasks.core.artifacts import ArtifactError, ArtifactRef, directory_size, read_group_attrs
 
 log = get_logger("virsqueezer")
 
@@ -132,6 +132,14 @@ def claim_prefect_database(connection_url: str | None) -> dict:
     return {}
 
 
+def artifact_warning(path: str | Path) -> str:
+    """The ``warning`` attribute a step stored on its artifact (e.g. "nothing was squeezed: ..."), or ""."""
+    try:
+        return str(read_group_attrs(path).get("attrs", {}).get("warning") or "")
+    except ArtifactError:
+        return ""
+
+
 @dataclass
 class TaskRow:
     object: str
@@ -142,6 +150,7 @@ class TaskRow:
     artifact: str
     note: str = ""
     variant: str = ""  # "" for the steps every variant shares
+    warning: str = ""  # the artifact's own ``warning`` attribute (e.g. nothing was squeezed, and the likely cause)
 
 
 @dataclass
@@ -180,8 +189,10 @@ class RunTable:
             return None, TaskRow(obj, step, "failed", 0.0, 0, "", msg, variant)
         ref: ArtifactRef = future.result().at(root)
         cached = state.name == "Cached" or ref.reused
+        warning = artifact_warning(ref.path)
+        note = "; ".join(n for n in ("reused from disk" if ref.reused else "", warning and f"WARNING {warning}") if n)
         return ref, TaskRow(obj, step, "cached" if cached else "ran", 0.0 if cached else ref.compute_seconds,
-                            directory_size(ref.path), ref.path, "reused from disk" if ref.reused else "", variant)
+                            directory_size(ref.path), ref.path, note, variant, warning)
 
     def frame(self) -> pd.DataFrame:
         return pd.DataFrame([r.__dict__ for r in self.rows],

@@ -123,3 +123,48 @@ def test_cfg_job_prints_the_config():
                          capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     assert "catalog:" in out.stdout and "gamma: 1.5" in out.stdout and "rubber_duck" in out.stdout
+
+
+@pytest.mark.parametrize("override,key,value", [
+    ("signal.duration=inf", "signal.duration", "inf"),
+    ("control.smoothing.frame_rate=inf", "control.smoothing.frame_rate", "inf"),
+    ("control.displacement.eta=inf", "control.displacement.eta", "inf"),
+    ("control.contact.sigma_max=inf", "control.contact.sigma_max", "inf"),
+    ("signal.sensor_rate=nan", "signal.sensor_rate", "nan"),
+    ("object.material.youngs_modulus=inf", "object.material.youngs_modulus", "inf"),
+    ("control.force.weights=[1,1,1,1,-inf]", "control.force.weights[4]", "-inf"),
+    ("mpm.courant=nan", "mpm.courant", "nan"),
+])
+def test_non_finite_numbers_are_refused_everywhere(compose_cfg, override, key, value):
+    """inf passes every '> 0' check and nan every comparison: any non-finite number in the config is refused,
+    whichever group it is in."""
+    with pytest.raises(ConfigError) as exc:
+        validate(compose_cfg("squeeze", [override]))
+    assert str(exc.value) == f"{key} must be a finite number, got {value}"
+
+
+@pytest.mark.parametrize("override,line", [
+    ("+control.force.gama=2", "control.force.gama is not a key of ForceConfig (it would be ignored): did you mean "
+                              "control.force.gamma?"),
+    ("+catalog.clay.material.youngs_modulu=2e6", "catalog.clay.material.youngs_modulu is not a key of "
+                                                 "MaterialOverrides (it would be ignored): did you mean "
+                                                 "catalog.clay.material.youngs_modulus?"),
+    ("+limits.max_frame=10", "limits.max_frame is not a key of LimitsConfig (it would be ignored): did you mean "
+                             "limits.max_frames?"),
+])
+def test_a_key_added_with_plus_to_a_structured_group_is_refused(compose_cfg, override, line):
+    """Hydra's hint for a typo ('use +key=value to append') makes the typo a new key that nothing reads."""
+    with pytest.raises(ConfigError) as exc:
+        validate(compose_cfg("evaluate", [override]))
+    assert str(exc.value) == line
+
+
+def test_an_empty_grid_is_an_error(compose_cfg):
+    with pytest.raises(ConfigError) as exc:
+        validate(compose_cfg("evaluate", ["grid.objects=[]"]))
+    assert str(exc.value) == ("grid.objects is empty: name at least one object, e.g. [rubber_ball] (known ['can', "
+                              "'clay', 'orange', 'paper_cup', 'plush_toy', 'rubber_ball', 'rubber_duck', 'tomato'])")
+    with pytest.raises(ConfigError) as exc:
+        validate(compose_cfg("evaluate", ["grid.variants=[]"]))
+    assert str(exc.value) == "grid.variants is empty: name at least one variant, e.g. [full]"
+    validate(compose_cfg("evaluate", ["grid.objects=[]", "object=clay"]))  # one object selected: no grid needed

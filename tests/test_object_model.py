@@ -475,3 +475,25 @@ def test_self_intersecting_mesh_is_refused_with_the_file_and_the_fix(tmp_path):
         msg = str(exc.value)
         assert msg.startswith(f"mesh {tmp_path / name} intersects itself (") and "boolean union" in msg
         assert "\n" not in msg
+
+
+def test_a_user_file_keeps_its_size_or_states_the_rescale(tmp_path):
+    """A mesh or splat is fitted into geometry.size: at the size given nothing is said, a rescale is one line with
+    the factor, and a file of 1 km or 1 um is refused with the fix."""
+    from tasks.control.object_model import check_geometry_file
+
+    box = trimesh.creation.box(extents=[0.05, 0.04, 0.03])
+    box.export(tmp_path / "box.stl")
+    assert check_geometry_file("mesh", str(tmp_path / "box.stl"), [0.05, 0.04, 0.03]) is None
+    assert check_geometry_file("mesh", str(tmp_path / "box.stl"), [0.1, 0.1, 0.1]) == (
+        f"mesh {tmp_path / 'box.stl'} spans 0.05 x 0.04 x 0.03 (file units): scaled by 2 to fit geometry.size "
+        f"[0.1, 0.1, 0.1] m")
+    g = random_gaussians()
+    g["means"] = g["means"] * np.float32(1e5)  # a splat of ~30 km
+    path = write_gaussian_ply(tmp_path / "km.ply", **g)
+    with pytest.raises(ObjectModelError) as exc:
+        check_geometry_file("ply", str(path), [0.05, 0.05, 0.05])
+    msg = str(exc.value)
+    assert msg.startswith(f"PLY {path} spans ") and " (file units) and would be scaled by " in msg
+    assert msg.endswith("to fit geometry.size [0.05, 0.05, 0.05] m: export it in metres or millimetres, or set "
+                        "geometry.size to the object's real size")

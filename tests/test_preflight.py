@@ -72,3 +72,157 @@ def test_missing_diffusion_weights_name_each_model_and_where_it_goes(tmp_path, c
         assert model in msg and str(tmp_path / "models" / folder) in msg
     assert msg.count("huggingface-cli download") == 3 and "nothing is downloaded" in msg
     assert not (tmp_path / "artifacts").exists()
+
+
+# ----------------------------------------------------------------------------------------------- issue 15
+def _recording(path: Path, scale: float = 1.0, offset: float = 0.0, time_scale: float = 1.0) -> Path:
+    """A 1 s squeeze of the default object at 100 Hz: fingertips 4-5 cm from its centre, palm 5 cm behind;
+    positions x ``scale`` + ``offset`` (m), times x ``time_scale``."""
+    import numpy as np
+
+    from tasks.control.recording import write_recording
+
+    n = 101
+    t = np.linspace(0.0, 1.0, n)
+    tips = np.zeros((n, 5, 3)) + [0.045, 0.0, 0.0] + np.arange(5)[None, :, None] * [0.0, 0.0, 0.01]
+    tips[:, 0] = [-0.045, 0.0, 0.0]
+    signals = {"time": t * time_scale, "flexion": np.outer(0.8 * np.sin(np.pi * t), np.ones(5)),
+               "fingertip_positions": tips * scale + offset, "palm_position": np.tile([0.0, -0.05, 0.0], (n, 1)) * scale
+               + offset, "palm_orientation": np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))}
+    return write_recording(path, signals)
+
+
+def _flat_mesh(path: Path) -> Path:
+    """A closed (watertight) tetrahedron whose four corners lie in one plane: zero volume."""
+    import numpy as np
+    import trimesh
+
+    v = np.array([[0, 0, 0], [0.05, 0, 0], [0, 0.05, 0], [0.015, 0.015, 0]], float)
+    trimesh.Trimesh(v, [[0, 2, 1], [0, 1, 3], [1, 2, 3], [2, 0, 3]], process=False).export(path)
+    return path
+
+
+def _evaluate(tmp_path: Path, *overrides: str) -> tuple[subprocess.CompletedProcess, float]:
+    import time
+
+    env = {**os.environ, "VIRSQUEEZER_ARTIFACTS": str(tmp_path / "artifacts")}
+    t0 = time.perf_counter()
+    out = subprocess.run([sys.executable, "-m", "flows.evaluate", f"paths.artifacts={tmp_path / 'artifacts'}",
+                          f"paths.reports={tmp_path / 'reports'}", *overrides],
+                         cwd=REPO, capture_output=True, text=True, timeout=300, env=env)
+    return out, time.perf_counter() - t0
+
+
+def _issue15_cases(tmp_path: Path) -> list[tuple[list[str], str]]:
+    import numpy as np
+    import trimesh
+
+    mm = _recording(tmp_path / "mm.csv", scale=1000.0)
+    ms = _recording(tmp_path / "ms.csv", time_scale=1000.0)
+    trimesh.creation.icosphere(radius=500.0).export(tmp_path / "km.stl")
+    flat = _flat_mesh(tmp_path / "flat.obj")
+    reach = float(np.linalg.norm([0.045, 0.05, 0.04]) * 1000)  # the pinky (4 cm up) to the palm, in mm
+    mesh = ["object=clay", "object.geometry.kind=mesh", "object.geometry.size=[0.05,0.05,0.05]"]
+    return [
+        (["+control.force.gama=2"], "config error: control.force.gama is not a key of ForceConfig (it would be "
+                                    "ignored): did you mean control.force.gamma?"),
+        (["control.displacement.eta=inf"], "config error: control.displacement.eta must be a finite number, got inf"),
+        (["control.contact.sigma_max=inf"], "config error: control.contact.sigma_max must be a finite number, got inf"),
+        (["grid.objects=[]"], "config error: grid.objects is empty: name at least one object, e.g. [rubber_ball] "
+                              "(known ['can', 'clay', 'orange', 'paper_cup', 'plush_toy', 'rubber_ball', "
+                              "'rubber_duck', 'tomato'])"),
+        (["signal.duration=1e5"], "work limit: 3000001 frames per squeeze (signal.duration 100000 s x "
+                                  "control.smoothing.frame_rate 30 Hz), above limits.max_frames=9000: shorten the "
+                                  "squeeze or lower the frame rate (or raise limits.max_frames)"),
+        (["control.smoothing.frame_rate=1e6"], "work limit: 3000001 frames per squeeze (signal.duration 3 s x "
+                                               "control.smoothing.frame_rate 1e+06 Hz), above limits.max_frames=9000: "
+                                               "shorten the squeeze or lower the frame rate (or raise "
+                                               "limits.max_frames)"),
+        (["object=can", "signal=csv", f"signal.path={mm}"],
+         f"input error: signal.path: recording {mm}: fingertip positions reach {reach:.4g} m from the palm (a hand "
+         f"spans ~0.2 m); the CSV looks like millimetres: divide the tip_ and palm_x/y/z columns by 1000"),
+        (["object=can", "signal=csv", f"signal.path={ms}"],
+         f"input error: signal.path: recording {ms}: time steps by 10 per sample (median; 1000 in all), a 0.1 Hz "
+         f"sensor where SenseGlove streams at 100-1000 Hz; the time column looks like milliseconds: divide it by "
+         f"1000 (seconds are expected)"),
+        ([*mesh, f"object.geometry.path={tmp_path / 'km.stl'}"],
+         f"input error: object.geometry.path: mesh {tmp_path / 'km.stl'} spans 1e+03 x 1e+03 x 1e+03 (file units) "
+         f"and would be scaled by 5e-05 to fit geometry.size [0.05, 0.05, 0.05] m: export it in metres or "
+         f"millimetres, or set geometry.size to the object's real size"),
+        ([*mesh, f"object.geometry.path={flat}"],
+         f"input error: object.geometry.path: mesh {flat} encloses no volume (0 within a 0.05 x 0.05 x 0 box, file "
+         f"units): it is flat (a sheet); give it a thickness (e.g. Blender's Solidify modifier) and export a closed "
+         f"solid"),
+    ]
+
+
+@pytest.mark.parametrize("case", range(10))
+def test_issue15_mistakes_are_one_line_from_the_real_main(tmp_path, case):
+    """Each mistake that used to run and squeeze nothing (or run for hours) stops python -m flows.evaluate with
+    exactly this line, before any step, server or artifact."""
+    overrides, expected = _issue15_cases(tmp_path)[case]
+    out, _ = _evaluate(tmp_path, *overrides)
+    lines = [line for line in out.stderr.splitlines() if line.strip()]
+    assert out.returncode == 1, out.stderr
+    assert lines == [expected]
+    assert "Traceback" not in out.stdout and "temporary server" not in out.stdout.lower()
+    assert not list((tmp_path / "artifacts").glob("*/*/*.zarr"))
+
+
+def test_work_limits_refuse_fast_and_the_default_grid_passes_with_a_margin(compose_cfg):
+    """The estimate needs the config alone: refusing a 1e5 s squeeze takes well under 5 s; the default grid
+    stays far below every default limit."""
+    import time
+
+    from flows.preflight import estimate_work, preflight
+
+    cfg = compose_cfg("evaluate", ["signal.duration=1e5"])
+    t0 = time.perf_counter()
+    with pytest.raises(SystemExit, match="^work limit: 3000001 frames per squeeze"):
+        preflight(cfg)
+    assert time.perf_counter() - t0 < 5.0
+    cfg = compose_cfg("evaluate", [])
+    est = estimate_work(cfg, cfg.signal.duration)
+    assert est.frames == 91 and est.substeps == 100
+    assert est.frames * 50 < cfg.limits.max_frames
+    assert est.particle_steps * 50 < cfg.limits.max_particle_steps
+    assert est.largest_bytes * 50 < cfg.limits.max_artifact_bytes
+    with pytest.raises(SystemExit) as exc:
+        preflight(compose_cfg("evaluate", ["limits.max_particle_steps=1e8"]))
+    assert str(exc.value) == (
+        f"work limit: about {est.particle_steps:.3g} particle-substeps (up to {est.particles} particles x 100 substeps "
+        f"x 91 frames per object and variant), above limits.max_particle_steps=1e+08: raise "
+        f"sampling.particle_spacing, lower mpm.target_substeps_per_frame or run fewer objects (or raise the limit)")
+
+
+def test_a_rescaled_mesh_is_stated_and_a_recording_far_from_the_object_is_refused(tmp_path, compose_cfg, capsys):
+    """A mesh in millimetres is fitted into geometry.size with a visible line giving the factor; a recording in
+    another frame (1 m away) is refused, naming the object."""
+    import trimesh
+
+    from flows.preflight import preflight
+
+    trimesh.creation.icosphere(radius=25.0).export(tmp_path / "mm.stl")
+    preflight(compose_cfg("squeeze", ["object=clay", "object.geometry.kind=mesh", "object.geometry.size=[0.05,0.05,0.05]",
+                                      f"object.geometry.path={tmp_path / 'mm.stl'}"]))
+    assert capsys.readouterr().out.splitlines() == [
+        f"object.geometry.path: mesh {tmp_path / 'mm.stl'} spans 50 x 50 x 50 (file units): scaled by 0.001 to fit "
+        f"geometry.size [0.05, 0.05, 0.05] m"]
+    far = _recording(tmp_path / "far.csv", offset=1.0)
+    with pytest.raises(SystemExit) as exc:
+        preflight(compose_cfg("squeeze", ["object=can", "signal=csv", f"signal.path={far}"]))
+    assert str(exc.value).startswith("input error: signal.path: no fingertip comes within 0.25 m of can (object; closest ")
+    assert str(exc.value).endswith("nothing would be squeezed; write the positions in the object's frame (metres, "
+                                   "object centred at the origin, z up)")
+    preflight(compose_cfg("squeeze", ["object=can", "signal=csv", f"signal.path={_recording(tmp_path / 'ok.csv')}"]))
+
+
+def test_llm_judge_settings_are_checked_before_the_flow(compose_cfg):
+    from flows.preflight import preflight
+
+    with pytest.raises(SystemExit) as exc:
+        preflight(compose_cfg("squeeze", ["llm_judge.url=ftp://judge.example/v1"]))
+    assert str(exc.value).startswith("config error: llm_judge.url ") and "must be the http:// or https://" in str(exc.value)
+    with pytest.raises(SystemExit) as exc:
+        preflight(compose_cfg("squeeze", ["llm_judge.url=http://127.0.0.1:9/v1", "llm_judge.frames=0"]))
+    assert str(exc.value) == "config error: llm_judge.frames 0 must be an integer >= 1 (e.g. 8)"

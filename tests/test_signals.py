@@ -525,3 +525,52 @@ def test_recording_above_the_size_limit_is_refused_unread(tmp_path):
     msg = str(err.value)
     assert msg.startswith(f"recording {path} is ") and "limit" in msg and "cut it to the squeeze" in msg
     assert len(read_recording(path, max_bytes=None)["time"]) == 50
+
+
+def test_unit_and_scale_mistakes_are_refused_with_the_fix(tmp_path, sessions):
+    """Percent 0..100 flexion, millisecond timestamps and mm or cm positions would each squeeze nothing (or run
+    for hours): each is one line naming the file, what it looks like and the conversion to apply."""
+    s = sessions["pulses"]
+    percent = dict(s, flexion=s["flexion"] * 100)
+    millis = dict(s, time=s["time"] * 1000)
+    mm = dict(s, fingertip_positions=s["fingertip_positions"] * 1000, palm_position=s["palm_position"] * 1000)
+    cm = dict(s, fingertip_positions=s["fingertip_positions"] * 100, palm_position=s["palm_position"] * 100)
+    peak = float(np.max(s["flexion"]) * 100)
+    reach = float(np.linalg.norm(mm["fingertip_positions"] - mm["palm_position"][:, None], axis=-1).max())
+    step = float(np.median(np.diff(millis["time"])))
+    for name, sig, line in (
+        ("percent.csv", percent, f"flexion peaks at {peak:.4g}, which on SenseGlove's percent-bent scale 0..10000 is "
+                                 f"{peak / 100:.2g} % bent (nothing would be squeezed); the flex_ columns look like "
+                                 f"percent 0..100: divide them by 100 (0..1) or multiply them by 100 (0..10000)"),
+        ("millis.csv", millis, f"time steps by {step:g} per sample (median; {millis['time'][-1] - millis['time'][0]:g} "
+                               f"in all), a {1 / step:.3g} Hz sensor where SenseGlove streams at 100-1000 Hz; the "
+                               f"time column looks like milliseconds: divide it by 1000 (seconds are expected)"),
+        ("mm.csv", mm, f"fingertip positions reach {reach:.4g} m from the palm (a hand spans ~0.2 m); the CSV looks "
+                       f"like millimetres: divide the tip_ and palm_x/y/z columns by 1000"),
+        ("cm.csv", cm, f"fingertip positions reach {reach / 10:.4g} m from the palm (a hand spans ~0.2 m); the CSV "
+                       f"looks like centimetres: divide the tip_ and palm_x/y/z columns by 100"),
+    ):
+        path = write_recording(tmp_path / name, sig)
+        with pytest.raises(SignalError) as err:
+            read_recording(path, frame_rate=30.0)
+        assert str(err.value) == f"recording {path}: {line}"
+
+
+def test_a_broken_tail_is_quoted_as_a_short_excerpt(tmp_path):
+    """A recording whose tail is zero-filled (a crashed copy) or holds one huge garbage cell is reported with an
+    excerpt of at most EXCERPT_CHARS characters, not echoed whole."""
+    from tasks.core.excerpt import EXCERPT_CHARS
+
+    good = _write_table(tmp_path / "good.csv", _good_rows(6)).read_bytes()
+    zeros = tmp_path / "zeros.csv"
+    zeros.write_bytes(good + b"\0" * 2_000_000)
+    garbage = tmp_path / "garbage.csv"
+    last = good.rstrip(b"\n").rsplit(b"\n", 1)[1].replace(b"0.05,", b"0.07,", 1)
+    garbage.write_bytes(good + b"0.06," + b"x" * 2_000_000 + b"," * 26 + b"\n" + last + b"\n")
+    for path in (zeros, garbage):
+        with pytest.raises(SignalError) as err:
+            read_recording(path)
+        msg = str(err.value)
+        assert msg.startswith(f"recording {path}") and "\n" not in msg
+        assert len(msg) < len(str(path)) + 300 + 2 * EXCERPT_CHARS, msg[:400]
+    assert "holds non-numeric 'xxxx" in msg and "... (2000000 characters)" in msg

@@ -86,7 +86,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from tasks.core.artifacts import Array, as_numpy, config_value
-from tasks.core.step import artifact_step
+from tasks.core.step import artifact_step, report_progress
 
 DEFAULT_PAD_RADIUS = 0.01  # m, fingertip pad radius of curvature (Hertz aspect of the force prior)
 DEFAULT_STANDOFF = 0.005  # m, reach = 2 sigma_max + standoff
@@ -593,6 +593,7 @@ def _solve_frames(prob: _Problem, cands: _Candidates, c: np.ndarray, active_forc
     st = _FrameState(prob, cands, active_force, spacing, hysteresis)
     all_f = np.arange(F)
     for t in range(T):
+        report_progress(t, T)
         st.prev_x[:] = st.x
         order = np.argsort(-c[t], kind="stable")
         # 1. warm start: fingers eligible in the previous frame and still pushing enter the overlap terms with

@@ -176,4 +176,36 @@ def dirichlet_field_step(inputs, params):
                           inputs["force_coefficients"]["force_coefficients"], displacement,
                           surface_normals=obj["surface_normals"])
     peak = np.linalg.norm(out["displacement"].data, axis=-1).max(initial=0.0)
-    return out, {"peak_displacement_m": float(peak)}
+    attrs = {"peak_displacement_m": float(peak)}
+    warning = nothing_squeezed(out, patches["patch_active"], inputs["force_coefficients"]["force_coefficients"])
+    if warning:  # shown in the task's progress line and the report (flows.runtime.RunTable)
+        attrs["warning"] = warning
+    return out, attrs
+
+
+class FieldError(ValueError):
+    """The displacement field is unusable (not finite); the message names the likely cause."""
+
+
+def nothing_squeezed(field: Mapping[str, Array], patch_active: Any, force_coefficients: Any) -> str:
+    """Why the field of eq. 3 squeezes nothing ("" when it squeezes): no finger flexes past beta, no patch is
+    active, no point passes ``min_weight`` or eta is 0.  A non-finite field raises :class:`FieldError`: the run
+    must not simulate it."""
+    disp = field["displacement"].data
+    if not np.isfinite(disp).all():
+        bad = int((~np.isfinite(disp)).any(axis=-1).sum())
+        raise FieldError(f"the displacement field is not finite at {bad} point-frames: a config value is out of range "
+                         f"(control.displacement.eta or object.eta, control.contact.sigma_min/sigma_max)")
+    if np.any(disp):
+        return ""
+    c = as_numpy(force_coefficients)
+    if not np.any(c > 0):
+        return ("nothing was squeezed: no finger flexes past control.force.beta (every force coefficient is 0); "
+                "check the recording's flexion scale (0..1 or 0..10000) or lower control.force.beta")
+    if not np.any(np.asarray(patch_active, dtype=bool)):
+        return ("nothing was squeezed: no finger reaches the object (no contact patch is active); check the "
+                "fingertip positions' units and frame (metres, object centred at the origin) or the object's size")
+    if not np.any(field["constrained"].data):
+        return ("nothing was squeezed: no surface point has a patch weight above control.displacement.min_weight; "
+                "lower it")
+    return "nothing was squeezed: the displacement field is zero; control.displacement.eta (or object.eta) is 0"

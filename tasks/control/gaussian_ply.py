@@ -30,6 +30,8 @@ from typing import Any
 
 import numpy as np
 
+from tasks.core.excerpt import excerpt
+
 __all__ = ["C0", "GaussianPlyError", "write_gaussian_ply", "read_gaussian_ply", "REQUIRED_PROPERTIES"]
 
 C0 = 0.28209479177387814  # SH band-0 constant 1 / (2 sqrt(pi))
@@ -169,16 +171,16 @@ def _parse_header(path: Path, raw: bytes) -> tuple[str, list[tuple[str, int, lis
             try:
                 elements.append((tok[1], int(tok[2]), []))
             except ValueError:
-                raise GaussianPlyError(f"PLY {path}: bad element line {ln!r} (count is not an integer)") from None
+                raise GaussianPlyError(f"PLY {path}: bad element line {excerpt(ln)} (count is not an integer)") from None
         elif tok[0] == "property" and elements:
             if len(tok) >= 5 and tok[1] == "list":
                 elements[-1][2].append((tok[4], None))
             elif len(tok) == 3 and tok[1] in _PLY_TYPES:
                 elements[-1][2].append((tok[2], _PLY_TYPES[tok[1]]))
             else:
-                raise GaussianPlyError(f"PLY {path}: unsupported property line {ln!r}")
+                raise GaussianPlyError(f"PLY {path}: unsupported property line {excerpt(ln)}")
         else:
-            raise GaussianPlyError(f"PLY {path}: malformed header line {ln!r}")
+            raise GaussianPlyError(f"PLY {path}: malformed header line {excerpt(ln)}")
     if fmt not in ("binary_little_endian", "binary_big_endian", "ascii"):
         raise GaussianPlyError(f"PLY {path}: unsupported or missing format {fmt!r} "
                                "(binary_little_endian, binary_big_endian or ascii)")

@@ -15,6 +15,10 @@ VirSqueezer (paper sec. "Squeezing Control Mapping" and "Physics Simulation") re
 (``kind: mesh``, loaded with trimesh) or a 3DGS PLY (``kind: ply``, :mod:`tasks.control.gaussian_ply`).  All lengths
 are metres, areas m^2, volumes m^3; positions are float32.
 
+A mesh or PLY is centred at the origin and scaled uniformly to fit ``geometry.size`` (m), the size the physics
+uses: :mod:`flows.preflight` prints the scale factor when it is not 1 and refuses a factor outside
+``FIT_SCALE_RANGE`` (a file of 1 km or 1 um is a units mistake); a flat (zero-volume) mesh is refused.
+
 A mesh must be one closed surface: an open (non-watertight) mesh or one that intersects itself (e.g. a body and
 a head modelled as two overlapping closed shells) is refused, not repaired.  Both leave inside and outside
 undefined where it matters: the enclosed volume (divergence theorem) counts an overlap twice, the
@@ -76,6 +80,7 @@ from tasks.control.geometry import (
     tangent_basis,
 )
 from tasks.core.artifacts import Array
+from tasks.core.excerpt import one_line
 from tasks.core.step import artifact_step
 
 __all__ = [
@@ -523,6 +528,27 @@ class _SampledSource(_Source):
         return quadric_curvature(pts, nrm, pts, nrm, k=20)
 
 
+_FLAT_VOLUME = 1e-9  # enclosed volume / largest extent^3 below this: a flat mesh
+FIT_SCALE_RANGE = (1e-4, 1e2)  # file-to-geometry.size scale factors outside this are a units mistake
+
+
+def fit_statement(what: str, lo: Any, hi: Any, size: Any) -> str | None:
+    """How a user's geometry is fitted into ``geometry.size`` (m): ``None`` when it keeps its size (within 1 %),
+    else one line stating the scale factor; :class:`ObjectModelError` when the factor is outside
+    ``FIT_SCALE_RANGE`` (a 1 km or 1 um file is a units mistake, not a hand-held object).  ``what`` names the file."""
+    ext = np.asarray(hi, float) - np.asarray(lo, float)
+    _, scale = _fit_transform(np.asarray(lo, float), np.asarray(hi, float), np.asarray(size, float))
+    spans = " x ".join(f"{e:.3g}" for e in ext)
+    box = "[" + ", ".join(f"{v:g}" for v in size) + "] m"
+    if not FIT_SCALE_RANGE[0] <= scale <= FIT_SCALE_RANGE[1]:
+        raise ObjectModelError(f"{what} spans {spans} (file units) and would be scaled by {scale:.3g} to fit "
+                               f"geometry.size {box}: export it in metres or millimetres, or set geometry.size "
+                               f"to the object's real size")
+    if abs(scale - 1.0) <= 0.01:
+        return None
+    return f"{what} spans {spans} (file units): scaled by {scale:.4g} to fit geometry.size {box}"
+
+
 def _fit_transform(lo: np.ndarray, hi: np.ndarray, size: np.ndarray) -> tuple[np.ndarray, float]:
     """(translation, uniform scale) that centres a bbox at the origin and fits it inside ``size``."""
     ext = np.maximum(hi - lo, 1e-12)
@@ -543,7 +569,7 @@ def load_checked_mesh(path: str | None):
     try:
         mesh = trimesh.load(str(p), force="mesh", process=True)
     except Exception as exc:  # trimesh raises many types
-        raise ObjectModelError(f"mesh {p} could not be loaded ({type(exc).__name__}: {exc}): "
+        raise ObjectModelError(f"mesh {p} could not be loaded ({type(exc).__name__}: {one_line(exc)}): "
                                "export it as OBJ, PLY, STL or GLB") from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ObjectModelError(f"mesh {p} is empty (0 faces): export the object's surface as triangles "
@@ -552,6 +578,13 @@ def load_checked_mesh(path: str | None):
     if open_edges or not mesh.is_watertight:
         raise ObjectModelError(f"mesh {p} is not watertight ({open_edges} open edges): repair it, e.g. "
                                "trimesh.repair.fill_holes, or export a closed mesh")
+    ext = mesh.bounds[1] - mesh.bounds[0]
+    with np.errstate(invalid="ignore", divide="ignore"):  # trimesh divides by the volume for the centre of mass
+        volume = abs(float(mesh.volume))
+    if volume <= _FLAT_VOLUME * float(ext.max()) ** 3:
+        raise ObjectModelError(f"mesh {p} encloses no volume ({volume:.3g} within a "
+                               f"{' x '.join(f'{e:.3g}' for e in ext)} box, file units): it is flat (a sheet); give "
+                               "it a thickness (e.g. Blender's Solidify modifier) and export a closed solid")
     crossing = crossing_triangle_pairs(mesh.vertices, mesh.faces, limit=100)
     if len(crossing):
         i, j = (int(x) for x in crossing[0])
@@ -955,15 +988,22 @@ def build_object_model(obj: Any, sampling: Any) -> tuple[dict[str, Array], dict[
 # ----------------------------------------------------------------------------------------------- Prefect step
 
 
-def check_geometry_file(kind: str, path: str | None) -> None:
-    """Check a user geometry file before anything runs: a closed mesh (``kind: mesh``) or a readable 3DGS PLY
-    (``kind: ply``).  Raises :class:`ObjectModelError` or :class:`GaussianPlyError` (one line, file and fix)."""
+def check_geometry_file(kind: str, path: str | None, size: Any = None) -> str | None:
+    """Check a user geometry file before anything runs: a closed, non-flat mesh (``kind: mesh``) or a readable 3DGS
+    PLY (``kind: ply``), and, with ``size`` (m), its fit into ``geometry.size`` (:func:`fit_statement`: the line
+    stating the rescale, or None).  Raises :class:`ObjectModelError` or :class:`GaussianPlyError` (one line, file
+    and fix)."""
     if kind == "mesh":
-        load_checked_mesh(path)
+        mesh = load_checked_mesh(path)
+        lo, hi, what = mesh.bounds[0], mesh.bounds[1], f"mesh {Path(str(path)).expanduser()}"
     elif kind == "ply":
         if not path:
             raise ObjectModelError("object.geometry.path is required for geometry.kind 'ply': set it to a 3DGS .ply")
-        read_gaussian_ply(path)
+        means = read_gaussian_ply(path)["means"]
+        lo, hi, what = means.min(0), means.max(0), f"PLY {Path(str(path)).expanduser()}"
+    else:
+        return None
+    return None if size is None else fit_statement(what, lo, hi, size)
 
 
 OBJECT_OUTPUTS = ("surface_points", "surface_normals", "surface_area", "surface_curvature", "surface_principal_dirs",

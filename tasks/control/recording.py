@@ -8,22 +8,28 @@ Recording format (CSV, one row per sensor sample)
 -------------------------------------------------
 * A header row is required.  Column names are matched exactly (surrounding spaces are ignored), column
   order is free and any extra column (e.g. per-joint angles, a frame counter) is ignored.
-* ``time`` - sample time in seconds (s), strictly increasing (no duplicates).  Any origin is accepted.
+* ``time`` - sample time in seconds (s), strictly increasing (no duplicates).  Any origin is accepted.  A median
+  sample interval of 0.5 or more (a sensor below 2 Hz) is refused as milliseconds, with the fix.
 * ``flex_thumb, flex_index, flex_middle, flex_ring, flex_pinky`` - flexion of each finger, either
   normalised to 0..1 (0 = open hand, 1 = fully closed) or SenseGlove "percent bent" 0..10000 (the sum of a
   finger's flexion joint angles normalised between the glove's open and closed presets, see
   field-notes.md "Real data").  The scale is detected once per file: if the largest flexion value of all
   five columns is > 1.5 the whole file is read as percent-bent and divided by 10000.  (A percent-bent
   recording whose every value is <= 1.5, i.e. an open hand that never bends by more than 0.015 %, would be
-  read as normalised; such a recording carries no squeeze.)  After scaling every value must lie in
+  read as normalised; such a recording carries no squeeze.)  A largest value in (1.5, 105] is refused: it is
+  flexion written as percent 0..100, which on the 0..10000 scale would be read as at most 1 % bent (nothing would be
+  squeezed); the message gives both fixes (the two scales cannot be told apart there, so nothing is guessed).
+  After scaling every value must lie in
   [-0.05, 1.05] (a small calibration overshoot is tolerated) and is then clipped to [0, 1].
 * ``tip_<finger>_x, tip_<finger>_y, tip_<finger>_z`` for the five fingers (thumb, index, middle, ring,
-  pinky) - fingertip positions in metres (m), in the object's frame (object centred at the origin, z up).
+  pinky) - fingertip positions in metres (m), in the object's frame (object centred at the origin, z up).  A
+  fingertip more than 1 m from the palm is refused as millimetres (or centimetres), with the fix.
 * ``palm_x, palm_y, palm_z`` - palm centre in metres (m), same frame.
 * ``palm_qw, palm_qx, palm_qy, palm_qz`` - palm orientation as a quaternion (w first) rotating palm-frame
   vectors into the object frame.  Non-unit quaternions are normalised; an all-zero quaternion is an error.
   Palm frame used by the synthetic sessions: z = palm normal pointing at the object, x = from the thumb
   side toward the four fingers, y = z x x.
+* Messages quote at most ``tasks.core.excerpt.EXCERPT_CHARS`` (80) characters of the file (a zero-filled tail is not echoed).
 * Every value must be a finite number.  Empty cells, ``nan`` and ``inf`` are errors naming the row.  Every row
   must have as many fields as the header (a longer row, e.g. two rows merged by a lost newline, is an error).
 * Reading uses pandas' C parser: 1e6 rows x 28 columns (360-560 MB) read in ~3-9 s on a 2-core machine, and
@@ -53,6 +59,7 @@ import numpy as np
 import pandas as pd
 
 from conf.hand import FINGERS
+from tasks.core.excerpt import excerpt, one_line
 
 log = logging.getLogger(__name__)
 
@@ -74,15 +81,13 @@ MAX_RECORDING_BYTES = 256 * 2**20  # largest recording read (see the module docs
 _SCALE_DETECT = 1.5  # flexion max above this => percent-bent file
 _FLEX_TOLERANCE = 0.05  # accepted overshoot outside [0, 1] after scaling
 _ZERO_QUAT = 1e-9
+_MAX_SAMPLE_INTERVAL = 0.5  # s; a median sample interval this long means the time column is not in seconds
+_MAX_REACH = 1.0  # m; fingertips farther than this from the palm mean the positions are not in metres
 
 _SIGNAL_NAMES = ("time", "flexion", "fingertip_positions", "palm_position", "palm_orientation")
 
 
 # ============================================================================================ recordings
-def _one_line(text: Any) -> str:
-    return " ".join(str(text).split())
-
-
 def check_recording_size(path: str | Path, max_bytes: int | None = MAX_RECORDING_BYTES) -> None:
     """Refuse a recording larger than ``max_bytes`` (None: no limit) before anything reads or hashes it."""
     p = Path(path)
@@ -144,7 +149,7 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
         raise SignalError(f"recording {name} is empty (no header row); write a header row "
                           f"'{','.join(REQUIRED_COLUMNS[:3])},...' followed by samples") from None
     except (pd.errors.ParserError, UnicodeDecodeError, ValueError) as exc:
-        raise SignalError(f"recording {name} is not a readable CSV ({_one_line(exc)}); save it as "
+        raise SignalError(f"recording {name} is not a readable CSV ({one_line(exc)}); save it as "
                           f"comma-separated UTF-8 text with a header row") from None
     present: dict[str, Any] = {}
     for col in header.columns:
@@ -152,7 +157,7 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
         present.setdefault(key, col)
     missing = [c for c in REQUIRED_COLUMNS if c not in present]
     if len(missing) == len(REQUIRED_COLUMNS):
-        first = ",".join(str(c) for c in list(header.columns)[:4])
+        first = one_line(",".join(str(c) for c in list(header.columns)[:4]))
         raise SignalError(f"recording {name} has none of the required columns (the header row seems to be "
                           f"missing; line 1 reads '{first},...'); add a header row time,flex_<finger>,"
                           f"tip_<finger>_x/y/z,palm_x/y/z,palm_qw/qx/qy/qz (format: tasks/control/recording.py)")
@@ -207,6 +212,11 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
                           f"{float(time[i + 1])!r} s after {float(time[i])!r} s); timestamps must strictly "
                           f"increase - sort the rows by time")
     span = float(time[-1] - time[0])
+    step = float(np.median(dt))
+    if step >= _MAX_SAMPLE_INTERVAL:
+        raise SignalError(f"recording {name}: time steps by {step:g} per sample (median; {span:g} in all), a "
+                          f"{1 / step:.3g} Hz sensor where SenseGlove streams at 100-1000 Hz; the time column "
+                          f"looks like milliseconds: divide it by 1000 (seconds are expected)")
     if frame_rate is not None:
         if not frame_rate > 0:
             raise ValueError(f"control.smoothing.frame_rate must be > 0, got {frame_rate}")
@@ -218,6 +228,10 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
     # --- flexion scale and range
     fmax = float(flexion.max())
     scale = "normalised 0..1"
+    if _SCALE_DETECT < fmax <= 100 * (1 + _FLEX_TOLERANCE):
+        raise SignalError(f"recording {name}: flexion peaks at {fmax:.4g}, which on SenseGlove's percent-bent scale "
+                          f"0..10000 is {fmax / 100:.2g} % bent (nothing would be squeezed); the flex_ columns look "
+                          f"like percent 0..100: divide them by 100 (0..1) or multiply them by 100 (0..10000)")
     if fmax > _SCALE_DETECT:
         flexion = flexion / PERCENT_BENT_FULL_SCALE
         scale = "SenseGlove percent-bent 0..10000"
@@ -232,6 +246,13 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
                           f"read as {scale} that is {flexion[row, col]:.4g}, outside [{lo:g}, {hi:g}]; write "
                           f"flexion as 0..1 or as percent-bent 0..10000 consistently in all flex_ columns")
     flexion = np.clip(flexion, 0.0, 1.0)
+
+    # --- positions: a hand's fingertips stay within ~0.25 m of its palm
+    reach = float(np.linalg.norm(tips - palm[:, None, :], axis=-1).max())
+    if reach > _MAX_REACH:
+        unit, factor = ("millimetres", 1000) if reach > 30 else ("centimetres", 100)  # a hand: 8-20 cm, 80-200 mm
+        raise SignalError(f"recording {name}: fingertip positions reach {reach:.4g} m from the palm (a hand spans "
+                          f"~0.2 m); the CSV looks like {unit}: divide the tip_ and palm_x/y/z columns by {factor}")
 
     # --- quaternions
     norm = np.linalg.norm(quat, axis=1)
@@ -269,7 +290,7 @@ def _locate_bad_cell(p: Path, name: str, original: list, read_kw: dict, exc: Exc
     try:
         df = pd.read_csv(p, dtype=str, keep_default_na=True, **read_kw)
     except (ValueError, pd.errors.ParserError) as exc2:
-        raise SignalError(f"recording {name} is not a readable CSV ({_one_line(exc2)}); every row must "
+        raise SignalError(f"recording {name} is not a readable CSV ({one_line(exc2)}); every row must "
                           f"have as many comma-separated fields as the header") from None
     first: tuple[int, int, str] | None = None
     for j, col in enumerate(original):
@@ -280,13 +301,13 @@ def _locate_bad_cell(p: Path, name: str, original: list, read_kw: dict, exc: Exc
         if hits.size and (first is None or hits[0] < first[0]):
             first = (int(hits[0]), j, str(text.iloc[int(hits[0])]))
     if first is None:  # pandas refused for another reason
-        raise SignalError(f"recording {name} could not be parsed as numbers ({_one_line(exc)}); every "
+        raise SignalError(f"recording {name} could not be parsed as numbers ({one_line(exc)}); every "
                           f"required column must hold plain numbers") from None
     row, j, value = first
     if row == len(df) - 1:
         _refuse_truncated(p, name, row, len(df.columns))
     raise SignalError(f"recording {name}: column {REQUIRED_COLUMNS[j]} row {row + 1} (line {row + 2}) holds "
-                      f"non-numeric {value!r}; write a plain number (decimal point, no units)")
+                      f"non-numeric {excerpt(value)}; write a plain number (decimal point, no units)")
 
 
 def validate_signals(signals: Mapping[str, Any], where: str = "signals") -> dict[str, np.ndarray]:

@@ -148,7 +148,7 @@ def judge_video(frames: np.ndarray, controls_image: np.ndarray, object_name: str
     ``cfg.cache_dir`` when the same request was answered before.  Raises :class:`LLMJudgeError` (one line, API
     key redacted)."""
     # 1. check the inputs and the config
-    _check_config(cfg)
+    check_judge_config(cfg)
     _check_image(frames, "frames", 4)
     _check_image(controls_image, "controls_image", 3)
     # 2. the request: sampled frames (JPEG) and the control plot (PNG) as data URLs
@@ -175,7 +175,9 @@ def judge_video(frames: np.ndarray, controls_image: np.ndarray, object_name: str
     return scores
 
 
-def _check_config(cfg: JudgeConfig) -> None:
+def check_judge_config(cfg: JudgeConfig) -> None:
+    """Refuse endpoint settings that cannot work (:class:`LLMJudgeError`, one line naming the key); also run by
+    :mod:`flows.preflight` before the flow starts."""
     if not cfg.url or not str(cfg.url).startswith(("http://", "https://")):
         raise LLMJudgeError(f"llm_judge.url {display_url(str(cfg.url or ''))!r} must be the http:// or https:// "
                             "base URL of an OpenAI-compatible API (e.g. http://127.0.0.1:8000/v1)")

@@ -22,7 +22,7 @@ import numpy as np
 
 from conf.hand import FINGERS
 from tasks.core.artifacts import Array
-from tasks.core.step import artifact_step
+from tasks.core.step import artifact_step, report_progress
 from tasks.evaluation.video_quality import (
     DEFINITIONS,
     control_coupling,
@@ -60,7 +60,10 @@ def video_metrics(final: np.ndarray, simulated: np.ndarray, refined_mask: np.nda
     n_views = final.shape[0]
     # 1. quality of the final video, mean over views
     values["temporal_flicker"] = float(np.mean([temporal_flicker(final[v]) for v in range(n_views)]))
-    smooth = [motion_smoothness(final[v], cfg["interpolator"]) for v in range(n_views)]
+    smooth = []
+    for v in range(n_views):  # frame interpolation: the costliest metric, so the step reports progress per view
+        smooth.append(motion_smoothness(final[v], cfg["interpolator"]))
+        report_progress(v + 1, n_views, unit="view")
     values["motion_smoothness"] = float(np.mean([s.score for s in smooth]))
     per_view = max(1, cfg["brisque_max_frames"] // n_views)
     iq = [imaging_quality_brisque(final[v], per_view).proxy for v in range(n_views)]

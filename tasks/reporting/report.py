@@ -335,6 +335,9 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
           "- accuracy preset: " + ("; ".join(f"{k} {v}" for k, v in cfg.get("accuracy", {}).items())
                                    or "none stated (no preset selected)"),
           "- variants: " + ", ".join(f"`{k}` = {v}" for k, v in labels.items()), ""]
+    warned = [f"- {r.object} {r.step}{f' [{r.variant}]' if r.variant else ''}: {r.warning}"
+              for r in table.rows if r.warning]
+    md += ["## Warnings", "", *warned, ""] if warned else []
     md += ["## Watch the squeezes", "", "Open `index.html` for the videos: per object and variant the simulated "
            "render, the conditions of eq. 6, the final composite and the refined 4D Gaussians, with the control "
            "signals in sync.  Files: " + ", ".join(f"`{s.stages_video.name}`" for m in media for s in m.scenes
@@ -376,6 +379,8 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
             f"<code>{html.escape(revision)}</code>; metric rows in metrics.csv / metrics.parquet</p>",
             "<p>accuracy preset: " + html.escape("; ".join(f"{k} {v}" for k, v in cfg.get("accuracy", {}).items())
                                                  or "none stated") + "</p>"]
+    body += ["<h2>Warnings</h2>", "<ul>" + "".join(f"<li>{html.escape(w[2:])}</li>" for w in warned) + "</ul>"
+             ] if warned else []
     if media:
         body += ["<h2>Overview: the final video of every squeeze (view 0)</h2>", overview_html(media, labels)]
     for title, header, rows, best in tables + video_tables:
