@@ -145,6 +145,16 @@ def stop(signum: int) -> None:
             child.kill()
     psutil.wait_procs(children, timeout=STOP_DEADLINE_S / 2)
     _forget_server_record()
+    # multiprocessing's exit-time cleanup, which os._exit skips: it unlinks the named semaphores of the Dask
+    # cluster's queues.  Then its resource tracker goes too: it would print a warning for each semaphore it
+    # still knows of (those the killed workers registered and had already unlinked)
+    import multiprocessing.util
+
+    with contextlib.suppress(Exception):
+        multiprocessing.util._run_finalizers(0)
+    for child in psutil.Process().children(recursive=True):
+        with contextlib.suppress(psutil.Error):
+            child.kill()
     for fn, args in _at_stop:
         with contextlib.suppress(Exception):
             fn(*args)
@@ -164,8 +174,8 @@ def _silence_output() -> None:
 
 
 def _children() -> list:
-    """This process's descendants, except multiprocessing's resource tracker (it exits with us and then frees
-    what the workers left)."""
+    """This process's descendants, except multiprocessing's resource tracker (it must outlive the processes it
+    watches: :func:`stop` ends it last)."""
     import psutil
 
     return [p for p in psutil.Process().children(recursive=True)

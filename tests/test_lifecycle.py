@@ -84,6 +84,15 @@ def _stop(proc: subprocess.Popen, sig: signal.Signals, group: bool) -> tuple[int
     return code, time.monotonic() - t0
 
 
+def _the_stop_line(out: str, how: str) -> str:
+    """The run's output ends with exactly one stop line naming ``how``; returns the count of kept steps."""
+    stops = STOP_LINE.findall(out)
+    assert len(stops) == 1 and stops[0][0] == how, out[-3000:]
+    assert STOP_LINE.search(out.strip().splitlines()[-1]), f"printed after the stop line:\n{out[-3000:]}"
+    assert "Traceback" not in out and "All connection attempts failed" not in out, out[-3000:]
+    return stops[0][1]
+
+
 def test_ctrl_c_stops_the_run_once_within_seconds(tmp_path):
     """Ctrl-C mid-step: one line saying what is kept, exit 130 within seconds, the temporary server ended (it
     runs in its own session, so the terminal's Ctrl-C does not kill it under the flow), no record left."""
@@ -96,10 +105,7 @@ def test_ctrl_c_stops_the_run_once_within_seconds(tmp_path):
     print(f"SIGINT to exit: {seconds:.1f} s")
     assert code == 130, out[-3000:]
     assert seconds < 15
-    stops = STOP_LINE.findall(out)
-    assert len(stops) == 1 and stops[0][0] == "Ctrl-C" and int(stops[0][1]) >= 2, out[-3000:]
-    assert STOP_LINE.search(out.strip().splitlines()[-1]), "nothing is printed after the stop line"
-    assert "Traceback" not in out and "All connection attempts failed" not in out
+    assert int(_the_stop_line(out, "Ctrl-C")) >= 2  # the steps of the progress lines printed before
     assert _servers_of(home) == []
     assert list((home / "servers").iterdir()) == []
 
@@ -124,8 +130,7 @@ def test_sigterm_ends_the_dask_cluster_and_prefect_home_follows_paths_artifacts(
     print(f"SIGTERM to exit: {seconds:.1f} s")
     assert code == 143, out[-3000:]
     assert seconds < 15
-    stops = STOP_LINE.findall(out)
-    assert len(stops) == 1 and stops[0][0] == "SIGTERM", out[-3000:]
+    _the_stop_line(out, "SIGTERM")
     time.sleep(1)  # the resource tracker leaves when it sees its parent gone
     assert [c.pid for c in children if c.is_running() and c.status() != psutil.STATUS_ZOMBIE] == []
     assert (home / "prefect.db").is_file() and (home / "results").is_dir()
