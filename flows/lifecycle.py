@@ -6,16 +6,17 @@
    working folder (it may be read-only).  Prefect reads its settings once, at import: in a Hydra multirun the
    first job's artifacts folder keeps the server's home (the cache records follow each job's folder anyway,
    :func:`flows.runtime.result_storage_settings`).
-2. **Stopping.**  :func:`begin_run` also installs the SIGINT (Ctrl-C) and SIGTERM handlers.  The first signal
-   prints one line (how many steps finished and are kept), kills this process's children - the Dask workers
-   and the temporary server (its database is SQLite: a kill loses no committed state, whereas a graceful
-   shutdown with the flow's connections still open prints a page of cancelled-task tracebacks) - and exits
-   with 130 (SIGINT) or 143 (SIGTERM) without talking to the Prefect API again.  Further signals are ignored; a watchdog exits
+2. **Stopping.**  :func:`begin_run` also installs the SIGINT (Ctrl-C) and SIGTERM handlers (and the flow body
+   takes SIGTERM back from Prefect's engine, :func:`watch_progress`).  The first signal prints one line (how
+   many steps finished and are kept), kills this process's children - the Dask workers and the temporary
+   server (its database is SQLite: a kill loses no committed state, whereas a graceful shutdown with the
+   flow's connections still open prints a page of cancelled-task tracebacks) - and exits with 130 (SIGINT)
+   or 143 (SIGTERM) without talking to the Prefect API again.  Further signals are ignored; a watchdog exits
    after :data:`STOP_DEADLINE_S` whatever happens.  A step stopped half-way leaves only its temporary folder
-   (artifacts are written under a temporary name and renamed when complete), so nothing a later run trusts.
+   (artifacts are written under a temporary name and renamed when complete): nothing a later run trusts.
 3. **No server outlives its run.**  :func:`temporary_server` starts Prefect's temporary server itself, in its
    own session (a terminal's Ctrl-C reaches the flow, which stops the server in order) and, on Linux, with
-   ``PR_SET_PDEATHSIG`` so that the kernel kills it when the flow process dies, by SIGKILL included.
+   ``PR_SET_PDEATHSIG`` so that the kernel kills it when the flow process dies (SIGKILL included).
    Its API address is then given to everything the run starts (the Dask workers otherwise start one server
    each).  The server's pid and the flow's pid, with their start times, are recorded in
    ``<PREFECT_HOME>/servers/``; the next :func:`begin_run` ends any recorded server whose flow process is
