@@ -112,8 +112,8 @@ def test_ctrl_c_stops_the_run_once_within_seconds(tmp_path):
 
 def test_sigterm_ends_the_dask_cluster_and_prefect_home_follows_paths_artifacts(tmp_path):
     """From a read-only working folder, with paths.artifacts elsewhere: Prefect's home (database, cache records)
-    is under paths.artifacts and nothing is written to the working folder.  SIGTERM mid-step ends the Dask
-    workers and the server and exits 143 with the one line."""
+    is under paths.artifacts and nothing is written to the working folder (root ignores its mode: the folder
+    must stay empty).  SIGTERM mid-step ends the Dask workers and the server and exits 143 with the one line."""
     cwd = tmp_path / "readonly"
     cwd.mkdir()
     cwd.chmod(0o555)
