@@ -3,11 +3,16 @@
 Prefect reads its settings when it is imported, so they are set here, before any flow module imports it:
 ``PREFECT_HOME`` under the artifacts folder, analytics off, and a server start-up timeout that survives a
 slow 2-core machine.  Variables already set in the environment win (e.g. ``PREFECT_API_URL`` of a
-long-lived ``prefect server start``).  Two flow processes started at once on one artifacts folder do not
-share the database of their temporary servers (see :func:`flows.runtime.prefect_database_settings`).
+long-lived ``prefect server start``).  The artifacts folder here is ``$VIRSQUEEZER_ARTIFACTS`` or
+``./artifacts`` (code that imports the flows, e.g. tests); a Hydra main moves ``PREFECT_HOME`` and the cache
+records to its ``paths.artifacts`` before Prefect is imported (:func:`flows.lifecycle.begin_run`), unless the
+user set them.  Two flow processes started at once on one artifacts folder do not share the database of their
+temporary servers (see :func:`flows.runtime.prefect_database_settings`).
 """
 import os as _os
 
+# the Prefect paths the user set: a main leaves them alone (the others follow its paths.artifacts)
+USER_PREFECT_PATHS = frozenset(k for k in ("PREFECT_HOME", "PREFECT_RESULTS_LOCAL_STORAGE_PATH") if k in _os.environ)
 _root = _os.path.abspath(_os.environ.get("VIRSQUEEZER_ARTIFACTS", "artifacts"))
 for _key, _value in {
     "PREFECT_HOME": _os.path.join(_root, ".prefect"),
@@ -23,5 +28,4 @@ for _key, _value in {
     "HF_HUB_OFFLINE": "1",  # nothing is downloaded at run time
 }.items():
     _os.environ.setdefault(_key, _value)
-# Prefect creates its home without parents (a new artifacts folder would leave its server without a database)
-_os.makedirs(_os.environ["PREFECT_HOME"], exist_ok=True)
+# PREFECT_HOME is created (with its parents) where it is used: flows.lifecycle, before the server starts

@@ -16,7 +16,6 @@ from typing import Any
 
 import hydra
 from omegaconf import DictConfig, OmegaConf
-from prefect import flow
 
 from conf.convergence_schema import register_convergence_config, validate_convergence
 
@@ -49,9 +48,9 @@ def preset_configs(cfg: DictConfig) -> dict[str, DictConfig]:
     return {p.stem: setting_config(cfg, [], load_preset(PRESET_DIR, p.stem)) for p in sorted(PRESET_DIR.glob("*.yaml"))}
 
 
-@flow(name="virsqueezer-convergence", log_prints=True, validate_parameters=False, persist_result=False)
 def convergence_flow(configs: dict[str, dict], sweep: dict, report_dir: str) -> dict:
-    """Submit every setting's pipeline, collect its artifacts, measure against the reference, write the report."""
+    """Submit every setting's pipeline, collect its artifacts, measure against the reference, write the report.
+    (Made a Prefect flow in :func:`run_convergence`: Prefect is imported after the main has set its home.)"""
     from flows.pipeline import deformation_metrics_step, mpm_rollout_step, submit_object
     from flows.runtime import RunTable
     from tasks.verification import convergence as conv
@@ -105,6 +104,9 @@ def run_convergence(cfg: DictConfig) -> dict:
     from flows.preflight import preflight
 
     preflight(cfg)  # the base config and its input files, one line before anything starts
+    from prefect import flow
+
+    from flows.lifecycle import temporary_server
     from flows.runtime import make_task_runner, result_storage_settings
 
     try:
@@ -120,12 +122,17 @@ def run_convergence(cfg: DictConfig) -> dict:
     run_name = cfg.run_name or f"{cfg.object.name}-{datetime.now():%Y%m%d-%H%M%S}"
     report_dir = Path(cfg.paths.reports) / "convergence" / run_name
     runner = make_task_runner(cfg.runner)
-    with result_storage_settings(cfg.paths.artifacts):
-        return convergence_flow.with_options(task_runner=runner)(configs, sweep, str(report_dir))
+    sweep_flow = flow(convergence_flow, name="virsqueezer-convergence", log_prints=True, validate_parameters=False,
+                      persist_result=False)
+    with result_storage_settings(cfg.paths.artifacts), temporary_server():
+        return sweep_flow.with_options(task_runner=runner)(configs, sweep, str(report_dir))
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="convergence")
 def main(cfg: DictConfig) -> None:
+    from flows.lifecycle import begin_run
+
+    begin_run(cfg.paths.artifacts)  # Prefect's home under paths.artifacts, Ctrl-C handling; before Prefect loads
     run_convergence(cfg)
 
 

@@ -19,6 +19,9 @@ register_configs()
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="squeeze")
 def main(cfg: DictConfig) -> None:
+    from flows.lifecycle import begin_run
+
+    begin_run(cfg.paths.artifacts)  # Prefect's home under paths.artifacts, Ctrl-C handling; before Prefect loads
     from flows.preflight import preflight
 
     preflight(cfg)

@@ -29,6 +29,7 @@ from omegaconf import DictConfig, OmegaConf
 from prefect import flow
 from prefect.logging import get_logger
 
+from flows.lifecycle import temporary_server
 from flows.preflight import preflight
 from flows.runtime import RunTable, make_task_runner, profile_table, result_storage_settings, runner_workers
 from tasks.control.contact_patches import contact_patches_step
@@ -274,6 +275,6 @@ def run(cfg: DictConfig, flow_label: str) -> dict:
     job_dir = sweep_job_dir()
     if config.get("run_name") is None and job_dir is not None:
         config["run_name"] = f"{flow_label}-{Path(job_dir).parent.name}-job{Path(job_dir).name}"
-    with result_storage_settings(cfg.paths.artifacts):
+    with result_storage_settings(cfg.paths.artifacts), temporary_server():
         return virsqueezer_flow.with_options(task_runner=runner, name=f"virsqueezer-{flow_label}")(
             config, flow_label, job_dir)

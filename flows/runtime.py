@@ -12,6 +12,7 @@ from omegaconf import DictConfig
 from prefect.logging import get_logger
 from prefect.task_runners import ThreadPoolTaskRunner
 
+from flows.lifecycle import remove_at_exit, watch_progress
 from tasks.core.artifacts import ArtifactError, ArtifactRef, directory_size, read_group_attrs
 
 log = get_logger("virsqueezer")
@@ -101,8 +102,6 @@ def claim_prefect_database(connection_url: str | None) -> dict:
 
     Returns ``{}`` when claimed (or not a SQLite file), else the settings of a private database and memo store
     in a new temporary folder that is removed when the process exits."""
-    import atexit
-    import shutil
     import tempfile
 
     from filelock import FileLock, Timeout
@@ -122,7 +121,7 @@ def claim_prefect_database(connection_url: str | None) -> dict:
         lock.acquire(timeout=0)
     except Timeout:
         private = Path(tempfile.mkdtemp(prefix="virsqueezer-prefect-"))
-        atexit.register(shutil.rmtree, private, True)  # registered before the server's own stop: runs after it
+        remove_at_exit(private)  # registered before the server's own stop: runs after it
         log.info("another flow run is using the Prefect database %s: this run keeps its run history in a "
                  "private database in %s (removed at exit); artifacts and cache records are shared as usual",
                  db, private)
@@ -160,6 +159,9 @@ class RunTable:
     rows: list[TaskRow] = field(default_factory=list)
     started: float = field(default_factory=time.perf_counter)
     total: int = 0  # tasks expected (for the progress line); 0 = unknown
+
+    def __post_init__(self) -> None:
+        watch_progress(self)  # a stopped run's line counts the steps finished (flows.lifecycle)
 
     def add_future(self, obj: str, step: str, future, *, root: str | Path, variant: str = "") -> Optional[ArtifactRef]:
         """Wait for a submitted step and record ran / cached / failed; returns its reference, rooted at the

@@ -1,0 +1,390 @@
+"""How a flow process starts and stops: where Prefect keeps its home, the temporary Prefect server, Ctrl-C.
+
+1. **Prefect's home follows ``paths.artifacts``.**  :func:`begin_run` (first line of every Hydra main, before
+   Prefect is imported) points ``PREFECT_HOME`` and ``PREFECT_RESULTS_LOCAL_STORAGE_PATH`` at
+   ``<paths.artifacts>/.prefect`` unless the user set them in the environment, so nothing is written to the
+   working folder (it may be read-only).  Prefect reads its settings once, at import: in a Hydra multirun the
+   first job's artifacts folder keeps the server's home (the cache records follow each job's folder anyway,
+   :func:`flows.runtime.result_storage_settings`).
+2. **Stopping.**  :func:`begin_run` also installs the SIGINT (Ctrl-C) and SIGTERM handlers (and the flow body
+   takes SIGTERM back from Prefect's engine, :func:`watch_progress`).  The first signal prints one line (how
+   many steps finished and are kept), kills this process's children - the Dask workers and the temporary
+   server (its database is SQLite: a kill loses no committed state, whereas a graceful shutdown with the
+   flow's connections still open prints a page of cancelled-task tracebacks) - and exits with 130 (SIGINT)
+   or 143 (SIGTERM) without talking to the Prefect API again.  Further signals are ignored; a watchdog exits
+   after :data:`STOP_DEADLINE_S` whatever happens.  A step stopped half-way leaves only its temporary folder
+   (artifacts are written under a temporary name and renamed when complete): nothing a later run trusts.
+3. **No server outlives its run.**  :func:`temporary_server` starts Prefect's temporary server itself, in its
+   own session (a terminal's Ctrl-C reaches the flow, which stops the server in order) and, on Linux, with
+   ``PR_SET_PDEATHSIG`` so that the kernel kills it when the flow process dies (SIGKILL included).
+   Its API address is then given to everything the run starts (the Dask workers otherwise start one server
+   each).  The server's pid and the flow's pid, with their start times, are recorded in
+   ``<PREFECT_HOME>/servers/``; the next :func:`begin_run` ends any recorded server whose flow process is
+   gone, and any temporary Prefect server of this ``PREFECT_HOME`` that was orphaned (adopted by pid 1),
+   with one line each.
+"""
+from __future__ import annotations
+
+import contextlib
+import functools
+import json
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+STOP_DEADLINE_S = 10.0  # the stopping process exits after this many seconds whatever its cleanup is doing
+SERVER_GRACE_S = 5.0  # an orphaned server gets this long to close its database after SIGTERM, then SIGKILL
+EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}  # 128 + signal number, as a shell reports them
+SIGNAL_NAMES = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM"}
+_SERVER_APP = "prefect.server.api.server:create_app"  # the uvicorn factory every Prefect server runs
+
+
+# ------------------------------------------------------------------------------------------------ Prefect's home
+def follow_artifacts(artifacts: str | Path, user_set: frozenset[str]) -> Path:
+    """Point ``PREFECT_HOME`` and the cache records (``PREFECT_RESULTS_LOCAL_STORAGE_PATH``) at
+    ``<artifacts>/.prefect``, except those in ``user_set`` (set by the user), and create the home.  Returns the
+    home in effect.
+
+    Only before Prefect is imported (it reads its settings once): afterwards the home in effect is kept."""
+    home = Path(artifacts).resolve() / ".prefect"
+    if "prefect" not in sys.modules:
+        wanted = {"PREFECT_HOME": home, "PREFECT_RESULTS_LOCAL_STORAGE_PATH": home / "results"}
+        for key, value in wanted.items():
+            if key not in user_set:
+                os.environ[key] = str(value)
+    home = Path(os.environ["PREFECT_HOME"])
+    home.mkdir(parents=True, exist_ok=True)  # Prefect creates its home without parents
+    return home
+
+
+def begin_run(artifacts: str | Path) -> None:
+    """What every Hydra main does first: Prefect's home under ``artifacts``, the stop handlers, and the end of
+    any temporary Prefect server a killed run left behind (one line each)."""
+    from flows import USER_PREFECT_PATHS
+
+    home = follow_artifacts(artifacts, USER_PREFECT_PATHS)
+    install_stop_handlers()
+    for line in end_orphaned_servers(home):
+        print(line, file=sys.stderr, flush=True)
+
+
+# ---------------------------------------------------------------------------------------------------- stopping
+_progress: list[Any] = []  # the run's table (flows.runtime.RunTable): its rows say which steps finished
+_stopping = threading.Event()
+_handlers_installed = threading.Event()  # by begin_run: this process is a flow main
+_at_stop: list[tuple[Callable[..., Any], tuple]] = []  # cleanups an os._exit would skip (atexit does not run)
+
+
+def watch_progress(table: Any) -> None:
+    """Count the steps of ``table`` (rows with ``status``, and ``total``) in the stop line.
+
+    Called from the flow body (the run's table is made there), where Prefect's flow engine has put its own
+    SIGTERM handler in place (it reports the run as crashed through the API and shuts the task runner down
+    gracefully: seconds to minutes, and a page of log lines): the stop handlers are put back."""
+    _progress[:] = [table]
+    if _handlers_installed.is_set():
+        install_stop_handlers()
+
+
+def remove_at_exit(path: Path) -> None:
+    """Remove the folder ``path`` when the process exits, normally or stopped by a signal."""
+    import atexit
+    import shutil
+
+    atexit.register(shutil.rmtree, path, True)
+    _at_stop.append((shutil.rmtree, (path, True)))
+
+
+def stop_line(signum: int) -> str:
+    """The one line a stopped run prints."""
+    how = f"stopped by {SIGNAL_NAMES.get(signum, signal.Signals(signum).name)}"
+    rest = "the rest will run on the next start (same command)"
+    if not _progress or not _progress[0].total:  # before the flow, or a run without a table (flows.export)
+        return f"{how}: the steps that finished are kept, {rest}"
+    table = _progress[0]
+    kept = sum(r.status in ("ran", "cached") for r in table.rows)
+    return f"{how}: {kept} of {table.total} steps finished and kept, {rest}"
+
+
+def install_stop_handlers() -> None:
+    """SIGINT and SIGTERM stop the run promptly, once (:func:`stop`).  Main thread only (Python's rule)."""
+    if threading.current_thread() is threading.main_thread():
+        for signum in EXIT_CODES:
+            signal.signal(signum, _on_signal)
+        _handlers_installed.set()
+
+
+def _on_signal(signum: int, _frame: Any) -> None:
+    stop(signum)
+
+
+def stop(signum: int) -> None:
+    """Print the stop line, end the children (Dask workers, the temporary server) and exit ``128 + signum``.
+
+    Never returns.  Runs in the main thread, where Python delivers signals; the Prefect API is not called again
+    (the steps' states are not reported: the artifacts on disk are the record)."""
+    code = EXIT_CODES.get(signum, 128 + signum)
+    if _stopping.is_set():  # a second signal while stopping: the first one's cleanup goes on
+        return
+    _stopping.set()
+    for other in EXIT_CODES:
+        signal.signal(other, signal.SIG_IGN)
+    threading.Timer(STOP_DEADLINE_S, os._exit, (code,)).start()  # whatever hangs below, the process ends
+    logging.disable(logging.CRITICAL)
+    _write_line(stop_line(signum))
+    _silence_output()  # threads still running (Prefect's log shipping, Dask) print nothing after the line
+    import psutil
+
+    children = _children()
+    for child in children:  # Dask workers mid-step (their half-written artifacts are temporary folders), server
+        with contextlib.suppress(psutil.Error):
+            child.kill()
+    psutil.wait_procs(children, timeout=STOP_DEADLINE_S / 2)
+    _forget_server_record()
+    # multiprocessing's exit-time cleanup, which os._exit skips: it unlinks the named semaphores of the Dask
+    # cluster's queues.  Then its resource tracker goes too: it would print a warning for each semaphore it
+    # still knows of (those the killed workers registered and had already unlinked)
+    import multiprocessing.util
+
+    with contextlib.suppress(Exception):
+        multiprocessing.util._run_finalizers(0)
+    for child in psutil.Process().children(recursive=True):
+        with contextlib.suppress(psutil.Error):
+            child.kill()
+    for fn, args in _at_stop:
+        with contextlib.suppress(Exception):
+            fn(*args)
+    os._exit(code)
+
+
+def _write_line(line: str) -> None:
+    with contextlib.suppress(OSError):
+        os.write(2, (line + "\n").encode())
+
+
+def _silence_output() -> None:
+    with contextlib.suppress(OSError):
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, 1)
+        os.dup2(devnull, 2)
+
+
+def _children() -> list:
+    """This process's descendants, except multiprocessing's resource tracker (it must outlive the processes it
+    watches: :func:`stop` ends it last)."""
+    import psutil
+
+    return [p for p in psutil.Process().children(recursive=True)
+            if not any("resource_tracker" in a for a in _cmdline(p))]
+
+
+def _cmdline(proc) -> list[str]:
+    try:
+        return proc.cmdline()
+    except Exception:  # noqa: BLE001 - gone, or not ours to read
+        return []
+
+
+def _end_process(pid: int, grace: float = SERVER_GRACE_S) -> None:
+    """SIGTERM, then SIGKILL after ``grace`` seconds; returns when the process is gone."""
+    import psutil
+
+    try:
+        proc = psutil.Process(pid)
+        proc.terminate()
+        proc.wait(grace)
+    except psutil.TimeoutExpired:
+        with contextlib.suppress(psutil.Error):
+            proc.kill()
+            proc.wait(grace)
+    except psutil.Error:
+        pass
+
+
+# ------------------------------------------------------------------------------------------- temporary server
+_SERVER: dict[str, Path] = {}  # the record file of the server this process started ("record")
+
+
+def _die_with_parent() -> Callable[[], None] | None:
+    """A ``preexec_fn`` that asks the kernel to kill the child when its parent thread dies
+    (Linux ``prctl(PR_SET_PDEATHSIG)``; the parent must stay alive - it is the main thread), or None elsewhere."""
+    if not sys.platform.startswith("linux") or threading.current_thread() is not threading.main_thread():
+        return None
+    import ctypes
+
+    prctl = ctypes.CDLL(None, use_errno=True).prctl  # looked up here: the child only calls it
+    parent = os.getpid()
+    pr_set_pdeathsig = 1
+
+    def preexec() -> None:
+        prctl(pr_set_pdeathsig, signal.SIGKILL)
+        if os.getppid() != parent:  # the parent died before the call: nobody would send the signal
+            os.kill(os.getpid(), signal.SIGKILL)
+
+    return preexec
+
+
+@functools.cache
+def _server_class():
+    """Prefect's temporary server, started in its own session and dying with the flow process.
+
+    Prefect builds the server's command and environment inline in ``SubprocessASGIServer._run_uvicorn_command``
+    and gives no way to pass options to its ``subprocess.Popen``; this subclass passes them by giving that
+    module a ``subprocess`` whose ``Popen`` has them, for the duration of that one call.  Pinned by
+    ``tests/test_lifecycle.py`` (the server's session, and its end when the flow process is SIGKILLed)."""
+    import subprocess
+    import types
+
+    import prefect.server.api.server as prefect_server
+    from prefect.settings import PREFECT_HOME
+
+    class TemporaryServer(prefect_server.SubprocessASGIServer):
+        def _run_uvicorn_command(self):
+            options: dict[str, Any] = {"start_new_session": True}
+            preexec = _die_with_parent()
+            if preexec is not None:
+                options["preexec_fn"] = preexec
+            shim = types.SimpleNamespace(**vars(subprocess))
+            shim.Popen = functools.partial(subprocess.Popen, **options)
+            prefect_server.subprocess = shim
+            try:
+                process = super()._run_uvicorn_command()
+            finally:
+                prefect_server.subprocess = subprocess
+            _record_server(Path(PREFECT_HOME.value()), process.pid, self.api_url)  # before its start-up
+            return process
+
+    return TemporaryServer
+
+
+@contextlib.contextmanager
+def temporary_server() -> Iterator[str | None]:
+    """Within: the Prefect API of this run.  ``PREFECT_API_URL`` when set (a long-lived server: nothing is
+    started), else this process's temporary server, started on first use (kept for the next run of a Hydra
+    multirun, stopped at exit) and given to Prefect's settings and the environment of the processes the run
+    starts (Dask workers).  Enter it inside :func:`flows.runtime.result_storage_settings` (the server's
+    database)."""
+    from prefect.settings import PREFECT_API_URL, PREFECT_HOME, PREFECT_UI_URL, temporary_settings
+
+    if PREFECT_API_URL.value():
+        yield PREFECT_API_URL.value()
+        return
+    Path(PREFECT_HOME.value()).mkdir(parents=True, exist_ok=True)
+    server = _server_class()()
+    if not server.running:
+        import atexit
+
+        atexit.register(_forget_server_record)  # registered first: runs after Prefect's own stop of the server
+        server.start()
+    previous = os.environ.get("PREFECT_API_URL")
+    os.environ["PREFECT_API_URL"] = server.api_url
+    try:
+        # no UI URL: the temporary server serves no UI (Prefect would print a dead "View at" link)
+        with temporary_settings(updates={PREFECT_API_URL: server.api_url, PREFECT_UI_URL: ""}):
+            yield server.api_url
+    finally:
+        if previous is None:
+            os.environ.pop("PREFECT_API_URL", None)
+        else:
+            os.environ["PREFECT_API_URL"] = previous
+
+
+# ------------------------------------------------------------------------------------------- server records
+def _started(pid: int) -> float | None:
+    """The start time of process ``pid`` (s since the epoch), None when there is no such process."""
+    import psutil
+
+    try:
+        return psutil.Process(pid).create_time()
+    except psutil.Error:
+        return None
+
+
+def _record_server(home: Path, server_pid: int, api_url: str) -> None:
+    """``<home>/servers/<flow pid>.json``: who started which server, when (written whole, then renamed)."""
+    folder = home / "servers"
+    folder.mkdir(parents=True, exist_ok=True)
+    me = os.getpid()
+    record = {"server_pid": server_pid, "server_started": _started(server_pid), "flow_pid": me,
+              "flow_started": _started(me), "flow_command": " ".join(sys.argv), "api_url": api_url}
+    path = folder / f"{me}.json"
+    tmp = folder / f".{me}.json.tmp"
+    tmp.write_text(json.dumps(record))
+    tmp.replace(path)
+    _SERVER["record"] = path
+
+
+def _forget_server_record() -> None:
+    path = _SERVER.pop("record", None)
+    if path is not None:
+        with contextlib.suppress(OSError):
+            path.unlink()
+
+
+def _same_process(pid: int, started: float | None) -> bool:
+    """True when ``pid`` is still the process that started at ``started`` (pids are reused)."""
+    now = _started(pid)
+    return now is not None and started is not None and abs(now - started) < 1.0
+
+
+def is_prefect_server(cmdline: list[str]) -> bool:
+    """A Prefect server process: uvicorn running Prefect's app factory."""
+    return any("uvicorn" in a for a in cmdline) and _SERVER_APP in cmdline
+
+
+def end_orphaned_servers(home: Path) -> list[str]:
+    """End the temporary Prefect servers of ``home`` whose flow process is gone; one line for each.
+
+    A server is orphaned when its record in ``<home>/servers/`` names a flow process that no longer runs (the
+    record goes too), or, unrecorded (a Dask worker's server, a run of an older version), when it is a
+    temporary server (``PREFECT__SERVER_EPHEMERAL``) of this ``PREFECT_HOME`` adopted by pid 1."""
+    import psutil
+
+    home = Path(home).resolve()
+    lines: list[str] = []
+    ended: set[int] = set()
+    for path in sorted((home / "servers").glob("*.json")):
+        try:
+            rec = json.loads(path.read_text())
+            flow_pid, server_pid = int(rec["flow_pid"]), int(rec["server_pid"])
+        except (OSError, ValueError, KeyError, TypeError):
+            path.unlink(missing_ok=True)  # unreadable: nothing to act on
+            continue
+        if _same_process(flow_pid, rec.get("flow_started")):
+            continue  # a run in progress
+        if _same_process(server_pid, rec.get("server_started")):
+            with contextlib.suppress(psutil.Error):
+                proc = psutil.Process(server_pid)
+                if is_prefect_server(proc.cmdline()):
+                    lines.append(_end_orphan(proc, f"flow pid {flow_pid}, {rec.get('flow_command', '?')}"))
+                    ended.add(server_pid)
+        path.unlink(missing_ok=True)
+    for proc in psutil.process_iter(["pid", "ppid", "cmdline"]):
+        if proc.info["ppid"] != 1 or proc.pid in ended or not is_prefect_server(proc.info["cmdline"] or []):
+            continue
+        try:
+            env = proc.environ()
+        except psutil.Error:
+            continue
+        if env.get("PREFECT__SERVER_EPHEMERAL") == "1" and env.get("PREFECT_HOME") and \
+                Path(env["PREFECT_HOME"]).resolve() == home:
+            lines.append(_end_orphan(proc, "its flow process is gone"))
+    return lines
+
+
+def _end_orphan(proc, whose: str) -> str:
+    import psutil
+
+    try:
+        mb = proc.memory_info().rss / 2**20
+        since = time.strftime("%Y-%m-%d %H:%M", time.localtime(proc.create_time()))
+    except psutil.Error:
+        mb, since = 0.0, "?"
+    _end_process(proc.pid)
+    return (f"ended a Prefect server left running by a killed run (server pid {proc.pid}, {mb:.0f} MB, running "
+            f"since {since}; {whose})")
