@@ -100,3 +100,26 @@ def test_metric_rows_keep_one_row_per_seed(tmp_path):
         refs[seed_scope("can", seed)] = {"variants": {"full": {"deformation_metrics": ref}}}
     df = metric_rows(refs)
     assert df[["object", "seed", "variant", "bdc_t"]].values.tolist() == [["can", 0, "full", 0.8], ["can", 2, "full", 0.6]]
+
+
+def test_report_of_a_seed_grid_shows_mean_std_the_spread_note_and_per_seed_rows(tmp_path):
+    """What the user reads: Table 2 cells ``mean ± std``, the ≈ mark and its caption; metrics.csv one row per seed."""
+    from flows.runtime import RunTable
+    from tasks.core.artifacts import Array, write_artifact
+    from tasks.reporting.report import write_run_report
+    from tasks.reporting.report_tables import seed_scope
+
+    refs: dict = {}
+    for i, r in enumerate(_seed_rows().itertuples(index=False)):
+        ref = write_artifact(tmp_path / "a" / f"{i}.zarr", {"x": Array(np.zeros(1), ("i",), "1")},
+                             step="deformation_metrics", scope=seed_scope(r.object, r.seed), config_digest="-",
+                             attrs={"metrics": {"bdc_t": r.bdc_t}})
+        refs.setdefault(seed_scope(r.object, r.seed), {"variants": {}})["variants"][r.variant] = {
+            "deformation_metrics": ref}
+    md = write_run_report(tmp_path / "report", cfg={}, table=RunTable(), refs=refs, wall_seconds=1.0,
+                          variants=LABELS).read_text()
+    assert "| Full VirSqueezer | BDC-T | **0.700 ± 0.100** | **0.500 ± 0.100 ≈** | **0.600 ± 0.000** |" in md
+    assert "| w/o Dirichlet | BDC-T | 0.550 ± 0.050 | 0.450 ± 0.000 ≈ | 0.500 ± 0.025 |" in md
+    assert "Mean ± sample standard deviation over 3 sampling seeds [0, 1, 2]" in md
+    rows = pd.read_csv(tmp_path / "report" / "metrics.csv")
+    assert len(rows) == 12 and sorted(set(rows["seed"])) == [0, 1, 2]
