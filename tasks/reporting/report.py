@@ -304,7 +304,6 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     write_metric_files(metrics.merge(video, on=["object", "seed", "variant"], how="left") if len(video) and len(metrics)
                        else metrics, report_dir)
     objects = list(dict.fromkeys(split_seed_scope(key)[0] for key in refs))
-    note = seed_note(metrics)
     for v in (metrics["variant"].unique() if len(metrics) else []):
         labels.setdefault(v, v)
     tables = [(title, *paper_layout(metrics, keys, objects, labels)) for title, keys in
@@ -321,6 +320,11 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
          *table1(video, labels, missing_backends or {})),
         ("Video metrics per object, paper Table 3 layout", *table3(video, objects, labels)),
     ]
+    note, n_seeds = seed_note(metrics), len(set(metrics["seed"])) if len(metrics) else 1
+    captions = {title: note for title, *_ in tables} if note else {}
+    if n_seeds > 1:
+        captions.update({title: f"Mean over the {n_seeds} sampling seeds (per-seed rows in metrics.csv)."
+                         for title, *_ in video_tables})
     media = [m for m in (object_media(obj, refs[obj], report_dir) for obj in refs) if m is not None]
 
     figures: dict[str, list[Path]] = {}
@@ -347,7 +351,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
                                                   if s.stages_video), ""]
     for title, header, rows, best in tables + video_tables:
         md += [f"## {title}", "", markdown_table(header, rows, best) if rows else "(no metrics: see the task table)", ""]
-        md += [note, ""] if note and rows else []
+        md += [captions[title], ""] if title in captions and rows else []
     md += ["Paper metrics not computed here: " + "; ".join(f"{k}: {v}" for k, v in PAPER_ONLY.items()), ""]
     if profile:
         md += ["## Profile: compute per stage and object", "", profile, ""]
@@ -387,7 +391,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
         body += ["<h2>Overview: the final video of every squeeze (view 0)</h2>", overview_html(media, labels)]
     for title, header, rows, best in tables + video_tables:
         body += [f"<h2>{html.escape(title)}</h2>", html_table(header, rows, best) if rows else "<p>(no metrics)</p>"]
-        body += [f"<p>{html.escape(note)}</p>"] if note and rows else []
+        body += [f"<p>{html.escape(captions[title])}</p>"] if title in captions and rows else []
     body.append("<p>Paper metrics not computed here: " + html.escape(
         "; ".join(f"{k}: {v}" for k, v in PAPER_ONLY.items())) + "</p>")
     if profile:
