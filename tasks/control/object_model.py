@@ -810,7 +810,8 @@ def sampling_seed(obj: Any, seed: int) -> np.random.SeedSequence:
     content = {"kind": kind, "size": [float(x) for x in _get(geom, "size")],
                "wall_thickness": float(_get(geom, "wall_thickness", 0.0) or 0.0),
                "filled": bool(_get(obj, "filled", False)), "interior": bool(_get(obj, "interior")),
-               "file": file_sha256(path) if kind in ("ply", "mesh") and path else None}
+               "file": file_sha256(path) if kind in ("ply", "mesh") and path and Path(path).expanduser().is_file()
+               else None}  # a missing file is refused by its loader, with the fix
     digest = hashlib.sha256(json.dumps(content, sort_keys=True).encode()).digest()
     return np.random.SeedSequence([int(seed), *np.frombuffer(digest[:16], dtype=np.uint32).tolist()])
 
