@@ -256,6 +256,9 @@ class GridConfig:
     )
     variants: list[str] = field(default_factory=lambda: ["full", "no_dirichlet"])
     backends: Optional[list[str]] = None  # effect backends run per variant (None: [generation.backend]); Table 1
+    # sampling.seed values run per object and variant (None: [sampling.seed], one run); each seed is its own scope,
+    # <object> for seed 0 and <object>@seed<k> otherwise, and the report gives each metric as mean +- std over them
+    seeds: Optional[list[int]] = None
 
 
 @dataclass
@@ -332,6 +335,12 @@ def validate(cfg: Any) -> None:
     need(c.contact.candidates >= 1, "control.contact.candidates", f"must be >= 1, got {c.contact.candidates}")
     need(c.displacement.eta >= 0, "control.displacement.eta", f"must be >= 0 m, got {c.displacement.eta}")
     need(cfg.sampling.surface_points >= 100, "sampling.surface_points", f"must be >= 100, got {cfg.sampling.surface_points}")
+    need(cfg.sampling.seed >= 0, "sampling.seed", f"must be >= 0, got {cfg.sampling.seed}")
+    if cfg.grid.seeds is not None:
+        seeds = list(cfg.grid.seeds)
+        need(len(seeds) > 0, "grid.seeds", "is empty: give at least one seed, e.g. grid.seeds=[0,1,2], or leave it unset")
+        need(len(set(seeds)) == len(seeds), "grid.seeds", f"lists a seed twice: {seeds}")
+        need(min(seeds) >= 0, "grid.seeds", f"must be >= 0, got {seeds}")
     need(cfg.sampling.particle_spacing > 0, "sampling.particle_spacing", f"must be > 0 m, got {cfg.sampling.particle_spacing}")
     sim = cfg.simulation
     need(sim.fluid_tait_exponent >= 1, "simulation.fluid_tait_exponent", f"must be >= 1, got {sim.fluid_tait_exponent}")

@@ -51,6 +51,7 @@ from tasks.physics.mpm_rollout import mpm_rollout_step
 from tasks.render.conditions import conditions_step
 from tasks.render.gbuffer import gbuffer_step
 from tasks.reporting.report import write_run_report
+from tasks.reporting.report_tables import seed_scope
 
 log = get_logger("virsqueezer")
 
@@ -121,6 +122,16 @@ def selected_variants(cfg: DictConfig) -> list[DictConfig]:
     return _selected(cfg.variant, cfg.variants, cfg.grid.variants, "variant")
 
 
+def selected_seeds(cfg: DictConfig) -> list[int]:
+    """``grid.seeds`` when given, else the one ``sampling.seed``."""
+    return [int(s) for s in cfg.grid.seeds] if cfg.grid.seeds is not None else [int(cfg.sampling.seed)]
+
+
+def with_seed(cfg: DictConfig, seed: int) -> DictConfig:
+    """``cfg`` with ``sampling.seed`` = ``seed`` (one run of the seed grid)."""
+    return OmegaConf.merge(cfg, {"sampling": {"seed": int(seed)}})
+
+
 def step_params(step: StepTask, cfg: DictConfig, obj: DictConfig, variant: DictConfig | None = None) -> dict:
     """Exactly the config values ``step`` declares (its parameters and cache key) for one object and variant."""
     return resolve_reads(step.name, step.spec.reads, step.spec.files, cfg, obj, variant)
@@ -150,32 +161,35 @@ def variant_key(variant: str, backend: str | None = None) -> str:
 
 
 def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], backends: list[str] | None = None,
-                  per_variant: tuple[StepTask, ...] = PER_VARIANT) -> dict[tuple[str, str], Any]:
+                  per_variant: tuple[StepTask, ...] = PER_VARIANT, scope: str | None = None
+                  ) -> dict[tuple[str, str], Any]:
     """Submit one object's steps: the per-object chain once, the per-variant chain for each variant, and the
     per-backend chain for each variant and backend.
 
     Returns the futures keyed by (step, chain): ``""`` for per-object steps, the variant name for per-variant
     steps and ``variant/backend`` for per-backend ones.  ``per_variant`` may be a leading part of
-    :data:`PER_VARIANT` (e.g. the deformation chain alone, with ``backends=[]``)."""
-    kw = dict(root=cfg.paths.artifacts, scope=obj.name)
+    :data:`PER_VARIANT` (e.g. the deformation chain alone, with ``backends=[]``); ``scope`` names the run's
+    artifacts and labels (default: the object's name)."""
+    scope = scope or obj.name
+    kw = dict(root=cfg.paths.artifacts, scope=scope)
     shared: dict[str, Any] = {}
     for step in PER_OBJECT:
         shared[step.name] = step.submit(params=step_params(step, cfg, obj),
-                                        inputs={n: shared[n] for n in step.spec.inputs}, label=obj.name, **kw)
+                                        inputs={n: shared[n] for n in step.spec.inputs}, label=scope, **kw)
     out: dict[tuple[str, str], Any] = {(name, ""): fut for name, fut in shared.items()}
     for variant in variants:
         available = dict(shared)
         for step in per_variant:
             available[step.name] = step.submit(
                 params=step_params(step, cfg, obj, variant), inputs={n: available[n] for n in step.spec.inputs},
-                label=f"{obj.name}[{variant.name}]", **kw)
+                label=f"{scope}[{variant.name}]", **kw)
             out[(step.name, variant.name)] = available[step.name]
         for backend in (backends if backends is not None else selected_backends(cfg)):
             cfg_b, chain = backend_config(cfg, backend), dict(available)
             for step in PER_BACKEND:
                 chain[step.name] = step.submit(
                     params=step_params(step, cfg_b, obj, variant), inputs={n: chain[n] for n in step.spec.inputs},
-                    label=f"{obj.name}[{variant_key(variant.name, backend)}]", **kw)
+                    label=f"{scope}[{variant_key(variant.name, backend)}]", **kw)
                 out[(step.name, variant_key(variant.name, backend))] = chain[step.name]
     return out
 
@@ -186,7 +200,7 @@ def run_object_local(cfg: DictConfig, obj: DictConfig, variant: DictConfig | Non
     notebooks).  Same keys and artifacts as the flow."""
     refs: dict[str, ArtifactRef] = {}
     for step in PER_OBJECT + (PER_VARIANT + PER_BACKEND if variant is not None else ()):
-        refs[step.name] = step.run_local(root=str(root), scope=obj.name,
+        refs[step.name] = step.run_local(root=str(root), scope=seed_scope(obj.name, int(cfg.sampling.seed)),
                                          params=step_params(step, cfg, obj, variant),
                                          inputs={n: refs[n] for n in step.spec.inputs})
         if step.name == until:
@@ -196,7 +210,7 @@ def run_object_local(cfg: DictConfig, obj: DictConfig, variant: DictConfig | Non
 
 @flow(name="virsqueezer", log_prints=True, validate_parameters=False, persist_result=False)
 def virsqueezer_flow(config: dict, flow_label: str = "evaluate", report_dir: str | None = None) -> dict:
-    """Run the selected objects x variants through the method steps, then write the run report to
+    """Run the selected objects x seeds x variants through the method steps, then write the run report to
     ``report_dir`` (default ``paths.reports/<run_name>``).
 
     Returns the report folder and the per-task table (as records).
@@ -204,7 +218,9 @@ def virsqueezer_flow(config: dict, flow_label: str = "evaluate", report_dir: str
     cfg = OmegaConf.create(config)
     t0 = time.perf_counter()
     objects, variants = selected_objects(cfg), selected_variants(cfg)
-    futures = {obj.name: submit_object(cfg, obj, variants) for obj in objects}
+    futures = {seed_scope(obj.name, seed): submit_object(with_seed(cfg, seed), obj, variants,
+                                                         scope=seed_scope(obj.name, seed))
+               for obj in objects for seed in selected_seeds(cfg)}
     table = RunTable(total=sum(len(f) for f in futures.values()))
     refs: dict[str, dict[str, Any]] = {}
     for name, steps in futures.items():

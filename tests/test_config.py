@@ -159,6 +159,18 @@ def test_a_key_added_with_plus_to_a_structured_group_is_refused(compose_cfg, ove
     assert str(exc.value) == line
 
 
+@pytest.mark.parametrize("override,line", [
+    ("grid.seeds=[]", "grid.seeds is empty: give at least one seed, e.g. grid.seeds=[0,1,2], or leave it unset"),
+    ("grid.seeds=[0,1,0]", "grid.seeds lists a seed twice: [0, 1, 0]"),
+    ("grid.seeds=[-1,2]", "grid.seeds must be >= 0, got [-1, 2]"),
+    ("sampling.seed=-3", "sampling.seed must be >= 0, got -3"),
+])
+def test_bad_seed_grid_is_one_line_naming_the_key(compose_cfg, override, line):
+    with pytest.raises(ConfigError) as exc:
+        validate(compose_cfg("evaluate", [override]))
+    assert str(exc.value) == line
+
+
 def test_an_empty_grid_is_an_error(compose_cfg):
     with pytest.raises(ConfigError) as exc:
         validate(compose_cfg("evaluate", ["grid.objects=[]"]))
@@ -168,3 +180,19 @@ def test_an_empty_grid_is_an_error(compose_cfg):
         validate(compose_cfg("evaluate", ["grid.variants=[]"]))
     assert str(exc.value) == "grid.variants is empty: name at least one variant, e.g. [full]"
     validate(compose_cfg("evaluate", ["grid.objects=[]", "object=clay"]))  # one object selected: no grid needed
+
+
+def test_seed_grid_runs_each_seed_in_its_own_scope(compose_cfg, tmp_path):
+    """grid.seeds: one run per seed, sampling.seed set per run; seed 0 keeps the object's own scope, seed k is
+    ``<object>@seed<k>``; unset, the grid is the one sampling.seed."""
+    from flows.pipeline import run_object_local, selected_seeds, with_seed
+
+    cfg = compose_cfg("evaluate", ["object=rubber_ball", "grid.seeds=[0,2]", "sampling.surface_points=300",
+                                   "sampling.particle_spacing=0.008"])
+    assert selected_seeds(cfg) == [0, 2]
+    assert selected_seeds(compose_cfg("evaluate", ["sampling.seed=5"])) == [5]
+    refs = {seed: run_object_local(with_seed(cfg, seed), cfg.object, None, tmp_path, until="object_model")["object_model"]
+            for seed in selected_seeds(cfg)}
+    assert Path(refs[0].path).relative_to(tmp_path.resolve()).parts[:2] == ("rubber_ball", "object_model")
+    assert Path(refs[2].path).relative_to(tmp_path.resolve()).parts[:2] == ("rubber_ball@seed2", "object_model")
+    assert refs[0].digest != refs[2].digest

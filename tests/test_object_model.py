@@ -246,6 +246,30 @@ def test_deterministic_from_seed():
     assert not np.array_equal(a1["surface_points"].data, a3["surface_points"].data)
 
 
+def test_particles_come_from_the_content_and_seed_not_the_name(tmp_path):
+    """Issue 15: the same object under two names (and labels) gets bitwise identical Gaussians and particles; the
+    same mesh file under two paths too; another ``sampling.seed`` draws different ones."""
+    small = OmegaConf.merge(SAMPLING, {"surface_points": 400, "particle_spacing": 0.006})
+    ball = catalogue("rubber_ball")
+    a, _ = build_object_model(ball, small)
+    b, _ = build_object_model(OmegaConf.merge(ball, {"name": "sphere_b", "display_name": "Another ball"}), small)
+    for k in ARRAYS:
+        assert a[k].data.tobytes() == b[k].data.tobytes(), k
+    c, _ = build_object_model(ball, OmegaConf.merge(small, {"seed": 1}))
+    assert not np.array_equal(a["particle_positions"].data, c["particle_positions"].data)
+    assert not np.array_equal(a["surface_points"].data, c["surface_points"].data)
+    mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.03)
+    (tmp_path / "one").mkdir()
+    (tmp_path / "two").mkdir()
+    mesh.export(tmp_path / "one" / "ball.stl")
+    mesh.export(tmp_path / "two" / "other.stl")
+    built_mesh = [build_object_model(make_obj(name=name, geometry={"kind": "mesh", "path": str(path),
+                                                                   "size": [0.06] * 3}, filled=True), small)[0]
+                  for name, path in (("m1", tmp_path / "one" / "ball.stl"), ("m2", tmp_path / "two" / "other.stl"))]
+    for k in ARRAYS:
+        assert built_mesh[0][k].data.tobytes() == built_mesh[1][k].data.tobytes(), k
+
+
 def test_config_errors_are_one_line():
     cases = [
         (make_obj(geometry={"kind": "sphere", "wall_thickness": 0.0}, filled=False), "wall_thickness is 0"),

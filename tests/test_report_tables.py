@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pandas as pd
 
 from tasks.reporting.report_tables import TABLE2, TRAJECTORY, markdown_table, paper_layout, write_metric_files
@@ -52,3 +53,73 @@ def test_markdown_bold_and_metric_files_round_trip(tmp_path):
     assert [p.name for p in paths] == ["metrics.csv", "metrics.parquet"]
     pd.testing.assert_frame_equal(pd.read_parquet(paths[1]), df)
     assert list(pd.read_csv(paths[0]).columns[:2]) == ["object", "variant"]
+
+
+def _seed_rows() -> pd.DataFrame:
+    """Three seeds, two objects.  BDC-T of can: full 0.80/0.70/0.60 (mean 0.700, std 0.100), no_dirichlet
+    0.50/0.55/0.60 (mean 0.550, std 0.050): |0.150| > hypot(0.1, 0.05) = 0.112, resolved.  clay: full
+    0.40/0.50/0.60 (0.500 +- 0.100), no_dirichlet 0.45/0.45/0.45 (0.450 +- 0): |0.05| <= 0.1, within the spread.
+    Avg. per seed: full 0.60/0.60/0.60 (0.600 +- 0), no_dirichlet 0.475/0.50/0.525 (0.500 +- 0.025): resolved."""
+    full = {"can": (0.8, 0.7, 0.6), "clay": (0.4, 0.5, 0.6)}
+    ablation = {"can": (0.5, 0.55, 0.6), "clay": (0.45, 0.45, 0.45)}
+    return pd.DataFrame([{"object": obj, "seed": seed, "variant": variant, "bdc_t": vals[i]}
+                         for variant, table in (("full", full), ("no_dirichlet", ablation))
+                         for obj, vals in table.items() for i, seed in enumerate((0, 1, 2))])
+
+
+def test_several_seeds_give_mean_and_std_and_mark_differences_within_the_spread():
+    from tasks.reporting.report_tables import seed_note
+
+    df = _seed_rows()
+    header, rows, best = paper_layout(df, TABLE2[:1], ["can", "clay"], LABELS)
+    assert rows[0] == [LABELS["full"], "BDC-T", "0.700 ± 0.100", "0.500 ± 0.100 ≈", "0.600 ± 0.000"]
+    assert rows[1] == [LABELS["no_dirichlet"], "BDC-T", "0.550 ± 0.050", "0.450 ± 0.000 ≈", "0.500 ± 0.025"]
+    assert best[0][2:] == [True, True, True] and best[1][2:] == [False, False, False]  # bold on the means
+    note = seed_note(df)
+    assert note.startswith("Mean ± sample standard deviation over 3 sampling seeds [0, 1, 2]")
+    assert "≈: the difference to the best variant in that column is within the seed spread" in note
+    assert seed_note(df[df["seed"] == 0]) is None
+
+
+def test_one_seed_keeps_the_single_run_cells():
+    header, rows, _ = paper_layout(_seed_rows().query("seed == 1"), TABLE2[:1], ["can", "clay"], LABELS)
+    assert rows[0][2:] == ["0.700", "0.500", "0.600"] and rows[1][2:] == ["0.550", "0.450", "0.500"]
+
+
+def test_metric_rows_keep_one_row_per_seed(tmp_path):
+    from tasks.core.artifacts import Array, write_artifact
+    from tasks.reporting.report_tables import metric_rows, seed_scope, split_seed_scope
+
+    assert seed_scope("can", 0) == "can" and seed_scope("can", 2) == "can@seed2"
+    assert split_seed_scope("can@seed2") == ("can", 2) and split_seed_scope("can") == ("can", 0)
+    refs = {}
+    for seed, value in ((0, 0.8), (2, 0.6)):
+        ref = write_artifact(tmp_path / f"{seed}.zarr", {"x": Array(np.zeros(1), ("i",), "1")},
+                             step="deformation_metrics", scope=seed_scope("can", seed), config_digest="-",
+                             attrs={"metrics": {"bdc_t": value}})
+        refs[seed_scope("can", seed)] = {"variants": {"full": {"deformation_metrics": ref}}}
+    df = metric_rows(refs)
+    assert df[["object", "seed", "variant", "bdc_t"]].values.tolist() == [["can", 0, "full", 0.8], ["can", 2, "full", 0.6]]
+
+
+def test_report_of_a_seed_grid_shows_mean_std_the_spread_note_and_per_seed_rows(tmp_path):
+    """What the user reads: Table 2 cells ``mean ± std``, the ≈ mark and its caption; metrics.csv one row per seed."""
+    from flows.runtime import RunTable
+    from tasks.core.artifacts import Array, write_artifact
+    from tasks.reporting.report import write_run_report
+    from tasks.reporting.report_tables import seed_scope
+
+    refs: dict = {}
+    for i, r in enumerate(_seed_rows().itertuples(index=False)):
+        ref = write_artifact(tmp_path / "a" / f"{i}.zarr", {"x": Array(np.zeros(1), ("i",), "1")},
+                             step="deformation_metrics", scope=seed_scope(r.object, r.seed), config_digest="-",
+                             attrs={"metrics": {"bdc_t": r.bdc_t}})
+        refs.setdefault(seed_scope(r.object, r.seed), {"variants": {}})["variants"][r.variant] = {
+            "deformation_metrics": ref}
+    md = write_run_report(tmp_path / "report", cfg={}, table=RunTable(), refs=refs, wall_seconds=1.0,
+                          variants=LABELS).read_text()
+    assert "| Full VirSqueezer | BDC-T | **0.700 ± 0.100** | **0.500 ± 0.100 ≈** | **0.600 ± 0.000** |" in md
+    assert "| w/o Dirichlet | BDC-T | 0.550 ± 0.050 | 0.450 ± 0.000 ≈ | 0.500 ± 0.025 |" in md
+    assert "Mean ± sample standard deviation over 3 sampling seeds [0, 1, 2]" in md
+    rows = pd.read_csv(tmp_path / "report" / "metrics.csv")
+    assert len(rows) == 12 and sorted(set(rows["seed"])) == [0, 1, 2]

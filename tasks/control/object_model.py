@@ -42,7 +42,7 @@ Discretisation choices (documented here because downstream steps rely on them):
 * Gaussians: tangent standard deviations ``0.6 sqrt(area_i)`` (neighbours overlap at ~1 sigma), normal std
   ``0.1`` of that; rotation maps local (x, y, z) to (k1 direction, k2 direction, normal).
 * Volume particles on a cell-centred grid of spacing ``s = sampling.particle_spacing`` jittered by +-0.2 s
-  (deterministic from ``sampling.seed``):
+  (deterministic from ``sampling.seed`` and the object's geometry, not its name: :func:`sampling_seed`):
   - ``filled: true``: every grid point inside the body; volumes = ``s^3`` rescaled to the enclosed volume;
   - hollow with ``wall_thickness t >= s``: grid points with ``-t < sdf < 0`` (the wall), volumes rescaled to the
     wall volume ``V(sdf < 0) - V(sdf < -t)``;
@@ -58,8 +58,9 @@ Discretisation choices (documented here because downstream steps rely on them):
 """
 from __future__ import annotations
 
+import hashlib
+import json
 import math
-import zlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -81,6 +82,7 @@ from tasks.control.geometry import (
 )
 from tasks.core.artifacts import Array
 from tasks.core.excerpt import one_line
+from tasks.core.params import file_sha256
 from tasks.core.step import artifact_step
 
 __all__ = [
@@ -831,6 +833,22 @@ def _validate(obj: Any, sampling: Any) -> tuple[str, np.ndarray, float, float, i
     return kind, size, t, s, n_surf, seed
 
 
+def sampling_seed(obj: Any, seed: int) -> np.random.SeedSequence:
+    """The seed sequence of every random draw of :func:`build_object_model`: the explicit ``sampling.seed`` and the
+    object's *content*, never its name or label, so the same object under two names gets bitwise identical
+    Gaussians and particles.  Content = the geometry that is sampled: ``kind``, ``size`` (m), ``wall_thickness``
+    (m), ``filled``, whether it has an interior, and for a mesh or PLY the SHA-256 of the file."""
+    geom = _get(obj, "geometry")
+    kind, path = str(_get(geom, "kind")), _get(geom, "path")
+    content = {"kind": kind, "size": [float(x) for x in _get(geom, "size")],
+               "wall_thickness": float(_get(geom, "wall_thickness", 0.0) or 0.0),
+               "filled": bool(_get(obj, "filled", False)), "interior": bool(_get(obj, "interior")),
+               "file": file_sha256(path) if kind in ("ply", "mesh") and path and Path(path).expanduser().is_file()
+               else None}  # a missing file is refused by its loader, with the fix
+    digest = hashlib.sha256(json.dumps(content, sort_keys=True).encode()).digest()
+    return np.random.SeedSequence([int(seed), *np.frombuffer(digest[:16], dtype=np.uint32).tolist()])
+
+
 def build_object_model(obj: Any, sampling: Any) -> tuple[dict[str, Array], dict[str, Any]]:
     """Surface Gaussians and MPM particles of one object (see the module doc for every choice).
 
@@ -850,7 +868,7 @@ def build_object_model(obj: Any, sampling: Any) -> tuple[dict[str, Array], dict[
     geom, app = _get(obj, "geometry"), _get(obj, "appearance")
     filled = bool(_get(obj, "filled", False))
     interior = _get(obj, "interior")
-    ss = np.random.SeedSequence([seed, zlib.crc32(name.encode())])
+    ss = sampling_seed(obj, seed)
     rng_surf, rng_area, rng_part, rng_grid, rng_misc = (np.random.default_rng(c) for c in ss.spawn(5))
 
     if kind in SHAPE_KINDS:

@@ -244,9 +244,10 @@ def wall_findings(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
 
 def metric_bars_figure(obj: str, df, labels: Mapping[str, str], path: Path) -> Optional[Path]:
     """The four Table 2 scores of one object, one bar per variant."""
-    from tasks.reporting.report_tables import TABLE2
+    from tasks.reporting.report_tables import TABLE2, split_seed_scope
 
-    sub = df[df["object"] == obj] if len(df) else df
+    name, seed = split_seed_scope(obj)
+    sub = df[(df["object"] == name) & (df["seed"] == seed)] if len(df) else df
     if sub is None or len(sub) == 0:
         return None
     fig, ax = plt.subplots(figsize=(6.5, 2.8))
@@ -285,6 +286,8 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
         markdown_table,
         metric_rows,
         paper_layout,
+        seed_note,
+        split_seed_scope,
         stored_definitions,
         write_metric_files,
     )
@@ -298,27 +301,33 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     revision = code_revision()
     metrics = metric_rows(refs)
     video = video_metric_rows(refs)
-    write_metric_files(metrics.merge(video, on=["object", "variant"], how="left") if len(video) and len(metrics)
+    write_metric_files(metrics.merge(video, on=["object", "seed", "variant"], how="left") if len(video) and len(metrics)
                        else metrics, report_dir)
-    objects = list(refs)
+    objects = list(dict.fromkeys(split_seed_scope(key)[0] for key in refs))
     for v in (metrics["variant"].unique() if len(metrics) else []):
         labels.setdefault(v, v)
     tables = [(title, *paper_layout(metrics, keys, objects, labels)) for title, keys in
               (("Squeezing-controlled deformation (paper Table 2 layout; bold: best variant per column)", TABLE2),
                ("Trajectory metrics: sensed hand motion vs reconstructed deformation (paper Supplementary Part 6)",
                 TRAJECTORY))]
-    physical_cols = [c for c in metrics.columns if c not in {"object", "variant"} | {k for k, _, _ in TABLE2 + TRAJECTORY}]
-    physical = metrics[["object", "variant", *physical_cols]] if len(metrics) else metrics
+    physical_cols = [c for c in metrics.columns
+                     if c not in {"object", "seed", "variant"} | {k for k, _, _ in TABLE2 + TRAJECTORY}]
+    physical = metrics[["object", "seed", "variant", *physical_cols]] if len(metrics) else metrics
     definitions = {**stored_definitions(refs, "deformation_metrics"), **stored_definitions(refs, "video_metrics")}
     video_tables = [
         ("Video metrics, paper Table 1 layout (mean over the objects where a metric applies; bold: best)",
          *table1(video, labels, missing_backends or {})),
         ("Video metrics per object, paper Table 3 layout", *table3(video, objects, labels)),
     ]
-    media = [m for m in (object_media(obj, refs[obj], report_dir) for obj in objects) if m is not None]
+    note, n_seeds = seed_note(metrics), len(set(metrics["seed"])) if len(metrics) else 1
+    captions = {title: note for title, *_ in tables} if note else {}
+    if n_seeds > 1:
+        captions.update({title: f"Mean over the {n_seeds} sampling seeds (per-seed rows in metrics.csv)."
+                         for title, *_ in video_tables})
+    media = [m for m in (object_media(obj, refs[obj], report_dir) for obj in refs) if m is not None]
 
     figures: dict[str, list[Path]] = {}
-    for obj in objects:
+    for obj in refs:
         figures[obj] = [p for p in [control_figure(obj, refs[obj], report_dir / f"{obj}_control.png"),
                                     metric_bars_figure(obj, metrics, labels, report_dir / f"{obj}_metrics.png")] if p]
     for obj, variant, pair in _variant_refs(refs):
@@ -344,6 +353,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
                                                   if s.stages_video), ""]
     for title, header, rows, best in tables + video_tables:
         md += [f"## {title}", "", markdown_table(header, rows, best) if rows else "(no metrics: see the task table)", ""]
+        md += [captions[title], ""] if title in captions and rows else []
     md += ["Paper metrics not computed here: " + "; ".join(f"{k}: {v}" for k, v in PAPER_ONLY.items()), ""]
     if profile:
         md += ["## Profile: compute per stage and object", "", profile, ""]
@@ -363,7 +373,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
         md += ["## Metric definitions", ""] + [f"- **{k}**: {v}" for k, v in definitions.items()] + [""]
     md += ["## Objects", ""]
     by_obj = {m.obj: m for m in media}
-    for obj in objects:
+    for obj in refs:
         md.append(f"### {obj}")
         if obj in by_obj and by_obj[obj].contact_sheet:
             md.append(f"![{obj} contact sheet]({by_obj[obj].contact_sheet.name})")
@@ -385,6 +395,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
         body += ["<h2>Overview: the final video of every squeeze (view 0)</h2>", overview_html(media, labels)]
     for title, header, rows, best in tables + video_tables:
         body += [f"<h2>{html.escape(title)}</h2>", html_table(header, rows, best) if rows else "<p>(no metrics)</p>"]
+        body += [f"<p>{html.escape(captions[title])}</p>"] if title in captions and rows else []
     body.append("<p>Paper metrics not computed here: " + html.escape(
         "; ".join(f"{k}: {v}" for k, v in PAPER_ONLY.items())) + "</p>")
     if profile:
@@ -405,7 +416,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
         body += ["<h2>Metric definitions</h2>", "<dl>" + "".join(
             f"<dt><b>{html.escape(k)}</b></dt><dd>{html.escape(v)}</dd>" for k, v in definitions.items()) + "</dl>"]
     body.append("<h2>Objects</h2>")
-    for obj in objects:
+    for obj in refs:
         body.append(f"<h3>{html.escape(obj)}</h3>")
         if obj in by_obj:
             body.append(object_html(by_obj[obj], labels))

@@ -10,6 +10,7 @@ import math
 from pathlib import Path
 from typing import Any, Mapping, Optional, Sequence
 
+import numpy as np
 import pandas as pd
 
 from tasks.core.artifacts import ArtifactError, read_group_attrs
@@ -21,10 +22,23 @@ TRAJECTORY = (("ate", "ATE (mm)", False), ("mte", "MTE (mm)", False), ("tce", "T
 _MILLI = {"ate", "mte", "tce"}  # shown in mm (mm/s); stored in SI
 
 
+def seed_scope(obj: str, seed: int) -> str:
+    """The artifact scope and report key of ``obj`` run with ``sampling.seed`` = ``seed``: the object's name for
+    seed 0 (the default grid's scopes), ``<object>@seed<k>`` otherwise."""
+    return obj if int(seed) == 0 else f"{obj}@seed{int(seed)}"
+
+
+def split_seed_scope(key: str) -> tuple[str, int]:
+    """(object, seed) of a report key written by :func:`seed_scope`."""
+    obj, sep, seed = key.rpartition("@seed")
+    return (obj, int(seed)) if sep and seed.isdigit() else (key, 0)
+
+
 def metric_rows(refs: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
-    """One row per (object, variant) with a column per metric (SI units, NaN where undefined)."""
+    """One row per (object, seed, variant) with a column per metric (SI units, NaN where undefined)."""
     rows = []
-    for obj, obj_refs in refs.items():
+    for key, obj_refs in refs.items():
+        obj, seed = split_seed_scope(key)
         for variant, vrefs in obj_refs.get("variants", {}).items():
             ref = vrefs.get("deformation_metrics")
             if ref is None:
@@ -33,7 +47,7 @@ def metric_rows(refs: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
                 metrics = read_group_attrs(ref.path)["attrs"]["metrics"]
             except (ArtifactError, KeyError):
                 continue
-            rows.append({"object": obj, "variant": variant,
+            rows.append({"object": obj, "seed": seed, "variant": variant,
                          **{k: (math.nan if v is None else float(v)) for k, v in metrics.items()}})
     return pd.DataFrame(rows)
 
@@ -55,7 +69,8 @@ def stored_definitions(refs: Mapping[str, Mapping[str, Any]], step: str) -> dict
 
 
 def write_metric_files(df: pd.DataFrame, report_dir: Path) -> list[Path]:
-    """``metrics.csv`` and ``metrics.parquet`` (columns ``object``, ``variant``, one per metric)."""
+    """``metrics.csv`` and ``metrics.parquet`` (columns ``object``, ``seed``, ``variant``, one per metric; one row
+    per seed)."""
     if df.empty:
         return []
     csv, parquet = Path(report_dir) / "metrics.csv", Path(report_dir) / "metrics.parquet"
@@ -64,38 +79,80 @@ def write_metric_files(df: pd.DataFrame, report_dir: Path) -> list[Path]:
     return [csv, parquet]
 
 
+def seed_statistics(df: pd.DataFrame, variant: str, key: str, objects: Sequence[str]
+                    ) -> tuple[list[float], list[float], int]:
+    """Per object, then for the average over the objects: the mean and the sample standard deviation (ddof 1; NaN
+    with one seed) of metric ``key`` of ``variant`` over the seeds that ran, and the number of seeds.  The Avg.
+    column is the mean over the objects where the metric is defined, taken per seed, then over the seeds."""
+    sub = df[df["variant"] == variant] if len(df) else df
+    seeds = sorted(set(sub["seed"])) if len(sub) else []
+    per_seed = np.full((max(len(seeds), 1), len(objects) + 1), np.nan)
+    for i, seed in enumerate(seeds):
+        rows = sub[sub["seed"] == seed].set_index("object")
+        for j, obj in enumerate(objects):
+            if obj in rows.index and key in rows.columns:
+                per_seed[i, j] = float(rows.loc[obj, key])
+        finite = per_seed[i, :-1][np.isfinite(per_seed[i, :-1])]
+        per_seed[i, -1] = finite.mean() if len(finite) else np.nan
+    counts = np.isfinite(per_seed).sum(axis=0)
+    means = [float(np.nanmean(c)) if n else math.nan for c, n in zip(per_seed.T, counts)]
+    stds = [float(np.nanstd(c, ddof=1)) if n > 1 else math.nan for c, n in zip(per_seed.T, counts)]
+    return means, stds, len(seeds)
+
+
+def within_spread(mean_a: float, std_a: float, mean_b: float, std_b: float) -> bool:
+    """Whether two variants' means differ by no more than the seed spread of a single-seed difference,
+    ``|mean_a - mean_b| <= sqrt(std_a^2 + std_b^2)`` (False when either spread is unknown)."""
+    spread = math.hypot(std_a, std_b)
+    return math.isfinite(spread) and abs(mean_a - mean_b) <= spread
+
+
 def paper_layout(df: pd.DataFrame, metrics: Sequence[tuple[str, str, bool]], objects: Sequence[str],
                  labels: Mapping[str, str]) -> tuple[list[str], list[list[str]], list[list[bool]]]:
     """The paper's Table 2 shape: rows (method, metric), columns objects + Avg.
 
     Returns the header, the cell texts and, per cell, whether it is the best value of its metric and column
-    across variants (bold in the paper).  Avg is the mean over the objects where the metric is defined."""
+    across variants (bold in the paper).  Avg is the mean over the objects where the metric is defined.  With
+    more than one seed a cell is ``mean ± std`` over the seeds (:func:`seed_statistics`) and the best is taken on
+    the means; a cell marked ``≈`` is within the seed spread of the best variant's (:func:`within_spread`): that
+    difference is not resolved by the seeds that ran."""
     header = ["Method", "Metric", *objects, "Avg."]
     if df.empty:
         return header, [], []
-    table = df.set_index(["variant", "object"])
+    df = df if "seed" in df.columns else df.assign(seed=0)
     variants = [v for v in labels if v in set(df["variant"])]
-    values: dict[tuple[str, str], list[float]] = {}
-    for v in variants:
-        for key, _, _ in metrics:
-            vals = [float(table.loc[(v, o), key]) if (v, o) in table.index and key in table.columns else math.nan
-                    for o in objects]
-            finite = [x for x in vals if math.isfinite(x)]
-            vals.append(sum(finite) / len(finite) if finite else math.nan)
-            values[(v, key)] = vals
+    stats = {(v, key): seed_statistics(df, v, key, objects) for v in variants for key, _, _ in metrics}
     rows, best = [], []
     for v in variants:
         for key, name, higher in metrics:
-            vals = values[(v, key)]
+            means, stds, n_seeds = stats[(v, key)]
             scale = 1e3 if key in _MILLI else 1.0
-            rows.append([labels[v], name, *("-" if not math.isfinite(x) else f"{scale * x:.3f}" for x in vals)])
-            flags = [False, False]
-            for col, x in enumerate(vals):
-                column = [values[(w, key)][col] for w in variants if math.isfinite(values[(w, key)][col])]
-                flags.append(len(variants) > 1 and math.isfinite(x) and len(column) > 1
-                             and x == (max(column) if higher else min(column)))
+            cells, flags = [], [False, False]
+            for col, (x, sd) in enumerate(zip(means, stds)):
+                others = {w: (stats[(w, key)][0][col], stats[(w, key)][1][col]) for w in variants
+                          if math.isfinite(stats[(w, key)][0][col])}
+                top = (max if higher else min)(others, key=lambda w: others[w][0]) if others else None
+                flags.append(len(variants) > 1 and math.isfinite(x) and len(others) > 1 and x == others[top][0])
+                text = "-" if not math.isfinite(x) else f"{scale * x:.3f}"
+                if n_seeds > 1 and math.isfinite(x):
+                    text += f" ± {scale * sd:.3f}" if math.isfinite(sd) else " ± -"
+                    rivals = [w for w in others if w != top] if v == top else [top]
+                    if any(within_spread(x, sd, *others[w]) for w in rivals):
+                        text += " ≈"
+                cells.append(text)
+            rows.append([labels[v], name, *cells])
             best.append(flags)
     return header, rows, best
+
+
+def seed_note(df: pd.DataFrame) -> Optional[str]:
+    """The caption line of a table of several seeds' runs (None with one seed)."""
+    seeds = sorted(set(df["seed"])) if len(df) and "seed" in df.columns else []
+    if len(seeds) < 2:
+        return None
+    return (f"Mean ± sample standard deviation over {len(seeds)} sampling seeds {seeds} (Avg.: the mean over the "
+            "objects per seed, then over the seeds); bold: best mean; ≈: the difference to the best variant in that "
+            "column is within the seed spread (|Δ mean| <= sqrt(std_a² + std_b²)), i.e. not resolved by these seeds.")
 
 
 def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]],

@@ -45,9 +45,12 @@ def method_label(variant_label: str, backend: str) -> str:
 
 
 def video_metric_rows(refs: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
-    """One row per (object, variant, backend): the video metrics (NaN where they do not apply)."""
+    """One row per (object, seed, variant, backend): the video metrics (NaN where they do not apply)."""
+    from tasks.reporting.report_tables import split_seed_scope
+
     rows = []
-    for obj, obj_refs in refs.items():
+    for key, obj_refs in refs.items():
+        obj, seed = split_seed_scope(key)
         for variant, vrefs in obj_refs.get("variants", {}).items():
             for backend, brefs in vrefs.get("backends", {}).items():
                 ref = brefs.get("video_metrics")
@@ -61,7 +64,7 @@ def video_metric_rows(refs: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
                     continue
                 metrics.update({f"llm_{q}": scores.get(q) for q in ("visual_quality", "motion_realism",
                                                                     "motion_consistency")})
-                rows.append({"object": obj, "variant": variant, "backend": backend,
+                rows.append({"object": obj, "seed": seed, "variant": variant, "backend": backend,
                              **{k: (math.nan if v is None else float(v)) for k, v in metrics.items()}})
     return pd.DataFrame(rows)
 
@@ -108,11 +111,13 @@ def table1(df: pd.DataFrame, labels: Mapping[str, str], backends_missing: Mappin
 def table3(df: pd.DataFrame, objects: list[str], labels: Mapping[str, str]
            ) -> tuple[list[str], list[list[str]], list[list[bool]]]:
     """Table 3 layout: rows (method, metric), columns the objects and the average over the objects where the
-    metric applies; best method per column and metric in bold."""
+    metric applies; best method per column and metric in bold.  With several seeds a cell is the mean over the
+    seeds (the spread is in Table 2 and in ``metrics.csv``)."""
     header = ["Method", "Metric", *objects, "Avg."]
     if df.empty:
         return header, [], []
-    table = df.set_index(["variant", "backend", "object"])
+    keys = ["variant", "backend", "object"]
+    table = df.groupby(keys, sort=False).agg({k: lambda x: _mean(list(x)) for k in df.columns if k not in keys + ["seed"]})
     methods = list(dict.fromkeys(zip(df["variant"], df["backend"])))
     values = {}
     for variant, backend in methods:
