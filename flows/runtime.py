@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
@@ -56,15 +57,26 @@ def runner_workers(runner: DictConfig) -> int:
     return 1
 
 
+@contextmanager
 def result_storage_settings(artifacts_root: str | Path):
-    """A settings context in which Prefect keeps its cache records (JSON) next to the artifacts, and in
-    which the temporary Prefect server of this process gets a database no other running flow uses
-    (:func:`prefect_database_settings`)."""
-    from prefect.settings import PREFECT_RESULTS_LOCAL_STORAGE_PATH, temporary_settings
+    """A settings context in which Prefect keeps its cache records (JSON) next to the artifacts, in which the
+    temporary Prefect server of this process gets a database no other running flow uses
+    (:func:`prefect_database_settings`), and whose API URL names that server, so that the task runner's worker
+    processes (which receive these settings) report to it instead of each starting a server of its own."""
+    from prefect.settings import PREFECT_API_URL, PREFECT_RESULTS_LOCAL_STORAGE_PATH, temporary_settings
 
     path = Path(artifacts_root).resolve() / ".prefect" / "results"
     path.mkdir(parents=True, exist_ok=True)
-    return temporary_settings(updates={PREFECT_RESULTS_LOCAL_STORAGE_PATH: str(path), **prefect_database_settings()})
+    with temporary_settings(updates={PREFECT_RESULTS_LOCAL_STORAGE_PATH: str(path), **prefect_database_settings()}):
+        if PREFECT_API_URL.value():  # a running server (or a test harness) already serves every process
+            yield
+            return
+        from prefect.server.api.server import SubprocessASGIServer
+
+        server = SubprocessASGIServer()  # the one this process's client would start; started once per process
+        server.start()
+        with temporary_settings(updates={PREFECT_API_URL: server.api_url}):
+            yield
 
 
 # ----------------------------------------------------------------------------------------------- Prefect database
