@@ -23,7 +23,7 @@ import numpy as np
 from conf.hand import FINGERS
 from tasks.core.artifacts import ArtifactError, read_artifact
 from tasks.reporting.media_cache import MediaCache
-from tasks.reporting.video import contact_sheet, encode_video, side_by_side
+from tasks.reporting.video import contact_sheet, encode_video, encoder_available, side_by_side
 
 MASK_TINT = np.array([255, 140, 0], np.float32)  # sRGB orange over the depth condition
 PLOT_SPAN = (0.09, 0.99)  # the control plot's axes' x extent in figure fraction, where the time cursor runs
@@ -130,7 +130,7 @@ def scene_media(obj: str, variant: str, pair: Mapping[str, Any], backend_refs: M
             media.notes.append(f"effect skipped: {effect.attrs['skipped']}")
     inputs = {"gbuffer": pair["gbuffer"], "conditions": pair["conditions"], "effect": refs.get("effect"),
               "appearance_refinement": refs.get("appearance_refinement")}
-    params = {"obj": obj, "variant": variant, "fps": fps}
+    params = {"obj": obj, "variant": variant, "fps": fps, "h264": encoder_available("libx264")}  # else WebP
     keys = {kind: cache.key(kind, params, inputs) for kind in ("stages_video", "final_video")}
     columns = None
     if any(cache.lookup(k) is None for k in keys.values()):
