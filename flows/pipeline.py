@@ -50,6 +50,7 @@ from tasks.physics.material_oracle import material_oracle_step
 from tasks.physics.mpm_rollout import mpm_rollout_step
 from tasks.render.conditions import conditions_step
 from tasks.render.gbuffer import gbuffer_step
+from tasks.reporting.media_cache import MEDIA_DIR
 from tasks.reporting.report import write_run_report
 from tasks.reporting.report_tables import seed_scope
 
@@ -240,7 +241,8 @@ def virsqueezer_flow(config: dict, flow_label: str = "evaluate", report_dir: str
     wall = time.perf_counter() - t0
     write_run_report(report_dir, cfg=config, table=table, refs=refs, variants=labels, wall_seconds=wall,
                      missing_backends=missing_backends(cfg),
-                     profile=profile_table(table, STAGE_OF, wall, runner_workers(cfg.runner)))
+                     profile=profile_table(table, STAGE_OF, wall, runner_workers(cfg.runner)),
+                     media_cache=Path(cfg.paths.artifacts) / MEDIA_DIR)
     print(f"\nper-task table ({table.summary()}), wall {time.perf_counter() - t0:.1f} s\n{table.to_text()}")
     print(f"report: {report_dir.resolve() / 'report.md'}")
     failed = [r for r in table.rows if r.status == "failed"]

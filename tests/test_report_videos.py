@@ -29,3 +29,36 @@ def test_each_report_video_decodes_to_the_expected_frames_and_size(prefect_serve
     assert stages.shape == (frames, views * (label_px + height), columns * width, 3)
     page = (report / "index.html").read_text()
     assert page.count("<video") >= 2 and 'class="plot"' in page and "timeupdate" in page
+
+
+def test_a_second_report_build_encodes_nothing_and_gives_the_same_page(tmp_path, compose_cfg, monkeypatch):
+    """Report media are cached by content under <artifacts>/.media: the second build of the same artifacts
+    reuses every video and figure (no encoder call, cache files untouched) and writes a byte-identical page."""
+    import tasks.reporting.watch as watch
+    from flows.pipeline import PER_BACKEND, PER_OBJECT, PER_VARIANT, run_object_local
+    from flows.runtime import RunTable
+    from tasks.reporting.report import write_run_report
+
+    cfg = compose_cfg("evaluate", [f"paths.artifacts={tmp_path / 'artifacts'}", "object=tomato", "variant=full",
+                                   *SMALL])
+    flat = run_object_local(cfg, cfg.object, cfg.variant, tmp_path / "artifacts")
+    pick = lambda steps: {s.name: flat[s.name] for s in steps}  # noqa: E731
+    refs = {"tomato": {**pick(PER_OBJECT), "variants": {"full": {**pick(PER_VARIANT),
+                                                                  "backends": {"physics": pick(PER_BACKEND)}}}}}
+    encoded = []
+    real_encode = watch.encode_video
+    monkeypatch.setattr(watch, "encode_video", lambda *a, **k: encoded.append(a[1]) or real_encode(*a, **k))
+    cache = tmp_path / "artifacts" / ".media"
+
+    def build() -> tuple[bytes, bytes]:
+        report = write_run_report(tmp_path / "report", cfg={}, table=RunTable(), refs=refs, wall_seconds=1.0,
+                                  variants={"full": "Full"}, media_cache=cache).parent
+        return (report / "index.html").read_bytes(), (report / "tomato_full_stages.mp4").read_bytes()
+
+    first = build()
+    assert len(encoded) == 2  # the stages and the final video of the one scene
+    entries = {p.name: p.stat().st_mtime_ns for p in cache.iterdir()}
+    assert len(entries) >= 7 and not any(n.startswith(".") for n in entries)  # 2 videos, 5+ figures, no temp left
+    assert build() == first  # byte-identical page and videos
+    assert len(encoded) == 2, "the second build encoded a video again"
+    assert {p.name: p.stat().st_mtime_ns for p in cache.iterdir()} == entries  # nothing redrawn

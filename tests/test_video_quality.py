@@ -95,6 +95,24 @@ def test_brightness_flicker_lowers_temporal_flicker():
 
 # -- motion smoothness --------------------------------------------------------------------------------------------
 
+def test_smoothness_views_view0_scores_only_the_first_view_and_all_averages_them():
+    """video_metrics.smoothness_views: ``all`` is the mean over the views, ``view0`` the score of view 0 alone."""
+    from conf.generation_schema import VideoMetricsConfig
+    from tasks.evaluation.video_metrics import video_metrics
+
+    final = np.stack([cat_over_coffee(jitter_px=j, size=64) for j in (0, 8)])  # (view, frame, y, x, 3)
+    mask = np.zeros(final.shape[:4], bool)
+    scores = {}
+    for views in ("all", "view0"):
+        cfg = {**VideoMetricsConfig().__dict__, "smoothness_views": views, "brisque_max_frames": 2}
+        values, _, _, used = video_metrics(final, final, mask, False, None, [], np.zeros((9, 5)), [], cfg)
+        scores[views] = values["motion_smoothness"]
+    assert used == "dis"  # the default interpolator
+    per_view = [motion_smoothness(v, "dis").score for v in final]
+    assert scores["view0"] == per_view[0] and scores["all"] == pytest.approx(np.mean(per_view), abs=1e-12)
+    assert scores["view0"] > scores["all"]  # view 1 jitters
+
+
 @pytest.mark.parametrize("interpolator", ["dis", "rife"])
 def test_motion_smoothness_ranks_smooth_above_4px_above_8px_jitter(interpolator):
     smooth, jitter_4, jitter_8 = (motion_smoothness(cat_over_coffee(jitter_px=j), interpolator) for j in (0, 4, 8))

@@ -19,6 +19,7 @@ the versions of a modified copy of the tree without importing it.
 from __future__ import annotations
 
 import ast
+import functools
 import hashlib
 from pathlib import Path
 
@@ -95,7 +96,18 @@ def import_closure(name: str, root: Path = REPO_ROOT, path: Path | None = None) 
 
 
 def data_files(source_path: Path) -> list[Path]:
-    """The files named by the module-level ``DATA_FILES`` tuple of the module at ``source_path`` (next to it)."""
+    """The files named by the module-level ``DATA_FILES`` tuple of the module at ``source_path`` (next to it);
+    parsed once per version of the file (a step's version reads every module of its closure)."""
+    st = source_path.stat()
+    return list(_data_files(source_path, st.st_mtime_ns, st.st_size))
+
+
+@functools.lru_cache(maxsize=None)
+def _data_files(source_path: Path, mtime_ns: int, size: int) -> tuple[Path, ...]:
+    return tuple(_parse_data_files(source_path))
+
+
+def _parse_data_files(source_path: Path) -> list[Path]:
     for node in ast.parse(source_path.read_text()).body:
         targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
         if (any(isinstance(t, ast.Name) and t.id == "DATA_FILES" for t in targets)

@@ -4,8 +4,8 @@ The paper's video metrics rest on models we cannot ship (MUSIQ, AMT-S, VideoCon-
 on every run and without downloaded weights, metrics defined exactly in :mod:`tasks.evaluation.video_quality`
 (each named as what it is, never as the VBench number) on the final video of every view:
 
-* temporal flicker, motion smoothness (RIFE or DIS interpolation), imaging quality (BRISQUE proxy): means over
-  the views of the final video (the generated frames, or the simulated render when no effect was generated);
+* temporal flicker, motion smoothness (RIFE or DIS interpolation; ``video_metrics.smoothness_views=view0``
+  scores view 0 only), imaging quality (BRISQUE proxy): means over the views of the final video (the generated frames, or the simulated render when no effect was generated);
 * what the physics lets us measure exactly: fidelity outside the refined mask (PSNR/SSIM against the simulated
   render: exact by construction), effect placement (IoU of the changed pixels with the refined mask), multi-view
   consistency of the refined 4D Gaussians in held-out views, and the control coupling of the effect's visible
@@ -60,10 +60,10 @@ def video_metrics(final: np.ndarray, simulated: np.ndarray, refined_mask: np.nda
     n_views = final.shape[0]
     # 1. quality of the final video, mean over views
     values["temporal_flicker"] = float(np.mean([temporal_flicker(final[v]) for v in range(n_views)]))
-    smooth = []
-    for v in range(n_views):  # frame interpolation: the costliest metric, so the step reports progress per view
+    smooth, views = [], list(range(n_views)) if cfg["smoothness_views"] == "all" else [0]
+    for v in views:  # frame interpolation: the costliest metric, so the step reports progress per view
         smooth.append(motion_smoothness(final[v], cfg["interpolator"]))
-        report_progress(v + 1, n_views, unit="view")
+        report_progress(len(smooth), len(views), unit="view")
     values["motion_smoothness"] = float(np.mean([s.score for s in smooth]))
     per_view = max(1, cfg["brisque_max_frames"] // n_views)
     iq = [imaging_quality_brisque(final[v], per_view).proxy for v in range(n_views)]
@@ -126,6 +126,7 @@ def video_metrics_step(inputs, params):
     attrs = {"backend": effect.attrs.get("backend"), "effect_label": effect.attrs.get("label"),
              "skipped_effect": effect.attrs.get("skipped"),
              "metrics": {k: json_metric(v) for k, v in values.items()}, "reasons": reasons,
-             "motion_smoothness_label": f"motion smoothness, {interpolator.upper()} interpolation",
+             "motion_smoothness_label": f"motion smoothness, {interpolator.upper()} interpolation"
+                                        + (", view 0" if params["video_metrics"]["smoothness_views"] == "view0" else ""),
              "definitions": definitions}
     return arrays, attrs

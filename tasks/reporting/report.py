@@ -17,6 +17,7 @@ import numpy as np
 
 from conf.hand import FINGERS
 from tasks.core.artifacts import ArtifactError, ArtifactRef, read_artifact
+from tasks.reporting.media_cache import MediaCache
 from tasks.reporting.video_tables import PAPER_ONLY, table1, table3, video_metric_rows
 from tasks.reporting.watch import STYLE, SYNC_SCRIPT, object_html, object_media, overview_html
 
@@ -145,6 +146,10 @@ def snapshot_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: P
     return path
 
 
+FIGURE_INPUTS = {"control": ("signal_smoothing", "force_coefficients", "contact_patches"), "metric_bars": (),
+                 "rollout": ("mpm_rollout",), "snapshot": ("mpm_rollout",)}  # the artifacts each figure draws
+
+
 def _variant_refs(refs: Mapping[str, Mapping[str, Any]]):
     """(object, variant, that pair's refs = shared steps + the variant's own) for every simulated pair."""
     for obj, obj_refs in refs.items():
@@ -270,14 +275,16 @@ def _embed(png: Path) -> str:
 def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: Mapping[str, Mapping[str, Any]],
                      wall_seconds: float, variants: Optional[Mapping[str, str]] = None,
                      sections: Optional[list[tuple[str, str]]] = None,
-                     missing_backends: Optional[Mapping[str, str]] = None, profile: str = "") -> Path:
+                     missing_backends: Optional[Mapping[str, str]] = None, profile: str = "",
+                     media_cache: Optional[Path] = None) -> Path:
     """Write the report folder for one flow run and return the path of ``report.md``.
 
     ``refs[object]`` holds the shared steps' references and ``refs[object]["variants"][variant]`` the
     per-variant ones (``...["backends"][backend]`` the per-backend ones); ``variants`` maps variant names to their
     labels (Table 2's "Method").  ``sections`` are extra (title, markdown) blocks; ``missing_backends`` names the
     effect backends the run could not use and why (Table 1's n/a rows); ``profile`` is the compute-per-stage
-    table of the run.
+    table of the run.  ``media_cache`` (``<artifacts>/.media``) keeps every video and figure by content
+    (:mod:`tasks.reporting.media_cache`): a report of unchanged artifacts encodes and draws nothing.
     """
     from tasks.reporting.report_tables import (
         TABLE2,
@@ -324,16 +331,27 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     if n_seeds > 1:
         captions.update({title: f"Mean over the {n_seeds} sampling seeds (per-seed rows in metrics.csv)."
                          for title, *_ in video_tables})
-    media = [m for m in (object_media(obj, refs[obj], report_dir) for obj in refs) if m is not None]
+    cache = MediaCache(media_cache)
+    media = [m for m in (object_media(obj, refs[obj], report_dir, cache) for obj in refs) if m is not None]
+
+    def figure(kind, draw, title, inputs, path, params=None):  # drawn once per content, then reused from the cache
+        return cache.get(path, cache.key(kind, {"title": title, **(params or {})}, {k: inputs.get(k) for k in
+                         FIGURE_INPUTS[kind]}), lambda p: draw(title, inputs, p))
 
     figures: dict[str, list[Path]] = {}
     for obj in refs:
-        figures[obj] = [p for p in [control_figure(obj, refs[obj], report_dir / f"{obj}_control.png"),
-                                    metric_bars_figure(obj, metrics, labels, report_dir / f"{obj}_metrics.png")] if p]
+        name, seed = split_seed_scope(obj)
+        bars = metrics[(metrics["object"] == name) & (metrics["seed"] == seed)].to_dict("records") if len(metrics) \
+            else []
+        figures[obj] = [p for p in [
+            figure("control", control_figure, obj, refs[obj], report_dir / f"{obj}_control.png"),
+            figure("metric_bars", lambda t, _, p: metric_bars_figure(t, metrics, labels, p), obj, {},
+                   report_dir / f"{obj}_metrics.png", {"rows": bars, "labels": labels})] if p]
     for obj, variant, pair in _variant_refs(refs):
-        figures[obj] += [p for p in [rollout_figure(f"{obj} [{variant}]", pair, report_dir / f"{obj}_{variant}_rollout.png"),
-                                     snapshot_figure(f"{obj} [{variant}]", pair, report_dir / f"{obj}_{variant}_snapshots.png")]
-                         if p]
+        figures[obj] += [p for p in [
+            figure("rollout", rollout_figure, f"{obj} [{variant}]", pair, report_dir / f"{obj}_{variant}_rollout.png"),
+            figure("snapshot", snapshot_figure, f"{obj} [{variant}]", pair,
+                   report_dir / f"{obj}_{variant}_snapshots.png")] if p]
 
     summary = rollout_summary(refs)
     sections = ([("Squeeze simulation (MPM)", summary)] if summary else []) + list(sections or [])

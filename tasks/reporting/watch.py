@@ -22,9 +22,11 @@ import numpy as np
 
 from conf.hand import FINGERS
 from tasks.core.artifacts import ArtifactError, read_artifact
-from tasks.reporting.video import contact_sheet, encode_video, side_by_side
+from tasks.reporting.media_cache import MediaCache
+from tasks.reporting.video import contact_sheet, encode_video, encoder_available, side_by_side
 
 MASK_TINT = np.array([255, 140, 0], np.float32)  # sRGB orange over the depth condition
+PLOT_SPAN = (0.09, 0.99)  # the control plot's axes' x extent in figure fraction, where the time cursor runs
 
 
 @dataclass
@@ -66,49 +68,83 @@ def _load(ref, names=None):
         return None
 
 
-def scene_media(obj: str, variant: str, pair: Mapping[str, Any], backend_refs: Mapping[str, Mapping[str, Any]],
-                out_dir: Path, fps: float) -> SceneMedia | None:
-    """Encode the stages video (rows: views; columns: render, conditions, final, refined 4D) and the final
-    composite video of view 0, plus the eq. 7 loss curve, for one object and variant (first backend)."""
-    g = _load(pair.get("gbuffer"))
+def _scene_frames(pair: Mapping[str, Any], refs: Mapping[str, Any]) -> dict[str, np.ndarray] | None:
+    """The columns of the stages video (render, conditions, final, refined 4D), each (view, frame, y, x, 3), or
+    None when the G-buffer or the conditions cannot be read."""
+    g = _load(pair.get("gbuffer"), ["rgb"])
     cond = _load(pair.get("conditions"), ["normalised_depth", "refined_mask"])
     if g is None or cond is None:
         return None
+    effect = _load(refs.get("effect"), ["frames"])
+    refined = _load(refs.get("appearance_refinement"), ["rgb"])
+    columns = {"simulated render I": g["rgb"], "conditions: Norm(D), M~": conditions_image(
+        cond["normalised_depth"], cond["refined_mask"]),
+        "final composite": effect["frames"] if effect is not None and "frames" in effect else g["rgb"]}
+    if refined is not None and "rgb" in refined:
+        columns["refined 4D Gaussians (eq. 7)"] = refined["rgb"]
+    return columns
+
+
+def _stages_video(columns: Mapping[str, np.ndarray], path: Path, fps: float) -> Path:
+    n_views = columns["simulated render I"].shape[0]
+    tiles = [columns[c][v] for v in range(n_views) for c in columns]
+    labels = [f"view {v}: {c}" for v in range(n_views) for c in columns]
+    return encode_video(side_by_side(tiles, labels, columns=len(columns)), path, fps)
+
+
+def _loss_plot(obj: str, variant: str, ref, path: Path) -> Path | None:
+    refined = _load(ref, ["loss"])
+    if refined is None or "loss" not in refined or not len(refined["loss"]):
+        return None
+    fig, ax = plt.subplots(figsize=(3.6, 2.2))
+    ax.plot(np.arange(1, len(refined["loss"]) + 1), refined["loss"])
+    ax.set_xlabel("iteration")
+    ax.set_ylabel("sampled L_rec (mean |R - I*|)")
+    before, after = refined.attrs.get("loss_before") or {}, refined.attrs.get("loss_after") or {}
+
+    def fmt(x):
+        return "-" if x is None else f"{x:.4f}"
+
+    ax.set_title(f"{obj} [{variant}]: eq. 7; L_rec train {fmt(before.get('train'))} -> {fmt(after.get('train'))}, "
+                 f"held-out {fmt(before.get('held_out'))} -> {fmt(after.get('held_out'))}", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def scene_media(obj: str, variant: str, pair: Mapping[str, Any], backend_refs: Mapping[str, Mapping[str, Any]],
+                out_dir: Path, fps: float, cache: MediaCache | None = None) -> SceneMedia | None:
+    """Encode the stages video (rows: views; columns: render, conditions, final, refined 4D) and the final
+    composite video of view 0, plus the eq. 7 loss curve, for one object and variant (first backend); media
+    already in ``cache`` (same input digests, parameters and code) are reused, not encoded again."""
+    cache = cache or MediaCache(None)
+    if pair.get("gbuffer") is None or pair.get("conditions") is None:
+        return None
     backend, refs = next(iter(backend_refs.items()), (None, {}))
-    effect = _load(refs.get("effect"))
-    refined = _load(refs.get("appearance_refinement"), ["rgb", "loss"])
     media = SceneMedia(variant=variant, backend=backend)
-    final = effect["frames"] if effect is not None and "frames" in effect else g["rgb"]
+    effect = _load(refs.get("effect"), [])
     if effect is not None:
         media.effect_label = effect.attrs.get("label")
         if effect.attrs.get("skipped"):
             media.notes.append(f"effect skipped: {effect.attrs['skipped']}")
-    columns = {"simulated render I": g["rgb"], "conditions: Norm(D), M~": conditions_image(
-        cond["normalised_depth"], cond["refined_mask"]), "final composite": final}
-    if refined is not None and "rgb" in refined:
-        columns["refined 4D Gaussians (eq. 7)"] = refined["rgb"]
-    n_views = g["rgb"].shape[0]
-    tiles = [columns[c][v] for v in range(n_views) for c in columns]
-    labels = [f"view {v}: {c}" for v in range(n_views) for c in columns]
-    media.stages_video = encode_video(side_by_side(tiles, labels, columns=len(columns)),
-                                      out_dir / f"{obj}_{variant}_stages.mp4", fps)
-    media.final_video = encode_video(final[0], out_dir / f"{obj}_{variant}_final.mp4", fps)
-    if refined is not None and "loss" in refined and len(refined["loss"]):
-        fig, ax = plt.subplots(figsize=(3.6, 2.2))
-        ax.plot(np.arange(1, len(refined["loss"]) + 1), refined["loss"])
-        ax.set_xlabel("iteration")
-        ax.set_ylabel("sampled L_rec (mean |R - I*|)")
-        before, after = refined.attrs.get("loss_before") or {}, refined.attrs.get("loss_after") or {}
-
-        def fmt(x):
-            return "-" if x is None else f"{x:.4f}"
-
-        ax.set_title(f"{obj} [{variant}]: eq. 7; L_rec train {fmt(before.get('train'))} -> {fmt(after.get('train'))}, "
-                     f"held-out {fmt(before.get('held_out'))} -> {fmt(after.get('held_out'))}", fontsize=7)
-        fig.tight_layout()
-        media.loss_plot = out_dir / f"{obj}_{variant}_refinement.png"
-        fig.savefig(media.loss_plot, dpi=100)
-        plt.close(fig)
+    inputs = {"gbuffer": pair["gbuffer"], "conditions": pair["conditions"], "effect": refs.get("effect"),
+              "appearance_refinement": refs.get("appearance_refinement")}
+    params = {"obj": obj, "variant": variant, "fps": fps, "h264": encoder_available("libx264")}  # else WebP
+    keys = {kind: cache.key(kind, params, inputs) for kind in ("stages_video", "final_video")}
+    columns = None
+    if any(cache.lookup(k) is None for k in keys.values()):
+        columns = _scene_frames(pair, refs)
+        if columns is None:
+            return None
+    media.stages_video = cache.get(out_dir / f"{obj}_{variant}_stages.mp4", keys["stages_video"],
+                                   lambda p: _stages_video(columns, p, fps))
+    media.final_video = cache.get(out_dir / f"{obj}_{variant}_final.mp4", keys["final_video"],
+                                  lambda p: encode_video(columns["final composite"][0], p, fps))
+    ref = refs.get("appearance_refinement")
+    media.loss_plot = cache.get(out_dir / f"{obj}_{variant}_refinement.png",
+                                cache.key("loss_plot", {"obj": obj, "variant": variant}, {"appearance_refinement": ref}),
+                                lambda p: _loss_plot(obj, variant, ref, p))
     return media
 
 
@@ -121,9 +157,25 @@ def moments(strain: np.ndarray, event: Mapping[str, Any], frame_index: np.ndarra
             ("after release" if event.get("crossed") else "end"): after}
 
 
-def object_media(obj: str, obj_refs: Mapping[str, Any], out_dir: Path) -> ObjectMedia | None:
+def _contact_sheet(first: Mapping[str, Any], path: Path) -> Path | None:
+    """Rows views, columns rest / peak squeeze / after release, of the final video of one variant."""
+    g = _load(first.get("gbuffer"), ["rgb", "frame_index"])
+    rollout = _load(first.get("mpm_rollout"), ["squeeze_strain"])
+    backend_refs = next(iter(first.get("backends", {}).values()), {})
+    effect = _load(backend_refs.get("effect"), ["frames"])
+    final = effect["frames"] if effect is not None and "frames" in effect else g["rgb"]
+    picks = moments(rollout["squeeze_strain"], rollout.attrs.get("threshold_event") or {}, g["frame_index"])
+    sheet = contact_sheet(final[:, list(picks.values())], [f"view {v}" for v in range(final.shape[0])],
+                          list(picks))
+    plt.imsave(path, sheet)
+    return path
+
+
+def object_media(obj: str, obj_refs: Mapping[str, Any], out_dir: Path, cache: MediaCache | None = None
+                 ) -> ObjectMedia | None:
     """All media of one object: every variant's scene media, the contact sheet of the first variant, the
-    synchronised control plot."""
+    synchronised control plot (reused from ``cache`` when already made from the same artifacts)."""
+    cache = cache or MediaCache(None)
     variants = obj_refs.get("variants", {})
     media = ObjectMedia(obj)
     fps = None
@@ -134,36 +186,33 @@ def object_media(obj: str, obj_refs: Mapping[str, Any], out_dir: Path) -> Object
         times = g["time"]
         fps = 1.0 / float(times[1] - times[0]) if len(times) > 1 else 1.0
         media.duration_s = float(len(times) / fps)
-        scene = scene_media(obj, variant, {**obj_refs, **vrefs}, vrefs.get("backends", {}), out_dir, fps)
+        scene = scene_media(obj, variant, {**obj_refs, **vrefs}, vrefs.get("backends", {}), out_dir, fps, cache)
         if scene is not None:
             media.scenes.append(scene)
     if not media.scenes:
         return None
-    # contact sheet of the first variant: rows views, columns rest / peak / after release
     first = next(iter(variants.values()))
-    g = _load(first.get("gbuffer"), ["rgb", "frame_index"])
-    rollout = _load(first.get("mpm_rollout"), ["squeeze_strain"])
-    backend_refs = next(iter(first.get("backends", {}).values()), {})
-    effect = _load(backend_refs.get("effect"), ["frames"])
-    final = effect["frames"] if effect is not None and "frames" in effect else g["rgb"]
-    picks = moments(rollout["squeeze_strain"], rollout.attrs.get("threshold_event") or {}, g["frame_index"])
-    sheet = contact_sheet(final[:, list(picks.values())], [f"view {v}" for v in range(final.shape[0])],
-                          list(picks))
-    media.contact_sheet = out_dir / f"{obj}_contact_sheet.png"
-    plt.imsave(media.contact_sheet, sheet)
-    media.control_plot, media.plot_span = control_plot(obj, obj_refs, out_dir / f"{obj}_signals.png",
-                                                       media.duration_s)
+    sheet_inputs = {"gbuffer": first.get("gbuffer"), "mpm_rollout": first.get("mpm_rollout"),
+                    "effect": next(iter(first.get("backends", {}).values()), {}).get("effect")}
+    media.contact_sheet = cache.get(out_dir / f"{obj}_contact_sheet.png",
+                                    cache.key("contact_sheet", {"obj": obj}, sheet_inputs),
+                                    lambda p: _contact_sheet(first, p))
+    signal_inputs = {k: obj_refs.get(k) for k in ("signal_smoothing", "force_coefficients")}
+    media.control_plot = cache.get(out_dir / f"{obj}_signals.png",
+                                   cache.key("control_plot", {"obj": obj, "duration_s": media.duration_s},
+                                             signal_inputs),
+                                   lambda p: control_plot(obj, obj_refs, p, media.duration_s))
+    media.plot_span = PLOT_SPAN if media.control_plot else (0.0, 1.0)
     return media
 
 
-def control_plot(obj: str, obj_refs: Mapping[str, Any], path: Path, duration_s: float
-                 ) -> tuple[Path | None, tuple[float, float]]:
-    """Flexion and force coefficient per finger over the rendered clip's time span; returns the path and the axes'
-    x extent in figure fraction, where the report's time cursor runs."""
+def control_plot(obj: str, obj_refs: Mapping[str, Any], path: Path, duration_s: float) -> Path | None:
+    """Flexion and force coefficient per finger over the rendered clip's time span, the axes spanning
+    :data:`PLOT_SPAN` of the figure's width; returns the path (None without the signals)."""
     frames = _load(obj_refs.get("signal_smoothing"), ["time", "flexion"])
     forces = _load(obj_refs.get("force_coefficients"), ["force_coefficients"])
     if frames is None or forces is None:
-        return None, (0.0, 1.0)
+        return None
     t = frames["time"] - frames["time"][0]
     fig, axes = plt.subplots(2, 1, figsize=(7.2, 2.8), sharex=True)
     for k, finger in enumerate(FINGERS):
@@ -176,11 +225,10 @@ def control_plot(obj: str, obj_refs: Mapping[str, Any], path: Path, duration_s: 
     for ax in axes:
         ax.set_xlim(0.0, duration_s)
         ax.tick_params(labelsize=7)
-    fig.subplots_adjust(left=0.09, right=0.99, top=0.97, bottom=0.16, hspace=0.12)
-    box = axes[0].get_position()
+    fig.subplots_adjust(left=PLOT_SPAN[0], right=PLOT_SPAN[1], top=0.97, bottom=0.16, hspace=0.12)
     fig.savefig(path, dpi=100)
     plt.close(fig)
-    return path, (float(box.x0), float(box.x1))
+    return path
 
 
 def _data_uri(path: Path, mime: str) -> str:
