@@ -45,7 +45,7 @@ def test_dask_local_cluster_gives_the_same_artifacts_and_metrics_as_sequential(p
     assert _digests(tmp_path / "dask") == _digests(tmp_path / "sequential")
     assert len(_digests(tmp_path / "dask")) == 2 * (7 + 2 * len(chain))
     metrics = {k: pd.read_parquet(Path(outs[k]["report"]) / "metrics.parquet") for k in outs}
-    assert list(metrics["dask"].columns[:2]) == ["object", "variant"] and len(metrics["dask"]) == 4
+    assert list(metrics["dask"].columns[:3]) == ["object", "seed", "variant"] and len(metrics["dask"]) == 4
     pd.testing.assert_frame_equal(metrics["dask"], metrics["sequential"])
     table2 = (Path(outs["dask"]["report"]) / "report.md").read_text()
     assert "| Full VirSqueezer | BDC-T |" in table2 and "| VirSqueezer w/o Dirichlet Boundary Constraint | mIoU |" in table2
