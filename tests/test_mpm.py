@@ -707,7 +707,7 @@ def test_mass_scaling_auto_caps_substeps_and_does_not_check_free_fall():
     assert s2.step_frame(1 / 60).stiffness_scale == 0.01
 
 
-def _press(speed: float, mass_scale: float, frames: int = 6, strain: float = 0.05):
+def _plate_squeeze(speed: float, mass_scale: float, frames: int = 6, strain: float = 0.05):
     """A jelly cube on a sticky floor, left 3 frames under its weight (start-up), then pressed by a slip plate on its
     top face at ``speed`` m/s to ``strain`` in ``frames`` frames, with every density x ``mass_scale``; returns the
     frame statistics and the warning lines."""
@@ -730,7 +730,7 @@ def test_quasi_static_check_is_quiet_for_a_slow_squeeze_and_warns_for_a_dynamic_
     start-up sag under the suddenly applied weight (KE/IE 0.8 in frame 1, as every default clay run showed) and
     the contact's first frame are never checked; the dynamic runs warn once, in one line naming the object, the
     frame and time and the knobs."""
-    slow, quiet = _press(0.01, 4.0)
+    slow, quiet = _plate_squeeze(0.01, 4.0)
     assert quiet == []
     assert slow[0].ke_ie_ratio > 0.5 and not slow[0].quasi_static_checked  # start-up: dynamic, not checked
     assert [st.quasi_static_checked for st in slow] == [False] * 4 + [True] * 5  # + the contact's first frame
@@ -738,7 +738,7 @@ def test_quasi_static_check_is_quiet_for_a_slow_squeeze_and_warns_for_a_dynamic_
     assert 0 < slow[-1].ke_ie_contact < 0.01 and math.isnan(slow[3].ke_ie_contact)
     assert all(st.quasi_static_ok for st in slow)
     for speed, scale, shown in ((0.2, 4.0, "x4"), (0.01, 1e4, "x1e+04")):
-        fast, lines = _press(speed, scale)
+        fast, lines = _plate_squeeze(speed, scale)
         assert len(lines) == 1, lines
         ratio = fast[4].ke_ie_contact
         assert ratio == fast[4].ke_ie_ratio > 1.0 and not fast[4].quasi_static_ok  # the first checked frame
