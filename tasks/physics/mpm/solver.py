@@ -475,7 +475,6 @@ class MPMSolver:
         self.mat_energy = wp.zeros((len(self.materials), 3), dtype=wp.float64, device=d)
         self.boundary_work = wp.zeros(1, dtype=wp.float64, device=d)  # J, this frame (energy guard)
         self._alloc_finger_arrays(self.n_fingers)
-        self._work_total = 0.0  # J, boundary work since construction
         self._energy_ref: Optional[EnergyBudget] = None  # energy guard reference (see _check_energy)
         self._energy_initial = True  # the reference is the initial state (F = I, C = 0: no internal energy)
 
@@ -932,7 +931,6 @@ class MPMSolver:
         ke, ie = float(s[0]), float(s[1])
         per = self.mat_energy.numpy()  # (material, [KE, IE, PE]) J
         work = float(self.boundary_work.numpy()[0])
-        self._work_total += work
         measured = self._quasi_static_materials()
         ke_s, ie_s = float(per[measured, 0].sum()), float(per[measured, 1].sum())
         ratio = ke_s / ie_s if ie_s > 1e-30 else (math.inf if ke_s > 0 else 0.0)
