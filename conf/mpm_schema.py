@@ -53,7 +53,7 @@ class MPMConfig:
             takes every material's own (un)scaled wave speed.  With scaling on, the quasi-static check warns
             (once, naming object, frame and these knobs) when the kinetic/internal energy ratio of the scaled
             materials declared quasi-static (not released material or fluids), summed over the frames of a contact
-            (the fingers load the object; its first frame, the start-up sag under the weight before any contact
+            (the fingers load the object; its first two frames, the start-up sag under the weight before any contact
             and the frames after a rupture are not checked), exceeds ``quasi_static_ke_ie_max`` (0.1: explicit FE
             practice asks KE below 5-10 % of IE over most of the process; see
             :class:`tasks.physics.mpm.solver.MPMSolver`).  The project's default (``conf/mpm/default.yaml``) is ``selective``; this
