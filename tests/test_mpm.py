@@ -332,21 +332,21 @@ def test_von_mises_uniaxial_yield_plateau_at_tau_y():
 
 @wp.kernel
 def _k_return(F: wp.array(dtype=wp.mat33), alpha: wp.array(dtype=float), mu: float, lam: float, tau_y: float,
-              H: float, visc: float, crush: float, foam: int, dt: float, F_out: wp.array(dtype=wp.mat33),
-              alpha_out: wp.array(dtype=float)):
+              H: float, visc: float, crush: float, dilation: float, foam: int, dt: float,
+              F_out: wp.array(dtype=wp.mat33), alpha_out: wp.array(dtype=float)):
     p = wp.tid()
-    r = hencky_plastic_return(F[p], mu, lam, tau_y, H, alpha[p], visc, crush, foam, dt)
+    r = hencky_plastic_return(F[p], mu, lam, tau_y, H, alpha[p], visc, crush, dilation, foam, dt)
     F_out[p] = r.F
     alpha_out[p] = r.alpha
 
 
-def _run_return(F, alpha, mu, lam, tau_y, H, visc=0.0, crush=10.0, foam=0, dt=1e-4):
+def _run_return(F, alpha, mu, lam, tau_y, H, visc=0.0, crush=10.0, foam=0, dt=1e-4, dilation=10.0):
     n = len(F)
     Fo = wp.zeros(n, dtype=wp.mat33, device="cpu")
     ao = wp.zeros(n, dtype=float, device="cpu")
     wp.launch(_k_return, n, device="cpu", inputs=[wp.array(F.astype(np.float32), dtype=wp.mat33, device="cpu"),
                                                   wp.array(alpha.astype(np.float32), dtype=float, device="cpu"),
-                                                  mu, lam, tau_y, H, visc, crush, foam, dt, Fo, ao])
+                                                  mu, lam, tau_y, H, visc, crush, dilation, foam, dt, Fo, ao])
     return Fo.numpy().astype(np.float64), ao.numpy().astype(np.float64)
 
 
@@ -361,7 +361,7 @@ def _hencky(F, mu, lam):
 def test_von_mises_return_mapping_with_hardening_and_foam_cap():
     """Material-point checks of the return mapping (eq. 5): elastic states untouched; plastic states end on the
     hardened yield surface sqrt(3/2)|dev tau| = tau_y + H alpha with the volume (det F_E) preserved; the foam cap
-    keeps tr(eps) >= -crush and its Perzyna viscosity only partially returns."""
+    keeps -crush <= tr(eps) <= dilation and its Perzyna viscosity only partially returns."""
     rng = np.random.default_rng(3)
     mu, lam, tau_y, H = 1e5, 5e4, 2e3, 5e4
     n = 400
@@ -391,6 +391,11 @@ def test_von_mises_return_mapping_with_hardening_and_foam_cap():
     Fr, _ = _run_return(Fc, np.zeros(1), mu, lam, tau_y, 0.0, crush=0.05, foam=1)
     eps, _ = _hencky(Fr, mu, lam)
     assert eps.sum() == pytest.approx(-0.05, abs=1e-5)
+    Fd = np.diag(np.exp([0.3, 0.1, 0.0]))[None]  # tr(eps) = 0.4
+    Fr, _ = _run_return(Fd, np.zeros(1), mu, lam, 1e9, 0.0, dilation=0.15, foam=1)  # no shear yield: cap only
+    eps, _ = _hencky(Fr, mu, lam)
+    assert eps.sum() == pytest.approx(0.15, abs=1e-5)  # the excess dilation is permanent (torn open)
+    np.testing.assert_allclose(eps[0] - eps[0].mean(), np.array([0.3, 0.1, 0.0]) - 0.4 / 3, atol=1e-5)  # shear kept
     Fv, av = _run_return(F[pl], alpha[pl], mu, lam, tau_y, H, visc=2e2, foam=1, dt=1e-3)
     _, q_v = _hencky(Fv, mu, lam)
     assert np.all(q_v >= tau_y + H * av - 1e-3) and np.all(q_v <= q_trial[pl] + 1e-3)

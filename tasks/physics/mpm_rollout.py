@@ -18,7 +18,8 @@ within one patch sigma of the centre; the mean over the whole 2.5-sigma support,
 reads ~3x lower), u = x - x0 the surface displacement (the object's base is held by the table,
 ``mpm.floor_sticky``, so u carries no rigid translation) and ``h(d) = sum_i |d_i| half_i``.  When ``max_k eps_k``
 first reaches the material oracle's threshold, the shell ruptures within ``release_radius`` of that finger's
-contact (those shell particles become ``ruptured_softening`` times softer; no finger constrains the surface
+contact (those shell particles become ``ruptured_softening`` times softer, and an elastic skin's torn flakes crumple
+and tear apart plastically beyond the strain they tore at (:func:`_torn_skin`); no finger constrains the surface
 within ``release_radius + 1.5 dx`` any more, so the opening is free) and the interior there is released opposite
 to the squeeze direction with speed ``release_speed_per_pascal * p_k`` (capped), p_k the finger's contact
 pressure = |reaction| / patch area.
@@ -240,9 +241,7 @@ def scene_particles(obj: Mapping[str, np.ndarray], mats: ObjectMaterials, with_c
                                      yield_stress=shell.yield_stress * soft)
     initial = {by_label[lab].model for lab in set(np.concatenate(ids).tolist())}
     if with_interior and shell.model == "fixed_corotated" and initial != {"fixed_corotated"}:
-        # torn skin carried off by the released interior: neo-Hookean's ln J barrier keeps the soft flakes from
-        # inverting where the spray piles up (fixed-corotated's (J - 1)^2 term barely resists J -> 0)
-        by_label[RUPTURED] = replace(by_label[RUPTURED], model="neo_hookean")
+        by_label[RUPTURED] = _torn_skin(by_label[RUPTURED], float(mats.squeeze_threshold))
     x0 = np.concatenate(positions).astype(np.float32)
     vol = np.concatenate(volumes).astype(np.float32)
     return by_label, x0, vol, np.concatenate(ids)
@@ -540,6 +539,24 @@ def _released_material(interior: Any, sim: Mapping[str, Any]) -> Material:
     soft = float(sim["ruptured_softening"])
     return replace(m, name="released_interior", youngs_modulus=m.youngs_modulus * soft,
                    yield_stress=m.yield_stress * soft)
+
+
+def _torn_skin(soft: Material, tear_strain: float) -> Material:
+    """The torn skin of an elastic shell (label RUPTURED): the ``foam`` model (StVK-Hencky, von Mises yield and
+    the volumetric crush cap) with the softened shell's E and nu, yielding at the strain it tore at.
+
+    Torn flakes are carried off by the released interior and pile up where the spray is stopped (the table, the
+    domain walls, the flesh behind a finger).  There a thin flake folds and crumples instead of being compressed
+    elastically: an elastic model (even neo-Hookean's ln J barrier) let det F_E of the soft flakes fall below
+    ``mpm.j_min`` between the spray and a wall (flattened to singular values ~(5, 0.4, 0.03)).  Here compaction beyond
+    the crush strain stays as permanent plastic volume change (elastic J >= exp(-crush_strain)) and shear beyond
+    the yield strain as plastic flow.  Where the spray spreads, a lone flake embedded in it follows the juice's
+    diverging velocity (an elastic flake was stretched to det F_E = 20, the upper guard, with singular values
+    ~(3, 2.8, 2.4)): it tears apart instead, so dilation beyond the dilation strain is permanent too.  All three
+    are the squeeze threshold ``tear_strain`` (1): the skin already failed at that strain, so the flake's elastic
+    range is no larger; yield stress = E_torn x tear_strain (Pa)."""
+    return replace(soft, model="foam", yield_stress=soft.youngs_modulus * tear_strain, hardening=0.0,
+                   viscosity=0.0, crush_strain=tear_strain, dilation_strain=tear_strain)
 
 
 def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold: float,

@@ -20,7 +20,9 @@ Conventions
   dgamma = (|dev eps| - r(alpha)) / (1 + H / (3 mu)), alpha += sqrt(2/3) dgamma.
 * Foam (viscoplastic): as above with Perzyna regularisation: dgamma_visc = dgamma / (1 + t_v / dt),
   t_v = viscosity / (2 mu) (viscosity 0 = rate independent), plus a volumetric cap: tr(eps) is clamped
-  from below at -crush_strain (the excess compression stays as permanent plastic compaction).
+  from below at -crush_strain (the excess compression stays as permanent plastic compaction) and from above at
+  dilation_strain (the excess expansion stays as permanent plastic dilation: the material tore open), as the
+  snow model's critical compression and stretch (Stomakhin et al. 2013) but on the volume only.
 * Fluid: Tait pressure p = K / gamma (J^-gamma - 1) and Newtonian viscosity; the Kirchhoff stress is
   tau = -J p I + J mu_v (grad v + grad v^T - 2/3 div v I); F_E is reset to min(J, 1)^(1/3) I (shear memory
   removed).  No tension: J is capped at 1, so p >= 0 - a free liquid separates (cavitates, breaks into drops)
@@ -230,6 +232,7 @@ def hencky_plastic_return(
     alpha: float,
     viscosity: float,
     crush: float,
+    dilation: float,
     is_foam: int,
     dt: float,
 ) -> PlasticResult:
@@ -251,6 +254,10 @@ def hencky_plastic_return(
         tr0 = eps[0] + eps[1] + eps[2]
         if tr0 < -crush:
             shift = (-crush - tr0) / 3.0
+            eps = eps + wp.vec3(shift, shift, shift)
+            changed = 1
+        elif tr0 > dilation:
+            shift = (dilation - tr0) / 3.0
             eps = eps + wp.vec3(shift, shift, shift)
             changed = 1
     tr = eps[0] + eps[1] + eps[2]

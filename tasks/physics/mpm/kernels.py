@@ -70,6 +70,7 @@ C_VISCOSITY = wp.constant(M.COL_VISCOSITY)
 C_BULK = wp.constant(M.COL_BULK)
 C_GAMMA = wp.constant(M.COL_GAMMA)
 C_CRUSH = wp.constant(M.COL_CRUSH)
+C_DILATION = wp.constant(M.COL_DILATION)
 C_PHYSICAL_DENSITY = wp.constant(M.COL_PHYSICAL_DENSITY)
 
 
@@ -497,7 +498,8 @@ def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable,
     else:
         pr = hencky_plastic_return(
             r.F, mu, lam, mats.par[mid, C_YIELD], mats.par[mid, C_HARDENING], ps.alpha[p],
-            mats.par[mid, C_VISCOSITY], mats.par[mid, C_CRUSH], int(model == MODEL_FOAM), sp.dt_g2p,
+            mats.par[mid, C_VISCOSITY], mats.par[mid, C_CRUSH], mats.par[mid, C_DILATION], int(model == MODEL_FOAM),
+            sp.dt_g2p,
         )
         r.F = pr.F
         r.tau = pr.tau

@@ -18,7 +18,8 @@ code    name                description
                             plastic strain)
 3       ``foam``            viscoplastic foam (stuffing): StVK-Hencky + Perzyna-regularised von Mises
                             (relaxation time viscosity / (2 mu)) + a volumetric crush cap (compressive volumetric
-                            Hencky strain beyond ``crush_strain`` becomes permanent compaction)
+                            Hencky strain beyond ``crush_strain`` becomes permanent compaction) and a dilation cap
+                            (tensile volumetric strain beyond ``dilation_strain`` becomes permanent: it tears open)
 4       ``fluid``           weakly compressible Tait fluid (juice, cola): p = K/gamma (J^-gamma - 1), plus
                             Newtonian viscosity 2 mu_v dev(sym grad v); F is reset to J^(1/3) I every step
 ======  ==================  ===================================================================================
@@ -66,7 +67,8 @@ COL_BULK = 6  # bulk modulus K (fluid), Pa
 COL_GAMMA = 7  # Tait exponent (fluid)
 COL_CRUSH = 8  # foam volumetric crush strain (>= 0)
 COL_PHYSICAL_DENSITY = 9  # physical (unscaled) density, kg/m^3: the weight m_phys g the particle feels
-N_COLS = 10
+COL_DILATION = 10  # foam volumetric dilation (tear) strain (>= 0)
+N_COLS = 11
 
 
 class MaterialError(ValueError):
@@ -95,6 +97,8 @@ class Material:
         fluid_gamma: Tait exponent gamma for ``fluid`` (7 for water-like liquids, 1 gives p = K (1/J - 1)).
         crush_strain: ``foam`` only: compressive volumetric Hencky strain (>= 0) beyond which compression is
             permanent.  Use a large value (e.g. 10) to disable the cap.
+        dilation_strain: ``foam`` only: tensile volumetric Hencky strain (>= 0) beyond which expansion is permanent
+            (the material tears open and fragments instead of stretching elastically); 10 (default) = no cap.
         mass_scaled: whether selective mass scaling (``mpm.mass_scaling=selective``) multiplies this material's
             density (True: a solid that only deforms quasi-statically, e.g. a shell under the fingers) or leaves
             it physical (False: released or flying material, fluids).  None = every model but ``fluid``.  The
@@ -112,6 +116,7 @@ class Material:
     bulk_modulus: Optional[float] = None
     fluid_gamma: float = 7.0
     crush_strain: float = 0.05
+    dilation_strain: float = 10.0
     mass_scaled: Optional[bool] = None
 
     def __post_init__(self) -> None:
@@ -136,7 +141,7 @@ class Material:
             raise MaterialError(
                 f"material '{self.name}': model '{self.model}' needs yield_stress > 0 Pa (uniaxial yield stress)"
             )
-        for attr in ("yield_stress", "hardening", "viscosity", "crush_strain"):
+        for attr in ("yield_stress", "hardening", "viscosity", "crush_strain", "dilation_strain"):
             val = float(getattr(self, attr))
             if not math.isfinite(val) or val < 0.0:
                 raise MaterialError(f"material '{self.name}': {attr} must be >= 0 (got {val})")
@@ -250,6 +255,7 @@ def pack_table(materials: Sequence[Material], stiffness_scale: float = 1.0,
         params[i, COL_BULK] = m.bulk * stiffness_scale
         params[i, COL_GAMMA] = m.fluid_gamma
         params[i, COL_CRUSH] = m.crush_strain
+        params[i, COL_DILATION] = m.dilation_strain
     return models, params
 
 

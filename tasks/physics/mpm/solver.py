@@ -431,7 +431,7 @@ class MPMSolver:
         self.C = wp.zeros(n, dtype=wp.mat33, device=d)
         self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33, device=d)
         self.has_corotated = FIXED_COROTATED in codes_present
-        self.has_plastic = any(c in PLASTIC_MODELS for c in codes_present)
+        self.has_plastic = any(m.code in PLASTIC_MODELS for m in self.materials)  # also one assigned mid-run
         qn = n if self.has_corotated else 1
         self.q = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (qn, 1)), dtype=wp.quat, device=d)
         self.alpha = wp.zeros(n if self.has_plastic else 1, dtype=float, device=d)
