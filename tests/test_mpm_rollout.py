@@ -312,3 +312,29 @@ def test_force_mode_applies_the_total_force_per_finger(tmp_path):
     on = expected[1:] > 0.5
     np.testing.assert_allclose(applied[1:][on], expected[1:][on], rtol=0.02)
     assert np.all(r["reaction_force"] == 0)
+
+
+def test_force_push_keeps_the_finger_pressure_when_its_patch_tears():
+    """Force mode: a finger presses with c_k * force_per_coefficient N over its untorn patch; when half of its
+    patch points are torn, it presses with half the force (same pressure), not the whole force on half the
+    points."""
+    from types import SimpleNamespace
+
+    from conf.hand import N_FINGERS
+    from tasks.physics.mpm_rollout import force_patch
+
+    n = 8
+    finger = np.full((1, n), 1, np.int32)
+    finger[0, 4:] = 2  # points 0-3: finger 1, points 4-7: finger 2
+    field = {"finger": finger, "constrained": np.ones((1, n), bool)}
+    normals = np.zeros((1, N_FINGERS, 3))
+    normals[0, :, 2] = 1.0
+    patches = {"patch_active": np.ones((1, N_FINGERS), bool), "patch_normals": normals}
+    forces = np.full((1, N_FINGERS), 0.5)
+    scene = SimpleNamespace(solver=SimpleNamespace(tracer_positions=lambda: np.zeros((n, 3), np.float32)))
+    torn = np.zeros(n, bool)
+    torn[:2] = True  # half of finger 1's patch
+    push = force_patch(scene, field, forces, patches, 0, torn, {"force_per_coefficient": 4.0})
+    assert push.forces[1].tolist() == [0.0, 0.0, -1.0]  # 4 N/coefficient x 0.5 x 2/4 untorn, inward
+    assert push.forces[2].tolist() == [0.0, 0.0, -2.0]  # untouched patch: the whole force
+    assert push.forces[0].tolist() == [0.0, 0.0, 0.0] and len(push.positions) == 6

@@ -226,7 +226,7 @@ def scene_particles(obj: Mapping[str, np.ndarray], mats: ObjectMaterials, with_c
     volumes = [obj["particle_volumes"]]
     ids = [np.full(len(obj["particle_positions"]), SHELL, np.int32)]
     if with_core:
-        by_label[CORE] = material_from_dict(mpm_material_kwargs(mats.core, "core"))
+        by_label[CORE] = _cohesionless_core(material_from_dict(mpm_material_kwargs(mats.core, "core")))
         positions.append(obj["interior_positions"])
         volumes.append(obj["interior_volumes"])
         ids.append(np.full(len(obj["interior_positions"]), CORE, np.int32))
@@ -370,15 +370,21 @@ def force_patch(scene: Scene, field: Mapping[str, np.ndarray], forces: np.ndarra
                 sim: Mapping[str, Any]) -> Optional[ForcePatch]:
     """The force-mode push of frame f (the no_dirichlet ablation): a total force ``force_per_coefficient *
     c_k,t`` N per active finger along its inward patch normal, spread over its constrained, untorn points (a
-    finger that punctured the skin no longer presses on the torn part, as in dirichlet mode)."""
+    finger that punctured the skin no longer presses on the torn part, as in dirichlet mode).  The push keeps the
+    finger's pressure, not its total force: a finger whose patch is partly torn presses with the untorn share of
+    its force (the rest goes through the opening, where the released material offers no support).  Concentrating
+    the whole force on the few points left beside an opening crushed the loose stuffing there to det F = 3e-4."""
     finger_of = field["finger"]
-    idx = np.flatnonzero(field["constrained"][f] & ~torn)
+    constrained = field["constrained"][f]
+    idx = np.flatnonzero(constrained & ~torn)
     if not len(idx):
         return None
     total = np.zeros((N_FINGERS, 3))
     for k in range(N_FINGERS):
-        if patches["patch_active"][f, k] and (finger_of[f, idx] == k).any():
-            total[k] = float(sim["force_per_coefficient"]) * forces[f, k] * -patches["patch_normals"][f, k]
+        untorn = int((finger_of[f, idx] == k).sum())
+        if patches["patch_active"][f, k] and untorn:
+            share = untorn / int((constrained & (finger_of[f] == k)).sum())
+            total[k] = float(sim["force_per_coefficient"]) * forces[f, k] * share * -patches["patch_normals"][f, k]
     return ForcePatch(positions=scene.solver.tracer_positions()[idx], finger_ids=finger_of[f, idx].astype(np.int32),
                       forces=total)
 
@@ -539,6 +545,15 @@ def _released_material(interior: Any, sim: Mapping[str, Any]) -> Material:
     soft = float(sim["ruptured_softening"])
     return replace(m, name="released_interior", youngs_modulus=m.youngs_modulus * soft,
                    yield_stress=m.yield_stress * soft)
+
+
+def _cohesionless_core(core: Material) -> Material:
+    """A ``foam`` core (fibrefill stuffing, a fibre mass without tensile strength) pulled apart separates into
+    tufts instead of stretching elastically: volumetric expansion beyond its crush strain is permanent (elastic
+    J <= exp(crush_strain)), the tension counterpart of the crush cap.  Without it the stuffing next to an opening,
+    dragged by the loose stuffing flowing out, was stretched elastically to det F_E = 20 (the upper guard) in the
+    force-driven plush toy.  Other core models are returned unchanged."""
+    return replace(core, dilation_strain=core.crush_strain) if core.model == "foam" else core
 
 
 def _torn_skin(soft: Material, tear_strain: float) -> Material:
