@@ -1,4 +1,5 @@
-"""Structured schema of the ``metrics`` config group (the deformation metrics, :mod:`tasks.evaluation.deformation_metrics`).
+"""Structured schemas of the ``metrics`` config group (the deformation metrics, :mod:`tasks.evaluation.deformation_metrics`)
+and of the ``paper_metrics`` group (the paper's video metrics that need downloaded weights).
 
 The paper (sec. "Evaluation for Squeezing Controlled Deformation", Table 2) names BDC-T, BDC-S, SDC and mIoU
 but does not define them; the definitions used here are in ``tasks.evaluation.deformation_metrics.DEFINITIONS``.
@@ -8,7 +9,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Any, Optional
 
 
 @dataclass
@@ -56,3 +57,29 @@ def validate_metrics(cfg: Any = None) -> MetricsConfig:
         raise ValueError(f"metrics.min_motion: must be a finite length >= 0 m, got {c.min_motion}")
     return MetricsConfig(region_fraction=float(c.region_fraction), ate_with_scale=bool(c.ate_with_scale),
                          min_motion=float(c.min_motion))
+
+
+PAPER_METRIC_VIEWS = ("all", "view0")
+
+
+@dataclass
+class PaperMetricsConfig:
+    """The paper's own video metrics (sec. 4.1, Table 1), computed only where their weights are present; nothing is
+    downloaded (:mod:`tasks.evaluation.paper_metrics`).
+
+    musiq_weights: path of MUSIQ's SPAQ checkpoint ``musiq_spaq_ckpt-358bb6af.pth`` (VBench imaging quality);
+    amt_weights: path of AMT-S's checkpoint ``amt-s.pth`` (VBench motion smoothness); unset (the default) = not
+    computed, at no cost.  views: the views scored, ``all`` (their mean) or ``view0``.
+    weights_digest: set by the pre-flight check: content digest of the present weight files (cache key).
+    """
+
+    musiq_weights: Optional[str] = None
+    amt_weights: Optional[str] = None
+    views: str = "all"
+    weights_digest: Optional[str] = None
+
+
+def validate_paper_metrics(cfg: Any) -> None:
+    """Range checks of the ``paper_metrics`` group; raises ValueError naming the key."""
+    if cfg.views not in PAPER_METRIC_VIEWS:
+        raise ValueError(f"paper_metrics.views: must be all or view0, got {cfg.views!r}")

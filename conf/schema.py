@@ -16,7 +16,7 @@ from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 from conf.generation_schema import GenerationConfig, RefinementConfig, VideoMetricsConfig, validate_generation
 from conf.hand import FINGERS
 from conf.judge_schema import LLMJudgeConfig
-from conf.metrics_schema import MetricsConfig, validate_metrics
+from conf.metrics_schema import MetricsConfig, PaperMetricsConfig, validate_metrics, validate_paper_metrics
 from conf.mpm_schema import MPMConfig
 from conf.oracle_schema import OracleConfig
 from conf.render_schema import RenderConfig, validate_render
@@ -292,6 +292,7 @@ class Config:
     generation: GenerationConfig = field(default_factory=GenerationConfig)
     refinement: RefinementConfig = field(default_factory=RefinementConfig)
     video_metrics: VideoMetricsConfig = field(default_factory=VideoMetricsConfig)
+    paper_metrics: PaperMetricsConfig = field(default_factory=PaperMetricsConfig)
     llm_judge: LLMJudgeConfig = field(default_factory=LLMJudgeConfig)
     run_name: Optional[str] = None  # report folder name; default: flow name + time stamp
     accuracy: dict[str, str] = field(default_factory=dict)  # the preset's measured error (conf/preset/), reported
@@ -372,6 +373,7 @@ def validate(cfg: Any) -> None:
         validate_metrics(cfg.metrics)
         validate_render(cfg.render)
         validate_generation(cfg.generation, cfg.refinement, cfg.video_metrics)
+        validate_paper_metrics(cfg.paper_metrics)
     except ValueError as exc:
         raise ConfigError(str(exc)) from None
 

@@ -16,7 +16,8 @@ sec. 3.2-3.3 and Table 2:
 Per object, variant and effect backend (``grid.backends``, default ``[generation.backend]``), sec. 3.3 and
 Tables 1 and 3:
 
-    effect -> appearance_refinement (eq. 7) -> video_metrics; llm_evaluation
+    effect -> appearance_refinement (eq. 7) -> video_metrics; llm_evaluation; paper_metrics (only when a
+    ``paper_metrics`` weight file is named: the paper's VBench metrics)
 """
 from __future__ import annotations
 
@@ -43,6 +44,7 @@ from tasks.core.params import resolve_reads
 from tasks.core.step import StepTask, WiringError
 from tasks.evaluation.deformation_metrics import deformation_metrics_step
 from tasks.evaluation.llm_evaluation import llm_evaluation_step
+from tasks.evaluation.paper_metrics import paper_metrics_step
 from tasks.evaluation.video_metrics import video_metrics_step
 from tasks.generation.appearance_refinement import appearance_refinement_step
 from tasks.generation.effect import effect_step
@@ -65,7 +67,7 @@ PER_OBJECT: tuple[StepTask, ...] = (
 )
 PER_VARIANT: tuple[StepTask, ...] = (mpm_rollout_step, deformation_metrics_step, gbuffer_step, conditions_step)
 PER_BACKEND: tuple[StepTask, ...] = (effect_step, appearance_refinement_step, video_metrics_step,
-                                     llm_evaluation_step)
+                                     llm_evaluation_step, paper_metrics_step)
 STEPS: tuple[StepTask, ...] = PER_OBJECT + PER_VARIANT + PER_BACKEND
 STAGE_OF: dict[str, str] = {s.name: s.compute.__module__.split(".")[1] for s in STEPS}  # e.g. gbuffer -> render
 
@@ -156,6 +158,11 @@ def missing_backends(cfg: DictConfig) -> dict[str, str]:
     return {b: why for b in ("diffusers", "text_only") if b not in ran}
 
 
+def wanted(step: StepTask, cfg: DictConfig) -> bool:
+    """False for the paper-metrics step when no weight file is named (``paper_metrics``): it is not run at all."""
+    return step is not paper_metrics_step or bool(cfg.paper_metrics.musiq_weights or cfg.paper_metrics.amt_weights)
+
+
 def variant_key(variant: str, backend: str | None = None) -> str:
     """How the run table names a per-variant (``full``) or per-backend (``full/physics``) step's chain."""
     return variant if backend is None else f"{variant}/{backend}"
@@ -187,7 +194,7 @@ def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], 
             out[(step.name, variant.name)] = available[step.name]
         for backend in (backends if backends is not None else selected_backends(cfg)):
             cfg_b, chain = backend_config(cfg, backend), dict(available)
-            for step in PER_BACKEND:
+            for step in filter(lambda s: wanted(s, cfg), PER_BACKEND):
                 chain[step.name] = step.submit(
                     params=step_params(step, cfg_b, obj, variant), inputs={n: chain[n] for n in step.spec.inputs},
                     label=f"{scope}[{variant_key(variant.name, backend)}]", **kw)

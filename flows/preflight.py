@@ -15,7 +15,9 @@ A bad input stops the run with one line naming the input (its config key) and th
 5. the LLM judge's endpoint settings when ``llm_judge.url`` is set;
 6. the diffusion weights when a diffusion backend runs: every model present in ``generation.weights`` (a message
    naming each missing model, the folder expected and how to fetch it); their identity (configs + file digests)
-   is recorded in ``generation.weights_digest``, which is part of the effect step's cache key.
+   is recorded in ``generation.weights_digest``, which is part of the effect step's cache key;
+7. the paper metrics' weight files named in ``paper_metrics`` (absent ones are reported "not computed" by the
+   step): the present files' digests are recorded in ``paper_metrics.weights_digest`` (cache key).
 """
 from __future__ import annotations
 
@@ -169,4 +171,10 @@ def preflight(cfg: DictConfig) -> None:
         if missing:
             raise SystemExit(f"input error: generation.weights: {missing_weights_message(missing)}")
         cfg.generation.weights_digest = digest_of(weights_identity(weights))
+    # 7. the paper metrics' weight files
+    if cfg.paper_metrics.musiq_weights or cfg.paper_metrics.amt_weights:
+        from tasks.core.artifacts import digest_of
+        from tasks.evaluation.paper_weights import weights_identity
+
+        cfg.paper_metrics.weights_digest = digest_of(weights_identity(cfg.paper_metrics))
     _PASSED[:] = [OmegaConf.to_yaml(cfg)]

@@ -30,7 +30,7 @@ import functools
 import math
 import os
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import ClassVar
 
@@ -44,7 +44,8 @@ from tasks.evaluation.frame_interpolation import interpolate_midpoint, resolve_i
 __all__ = ["BRISQUE_INSTALL", "DEFINITIONS", "ControlCoupling", "EffectPlacementIoU", "ImagingQualityBrisque",
            "MaskedFidelity", "MotionSmoothness", "MultiviewConsistency", "benchmark", "control_coupling",
            "effect_placement_iou", "imaging_quality_brisque", "masked_fidelity", "masked_ssim_map",
-           "motion_smoothness", "multiview_consistency", "temporal_flicker", "to_srgb_uint8", "to_srgb_unit"]
+           "motion_smoothness", "multiview_consistency", "temporal_flicker", "to_srgb_uint8", "to_srgb_unit",
+           "vfi_smoothness"]
 
 BRISQUE_INSTALL = "pip install brisque==0.2.0"
 SSIM_SIGMA_PX = 1.5  # Wang et al. 2004: 11 x 11 circular-symmetric Gaussian window, sigma 1.5 px
@@ -213,10 +214,19 @@ def motion_smoothness(video: np.ndarray, interpolator: str = "auto") -> MotionSm
     if len(frames) < 3:
         raise ValueError(f"video needs at least 3 frames for motion smoothness, got {len(frames)}")
     # 2. Predict the odd frames from their even neighbours and average the absolute 8-bit errors.
+    score = vfi_smoothness(frames, lambda a, b: interpolate_midpoint(a, b, used))
+    return MotionSmoothness(score=score, interpolator=used)
+
+
+def vfi_smoothness(frames: np.ndarray, predict: Callable[[np.ndarray, np.ndarray], np.ndarray]) -> float:
+    """VBench's motion-smoothness arithmetic with any midpoint predictor: each odd frame 2i+1 is predicted from
+    frames 2i and 2i+2 by ``predict`` and the score is (255 - mean_i mean_pixels |odd_i - predicted_i|) / 255.
+
+    frames: (frame >= 3, y, x, 3) uint8; predict(frame0, frame1) -> (y, x, 3) uint8.  Returns a score in [0, 1].
+    """
     even, odd = frames[0::2], frames[1::2]
-    errors = [cv2.absdiff(odd[i], interpolate_midpoint(even[i], even[i + 1], used)).mean()
-              for i in range(len(even) - 1)]
-    return MotionSmoothness(score=float((255.0 - np.mean(errors)) / 255.0), interpolator=used)
+    errors = [cv2.absdiff(odd[i], predict(even[i], even[i + 1])).mean() for i in range(len(even) - 1)]
+    return float((255.0 - np.mean(errors)) / 255.0)
 
 
 def _import_brisque_class() -> type:

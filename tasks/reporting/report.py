@@ -18,7 +18,7 @@ import numpy as np
 from conf.hand import FINGERS
 from tasks.core.artifacts import ArtifactError, ArtifactRef, read_artifact
 from tasks.reporting.media_cache import MediaCache
-from tasks.reporting.video_tables import PAPER_ONLY, table1, table3, video_metric_rows
+from tasks.reporting.video_tables import paper_metric_reasons, table1, table3, video_metric_rows
 from tasks.reporting.watch import STYLE, SYNC_SCRIPT, object_html, object_media, overview_html
 
 
@@ -372,7 +372,8 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     for title, header, rows, best in tables + video_tables:
         md += [f"## {title}", "", markdown_table(header, rows, best) if rows else "(no metrics: see the task table)", ""]
         md += [captions[title], ""] if title in captions and rows else []
-    md += ["Paper metrics not computed here: " + "; ".join(f"{k}: {v}" for k, v in PAPER_ONLY.items()), ""]
+    paper_reasons = paper_metric_reasons(refs)
+    md += ["Paper metrics not computed here: " + "; ".join(f"{k}: {v}" for k, v in paper_reasons.items()), ""]
     if profile:
         md += ["## Profile: compute per stage and object", "", profile, ""]
     if len(physical):
@@ -415,7 +416,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
         body += [f"<h2>{html.escape(title)}</h2>", html_table(header, rows, best) if rows else "<p>(no metrics)</p>"]
         body += [f"<p>{html.escape(captions[title])}</p>"] if title in captions and rows else []
     body.append("<p>Paper metrics not computed here: " + html.escape(
-        "; ".join(f"{k}: {v}" for k, v in PAPER_ONLY.items())) + "</p>")
+        "; ".join(f"{k}: {v}" for k, v in paper_reasons.items())) + "</p>")
     if profile:
         body += ["<h2>Profile: compute per stage and object</h2>", f"<pre>{html.escape(profile)}</pre>"]
     if len(physical):

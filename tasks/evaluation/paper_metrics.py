@@ -1,0 +1,113 @@
+"""The paper's own video metrics of one object, variant and effect backend, where their weights are present (paper
+sec. 4.1, Table 1): VBench imaging quality (MUSIQ, SPAQ weights; :mod:`tasks.evaluation.musiq`) and VBench motion
+smoothness (AMT-S; :mod:`tasks.evaluation.amt` with the protocol of
+:func:`tasks.evaluation.video_quality.vfi_smoothness`), by VBench's recipes, on the final video of each scored view
+(``paper_metrics.views``), mean over the views.  The checkpoints are read from the files named in ``paper_metrics``
+(:mod:`tasks.evaluation.paper_weights`); a metric whose file is absent is NaN with the report's "not computed:
+weights not present (...)" line, and costs nothing.  VideoPhy-2 physical commonsense is never computed (reason in
+:data:`tasks.evaluation.paper_weights.PHYSICAL_COMMONSENSE_REASON`).
+"""
+from __future__ import annotations
+
+import functools
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tasks.core.artifacts import Array
+from tasks.core.step import artifact_step, report_progress
+from tasks.evaluation.amt import amt_midpoint, load_amt
+from tasks.evaluation.musiq import load_musiq, musiq_frame_scores
+from tasks.evaluation.paper_weights import PAPER_WEIGHTS, PHYSICAL_COMMONSENSE_REASON, absent_reason, present_weights
+from tasks.evaluation.video_quality import to_srgb_uint8, vfi_smoothness
+from tasks.render.device import torch_device
+
+AMT_MIN_SIDE_PX = 128  # AMT-S's 4-level correlation pyramid at 1/8 resolution needs >= 2 cells per side at level 4
+
+DEFINITIONS: dict[str, str] = {
+    "imaging_quality_musiq": (
+        "VBench imaging quality (1, in [0, 1], higher is better): MUSIQ with SPAQ weights on every frame (longer "
+        "side resized to 512 px when longer; RGB / 255), mean over the frames / 100; mean over the scored views."),
+    "motion_smoothness_amt": (
+        "VBench motion smoothness (1, in [0, 1]): each odd frame predicted by AMT-S at t = 1/2 from its even "
+        "neighbours (replicate padding to multiples of 16, uint8 by truncation), (255 - mean |odd - predicted|) / "
+        "255 on uint8 RGB; mean over the scored views."),
+    "physical_commonsense": "VideoPhy-2 physical commonsense (VideoCon-Physics 1-5 score): not computed here.",
+}
+
+
+@functools.cache
+def _network(kind: str, path: Path, size: int, mtime_ns: int):
+    """The loaded network of a checkpoint file (cached per file version within a process)."""
+    return (load_musiq if kind == "imaging_quality_musiq" else load_amt)(path)
+
+
+def network(kind: str, path: Path):
+    """MUSIQ (``kind`` = imaging_quality_musiq) or AMT-S (motion_smoothness_amt) loaded strictly from ``path``;
+    RuntimeError naming the config key and file when it is not such a checkpoint."""
+    stat = path.stat()
+    try:
+        return _network(kind, path, stat.st_size, stat.st_mtime_ns)
+    except (KeyError, RuntimeError, ValueError, OSError) as exc:
+        key = next(s.key for s in PAPER_WEIGHTS if s.metric == kind)
+        raise RuntimeError(f"{key}: {path} is not a loadable {kind} checkpoint ({type(exc).__name__}: "
+                           f"{str(exc).splitlines()[0][:200]}); download the file named in the report again") from None
+
+
+def paper_metrics(final: np.ndarray, cfg: dict[str, Any]) -> tuple[dict[str, float], dict[str, str],
+                                                                    np.ndarray | None, dict[str, float]]:
+    """The paper's metrics of one scene.  final: (view, frame, y, x, 3) uint8 sRGB or float linear RGB; cfg: the
+    ``paper_metrics`` group.  Returns (values, reasons for NaN values, MUSIQ frame scores (view, frame) or None,
+    seconds spent per metric)."""
+    values: dict[str, float] = {"physical_commonsense": math.nan}
+    reasons: dict[str, str] = {"physical_commonsense": PHYSICAL_COMMONSENSE_REASON}
+    seconds: dict[str, float] = {}
+    present = present_weights(cfg)
+    views = range(final.shape[0]) if cfg["views"] == "all" else [0]
+    frame_scores = None
+    for spec in PAPER_WEIGHTS:
+        values[spec.metric] = math.nan
+        if spec.metric not in present:
+            reasons[spec.metric] = absent_reason(cfg, spec)
+            continue
+        if spec.metric == "motion_smoothness_amt" and min(final.shape[2:4]) < AMT_MIN_SIDE_PX:
+            reasons[spec.metric] = (f"not computed: frames of {final.shape[3]} x {final.shape[2]} px are smaller than "
+                                    f"AMT-S's {AMT_MIN_SIDE_PX} px minimum (render.width/height)")
+            continue
+        t0 = time.perf_counter()
+        net = network(spec.metric, present[spec.metric])
+        scores = []
+        for i, v in enumerate(views):
+            video = to_srgb_uint8(final[v])
+            if spec.metric == "imaging_quality_musiq":
+                scores.append(musiq_frame_scores(video, net))
+            else:
+                scores.append(vfi_smoothness(video, functools.partial(amt_midpoint, net)))
+            report_progress(i + 1, len(views), unit="view")
+        if spec.metric == "imaging_quality_musiq":
+            frame_scores = np.stack(scores)
+            values[spec.metric] = float(frame_scores.mean(axis=1).mean() / 100.0)
+        else:
+            values[spec.metric] = float(np.mean(scores))
+        seconds[spec.metric] = time.perf_counter() - t0
+    return values, reasons, frame_scores, seconds
+
+
+@artifact_step("paper_metrics", inputs=("gbuffer", "effect"), reads=("paper_metrics", "render.device"),
+               outputs=("musiq_frame_score?",))
+def paper_metrics_step(inputs, params):
+    """Table 1's VBench imaging quality and motion smoothness of one scene, or why they were not computed."""
+    torch_device(params["render.device"])  # thread count
+    g, effect = inputs["gbuffer"], inputs["effect"]
+    final = effect["frames"] if "frames" in effect else g["rgb"]
+    values, reasons, frame_scores, seconds = paper_metrics(final, dict(params["paper_metrics"]))
+    arrays = {}
+    if frame_scores is not None:
+        arrays["musiq_frame_score"] = Array(frame_scores, ("view", "frame"), "1",
+                                            "MUSIQ-SPAQ score per frame (0..100 MOS scale)")
+    attrs = {"metrics": {k: (None if math.isnan(v) else v) for k, v in values.items()}, "reasons": reasons,
+             "seconds": seconds, "definitions": DEFINITIONS}
+    return arrays, attrs
