@@ -154,3 +154,20 @@ def test_the_step_scores_the_final_video_with_the_tiny_stand_ins_and_the_report_
                         **{k: metrics[k] for k, _, _ in PAPER_COLUMNS}}])
     header, rows, _ = table1(df, {"full": "Full"}, {})
     assert rows[0][header.index("VBench imaging quality (MUSIQ, SPAQ)")] == f"{metrics['imaging_quality_musiq']:.3f}"
+
+
+def test_the_step_runs_only_when_a_weight_file_is_named_and_preflight_keys_it_by_content(tmp_path, compose_cfg):
+    from flows.pipeline import wanted
+    from flows.preflight import preflight
+
+    default = compose_cfg("squeeze", ["object=can"])
+    assert not wanted(paper_metrics_step, default)  # the default run does no paper-metric work at all
+    path = _musiq_file(tmp_path)
+    cfg = compose_cfg("squeeze", ["object=can", f"paper_metrics.musiq_weights={path}"])
+    assert wanted(paper_metrics_step, cfg)
+    preflight(cfg)
+    first = cfg.paper_metrics.weights_digest
+    torch.save({k: v + 1 for k, v in torch.load(path, weights_only=True).items()}, path)  # new weights, same path
+    cfg = compose_cfg("squeeze", ["object=can", f"paper_metrics.musiq_weights={path}"])
+    preflight(cfg)
+    assert first and cfg.paper_metrics.weights_digest and cfg.paper_metrics.weights_digest != first

@@ -320,7 +320,8 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     physical_cols = [c for c in metrics.columns
                      if c not in {"object", "seed", "variant"} | {k for k, _, _ in TABLE2 + TRAJECTORY}]
     physical = metrics[["object", "seed", "variant", *physical_cols]] if len(metrics) else metrics
-    definitions = {**stored_definitions(refs, "deformation_metrics"), **stored_definitions(refs, "video_metrics")}
+    definitions = {**stored_definitions(refs, "deformation_metrics"), **stored_definitions(refs, "video_metrics"),
+                   **stored_definitions(refs, "paper_metrics")}
     video_tables = [
         ("Video metrics, paper Table 1 layout (mean over the objects where a metric applies; bold: best)",
          *table1(video, labels, missing_backends or {})),
