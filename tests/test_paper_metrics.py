@@ -171,3 +171,17 @@ def test_the_step_runs_only_when_a_weight_file_is_named_and_preflight_keys_it_by
     cfg = compose_cfg("squeeze", ["object=can", f"paper_metrics.musiq_weights={path}"])
     preflight(cfg)
     assert first and cfg.paper_metrics.weights_digest and cfg.paper_metrics.weights_digest != first
+
+
+def test_frames_too_small_for_amt_s_and_a_wrong_checkpoint_are_one_line_each(tmp_path):
+    cfg = {"musiq_weights": None, "amt_weights": str(_amt_file(tmp_path)), "views": "view0"}
+    values, reasons, _, _ = paper_metrics(_video(3, 96, 160)[None], cfg)
+    assert math.isnan(values["motion_smoothness_amt"])
+    assert reasons["motion_smoothness_amt"] == ("not computed: frames of 160 x 96 px are below AMT-S's 128 px minimum "
+                                                "after padding to multiples of 16 (render.width/height)")
+    cfg["amt_weights"] = str(_musiq_file(tmp_path))  # a MUSIQ file named as the AMT-S checkpoint
+    with pytest.raises(RuntimeError) as err:
+        paper_metrics(_video(3, 128, 128)[None], cfg)
+    assert str(err.value).startswith(f"paper_metrics.amt_weights: {cfg['amt_weights']} is not a loadable "
+                                     "motion_smoothness_amt checkpoint (KeyError:")
+    assert "\n" not in str(err.value)

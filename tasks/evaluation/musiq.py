@@ -11,7 +11,7 @@ PyTorch checkpoints of IQA-PyTorch (``musiq_spaq_ckpt-358bb6af.pth``, a flat sta
 * patch stem: weight-standardised 7 x 7 stride-2 convolution (64 channels), GroupNorm, ReLU, 3 x 3 stride-2 max pool
   ("SAME"), one ResNet bottleneck (64 -> 256 channels); the 8 x 8 x 256 map (channels last) is embedded to 384;
 * transformer: class token, 14 pre-norm blocks (6 heads, MLP 1152, GELU, LayerNorm eps 1e-6) with attention
-  masked to the real patches, final LayerNorm, linear head on the class token (1 output for SPAQ: the MOS).
+  masked to the real patches, final LayerNorm, linear head on the class token (1 output: SPAQ's MOS, 0..100).
 
 VBench's imaging quality: every frame, as uint8 RGB, is resized (bilinear, no antialiasing) so that its longer side
 is 512 px when it is longer, divided by 255, scored by MUSIQ-SPAQ (inputs mapped to [-1, 1]); the video's score is
@@ -37,7 +37,8 @@ VBENCH_LONGER_SIDE_PX = 512
 
 @dataclass(frozen=True)
 class MusiqConfig:
-    """Architecture sizes; the defaults are the published MUSIQ (SPAQ head: one output)."""
+    """Architecture sizes; the defaults are the published MUSIQ.  The head has one output (the MOS), as the SPAQ
+    checkpoint (IQA-PyTorch's AVA checkpoint, a 10-class distribution head, does not load)."""
 
     patch_size: int = 32
     token_dim: int = 64  # channels of the ResNet stem
@@ -47,7 +48,6 @@ class MusiqConfig:
     num_layers: int = 14
     num_scales: int = 3
     grid_size: int = 10  # hashed spatial position grid
-    num_class: int = 1
     longer_side_lengths: tuple[int, ...] = (224, 384)
 
     @classmethod
@@ -62,8 +62,7 @@ class MusiqConfig:
                    mlp_dim=state["transformer_encoder.transformer.encoderblock_0.mlp.fc1.weight"].shape[0],
                    num_heads=max(1, hidden // 64), num_layers=len(layers),
                    num_scales=state["transformer_encoder.scaleembed_input.scale_emb"].shape[0],
-                   grid_size=math.isqrt(state["transformer_encoder.posembed_input.position_emb"].shape[1]),
-                   num_class=state["head.weight"].shape[0])
+                   grid_size=math.isqrt(state["transformer_encoder.posembed_input.position_emb"].shape[1]))
 
 
 def _groups(channels: int) -> int:
@@ -236,7 +235,7 @@ class MUSIQ(nn.Module):
         self.block1 = Bottleneck(c.token_dim, 4 * c.token_dim)
         self.embedding = nn.Linear(4 * c.token_dim * (c.patch_size // 4) ** 2, c.hidden_size)
         self.transformer_encoder = TransformerEncoder(c)
-        self.head = nn.Linear(c.hidden_size, c.num_class)
+        self.head = nn.Linear(c.hidden_size, 1)
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         c = self.config
@@ -247,16 +246,15 @@ class MUSIQ(nn.Module):
         x = F.max_pool2d(_same_pad(x, 3, 2), 3, 2)
         x = self.block1(x).permute(0, 2, 3, 1).reshape(b, n, -1)  # channels last, as the TensorFlow original
         x = self.transformer_encoder(self.embedding(x), spatial, scale, mask)
-        q = self.head(x[:, 0])
-        if c.num_class > 1:  # a distribution over scores 1..num_class (AVA head): its mean
-            q = (q.softmax(dim=-1) * torch.arange(1, c.num_class + 1, dtype=q.dtype)).sum(-1, keepdim=True)
-        return q[:, 0]
+        return self.head(x[:, 0])[:, 0]
 
 
 def load_musiq(path: str | Path) -> MUSIQ:
-    """MUSIQ from a checkpoint file (a flat state dict, IQA-PyTorch's release format), sizes read from its shapes,
-    loaded with ``strict=True``, in eval mode."""
+    """MUSIQ from a checkpoint file (a flat state dict, IQA-PyTorch's release format; a ``module.`` prefix of
+    data-parallel training is dropped, as IQA-PyTorch does), sizes read from its shapes, loaded with ``strict=True``,
+    in eval mode."""
     state = torch.load(Path(path).expanduser(), map_location="cpu", weights_only=True)
+    state = {k.removeprefix("module."): v for k, v in state.items()}
     net = MUSIQ(MusiqConfig.from_state_dict(state))
     net.load_state_dict(state, strict=True)
     return net.eval()

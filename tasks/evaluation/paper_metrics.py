@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import math
+import pickle
 import time
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,9 @@ from tasks.evaluation.paper_weights import PAPER_WEIGHTS, PHYSICAL_COMMONSENSE_R
 from tasks.evaluation.video_quality import to_srgb_uint8, vfi_smoothness
 from tasks.render.device import torch_device
 
-AMT_MIN_SIDE_PX = 128  # AMT-S's 4-level correlation pyramid at 1/8 resolution needs >= 2 cells per side at level 4
+# AMT-S's 4-level correlation pyramid at 1/8 resolution needs >= 2 cells per side at its coarsest level (frames padded
+# to multiples of 16 of at least 128 px; smaller frames make the released model's lookup divide by zero)
+AMT_MIN_SIDE_PX = 128
 
 DEFINITIONS: dict[str, str] = {
     "imaging_quality_musiq": (
@@ -51,7 +54,7 @@ def network(kind: str, path: Path):
     stat = path.stat()
     try:
         return _network(kind, path, stat.st_size, stat.st_mtime_ns)
-    except (KeyError, RuntimeError, ValueError, OSError) as exc:
+    except (KeyError, RuntimeError, ValueError, OSError, pickle.UnpicklingError) as exc:
         key = next(s.key for s in PAPER_WEIGHTS if s.metric == kind)
         raise RuntimeError(f"{key}: {path} is not a loadable {kind} checkpoint ({type(exc).__name__}: "
                            f"{str(exc).splitlines()[0][:200]}); download the file named in the report again") from None
@@ -73,9 +76,10 @@ def paper_metrics(final: np.ndarray, cfg: dict[str, Any]) -> tuple[dict[str, flo
         if spec.metric not in present:
             reasons[spec.metric] = absent_reason(cfg, spec)
             continue
-        if spec.metric == "motion_smoothness_amt" and min(final.shape[2:4]) < AMT_MIN_SIDE_PX:
-            reasons[spec.metric] = (f"not computed: frames of {final.shape[3]} x {final.shape[2]} px are smaller than "
-                                    f"AMT-S's {AMT_MIN_SIDE_PX} px minimum (render.width/height)")
+        if spec.metric == "motion_smoothness_amt" and min(-(-n // 16) * 16 for n in final.shape[2:4]) < AMT_MIN_SIDE_PX:
+            reasons[spec.metric] = (f"not computed: frames of {final.shape[3]} x {final.shape[2]} px are below AMT-S's "
+                                    f"{AMT_MIN_SIDE_PX} px minimum after padding to multiples of 16 "
+                                    "(render.width/height)")
             continue
         t0 = time.perf_counter()
         net = network(spec.metric, present[spec.metric])
