@@ -49,7 +49,8 @@ PAPER_WEIGHTS: tuple[PaperWeights, ...] = (
 
 PHYSICAL_COMMONSENSE_REASON = (
     "not computed: weights not present, and not loadable here with them: VideoPhy-2's physical-commonsense rater "
-    "(VideoCon-Physics fine-tuned; huggingface.co/videophysics/videophy2_autoeval, about 14 GB in bfloat16) is "
+    "(huggingface.co/videophysics/videophy2_autoeval, trained from VideoPhy-1's VideoCon-Physics, "
+    "videophysics/videocon_physics; 7B parameters, about 14 GB in bfloat16) is "
     "mPLUG-Owl-Video 7B (LLaMA-7B + ViT-L/14 + visual abstractor), loaded by the custom mplug_owl_video code of "
     "github.com/Hritikbansal/videophy; transformers 5.24 has no mPLUG-Owl architecture and no registry package "
     "ships one")
