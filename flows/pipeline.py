@@ -208,6 +208,8 @@ def run_object_local(cfg: DictConfig, obj: DictConfig, variant: DictConfig | Non
     notebooks).  Same keys and artifacts as the flow."""
     refs: dict[str, ArtifactRef] = {}
     for step in PER_OBJECT + (PER_VARIANT + PER_BACKEND if variant is not None else ()):
+        if not wanted(step, cfg):
+            continue
         refs[step.name] = step.run_local(root=str(root), scope=seed_scope(obj.name, int(cfg.sampling.seed)),
                                          params=step_params(step, cfg, obj, variant),
                                          inputs={n: refs[n] for n in step.spec.inputs})
