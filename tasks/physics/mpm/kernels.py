@@ -480,8 +480,8 @@ class ContactResult:
 
 
 @wp.func
-def contact_velocity(col: Colliders, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.mat33, radius: float, mass: float,
-                     dt: float, inv_dx: float) -> ContactResult:
+def contact_velocity(col: Colliders, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.mat33, tau: wp.mat33, vol: float,
+                     radius: float, mass: float, dt: float, inv_dx: float) -> ContactResult:
     """Surface contact of one particle (centre x, m; velocity v, m/s; velocity gradient C, 1/s; deformation
     gradient F; radius = half its undeformed spacing, m; mass, kg) with the colliders, before its P2G over the
     coming substep dt (s).
@@ -490,8 +490,10 @@ def contact_velocity(col: Colliders, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.
     signed distance phi_c(x)) it reaches r = radius |F^T n|, so its surface point x - r n has the gap
     g = phi_c(x) - r and, by the particle's affine velocity field, the velocity u = v - r C n.  That point touches
     the collider when g would close within dt: the relative normal velocity u_n = (u - v_c) . n must satisfy
-    g + dt u_n >= 0, so u_n is raised to -g / dt where it is lower (a particle that is not reached in this substep is
-    left alone: no halo; one that penetrated is pushed back to the surface).  Constraining the surface point, not the
+    g + dt (u_n - dt a) >= 0, so u_n is raised to -g / dt + dt a where it is lower (a particle that is not reached in
+    this substep is left alone: no halo; one that penetrated is pushed back to the surface).  a = max(-n . tau n, 0)
+    V0 / (m 2 r) is the push of the material behind it over the substep (its compressive normal Kirchhoff stress
+    tau on its cross-section; without it the particle would settle a dt^2 = eps (c dt)^2 / h into the collider).  Constraining the surface point, not the
     centre, lets the material between the centre and the collider deform (the centre of a particle that touches a
     plate does not move with the plate).  The tangential relative velocity then loses at most mu |du_n| (Coulomb;
     mu = 0 frictionless, mu < 0 no slip).  The change du is added to v; the impulse J = m du enters the P2G
@@ -510,7 +512,9 @@ def contact_velocity(col: Colliders, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.
         vc = col.vel[c]
         rel = vn - r * (C @ n) - vc
         un = wp.dot(rel, n)
-        need = -gap / dt - un
+        # the material behind pushes the particle on with its normal stress over the coming substep
+        push = wp.max(-wp.dot(n, tau @ n), 0.0) * vol / (mass * 2.0 * r)
+        need = -gap / dt - un + dt * push
         if need > 0.0:
             vt = rel - un * n
             lt = wp.length(vt)
@@ -548,7 +552,8 @@ def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles
     A = (-sp.dt_p2g * vol * 4.0 * gi.inv_dx * gi.inv_dx) * r.tau + mass * r.C
     mv = mass * r.v
     if col.count > 0:
-        cr = contact_velocity(col, r.x, r.v, r.C, r.F, 0.5 * wp.pow(vol, 1.0 / 3.0), mass, sp.dt_p2g, gi.inv_dx)
+        cr = contact_velocity(col, r.x, r.v, r.C, r.F, r.tau, vol, 0.5 * wp.pow(vol, 1.0 / 3.0), mass, sp.dt_p2g,
+                              gi.inv_dx)
         mv = mass * cr.v
         A = A + cr.A
     if sp.weight_in_p2g != 0:
