@@ -9,6 +9,7 @@
   * the floor as a plane collider: frictionless slip keeps a sliding block's speed, Coulomb friction decelerates
     it at mu g;
   * a capsule fingertip pressing a block on the floor: no particle enters it, its reaction balances the floor's;
+  * two colliders meeting on one particle (a corner): each keeps its own normal component;
   * bad input: one line naming the key or collider.
 """
 from __future__ import annotations
@@ -139,6 +140,29 @@ def test_capsule_fingertip_presses_a_block_without_entering_it():
     print("capsule push", push, "floor", up)
     assert push[2] < 0 and np.abs(push[:2]).max() < 0.05 * abs(push[2])
     assert abs(up[2] + push[2]) < 0.1 * abs(push[2])
+
+
+def test_two_colliders_meeting_on_one_particle_keep_each_normal_component():
+    """A block thrown into the corner of a wall (normal +x) and the floor (normal +z), both frictionless plane
+    colliders (no gravity): the corner particles touch both; each collider stops the velocity along its own
+    normal, so no particle enters either plane and the block keeps sliding along y at its 0.2 m/s (the
+    tangential direction of both)."""
+    X = block(0.02) + [0.0, 0.0, 0.0]
+    s = MPMSolver(X, (DX / 2) ** 3, Material(name="j", model="fixed_corotated", youngs_modulus=5e4,
+                                              poisson_ratio=0.3, density=1000.0),
+                  velocities=np.tile([-0.1, 0.2, -0.1], (len(X), 1)),
+                  config=dict(device="cpu", dx=DX, floor=False, gravity=[0, 0, 0], margin_cells=10))
+    walls = [Collider("plane", (0, 0, 0), (1, 0, 0), finger_id=0), Collider("plane", (0, 0, 0), (0, 0, 1),
+                                                                           finger_id=1)]
+    impulse = np.zeros((2, 3))
+    for _ in range(4):
+        impulse += 0.005 * s.step_frame(0.005, colliders=walls).reaction[:2]
+    x, m = s.positions(), s.masses()
+    assert x[:, 0].min() > DX / 4 * 0.9 and x[:, 2].min() > DX / 4 * 0.9, (x[:, 0].min(), x[:, 2].min())
+    assert abs((m * s.velocities()[:, 1]).sum() / m.sum() - 0.2) < 0.01
+    # each wall pushed along its own normal only, at least enough to stop the block's approach
+    assert impulse[0, 0] > 0.1 * m.sum() and impulse[1, 2] > 0.1 * m.sum(), impulse
+    assert np.abs(impulse[0, 1:]).max() < 1e-6 and np.abs(impulse[1, :2]).max() < 1e-6, impulse
 
 
 def test_bad_contact_mode_and_collider_are_one_line_errors():
