@@ -17,6 +17,9 @@ Boundary conditions (generic; the finger field is connected by the caller)
     * :class:`ForcePatch` ("force mode"): a total force vector per finger, distributed over the massive nodes
       that finger's points touch in proportion to the B-spline weight, so the total force per finger is exactly
       the given vector, independent of the particle count.
+    * :class:`Collider` (surface contact): rigid planes, spheres and capsules with signed distances, acting on the
+      particles whose surface touches them (:func:`tasks.physics.mpm.kernels.contact_velocity`); their impulses
+      join the per-finger reactions.  ``mpm.contact = surface`` makes the floor such a plane.
     * floor plane and domain walls (config).
 Tracers (surface 3D Gaussians) are massless points advected by the grid velocity with their own F
 (``tracer_F``): deform covariances with :func:`deform_covariances` (F Sigma F^T) and rotate with
