@@ -38,6 +38,13 @@ class MPMConfig:
         floor_friction: Coulomb coefficient of the floor (0 = frictionless slip).
         floor_sticky: the floor holds the material (no slip, no separation).
         wall_sticky: domain walls are sticky instead of slip.
+        contact: how the floor and rigid colliders (``Collider``: plane, sphere, capsule) act.  ``grid`` (the
+            floor acts on the grid nodes at or below it, so on material within its B-spline stencil, ~1.5 dx above
+            it; the floor height defaults to the lowest particle's centre); ``surface`` (the floor is a plane
+            collider: colliders act on the particles whose surface, centre -+ half the particle spacing, touches
+            them, through the P2G momentum; the floor height defaults to the lowest particle's surface;
+            ``floor_sticky`` then means no slip while touching).  ``Collider`` s passed to ``step_frame`` act at
+            the surface in both modes; ``DirichletPoints``/``DirichletNodes`` always act on grid nodes.
     Acceleration knobs (each changes the physics; reported in the frame statistics)
         mass_scaling: time (mass) scaling, the one acceleration mechanism of the project.  ``off``; ``manual`` (every
             density x ``mass_scale``); ``global`` (every density x s, s the smallest factor >= 1 for which the
@@ -106,6 +113,7 @@ class MPMConfig:
     floor_friction: float = 0.0
     floor_sticky: bool = False
     wall_sticky: bool = False
+    contact: str = "grid"
     mass_scaling: str = "off"
     mass_scale: float = 1.0
     target_substeps_per_frame: int = 100
@@ -123,6 +131,7 @@ class MPMConfig:
 
 
 MASS_SCALING_MODES = ("selective", "global", "manual", "off")
+CONTACT_MODES = ("grid", "surface")
 
 
 class MPMConfigError(ValueError):
@@ -158,6 +167,8 @@ def validate_mpm_config(cfg: MPMConfig) -> MPMConfig:
         bad("gravity", "must have 3 components")
     if cfg.floor_friction < 0:
         bad("floor_friction", "must be >= 0")
+    if cfg.contact not in CONTACT_MODES:
+        bad("contact", f"'{cfg.contact}' is not one of {', '.join(CONTACT_MODES)}")
     if cfg.mass_scaling not in MASS_SCALING_MODES:
         bad("mass_scaling", f"'{cfg.mass_scaling}' is not one of {', '.join(MASS_SCALING_MODES)}")
     if not cfg.mass_scale >= 1.0 and cfg.mass_scaling == "manual":

@@ -1,6 +1,7 @@
 """MLS-MPM physics core (NVIDIA Warp): materials, constitutive models, kernels and the solver driver."""
 from .materials import MODEL_CODES, Material, MaterialError, canonical_model, material_from_dict  # noqa: F401
 from .solver import (  # noqa: F401
+    Collider,
     DirichletNodes,
     DirichletPoints,
     ForcePatch,

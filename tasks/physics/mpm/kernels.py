@@ -166,6 +166,28 @@ class DirichletPointSet:
     advect: int  # 1: move the points by dt * target velocity every substep
 
 
+COLLIDER_PLANE = wp.constant(0)
+COLLIDER_SPHERE = wp.constant(1)
+COLLIDER_CAPSULE = wp.constant(2)
+
+
+@wp.struct
+class Colliders:
+    """Rigid colliders of the surface contact (``mpm.contact = surface``): signed distances acting on the particles
+    that touch them (see :func:`contact_velocity`).  Arrays of length >= ``count`` (at least 1)."""
+
+    count: int  # number of active colliders (0: no contact, nothing is evaluated)
+    kind: wp.array(dtype=wp.int32)  # COLLIDER_PLANE / _SPHERE / _CAPSULE
+    a: wp.array(dtype=wp.vec3)  # plane: a point on it; sphere: centre; capsule: segment end A (m)
+    b: wp.array(dtype=wp.vec3)  # plane: unit normal towards the material; capsule: segment end B (m)
+    radius: wp.array(dtype=float)  # sphere / capsule radius (m)
+    vel: wp.array(dtype=wp.vec3)  # translation velocity (m/s)
+    mu: wp.array(dtype=float)  # Coulomb friction coefficient (0: frictionless; < 0: no slip while touching)
+    finger: wp.array(dtype=wp.int32)  # finger id whose reaction receives the impulses (< 0: not reported)
+    impulse: wp.array(dtype=wp.vec3)  # (finger,) impulse the colliders applied to the material (N s)
+    work: wp.array(dtype=wp.float64)  # [0]: work of those impulses, impulse . new velocity (J)
+
+
 @wp.struct
 class Stencil:
     """Quadratic B-spline stencil of a point: nodes base + (i, j, k), i, j, k in {0, 1, 2}."""
@@ -430,17 +452,110 @@ def check_particle(r: G2PResult, p: int, sp: StepParams, flags: wp.array(dtype=w
 
 
 @wp.func
+def collider_distance(col: Colliders, c: int, x: wp.vec3) -> wp.vec4:
+    """Signed distance (m, 4th lane; > 0 on the material's side) of x from collider c and the unit normal at the
+    closest surface point pointing towards the material (first three lanes)."""
+    kind = col.kind[c]
+    a = col.a[c]
+    if kind == COLLIDER_PLANE:
+        n = col.b[c]
+        return wp.vec4(n[0], n[1], n[2], wp.dot(x - a, n))
+    centre = a
+    if kind == COLLIDER_CAPSULE:
+        ab = col.b[c] - a
+        t = wp.clamp(wp.dot(x - a, ab) / wp.max(wp.dot(ab, ab), 1.0e-30), 0.0, 1.0)
+        centre = a + t * ab
+    d = x - centre
+    ln = wp.length(d)
+    n = wp.vec3(0.0, 0.0, 1.0)
+    if ln > 0.0:
+        n = d / ln
+    return wp.vec4(n[0], n[1], n[2], ln - col.radius[c])
+
+
+@wp.struct
+class ContactResult:
+    v: wp.vec3  # particle velocity after the contact impulses, m/s
+    A: wp.mat33  # affine momentum (kg/s) placing each impulse at its contact point
+
+
+@wp.func
+def contact_velocity(col: Colliders, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.mat33, tau: wp.mat33, vol: float,
+                     radius: float, mass: float, dt: float, inv_dx: float) -> ContactResult:
+    """Surface contact of one particle (centre x, m; velocity v, m/s; velocity gradient C, 1/s; deformation
+    gradient F; radius = half its undeformed spacing, m; mass, kg) with the colliders, before its P2G over the
+    coming substep dt (s).
+
+    The particle is the ellipsoid x + F X, |X| <= radius: towards collider c (normal n at the closest surface point,
+    signed distance phi_c(x)) it reaches r = radius |F^T n|, so its surface point x - r n has the gap
+    g = phi_c(x) - r and, by the particle's affine velocity field, the velocity u = v - r C n.  That point touches
+    the collider when g would close within dt: the relative normal velocity u_n = (u - v_c) . n must satisfy
+    g + dt (u_n - dt a) >= 0, so u_n is raised to -g / dt + dt a where it is lower (a particle that is not reached in
+    this substep is left alone: no halo; one that penetrated is pushed back to the surface).  a = max(-n . tau n, 0)
+    V0 / (m 2 r) is the push of the material behind it over the substep (its compressive normal Kirchhoff stress
+    tau on its cross-section; without it the particle would settle a dt^2 = eps (c dt)^2 / h into the collider).  Constraining the surface point, not the
+    centre, lets the material between the centre and the collider deform (the centre of a particle that touches a
+    plate does not move with the plate).  The tangential relative velocity then loses at most mu |du_n| (Coulomb;
+    mu = 0 frictionless, mu < 0 no slip).  The change du is added to v; the impulse J = m du enters the P2G
+    momentum with the affine term 4/dx^2 J (x_c - x)^T (returned in ``A``), which moves its first moment on the
+    grid, sum_i w_i J_i (x_i - x), from the particle centre to the contact point x_c = x - r n (the B-spline's
+    second moment is dx^2/4 I) while its total stays J: the push enters the grid as a traction at the material's
+    surface, not as a body force centred half a particle inside (which left the layers next to a plate
+    under-strained).  J is added to the collider's finger reaction (N s) with its work J . v_new (J)."""
+    vn = v
+    A = wp.mat33(0.0)
+    for c in range(col.count):
+        dn = collider_distance(col, c, x)
+        n = wp.vec3(dn[0], dn[1], dn[2])
+        r = radius * wp.length(wp.transpose(F) @ n)
+        gap = dn[3] - r
+        vc = col.vel[c]
+        rel = vn - r * (C @ n) - vc
+        un = wp.dot(rel, n)
+        # the material behind pushes the particle on with its normal stress over the coming substep
+        push = wp.max(-wp.dot(n, tau @ n), 0.0) * vol / (mass * 2.0 * r)
+        need = -gap / dt - un + dt * push
+        if need > 0.0:
+            vt = rel - un * n
+            lt = wp.length(vt)
+            mu = col.mu[c]
+            keep = float(1.0)
+            if mu < 0.0 or lt <= mu * need:
+                keep = 0.0
+            elif mu > 0.0:
+                keep = 1.0 - mu * need / lt
+            dv = need * n + (keep - 1.0) * vt
+            new = vn + dv
+            vn = new
+            A = A - (4.0 * inv_dx * inv_dx * mass * r) * wp.outer(dv, n)
+            k = col.finger[c]
+            if k >= 0:
+                wp.atomic_add(col.impulse, k, mass * dv)
+            wp.atomic_add(col.work, 0, wp.float64(mass * wp.dot(dv, new)))
+    res = ContactResult()
+    res.v = vn
+    res.A = A
+    return res
+
+
+@wp.func
 def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles, mats: MaterialTable,
                      gi: GridInfo, sp: StepParams, grid: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32),
-                     bbox: wp.array(dtype=wp.int32)):
+                     bbox: wp.array(dtype=wp.int32), col: Colliders):
     """MLS-MPM P2G of particle p at r.x with velocity r.v, affine matrix r.C and Kirchhoff stress r.tau, over
     dt = ``sp.dt_p2g``: affine momentum A = -dt V0 4/dx^2 tau + m C (Hu et al. 2018, eq. 29).  Momentum m v plus the
-    weight impulse dt m_phys ``sp.weight_g`` (selective mass scaling: each node then gains dt g sum w m_phys)."""
+    weight impulse dt m_phys ``sp.weight_g`` (selective mass scaling: each node then gains dt g sum w m_phys); with
+    colliders, v after the surface contact (:func:`contact_velocity`)."""
     g = checked_grid_coord(r.x, gi, flags, OUT_OF_GRID, substep, p)
     vol = ps.vol[p]
     mass = particle_mass(p, mid, ps, mats)
     A = (-sp.dt_p2g * vol * 4.0 * gi.inv_dx * gi.inv_dx) * r.tau + mass * r.C
     mv = mass * r.v
+    if col.count > 0:
+        cr = contact_velocity(col, r.x, r.v, r.C, r.F, r.tau, vol, 0.5 * wp.pow(vol, 1.0 / 3.0), mass, sp.dt_p2g,
+                              gi.inv_dx)
+        mv = mass * cr.v
+        A = A + cr.A
     if sp.weight_in_p2g != 0:
         mv = mv + (sp.dt_p2g * physical_mass(p, mid, ps, mats)) * sp.weight_g
     scatter_apic(grid, stencil_at(g), gi.dx, mass, mv, A, bbox)
@@ -536,7 +651,7 @@ def elastic_energy_density(model: int, r: G2PResult, mid: int, mats: MaterialTab
 # ============================================================================================ particle kernels
 @wp.kernel
 def k_p2g(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid_out: wp.array3d(dtype=wp.vec4),
-          flags: wp.array(dtype=wp.int32), bbox: wp.array(dtype=wp.int32)):
+          flags: wp.array(dtype=wp.int32), bbox: wp.array(dtype=wp.int32), col: Colliders):
     """Stand-alone P2G (first substep of a frame), stress from the stored F_E (any model)."""
     p = wp.tid()
     mid = int(ps.mat_id[p])
@@ -544,28 +659,29 @@ def k_p2g(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid
     r = stored_state(p, mid, model, ps, mats, sp)
     if model == MODEL_FIXED_COROTATED:
         ps.q[p] = r.q
-    scatter_particle(r, p, mid, sp.substep, ps, mats, gi, sp, grid_out, flags, bbox)
+    scatter_particle(r, p, mid, sp.substep, ps, mats, gi, sp, grid_out, flags, bbox, col)
 
 
 @wp.kernel
 def k_g2p_p2g(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid_in: wp.array3d(dtype=wp.vec4),
-              grid_out: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32), bbox: wp.array(dtype=wp.int32)):
+              grid_out: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32), bbox: wp.array(dtype=wp.int32),
+              col: Colliders):
     """Fused G2P (substep n, from ``grid_in``) + P2G (substep n+1, into ``grid_out``), any model."""
     p = wp.tid()
     mid = int(ps.mat_id[p])
     r = g2p_update(p, mid, mats.model[mid], ps, mats, gi, sp, grid_in, flags)
-    scatter_particle(r, p, mid, sp.substep + 1, ps, mats, gi, sp, grid_out, flags, bbox)
+    scatter_particle(r, p, mid, sp.substep + 1, ps, mats, gi, sp, grid_out, flags, bbox, col)
 
 
 @wp.kernel
 def k_g2p_p2g_fc(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable,
                  grid_in: wp.array3d(dtype=wp.vec4), grid_out: wp.array3d(dtype=wp.vec4),
-                 flags: wp.array(dtype=wp.int32), bbox: wp.array(dtype=wp.int32)):
+                 flags: wp.array(dtype=wp.int32), bbox: wp.array(dtype=wp.int32), col: Colliders):
     """Fused G2P + P2G when every particle is fixed-corotated (no model branches, no plastic state)."""
     p = wp.tid()
     mid = int(ps.mat_id[p])
     r = g2p_update_fc(p, mid, ps, mats, gi, sp, grid_in, flags)
-    scatter_particle(r, p, mid, sp.substep + 1, ps, mats, gi, sp, grid_out, flags, bbox)
+    scatter_particle(r, p, mid, sp.substep + 1, ps, mats, gi, sp, grid_out, flags, bbox, col)
 
 
 @wp.kernel
@@ -809,6 +925,17 @@ def k_force_apply(gi: GridInfo, px: wp.array(dtype=wp.vec3), pfinger: wp.array(d
                     acc += w
     wp.atomic_add(finger_impulse, kf, acc * Fk)
     wp.atomic_add(work, 0, wp.float64(power))
+
+
+# ============================================================================================ colliders
+@wp.kernel
+def k_collider_advance(col: Colliders, dt: float):
+    """Move every collider by dt times its velocity (rigid translation, m)."""
+    c = wp.tid()
+    d = dt * col.vel[c]
+    col.a[c] = col.a[c] + d
+    if col.kind[c] == COLLIDER_CAPSULE:
+        col.b[c] = col.b[c] + d
 
 
 # ============================================================================================ tracers

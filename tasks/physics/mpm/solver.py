@@ -17,6 +17,9 @@ Boundary conditions (generic; the finger field is connected by the caller)
     * :class:`ForcePatch` ("force mode"): a total force vector per finger, distributed over the massive nodes
       that finger's points touch in proportion to the B-spline weight, so the total force per finger is exactly
       the given vector, independent of the particle count.
+    * :class:`Collider` (surface contact): rigid planes, spheres and capsules with signed distances, acting on the
+      particles whose surface touches them (:func:`tasks.physics.mpm.kernels.contact_velocity`); their impulses
+      join the per-finger reactions.  ``mpm.contact = surface`` makes the floor such a plane.
     * floor plane and domain walls (config).
 Tracers (surface 3D Gaussians) are massless points advected by the grid velocity with their own F
 (``tracer_F``): deform covariances with :func:`deform_covariances` (F Sigma F^T) and rotate with
@@ -96,6 +99,27 @@ class ForcePatch:
     positions: np.ndarray
     finger_ids: np.ndarray
     forces: np.ndarray
+
+
+@dataclass
+class Collider:
+    """A rigid collider of the surface contact (``mpm.contact``; see :func:`tasks.physics.mpm.kernels.contact_velocity`):
+    it acts on the particles whose surface (centre +- half their spacing) it touches, not on grid nodes.
+
+    ``kind``: ``plane`` (``a`` a point on it, ``b`` its normal towards the material), ``sphere`` (centre ``a``,
+    ``radius``) or ``capsule`` (segment ``a``-``b``, ``radius``; e.g. a fingertip); positions in m.  ``velocity``:
+    rigid translation (m/s; the solver moves it every substep).  ``friction``: Coulomb coefficient (0 frictionless,
+    < 0 no slip while touching).  ``finger_id``: the reaction array entry that receives its force (< 0: none)."""
+
+    kind: str
+    a: Sequence[float]
+    b: Sequence[float] = (0.0, 0.0, 1.0)
+    radius: float = 0.0
+    velocity: Sequence[float] = (0.0, 0.0, 0.0)
+    friction: float = 0.0
+    finger_id: int = -1
+
+    KINDS = ("plane", "sphere", "capsule")
 
 
 BoundarySpec = Union[DirichletPoints, DirichletNodes, Sequence[Union[DirichletPoints, DirichletNodes]], None,
@@ -380,8 +404,10 @@ class MPMSolver:
             dx = max(extent, 1e-6) / cfg.cells_across
         self.floor_height: Optional[float] = None
         if cfg.floor:
-            # default: the lowest particle (not tracer) rests on the floor
-            self.floor_height = float(x[:, 2].min() if cfg.floor_height is None else cfg.floor_height)
+            # default: the lowest particle (not tracer) rests on the floor: its centre (grid contact) or, with surface
+            # contact, its surface (centre minus half its spacing, see Collider)
+            low = x[:, 2] - (0.5 * np.cbrt(vol) if cfg.contact == "surface" else 0.0)
+            self.floor_height = float(low.min() if cfg.floor_height is None else cfg.floor_height)
         if cfg.domain_lo is not None:
             box_lo = np.asarray(cfg.domain_lo, np.float64)
             box_hi = np.asarray(cfg.domain_hi, np.float64)
@@ -475,6 +501,9 @@ class MPMSolver:
         self.ext_init = wp.array(np.array([np.inf, -np.inf, 0.0], np.float32), dtype=float, device=d)
         self.mat_energy = wp.zeros((len(self.materials), 3), dtype=wp.float64, device=d)
         self.boundary_work = wp.zeros(1, dtype=wp.float64, device=d)  # J, this frame (energy guard)
+        self.col = K.Colliders()  # surface-contact colliders (count 0: none), see _upload_colliders
+        self._col_version = 0  # bumped when self.col changes (the recorded launches re-read it)
+        self._set_colliders([])
         self._alloc_finger_arrays(self.n_fingers)
         self._energy_ref: Optional[EnergyBudget] = None  # energy guard reference (see _check_energy)
         self._energy_initial = True  # the reference is the initial state (F = I, C = 0: no internal energy)
@@ -532,6 +561,8 @@ class MPMSolver:
         self.finger_applied = wp.zeros(k, dtype=wp.vec3, device=d)
         self.finger_force = wp.zeros(k, dtype=wp.vec3, device=d)
         self.finger_w = wp.zeros(k, dtype=float, device=d)
+        self.col.impulse = self.finger_react  # the colliders' impulses are the fingers' reactions
+        self._col_version += 1
 
     def _ensure_bc_arrays(self) -> None:
         if not self._bc_alloc:
@@ -709,6 +740,48 @@ class MPMSolver:
                             F=wp.array(ff, dtype=wp.vec3, device=d), count=len(pos)))
         return out
 
+    def _set_colliders(self, rows: list[tuple[int, np.ndarray, np.ndarray, float, np.ndarray, float, int]]) -> None:
+        """Upload collider rows (kind code, a, b, radius, velocity, friction, finger id) into ``self.col``."""
+        d, n = self.device, len(rows)
+        cols = list(zip(*rows)) if n else [[0], [np.zeros(3)], [np.zeros(3)], [0.0], [np.zeros(3)], [0.0], [-1]]
+        self.col.count = n
+        self.col.kind = wp.array(np.asarray(cols[0], np.int32), dtype=wp.int32, device=d)
+        for name, vals in (("a", cols[1]), ("b", cols[2]), ("vel", cols[4])):
+            setattr(self.col, name, wp.array(np.asarray(vals, np.float32).reshape(-1, 3), dtype=wp.vec3, device=d))
+        self.col.radius = wp.array(np.asarray(cols[3], np.float32), dtype=float, device=d)
+        self.col.mu = wp.array(np.asarray(cols[5], np.float32), dtype=float, device=d)
+        self.col.finger = wp.array(np.asarray(cols[6], np.int32), dtype=wp.int32, device=d)
+        self.col.work = self.boundary_work
+        self._col_version += 1
+
+    def _upload_colliders(self, spec: Optional[Union[Collider, Sequence[Collider]]]) -> int:
+        """The frame's colliders (plus the floor plane under ``mpm.contact = surface``); returns their number."""
+        items = [] if spec is None else ([spec] if isinstance(spec, Collider) else list(spec))
+        if self.cfg.contact == "surface" and self.floor_height is not None:
+            mu = -1.0 if self.cfg.floor_sticky else float(self.cfg.floor_friction)
+            items = [Collider("plane", (0.0, 0.0, self.floor_height), (0.0, 0.0, 1.0), friction=mu)] + items
+        rows = []
+        for i, c in enumerate(items):
+            a, b, vel = (np.asarray(v, np.float64).reshape(3) for v in (c.a, c.b, c.velocity))
+            if c.kind not in Collider.KINDS:
+                raise ValueError(f"collider {i}: kind '{c.kind}' is not one of {', '.join(Collider.KINDS)}")
+            if not (np.isfinite(a).all() and np.isfinite(b).all() and np.isfinite(vel).all()
+                    and math.isfinite(c.radius) and math.isfinite(c.friction)):
+                raise ValueError(f"collider {i} ({c.kind}) has NaN/inf position, velocity, radius or friction at "
+                                 f"frame {self.frame}; the colliders passed to step_frame are corrupt")
+            if c.kind == "plane":
+                if not np.linalg.norm(b) > 0:
+                    raise ValueError(f"collider {i} (plane): normal b must be non-zero")
+                b = b / np.linalg.norm(b)
+            elif not c.radius > 0:
+                raise ValueError(f"collider {i} ({c.kind}): radius must be > 0 m (got {c.radius})")
+            rows.append((Collider.KINDS.index(c.kind), a, b, float(c.radius), vel, float(c.friction),
+                         int(c.finger_id)))
+        self._grow_fingers(max([r[6] + 1 for r in rows], default=0))
+        if rows or self.col.count:
+            self._set_colliders(rows)
+        return len(rows)
+
     def _grow_fingers(self, k: int) -> None:
         if k > self.n_fingers:
             self._alloc_finger_arrays(k)
@@ -736,7 +809,7 @@ class MPMSolver:
         gc.gravity = wp.vec3(*self._grid_gravity)
         gc.pad = int(cfg.padding)
         gc.wall_sticky = int(cfg.wall_sticky)
-        gc.floor_on = int(self.floor_height is not None)
+        gc.floor_on = int(self.floor_height is not None and cfg.contact == "grid")  # surface: a plane collider
         gc.floor_g = float(self.floor_g)
         gc.floor_mu = float(cfg.floor_friction)
         gc.floor_sticky = int(cfg.floor_sticky)
@@ -754,10 +827,11 @@ class MPMSolver:
         conditions = self._grid_conditions()
         for cur, other in ((self.grid_a, self.grid_b), (self.grid_b, self.grid_a)):
             fused = wp.launch(fused_kernel, dim=self.n_particles, device=d, record_cmd=True, inputs=[
-                self.gi, cmds["sp"], self.particles, self.mat_table, cur, other, self.flags, self.bbox])
+                self.gi, cmds["sp"], self.particles, self.mat_table, cur, other, self.flags, self.bbox, self.col])
             grid = wp.launch(K.k_grid_update, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
                 cmds["gs"], conditions, cur, other, self.bc_grid, self.gstats, self.boundary_work])
             cmds[id(cur)] = (fused, grid)
+        cmds["col_version"] = {id(self.grid_a): self._col_version, id(self.grid_b): self._col_version}
         self._cmds = cmds
         return cmds
 
@@ -793,11 +867,15 @@ class MPMSolver:
         sp.substep = int(self.substep)
         fused = cmds[id(cur)][0]
         fused.set_param_by_name("sp", sp)
+        if cmds["col_version"][id(cur)] != self._col_version:
+            fused.set_param_by_name("col", self.col)
+            cmds["col_version"][id(cur)] = self._col_version
         fused.launch()
 
     def step_frame(self, frame_dt: float, dirichlet: BoundarySpec = None,
                    forces: Optional[Union[ForcePatch, Sequence[ForcePatch]]] = None,
-                   quasi_static: bool = True) -> FrameStats:
+                   quasi_static: bool = True,
+                   colliders: Optional[Union[Collider, Sequence[Collider]]] = None) -> FrameStats:
         """Advance by ``frame_dt`` seconds with CFL-adaptive substeps; returns the frame statistics.
 
         ``dirichlet``: DirichletPoints / DirichletNodes (or a list), constant targets over the frame (points are
@@ -805,7 +883,9 @@ class MPMSolver:
         substep (t = time since the frame start; dt = the substep's size, None at the frame's first call, which
         only sizes the first substep).  ``forces``: ForcePatch (force mode, or a list, or such a callable),
         constant over the frame.  ``quasi_static``: whether the motion of this frame is meant to be quasi-static
-        (False: dynamic by design, e.g. after a rupture; the quasi-static check skips it).  Raises
+        (False: dynamic by design, e.g. after a rupture; the quasi-static check skips it).  ``colliders``: rigid
+        :class:`Collider` s (surface contact) at their positions at the frame start, moved with their velocities
+        every substep; their reactions join ``FrameStats.reaction`` under their finger ids.  Raises
         :class:`SimulationError` when a guard trips.
         """
         if not frame_dt > 0:
@@ -818,6 +898,7 @@ class MPMSolver:
         f_fn = forces if callable(forces) else None
         bcs = self._upload_dirichlet(dirichlet(0.0, None) if bc_fn else dirichlet)
         fps = self._upload_forces(forces(0.0, None) if f_fn else forces)
+        n_col = self._upload_colliders(colliders)
         self.finger_react.zero_()
         self.finger_applied.zero_()
         self.boundary_work.zero_()
@@ -838,7 +919,7 @@ class MPMSolver:
         self._reset_bbox()
         wp.launch(K.k_p2g, dim=n, device=d, inputs=[
             self.gi, self._step_params(0.0, dt, restart=True), self.particles, self.mat_table, cur, self.flags,
-            self.bbox])
+            self.bbox, self.col])
         box_cur = self._read_box()
         box_prev = self._last_box if self._last_box is not None else box_cur
         while True:
@@ -888,6 +969,8 @@ class MPMSolver:
                 self._vmax = vmax
                 self._check_flags(force_nonfinite=True)
             dt_next = self._next_dt(remaining, max(vmax, bc_speed))
+            if n_col:  # the next P2G sees the colliders where they are at its time
+                wp.launch(K.k_collider_advance, dim=n_col, device=d, inputs=[self.col, dt])
             self._reset_bbox()
             self._launch_fused(cur, dt, dt_next)
             box_prev, box_cur = box_cur, self._read_box()

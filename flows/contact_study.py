@@ -1,0 +1,71 @@
+"""Contact convergence study:  ``python -m flows.contact_study`` (grid vs surface contact, force error against dx).
+
+    python -m flows.contact_study                    # Hertz R/dx = 8, 12, 16; indentation; uniaxial L/dx = 8, 12, 16
+    python -m flows.contact_study --hertz-cells 8 --indent-cells 2 --uniaxial-cells 8 --nu 0.3   # quick
+
+Wires :mod:`tasks.verification.contact` (Hertz: elastic half sphere on the floor and a rigid sphere indenting a
+block; uniaxial compression between frictionless plates; each with ``mpm.contact = grid`` and ``surface``): prints one line per case (force error,
+contact radius error, particles, wall seconds) and writes ``<out>/contact_study.md``.  No Prefect: short
+diagnostics run in this process, one after the other.
+"""
+from __future__ import annotations
+
+import argparse
+import platform
+from datetime import datetime
+from pathlib import Path
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--hertz-cells", type=int, nargs="*", default=[8, 12, 16], help="R / dx of the Hertz sphere")
+    ap.add_argument("--uniaxial-cells", type=int, nargs="*", default=[8, 12, 16], help="L / dx of the cube")
+    ap.add_argument("--nu", type=float, nargs="*", default=[0.3, 0.45, 0.49], help="Poisson ratios (uniaxial)")
+    ap.add_argument("--indent-cells", type=float, nargs="*", default=[1.5, 2.0, 2.7],
+                    help="contact radius / dx of the rigid-sphere indentation (surface contact only)")
+    ap.add_argument("--modes", nargs="*", default=["grid", "surface"], choices=["grid", "surface"])
+    ap.add_argument("--out", default="reports/contact", help="folder of contact_study.md")
+    args = ap.parse_args(argv)
+
+    from tasks.verification.contact import hertz_case, indentation_case, summary_line, uniaxial_case
+
+    lines = [f"# Contact study ({datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, Warp CPU)", "",
+             "Force error = simulated / closed form - 1.  Hertz: half sphere R = 35 mm, E = 2 MPa, nu = 0.45 on the "
+             "floor, equator driven down by d; radius = flattened patch against a = sqrt(R d).  Indentation: rigid "
+             "sphere collider R = 35 mm into a nu = 0.45 block (8 a wide, 5 a deep).  Uniaxial: "
+             "cube L = 40 mm, E = 0.1 MPa, frictionless plates, lateral faces free, force at 1 % plate travel "
+             "against E A eps.  Seconds: wall time of the run on this (shared) machine.", "",
+             "## Hertz", "", "| contact | R/dx | dx (mm) | force err 1/2/3/4 mm | radius err 1/2/3/4 mm | particles "
+             "| seconds |", "|---|---|---|---|---|---|---|"]
+    pct = lambda v: " / ".join(f"{100 * e:+.0f}%" for e in v)  # noqa: E731
+    for n in args.hertz_cells:
+        for mode in args.modes:
+            r = hertz_case(mode, n)
+            print(summary_line(r, "hertz"), flush=True)
+            lines.append(f"| {mode} | {n} | {1e3 * r['dx']:.3g} | {pct(r['force_error'])} | {pct(r['radius_error'])} "
+                         f"| {r['particles']} | {r['seconds']:.0f} |")
+    lines += ["", "## Rigid sphere indenting a block (surface contact)", "",
+              "| a/dx at 4 mm | dx (mm) | force err 2/3/4 mm | particles | seconds |", "|---|---|---|---|---|"]
+    for c in args.indent_cells:
+        r = indentation_case(c)
+        print(f"indent   surface a/dx={c:g} dx={1e3 * r['dx']:.3g} mm force err at 2, 3, 4 mm: "
+              f"{pct(r['force_error'])}; {r['particles']} particles, {r['seconds']:.1f} s", flush=True)
+        lines.append(f"| {c:g} | {1e3 * r['dx']:.3g} | {pct(r['force_error'])} | {r['particles']} "
+                     f"| {r['seconds']:.0f} |")
+    lines += ["", "## Uniaxial compression", "", "| contact | L/dx | nu | force err | particles | seconds |",
+              "|---|---|---|---|---|---|"]
+    for n in args.uniaxial_cells:
+        for nu in args.nu:
+            for mode in args.modes:
+                r = uniaxial_case(mode, nu, n)
+                print(summary_line(r, "uniaxial"), flush=True)
+                lines.append(f"| {mode} | {n} | {nu:g} | {100 * r['error']:+.1f}% | {r['particles']} "
+                             f"| {r['seconds']:.0f} |")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "contact_study.md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {out / 'contact_study.md'}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,252 @@
+"""Known-answer contact cases of the MPM solver: grid-node contact against surface (particle) contact.
+
+Two closed forms, each run with ``mpm.contact = grid`` (the solver's floor acts on grid nodes, a plate is a set of
+slip :class:`~tasks.physics.mpm.solver.DirichletPoints`) and ``surface`` (floor and plate are plane
+:class:`~tasks.physics.mpm.solver.Collider` s acting on the particles that touch them):
+
+* Hertz (1882; Johnson, Contact Mechanics, sec. 4.2): an elastic sphere (radius R) pressed by a rigid frictionless
+  flat with approach d carries F = 4/3 E* sqrt(R) d^1.5, E* = E / (1 - nu^2), over a contact circle of radius
+  a = sqrt(R d).  The lower half of the sphere rests on the floor, its equator driven down (see
+  :func:`hertz_case`).  The sphere is sampled in concentric shells (:func:`sphere_shell_particles`): a
+  lattice-sampled sphere has a flat bottom facet of radius ~ sqrt(R h) (8 mm for R = 35 mm at R / dx = 8), a
+  pre-indentation as large as the depths measured.
+* Uniaxial compression: a cube (side L) between two frictionless plates with its lateral faces free carries
+  F = E A eps at the nominal strain eps = travel / L (A = L^2), for any nu.
+
+Both load slowly (quasi-static: loading time many times the bar-wave transit time) with a ramped plate speed, no
+gravity, 2 x 2 x 2 particles per cell.  :func:`hertz_case` and :func:`uniaxial_case` return the measured and
+closed-form forces; ``python -m flows.contact_study`` prints the error against the grid spacing and the run time.
+"""
+from __future__ import annotations
+
+import time
+from typing import Optional
+
+import numpy as np
+
+from tasks.physics.mpm import Collider, DirichletPoints, Material, MPMSolver
+
+HERTZ_R = 0.035  # m (the issue's sphere: R = 35 mm, E = 2 MPa, nu = 0.45)
+HERTZ_E = 2.0e6  # Pa
+HERTZ_NU = 0.45
+DENSITY = 1000.0  # kg/m^3
+
+
+def hertz_force(d: np.ndarray, R: float = HERTZ_R, E: float = HERTZ_E, nu: float = HERTZ_NU) -> np.ndarray:
+    """Hertz force (N) of a sphere (radius R, m; E, Pa; nu) on a rigid flat at approach d (m)."""
+    return 4.0 / 3.0 * E / (1.0 - nu ** 2) * np.sqrt(R) * np.maximum(np.asarray(d, float), 0.0) ** 1.5
+
+
+def sphere_shell_particles(R: float, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """Particles filling a sphere of radius R (m) centred at the origin with spacing ~h (m): concentric shells of
+    radius R - (k + 1/2) h, each with round(4 pi r^2 / h^2) Fibonacci points sharing the shell's volume, so the
+    outer particles' surfaces (centre + h / 2) lie on the sphere.  Returns positions (N, 3) and volumes (N,)."""
+    pos, vol = [], []
+    for k in range(int(round(R / h))):
+        r = R - (k + 0.5) * h
+        n = max(1, int(round(4.0 * np.pi * r * r / (h * h))))
+        i = np.arange(n) + 0.5
+        z = 1.0 - 2.0 * i / n
+        rho = np.sqrt(1.0 - z * z)
+        th = np.pi * (1.0 + 5.0 ** 0.5) * i
+        pos.append(r * np.stack([rho * np.cos(th), rho * np.sin(th), z], axis=1))
+        vol.append(np.full(n, 4.0 / 3.0 * np.pi * ((r + h / 2) ** 3 - max(r - h / 2, 0.0) ** 3) / n))
+    return np.concatenate(pos), np.concatenate(vol)
+
+
+def _plate_points(half_width: float, h: float, z: float) -> np.ndarray:
+    """A square of points (spacing h, m) at height z covering [-half_width, half_width]^2: a grid-mode plate."""
+    g = np.arange(-half_width, half_width + 1e-12, h)
+    xx, yy = np.meshgrid(g, g, indexing="ij")
+    return np.stack([xx.ravel(), yy.ravel(), np.full(xx.size, z)], axis=1)
+
+
+def _ramped_speed(t: float, total: float, travel: float, ramp: float = 0.2) -> float:
+    """Plate speed (m/s) at time t of a loading that reaches ``travel`` (m) at ``total`` (s): linear ramp over the
+    first ``ramp`` fraction, then constant."""
+    v = travel / (total * (1.0 - ramp / 2.0))
+    return v * min(1.0, t / (ramp * total))
+
+
+def _press(solver: MPMSolver, plate: str, plate_z: float, half_width: float, travel: float, total: float,
+           n_frames: int, on_frame, fixed: Optional[object] = None) -> None:
+    """Move a frictionless plate (normal -z, finger 1) down by ``travel`` (m) over ``total`` (s), starting at
+    ``plate_z``: a plane collider (``plate = surface``) or slip Dirichlet points (``grid``), next to the static
+    boundary ``fixed`` (a Collider, DirichletPoints or None); ``on_frame(f, travel_now, stats)`` after every
+    frame."""
+    fdt = total / n_frames
+    z = plate_z
+    h = np.cbrt(float(solver.volumes()[0]))
+    pts = _plate_points(half_width, h, z) if plate == "grid" else None
+    down = np.array([0.0, 0.0, 1.0])
+    for f in range(n_frames):
+        vz = -_ramped_speed((f + 0.5) * fdt, total, travel)
+        coll = [fixed] if isinstance(fixed, Collider) else []
+        bcs = [fixed] if isinstance(fixed, DirichletPoints) else []
+        if plate == "grid":
+            pts[:, 2] = z
+            bcs.append(DirichletPoints(pts, np.tile([0.0, 0.0, vz], (len(pts), 1)), np.ones(len(pts), int),
+                                       normals=np.tile(down, (len(pts), 1))))
+        else:
+            coll.append(Collider("plane", (0.0, 0.0, z), -down, velocity=(0.0, 0.0, vz), finger_id=1))
+        st = solver.step_frame(fdt, dirichlet=bcs or None, colliders=coll or None)
+        z += vz * fdt
+        on_frame(f, plate_z - z, st)
+
+
+def hertz_case(contact: str, cells_per_radius: int, depth: float = 0.004, load_transits: float = 12.0,
+               n_frames: int = 40, R: float = HERTZ_R, E: float = HERTZ_E, nu: float = HERTZ_NU,
+               depths: tuple[float, ...] = (0.001, 0.002, 0.003, 0.004)) -> dict:
+    """Lower half of the sphere resting on the floor, its equator plane driven down by ``depth`` (m) over
+    ``load_transits`` bar-wave transits of R; ``cells_per_radius`` = R / dx.
+
+    The equator of a sphere between two flats is a symmetry plane (no shear; it moves with the centre), so the half
+    sphere with its equator driven by slip Dirichlet points (in both modes: far from the contact, where the grid's
+    held layer costs little) has the floor contact of the whole sphere with the approach d = the equator's travel,
+    and no rigid-body mode (a free sphere would bounce on its Hertzian spring, period ~15 ms, far longer than an
+    affordable loading).  Returns per frame ``depth`` (m, frame mean), ``force`` (N, frame mean: the floor's
+    reaction; grid mode: the driven equator's, the grid floor reports none) and the floor contact ``radius``
+    (m, from the number N of particles within h / 20 of the lowest one, a = h sqrt(N / pi): the flattened patch,
+    which a grid floor holds above itself, at the frame ends); at ``depths``: ``at`` (m), ``force_at``,
+    ``hertz_at`` (N), ``force_error``, ``radius_at``, ``radius_hertz`` (m), ``radius_error``; ``seconds``,
+    ``particles``.
+    """
+    dx = R / cells_per_radius
+    h = dx / 2
+    X, vol = sphere_shell_particles(R, h)
+    keep = X[:, 2] < 0.0
+    X, vol = X[keep] + [0.0, 0.0, R], vol[keep]
+    mat = Material(name="sphere", model="fixed_corotated", youngs_modulus=E, poisson_ratio=nu, density=DENSITY)
+    cfg = dict(device="cpu", dx=dx, gravity=[0.0, 0.0, 0.0], floor=contact == "grid", floor_friction=0.0,
+               contact=contact, margin_cells=3, energy_guard_tolerance=0.0)
+    s = MPMSolver(X, vol, mat, config=cfg, label="hertz")
+    floor = None if contact == "grid" else Collider("plane", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), finger_id=0)
+    total = load_transits * R / mat.bar_wave_speed()
+    rec: dict[str, list] = {"depth": [], "force": [], "radius": []}
+
+    def on_frame(f, d, st):
+        r = np.asarray(st.reaction)
+        z = s.positions()[:, 2]
+        touching = z <= z.min() + 0.05 * h  # flattened: within h / 20 of the lowest (grid: held above the floor)
+        rec["depth"].append(d)
+        rec["force"].append(float(r[0, 2]) if floor is not None else -float(r[1, 2]))
+        rec["radius"].append(float(h * np.sqrt(touching.sum() / np.pi)))
+
+    t0 = time.perf_counter()
+    _press(s, "grid", R, R + 2 * dx, depth, total, n_frames, on_frame, fixed=floor)
+    seconds = time.perf_counter() - t0
+    out = {k: np.asarray(v) for k, v in rec.items()}
+    at = np.asarray(depths, float)
+    out.update(at=at, seconds=seconds, particles=len(X), dx=dx, contact=contact)
+    out["force_at"] = np.interp(at, frame_mean(out["depth"]), out["force"])
+    out["hertz_at"] = hertz_force(at, R, E, nu)
+    out["force_error"] = out["force_at"] / out["hertz_at"] - 1.0
+    out["radius_at"] = np.interp(at, out["depth"], out["radius"])
+    out["radius_hertz"] = np.sqrt(R * at)
+    out["radius_error"] = out["radius_at"] / out["radius_hertz"] - 1.0
+    return out
+
+
+def uniaxial_case(contact: str, nu: float, cells_across: int, strain: float = 0.01, L: float = 0.04,
+                  E: float = 1.0e5, load_transits: float = 20.0, n_frames: int = 30,
+                  model: str = "fixed_corotated") -> dict:
+    """Cube of side L (m) between a fixed floor plate and a top plate moving down to the nominal ``strain``
+    (frictionless plates, lateral faces free, dx = L / ``cells_across``).
+
+    Returns ``strain`` and ``force`` (N, the top plate's reaction per frame), ``expected`` = E A eps (N) and
+    ``error`` at the final strain (mean of the last 4 frames against the mean of their nominal strains), the
+    floor plate's ``force_floor`` (surface mode; grid: the bottom slip points'), the mean axial strain of the
+    middle third ``strain_mid`` (1 - F_zz), ``seconds``, ``particles`` and the ``solver``."""
+    dx = L / cells_across
+    h = dx / 2
+    g = (np.arange(2 * cells_across) + 0.5) * h - L / 2
+    X = np.stack(np.meshgrid(g, g, g + L / 2, indexing="ij"), -1).reshape(-1, 3)
+    mat = Material(name="cube", model=model, youngs_modulus=E, poisson_ratio=nu, density=DENSITY)
+    cfg = dict(device="cpu", dx=dx, gravity=[0.0, 0.0, 0.0], floor=False, contact=contact, margin_cells=3,
+               energy_guard_tolerance=0.0)
+    s = MPMSolver(X, h ** 3, mat, config=cfg, label="uniaxial")
+    total = load_transits * L / mat.bar_wave_speed()
+    half = L / 2 + 2 * dx
+    if contact == "grid":
+        bottom = _plate_points(half, h, 0.0)
+        fixed = DirichletPoints(bottom, np.zeros_like(bottom), np.zeros(len(bottom), int),
+                                normals=np.tile([0.0, 0.0, 1.0], (len(bottom), 1)), advect=False)
+    else:
+        fixed = Collider("plane", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), finger_id=0)
+    rec: dict[str, list] = {"strain": [], "force": [], "force_floor": [], "strain_mid": []}
+    mid = np.abs(X[:, 2] - L / 2) < L / 6
+
+    def on_frame(f, d, st):
+        r = np.asarray(st.reaction)
+        rec["strain_mid"].append(1.0 - float(s.deformation_gradients()[mid, 2, 2].mean()))
+        rec["strain"].append(d / L)
+        rec["force"].append(-float(r[1, 2]))
+        rec["force_floor"].append(float(r[0, 2]))
+
+    t0 = time.perf_counter()
+    _press(s, contact, L, half, strain * L, total, n_frames, on_frame, fixed=fixed)
+    seconds = time.perf_counter() - t0
+    out = {k: np.asarray(v) for k, v in rec.items()}
+    eps = float(frame_mean(out["strain"])[-4:].mean())
+    out.update(expected=E * L * L * eps, seconds=seconds, particles=len(X), dx=dx, contact=contact, nu=nu, solver=s)
+    out["error"] = float(out["force"][-4:].mean()) / out["expected"] - 1.0
+    out["error_floor"] = float(out["force_floor"][-4:].mean()) / out["expected"] - 1.0
+    return out
+
+
+def frame_mean(values: np.ndarray) -> np.ndarray:
+    """Frame means of a quantity that starts at 0 and is given at the frame ends (linear within a frame): the
+    reactions are frame means, so they belong to these plate travels."""
+    d = np.concatenate([[0.0], np.asarray(values, float)])
+    return 0.5 * (d[1:] + d[:-1])
+
+
+def summary_line(res: dict, kind: str, extra: Optional[str] = None) -> str:
+    """One printable line of a case's errors."""
+    if kind == "hertz":
+        errs = " ".join(f"{100 * e:+.0f}%" for e in res["force_error"])
+        rad = " ".join(f"{100 * e:+.0f}%" for e in res["radius_error"])
+        body = f"force err at {', '.join(f'{1e3 * a:g}' for a in res['at'])} mm: {errs}; radius err: {rad}"
+    else:
+        body = f"nu={res['nu']:g} force err {100 * res['error']:+.1f}% (floor plate {100 * res['error_floor']:+.1f}%)"
+    return (f"{kind:8s} {res['contact']:7s} dx={1e3 * res['dx']:.3g} mm {body}; {res['particles']} particles, "
+            f"{res['seconds']:.1f} s" + (f"; {extra}" if extra else ""))
+
+
+def indentation_case(cells_per_contact_radius: float = 2.7, depth: float = 0.004, R: float = HERTZ_R,
+                     E: float = HERTZ_E, nu: float = HERTZ_NU, load_transits: float = 12.0, n_frames: int = 30,
+                     depths: tuple[float, ...] = (0.002, 0.003, 0.004)) -> dict:
+    """A rigid sphere collider (radius R) indenting an elastic block (Hertz's half-space, approximated by a block
+    of 8 contact radii a = sqrt(R depth) across and 5 deep on a frictionless plane collider) by ``depth`` (m);
+    dx = a / ``cells_per_contact_radius``.  Returns ``force_at``, ``hertz_at`` (N) and ``force_error`` at
+    ``depths`` (m), ``seconds``, ``particles``."""
+    a = float(np.sqrt(R * depth))
+    dx = a / cells_per_contact_radius
+    h = dx / 2
+    half, deep = 4 * a, 5 * a
+    n_xy, n_z = int(round(2 * half / h)), int(round(deep / h))
+    g = (np.arange(n_xy) + 0.5) * h - half
+    X = np.stack(np.meshgrid(g, g, (np.arange(n_z) + 0.5) * h, indexing="ij"), -1).reshape(-1, 3)
+    mat = Material(name="block", model="fixed_corotated", youngs_modulus=E, poisson_ratio=nu, density=DENSITY)
+    s = MPMSolver(X, h ** 3, mat, config=dict(device="cpu", dx=dx, gravity=[0.0, 0.0, 0.0], floor=False,
+                                              margin_cells=3, energy_guard_tolerance=0.0), label="indentation")
+    base = Collider("plane", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), finger_id=0)
+    total = load_transits * deep / mat.bar_wave_speed()
+    fdt = total / n_frames
+    centre = deep + R
+    rec: dict[str, list] = {"depth": [], "force": []}
+    t0 = time.perf_counter()
+    for f in range(n_frames):
+        vz = -_ramped_speed((f + 0.5) * fdt, total, depth)
+        ball = Collider("sphere", (0.0, 0.0, centre), radius=R, velocity=(0.0, 0.0, vz), finger_id=1)
+        st = s.step_frame(fdt, colliders=[base, ball])
+        centre += vz * fdt
+        rec["depth"].append(deep + R - centre)
+        rec["force"].append(-float(np.asarray(st.reaction)[1, 2]))
+    out = {k: np.asarray(v) for k, v in rec.items()}
+    at = np.asarray(depths, float)
+    out.update(at=at, seconds=time.perf_counter() - t0, particles=len(X), dx=dx)
+    out["force_at"] = np.interp(at, frame_mean(out["depth"]), out["force"])
+    out["hertz_at"] = hertz_force(at, R, E, nu)
+    out["force_error"] = out["force_at"] / out["hertz_at"] - 1.0
+    return out

@@ -1,0 +1,177 @@
+"""Surface contact of the MPM solver (``mpm.contact = surface``, :class:`Collider`): known answers.
+
+  * uniaxial compression of a cube between frictionless plates, lateral faces free: F = E A eps within 5 % at
+    nu = 0.3, 0.45, 0.49 with 8 cells across (grid-node plates: +30 % and more), and the strain is uniform up
+    to the plates (no held layer);
+  * Hertz, F = 4/3 E* sqrt(R) d^1.5, a = sqrt(R d): the issue's elastic sphere on the surface floor at R / dx = 8
+    (fast twin; radius within 15 %, force +25 %) and, ``-m slow``, a rigid sphere collider indenting a block
+    (force within 15 %); ``python -m flows.contact_study`` prints the errors against dx and the run times;
+  * the floor as a plane collider: frictionless slip keeps a sliding block's speed, Coulomb friction decelerates
+    it at mu g;
+  * a capsule fingertip pressing a block on the floor: no particle enters it, its reaction balances the floor's;
+  * two colliders meeting on one particle (a corner): each keeps its own normal component;
+  * bad input: one line naming the key or collider.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conf.mpm_schema import MPMConfigError, mpm_config_from
+from tasks.physics.mpm import Collider, Material, MPMSolver
+from tasks.verification.contact import hertz_case, indentation_case, uniaxial_case
+
+DX = 0.005  # m
+
+
+def block(side: float, h: float = DX / 2, z0: float = 0.0) -> np.ndarray:
+    g = (np.arange(int(round(side / h))) + 0.5) * h
+    return np.stack(np.meshgrid(g, g, g + z0, indexing="ij"), -1).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("nu", [0.3, 0.45, 0.49])
+def test_uniaxial_compression_between_surface_plates_matches_E_A_eps(nu):
+    """1 % plate travel on a 40 mm cube (8 cells across): the plates' reactions are equal and opposite and within
+    5 % of E A eps; the axial strain is the nominal one in every particle layer, the layers touching the plates
+    included (grid-node plates hold about 0.9 dx next to each plate and read +30 % at nu = 0.3)."""
+    r = uniaxial_case("surface", nu, cells_across=8)
+    print(f"nu={nu}: force error {100 * r['error']:+.1f} %, floor plate {100 * r['error_floor']:+.1f} %")
+    assert abs(r["error"]) < 0.05, r["error"]
+    assert abs(r["error_floor"] - r["error"]) < 0.01
+    s = r["solver"]
+    h = DX / 2
+    layer = np.floor(s.positions()[:, 2] / h).astype(int)
+    ezz = 1.0 - s.deformation_gradients()[:, 2, 2]
+    per_layer = np.array([ezz[layer == k].mean() for k in np.unique(layer)])
+    assert np.abs(per_layer / r["strain"][-1] - 1.0).max() < 0.07, per_layer  # no held layer at the plates
+
+
+def test_uniaxial_compression_grid_plates_are_too_stiff():
+    """The same cube between grid-node slip plates (``DirichletPoints``): the held layers make it stiffer."""
+    r = uniaxial_case("grid", 0.3, cells_across=8)
+    assert r["error"] > 0.2, r["error"]
+
+
+def test_hertz_elastic_sphere_on_a_surface_floor_fast_twin():
+    """The issue's sphere (R = 35 mm, E = 2 MPa, nu = 0.45) on the surface floor at R / dx = 8: the flattened
+    patch's radius is within 15 % of a = sqrt(R d) at 1-4 mm and the force within 35 % of Hertz.  Measured: +26 to
+    +29 % (R / dx = 8), +22 to +25 % (12), +21 to +23 % (16), +5-9 % at nu = 0, while a rigid sphere indenting a
+    block (Hertz's half-space) comes within +6 % with 2.7 cells per contact radius: the excess is most likely the
+    finite sphere (a / R = 0.17-0.34), not the contact.  The grid floor reads +120 % to +420 %."""
+    r = hertz_case("surface", 8)
+    print("force error", r["force_error"].round(3), "radius error", r["radius_error"].round(3))
+    assert np.all(np.abs(r["radius_error"]) < 0.15), r["radius_error"]
+    assert np.all(np.abs(r["force_error"]) < 0.35), r["force_error"]
+
+
+@pytest.mark.slow
+def test_hertz_rigid_sphere_indenting_a_block_converges():
+    """A rigid sphere collider (R = 35 mm) indenting a nu = 0.45 block (Hertz's half-space): within 15 % of Hertz
+    at 2-4 mm with 2 cells per contact radius (at 4 mm; measured +10/+8/+4 %), closer with 2.7 (+6/+6/+3 %)."""
+    coarse, fine = indentation_case(2.0), indentation_case(2.7)
+    print("indentation force error", coarse["force_error"].round(3), fine["force_error"].round(3))
+    assert np.all(np.abs(coarse["force_error"]) < 0.15), coarse["force_error"]
+    assert np.abs(fine["force_error"]).mean() < np.abs(coarse["force_error"]).mean()
+
+
+def _sliding(contact_cfg: dict, v0: float = 0.5, T: float = 0.1, gx: float = 0.0) -> tuple[float, float]:
+    """Mean x velocity (m/s) of a 2 cm block launched at v0 along the surface floor (gravity (gx, 0, -9.81): a
+    tilted floor) after T, and the largest x displacement (m) of its bottom layer."""
+    X = block(0.02)
+    s = MPMSolver(X, (DX / 2) ** 3, Material(name="jelly", model="fixed_corotated", youngs_modulus=5e4,
+                                              poisson_ratio=0.3, density=1000.0),
+                  velocities=np.tile([v0, 0.0, 0.0], (len(X), 1)),
+                  config=dict(device="cpu", dx=DX, margin_cells=30, contact="surface", gravity=[gx, 0.0, -9.81],
+                              **contact_cfg))
+    for _ in range(5):
+        s.step_frame(T / 5)
+    m, x = s.masses(), s.positions()
+    assert x[:, 2].min() > DX / 4 * 0.9  # resting on its surface, not sunk into the floor
+    bottom = X[:, 2] < DX / 2
+    return float((m * s.velocities()[:, 0]).sum() / m.sum()), float(np.abs(x[bottom, 0] - X[bottom, 0]).max())
+
+
+def test_surface_floor_slips_without_friction_and_decelerates_at_mu_g():
+    """A block sliding at 0.5 m/s on the floor plane collider: frictionless keeps the speed within 3 %, mu = 0.3
+    decelerates it to v0 - mu g T within 20 %.  On a floor tilted by atan(0.2) a block at rest slides 1 cm in
+    0.1 s without friction, while a sticky floor (no slip while touching) holds its base within a quarter cell."""
+    v0, T = 0.5, 0.1
+    assert abs(_sliding(dict(floor_friction=0.0))[0] - v0) / v0 < 0.03
+    expected = v0 - 0.3 * 9.81 * T
+    assert abs(_sliding(dict(floor_friction=0.3))[0] - expected) / expected < 0.2
+    assert _sliding(dict(floor_friction=0.0), v0=0.0, gx=1.962)[1] > 0.008
+    assert _sliding(dict(floor_sticky=True), v0=0.0, gx=1.962)[1] < 0.25 * DX
+
+
+def test_capsule_fingertip_presses_a_block_without_entering_it():
+    """A horizontal capsule (radius 6 mm) moving down 3 mm into a soft block standing on a plane collider (no
+    gravity, energy guard on): no particle surface (centre + r |F^T n|) enters the capsule by more than 15 % of the
+    particle spacing h (the contact's residual penetration at 30 % strain under the tip),
+    the material under it moves down, the capsule's reaction (finger 3) pushes down and the floor plane's
+    (finger 0) balances it within 10 % (quasi-static)."""
+    side = 0.04
+    X = block(side)
+    mat = Material(name="foam", model="fixed_corotated", youngs_modulus=2e4, poisson_ratio=0.3, density=500.0)
+    s = MPMSolver(X, (DX / 2) ** 3, mat, config=dict(device="cpu", dx=DX, floor=False, gravity=[0, 0, 0],
+                                                     margin_cells=4))
+    floor = Collider("plane", (0, 0, 0), (0, 0, 1), finger_id=0)
+    R, travel, T, n = 0.006, 0.003, 0.3, 30
+    z = side + R
+    speed = travel / T
+    pushes, floors = [], []
+    for f in range(n + 10):
+        v = -speed if f < n else 0.0
+        tip = Collider("capsule", (0.01, side / 2, z), (0.03, side / 2, z), radius=R, velocity=(0, 0, v),
+                       finger_id=3)
+        st = s.step_frame(T / n, colliders=[floor, tip])
+        z += v * T / n
+        pushes.append(st.reaction[3])
+        floors.append(st.reaction[0])
+    x, F = s.positions(), s.deformation_gradients()
+    axis = np.c_[np.clip(x[:, 0], 0.01, 0.03), np.full(len(x), side / 2), np.full(len(x), z)]
+    dist = np.linalg.norm(x - axis, axis=1)
+    n = (x - axis) / dist[:, None]
+    reach = DX / 4 * np.linalg.norm(np.einsum("pji,pj->pi", F, n), axis=1)  # deformed half spacing r |F^T n|
+    gap = dist - R - reach
+    assert gap.min() > -0.15 * DX / 2, gap.min()  # measured -0.08 h (grid contact holds it 1.5 dx away)
+    under = (np.abs(X[:, 0] - side / 2) < DX) & (np.abs(X[:, 1] - side / 2) < DX) & (X[:, 2] > side - DX)
+    assert (X[under, 2] - x[under, 2]).mean() > 0.5 * travel
+    push, up = np.mean(pushes[-5:], axis=0), np.mean(floors[-5:], axis=0)
+    print("capsule push", push, "floor", up)
+    assert push[2] < 0 and np.abs(push[:2]).max() < 0.05 * abs(push[2])
+    assert abs(up[2] + push[2]) < 0.1 * abs(push[2])
+
+
+def test_two_colliders_meeting_on_one_particle_keep_each_normal_component():
+    """A block thrown into the corner of a wall (normal +x) and the floor (normal +z), both frictionless plane
+    colliders (no gravity): the corner particles touch both; each collider stops the velocity along its own
+    normal, so no particle enters either plane and the block keeps sliding along y at its 0.2 m/s (the
+    tangential direction of both)."""
+    X = block(0.02) + [0.0, 0.0, 0.0]
+    s = MPMSolver(X, (DX / 2) ** 3, Material(name="j", model="fixed_corotated", youngs_modulus=5e4,
+                                              poisson_ratio=0.3, density=1000.0),
+                  velocities=np.tile([-0.1, 0.2, -0.1], (len(X), 1)),
+                  config=dict(device="cpu", dx=DX, floor=False, gravity=[0, 0, 0], margin_cells=10))
+    walls = [Collider("plane", (0, 0, 0), (1, 0, 0), finger_id=0), Collider("plane", (0, 0, 0), (0, 0, 1),
+                                                                           finger_id=1)]
+    impulse = np.zeros((2, 3))
+    for _ in range(4):
+        impulse += 0.005 * s.step_frame(0.005, colliders=walls).reaction[:2]
+    x, m = s.positions(), s.masses()
+    assert x[:, 0].min() > DX / 4 * 0.9 and x[:, 2].min() > DX / 4 * 0.9, (x[:, 0].min(), x[:, 2].min())
+    assert abs((m * s.velocities()[:, 1]).sum() / m.sum() - 0.2) < 0.01
+    # each wall pushed along its own normal only, at least enough to stop the block's approach
+    assert impulse[0, 0] > 0.1 * m.sum() and impulse[1, 2] > 0.1 * m.sum(), impulse
+    assert np.abs(impulse[0, 1:]).max() < 1e-6 and np.abs(impulse[1, :2]).max() < 1e-6, impulse
+
+
+def test_bad_contact_mode_and_collider_are_one_line_errors():
+    with pytest.raises(MPMConfigError, match=r"^mpm\.contact: 'nodes' is not one of grid, surface$"):
+        mpm_config_from(dict(contact="nodes"))
+    X = block(0.01)
+    s = MPMSolver(X, (DX / 2) ** 3, Material(name="j", model="fixed_corotated", youngs_modulus=5e4,
+                                              poisson_ratio=0.3, density=1000.0), config=dict(device="cpu", dx=DX))
+    with pytest.raises(ValueError, match=r"^collider 0: kind 'cone' is not one of plane, sphere, capsule$"):
+        s.step_frame(1e-3, colliders=Collider("cone", (0, 0, 0)))
+    with pytest.raises(ValueError, match=r"^collider 1 \(sphere\): radius must be > 0 m \(got 0.0\)$"):
+        s.step_frame(1e-3, colliders=[Collider("plane", (0, 0, 0)), Collider("sphere", (0, 0, 0.1))])
