@@ -7,11 +7,15 @@ Design (chosen by measurement, ``tasks.render.benchmark``): one thread per image
 its x span on that row, so only pairs that can reach alpha >= 1/255 are ever visited; the spans are bucketed by row
 (a counting sort: count from a difference array, scan, fill) and each row's bucket is insertion-sorted by instance,
 i.e. front to back (instances arrive sorted by depth; on the CPU a launch runs in order, so the buckets are sorted
-already, on CUDA the atomics scramble them).  (2) Forward: a row's thread composites its spans front to back into
-the row's pixels (transmittance, channels, stop marker) - no per-pixel lists and no sort of pairs.  (3) Backward:
-the same thread walks its spans back to front, recovers T_i = T_final / prod (1 - alpha_j) and the sums behind each
-Gaussian per pixel, and accumulates each span's gradient in registers before one atomic add per (instance, row).
-Computation is float32 whatever the input dtype; one pair of kernels is compiled per channel count.
+already and the sort is skipped, on CUDA the atomics scramble them).  (2) Forward: a row's thread composites its
+spans front to back into the row's pixels (transmittance, channels, stop marker) - no per-pixel lists and no sort of
+pairs.  Along a row sigma(x) is quadratic in x, so the Gaussian exp(-sigma) is evaluated by a recurrence (two
+multiplies per pixel, in float64 so that it drifts < 1e-12 over a span; two exps per span and one per instance)
+instead of an exp per pair.  (3) Backward: the same thread walks its spans back to front, recovers
+T_i = T_final / prod (1 - alpha_j) and the sum behind each Gaussian per pixel, and accumulates each span's gradient
+in registers - the geometry's as three moments of dL/dsigma along the span (dy is constant on a row) - before one
+atomic add per (instance, row).  Computation is float32 (the recurrence float64) whatever the input dtype; one pair
+of kernels is compiled per channel count.
 """
 
 import functools
@@ -28,16 +32,22 @@ _ALPHA_MIN = wp.constant(ALPHA_MIN)
 _ALPHA_MAX = wp.constant(ALPHA_MAX)
 _T_MIN = wp.constant(TRANSMITTANCE_MIN)
 _NO_STOP = wp.constant(2**31 - 1)   # stop marker of a pixel that never stops
+_GAUSS_MAX = wp.constant(wp.float64(1.0 + 1e-6))   # exp(-sigma) above it: sigma < 0 beyond the recurrence's rounding
 SPAN_MARGIN = 1e-3   # added to the exponent threshold so the spans hold every pair the rule keeps
 _vec6 = wp.types.vector(length=6, dtype=float)   # an instance's geometry: mean x, y px; conic a, b, c; opacity
 
 
 @wp.func
-def _exponent(geometry: _vec6, px: float, py: float):
-    """sigma = 0.5 (a dx^2 + c dy^2) + b dx dy at pixel centre (px, py) and the offset d = centre - mean."""
-    dx = px - geometry[0]
-    dy = py - geometry[1]
-    return 0.5 * (geometry[2] * dx * dx + geometry[4] * dy * dy) + geometry[3] * dx * dy, dx, dy
+def _span_start(geometry: _vec6, x0: int, py: float):
+    """exp(-sigma) at the first pixel x0 of a row span and its first step ratio, float64 (module docstring).
+
+    sigma(x) = 0.5 (a dx^2 + c dy^2) + b dx dy at pixel centre (x + 0.5, py) with d = centre - mean; it is
+    quadratic in x, so along the row exp(-sigma(x + 1)) = exp(-sigma(x)) ratio(x), ratio(x + 1) = ratio(x) exp(-a)."""
+    a, b, c = wp.float64(geometry[2]), wp.float64(geometry[3]), wp.float64(geometry[4])
+    dx = wp.float64(float(x0) + 0.5 - geometry[0])
+    dy = wp.float64(py - geometry[1])
+    sigma = wp.float64(0.5) * (a * dx * dx + c * dy * dy) + b * dx * dy
+    return wp.exp(-sigma), wp.exp(-(a * (dx + wp.float64(0.5)) + b * dy))
 
 
 @wp.func
@@ -87,8 +97,9 @@ def _composite_kernels(n_channels: int):
     vec = wp.types.vector(length=n_channels, dtype=float)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def forward(geometry: wp.array(dtype=_vec6), features: wp.array(dtype=vec), row_offsets: wp.array(dtype=int),
-                spans: wp.array(dtype=wp.vec3i), width: int, height: int, out_features: wp.array(dtype=vec),
+    def forward(geometry: wp.array(dtype=_vec6), decay: wp.array(dtype=wp.float64), features: wp.array(dtype=vec),
+                row_offsets: wp.array(dtype=int), spans: wp.array(dtype=wp.vec3i), width: int, height: int,
+                out_features: wp.array(dtype=vec),
                 transmittance: wp.array(dtype=float), stop: wp.array(dtype=int)):
         r = wp.tid()
         py = float(r % height) + 0.5
@@ -101,13 +112,16 @@ def _composite_kernels(n_channels: int):
             g, x0, x1 = spans[i][0], spans[i][1], spans[i][2]
             geo = _vec6(geometry[g])
             f = vec(features[g])
+            gauss, ratio = _span_start(geo, x0, py)
             for x in range(x0, x1):
+                gauss_x = wp.float64(gauss)
+                gauss = gauss * ratio
+                ratio = ratio * decay[g]
                 t = transmittance[row + x]
                 if t < 0.0:
                     continue   # a stopped pixel
-                sigma, dx, dy = _exponent(geo, float(x) + 0.5, py)
-                alpha = wp.min(_ALPHA_MAX, geo[5] * wp.exp(-sigma))
-                if sigma < 0.0 or alpha < _ALPHA_MIN:
+                alpha = wp.min(_ALPHA_MAX, geo[5] * float(gauss_x))
+                if gauss_x > _GAUSS_MAX or alpha < _ALPHA_MIN:   # sigma < 0 or too faint
                     continue
                 next_t = t * (1.0 - alpha)
                 if next_t < _T_MIN:
@@ -120,14 +134,14 @@ def _composite_kernels(n_channels: int):
             transmittance[row + x] = wp.abs(transmittance[row + x])
 
     @wp.kernel(module="unique", enable_backward=False)
-    def backward(geometry: wp.array(dtype=_vec6), features: wp.array(dtype=vec), row_offsets: wp.array(dtype=int),
-                 spans: wp.array(dtype=wp.vec3i), width: int, height: int, stop: wp.array(dtype=int),
-                 grad_out_features: wp.array(dtype=vec), grad_out_alphas: wp.array(dtype=float),
-                 transmittance: wp.array(dtype=float), behind_f: wp.array(dtype=float),
-                 behind_a: wp.array(dtype=float), grad_geometry: wp.array(dtype=_vec6),
+    def backward(geometry: wp.array(dtype=_vec6), decay: wp.array(dtype=wp.float64), features: wp.array(dtype=vec),
+                 row_offsets: wp.array(dtype=int), spans: wp.array(dtype=wp.vec3i), width: int, height: int,
+                 stop: wp.array(dtype=int), grad_out_features: wp.array(dtype=vec),
+                 grad_out_alphas: wp.array(dtype=float), transmittance: wp.array(dtype=float),
+                 behind: wp.array(dtype=float), grad_geometry: wp.array(dtype=_vec6),
                  grad_features: wp.array(dtype=vec)):
-        # transmittance starts as the final one and is divided back to T_i; behind_f and behind_a (start 0) hold
-        # what the Gaussians behind the current one add to grad . features and to alpha, per unit T in front of them
+        # transmittance starts as the final one and is divided back to T_i; behind (starts 0) holds what the
+        # Gaussians behind the current one add to grad . features + grad_alpha_image * alpha, per unit T in front
         r = wp.tid()
         py = float(r % height) + 0.5
         row = r * width
@@ -137,32 +151,40 @@ def _composite_kernels(n_channels: int):
             i -= 1
             geo = _vec6(geometry[g])
             f = vec(features[g])
-            grad_geo = _vec6()
+            dy = py - geo[1]
             grad_f = vec()
+            # dL/dsigma moments over the span (dy is the row's): sum g_s, sum g_s dx, sum g_s dx^2; sum G dL/dalpha
+            m0, m1, m2, grad_opacity = float(0.0), float(0.0), float(0.0), float(0.0)
+            gauss64, ratio = _span_start(geo, x0, py)
             for x in range(x0, x1):
+                gauss_x = wp.float64(gauss64)
+                gauss64 = gauss64 * ratio
+                ratio = ratio * decay[g]
                 p = row + x
                 if g >= stop[p]:
                     continue   # at or behind the pixel's stop
-                sigma, dx, dy = _exponent(geo, float(x) + 0.5, py)
-                gauss = wp.exp(-sigma)
+                gauss = float(gauss_x)
                 alpha = wp.min(_ALPHA_MAX, geo[5] * gauss)
-                if sigma < 0.0 or alpha < _ALPHA_MIN:
+                if gauss_x > _GAUSS_MAX or alpha < _ALPHA_MIN:
                     continue
                 t = transmittance[p] / (1.0 - alpha)   # T_i, in front of Gaussian i
                 transmittance[p] = t
                 grad_pixel = grad_out_features[p]
-                grad_dot_f = wp.dot(grad_pixel, f)
+                grad_here = wp.dot(grad_pixel, f) + grad_out_alphas[p]
                 grad_f += (alpha * t) * grad_pixel
-                grad_alpha = t * (grad_dot_f - behind_f[p] + grad_out_alphas[p] * (1.0 - behind_a[p]))
-                behind_f[p] = alpha * grad_dot_f + (1.0 - alpha) * behind_f[p]
-                behind_a[p] = alpha + (1.0 - alpha) * behind_a[p]
+                grad_alpha = t * (grad_here - behind[p])
+                behind[p] = alpha * grad_here + (1.0 - alpha) * behind[p]
                 if geo[5] * gauss <= _ALPHA_MAX:   # a clamped alpha passes no gradient to its geometry and opacity
                     grad_sigma = -alpha * grad_alpha
-                    grad_geo += _vec6(-(geo[2] * dx + geo[3] * dy) * grad_sigma,
-                                      -(geo[3] * dx + geo[4] * dy) * grad_sigma, 0.5 * dx * dx * grad_sigma,
-                                      dx * dy * grad_sigma, 0.5 * dy * dy * grad_sigma, gauss * grad_alpha)
+                    dx = float(x) + 0.5 - geo[0]
+                    m0 += grad_sigma
+                    m1 += grad_sigma * dx
+                    m2 += grad_sigma * dx * dx
+                    grad_opacity += gauss * grad_alpha
             if x1 > x0:
-                wp.atomic_add(grad_geometry, g, grad_geo)
+                wp.atomic_add(grad_geometry, g, _vec6(-(geo[2] * m1 + geo[3] * dy * m0),
+                                                      -(geo[3] * m1 + geo[4] * dy * m0), 0.5 * m2, dy * m1,
+                                                      0.5 * dy * dy * m0, grad_opacity))
                 wp.atomic_add(grad_features, g, grad_f)
 
     return forward, backward, vec
@@ -192,7 +214,8 @@ def row_spans(geometry: torch.Tensor, boxes: torch.Tensor, image_rows: torch.Ten
                                         warp_view(image_rows.int()), warp_view(offsets),
                                         warp_view(torch.zeros(n_rows, dtype=torch.int32, device=device)),
                                         warp_view(spans, wp.vec3i)], device)
-    launch(_sort_rows, n_rows, [warp_view(offsets), warp_view(spans, wp.vec3i)], device)
+    if device.type != "cpu":   # a CPU launch runs its threads in order: the buckets are filled sorted
+        launch(_sort_rows, n_rows, [warp_view(offsets), warp_view(spans, wp.vec3i)], device)
     return offsets, spans
 
 
@@ -207,27 +230,30 @@ class _Composite(torch.autograd.Function):
         out_features = torch.empty(n_pixels, features.shape[1], dtype=torch.float32, device=device)
         final_t = torch.empty(n_pixels, dtype=torch.float32, device=device)
         stop = torch.empty(n_pixels, dtype=torch.int32, device=device)
-        launch(forward_kernel, n_rows, _span_arrays(geometry, features, row_offsets, spans, vec) + [
+        decay = torch.exp(-geometry[:, 2].detach().double())   # exp(-a): the step of the ratio along a row
+        launch(forward_kernel, n_rows, _span_arrays(geometry, decay, features, row_offsets, spans, vec) + [
             width, height, warp_view(out_features, vec), warp_view(final_t), warp_view(stop)], device)
-        ctx.save_for_backward(geometry, features, row_offsets, spans, final_t, stop)
+        ctx.save_for_backward(geometry, decay, features, row_offsets, spans, final_t, stop)
         ctx.width, ctx.height = width, height
         return out_features, 1.0 - final_t
 
     @staticmethod
     def backward(ctx, grad_features_image, grad_alphas_image):
-        geometry, features, row_offsets, spans, final_t, stop = ctx.saved_tensors
+        geometry, decay, features, row_offsets, spans, final_t, stop = ctx.saved_tensors
         _, backward_kernel, vec = _composite_kernels(features.shape[1])
         grad_geometry, grad_features = torch.zeros_like(geometry), torch.zeros_like(features)
-        scratch = [final_t.clone(), torch.zeros_like(final_t), torch.zeros_like(final_t)]   # T, behind_f, behind_a
-        launch(backward_kernel, len(row_offsets) - 1, _span_arrays(geometry, features, row_offsets, spans, vec) + [
+        scratch = [final_t.clone(), torch.zeros_like(final_t)]   # T, behind
+        launch(backward_kernel, len(row_offsets) - 1, _span_arrays(geometry, decay, features, row_offsets, spans,
+                                                                   vec) + [
             ctx.width, ctx.height, warp_view(stop), warp_view(grad_features_image.contiguous(), vec),
             warp_view(grad_alphas_image.contiguous())] + [warp_view(t) for t in scratch] + [
             warp_view(grad_geometry, _vec6), warp_view(grad_features, vec)], geometry.device)
         return grad_geometry, grad_features, None, None, None, None
 
 
-def _span_arrays(geometry, features, row_offsets, spans, vec) -> list:
-    return [warp_view(geometry, _vec6), warp_view(features, vec), warp_view(row_offsets), warp_view(spans, wp.vec3i)]
+def _span_arrays(geometry, decay, features, row_offsets, spans, vec) -> list:
+    return [warp_view(geometry, _vec6), warp_view(decay, wp.float64), warp_view(features, vec), warp_view(row_offsets),
+            warp_view(spans, wp.vec3i)]
 
 
 def composite_warp(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, features: torch.Tensor,
