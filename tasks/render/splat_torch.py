@@ -12,9 +12,31 @@ alpha image = sum_i w_i = 1 - T_final.
 
 import torch
 
+from .splat_projection import pixel_boxes
+
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 TRANSMITTANCE_MIN = 1e-4
+
+
+def composite_instances(means2d: torch.Tensor, conics: torch.Tensor, radii: torch.Tensor, opacities: torch.Tensor,
+                        features: torch.Tensor, drawn: torch.Tensor, width: int, height: int,
+                        n_images: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Composite the drawn (camera, Gaussian) instances of a projection into flat pixel buffers.
+
+    means2d (C, N, 2) px, conics (C, N, 3) 1/px^2, radii (C, N) px of the projection; opacities (N,); features
+    (N, K) or per camera (C, N, K); drawn (G,) int, the instances' flat index camera * N + Gaussian, sorted front
+    to back; n_images = C.  Returns features (C * height * width, K) and alphas (C * height * width,) as
+    ``composite_pairs``, differentiable w.r.t. means2d, conics, opacities and features.
+    """
+    n = len(opacities)
+    gaussian_ids = drawn % n
+    means = means2d.reshape(-1, 2).index_select(0, drawn)
+    boxes = pixel_boxes(means.detach(), radii.reshape(-1)[drawn], width, height)
+    inst_features = features.reshape(-1, features.shape[-1]).index_select(0, drawn if features.dim() == 3
+                                                                           else gaussian_ids)
+    return composite_pairs(means, conics.reshape(-1, 3).index_select(0, drawn), opacities.index_select(0, gaussian_ids),
+                           inst_features, boxes, (drawn // n) * (height * width), width, height, n_images)
 
 
 def composite_pairs(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, features: torch.Tensor,
