@@ -85,20 +85,13 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor | None, scales: torch
     if features is None:
         features = torch.cat([colors.expand(n_cameras, *colors.shape[-2:]), depths.to(colors.dtype)], dim=-1)
 
-    # 5. compositing
+    # 5. compositing into finished pixels: expected depth, background
+    expected = render_mode in ("ED", "RGB+ED")
+    shown_backgrounds = backgrounds if render_mode not in ("D", "ED") else None
     flat_features, flat_alphas = composite(proj.means2d, proj.conics, proj.radii, opacities, features, drawn, width,
-                                           height, n_cameras)
+                                           height, n_cameras, shown_backgrounds, expected)
     render_colors = flat_features.reshape(n_cameras, height, width, -1)
     render_alphas = flat_alphas.reshape(n_cameras, height, width, 1)
-
-    # 6. expected depth and background
-    if render_mode in ("ED", "RGB+ED"):
-        expected = render_colors[..., -1:] / render_alphas.clamp_min(1e-10)
-        render_colors = torch.cat([render_colors[..., :-1], expected], dim=-1)
-    if backgrounds is not None and render_mode not in ("D", "ED"):
-        n_color = backgrounds.shape[-1]
-        shown = render_colors[..., :n_color] + (1.0 - render_alphas) * backgrounds[:, None, None, :]
-        render_colors = torch.cat([shown, render_colors[..., n_color:]], dim=-1)
     meta = {"radii": proj.radii, "means2d": proj.means2d, "depths": proj.depths, "conics": proj.conics,
             "camera_ids": drawn // len(means), "gaussian_ids": drawn % len(means), "width": width, "height": height,
             "n_cameras": n_cameras, "backend": backend}

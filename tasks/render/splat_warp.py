@@ -23,7 +23,7 @@ import functools
 import torch
 import warp as wp
 
-from .splat_torch import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
+from .splat_torch import ALPHA_FLOOR, ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
 from .warp_interop import launch, warp_view
 
 wp.set_module_options({"enable_backward": False})   # the backward pass is hand-written
@@ -31,6 +31,7 @@ wp.set_module_options({"enable_backward": False})   # the backward pass is hand-
 _ALPHA_MIN = wp.constant(ALPHA_MIN)
 _ALPHA_MAX = wp.constant(ALPHA_MAX)
 _T_MIN = wp.constant(TRANSMITTANCE_MIN)
+_ALPHA_FLOOR = wp.constant(ALPHA_FLOOR)
 _NO_STOP = wp.constant(2**31 - 1)   # stop marker of a pixel that never stops
 _GAUSS_MAX = wp.constant(wp.float64(1.0 + 1e-6))   # exp(-sigma) above it: sigma < 0 beyond the recurrence's rounding
 _SPAN_MARGIN = wp.constant(1e-3)   # added to the exponent threshold so the spans hold every pair the rule keeps
@@ -139,8 +140,9 @@ def _composite_kernels(n_channels: int):
     def forward(drawn: wp.array(dtype=int), n_gaussians: int, means2d: wp.array(dtype=wp.vec2),
                 conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float), features: wp.array(dtype=vec),
                 per_camera: int, decay: wp.array(dtype=wp.float64), row_offsets: wp.array(dtype=int),
-                spans: wp.array(dtype=wp.vec3i), width: int, height: int, out_features: wp.array(dtype=vec),
-                transmittance: wp.array(dtype=float), stop: wp.array(dtype=int)):
+                spans: wp.array(dtype=wp.vec3i), width: int, height: int, backgrounds: wp.array2d(dtype=float),
+                n_background: int, expected_depth: int, out_features: wp.array(dtype=vec),
+                out_alphas: wp.array(dtype=float), transmittance: wp.array(dtype=float), stop: wp.array(dtype=int)):
         r = wp.tid()
         py = float(r % height) + 0.5
         row = r * width
@@ -173,14 +175,26 @@ def _composite_kernels(n_channels: int):
                     continue
                 out_features[row + x] = out_features[row + x] + (alpha * t) * f
                 transmittance[row + x] = next_t
+        # the finished pixels (``finish_pixels``): alpha, expected depth, background
+        camera = r // height
         for x in range(width):
-            transmittance[row + x] = wp.abs(transmittance[row + x])
+            t = wp.abs(transmittance[row + x])
+            transmittance[row + x] = t
+            out_alphas[row + x] = 1.0 - t
+            v = out_features[row + x]
+            if expected_depth != 0:
+                v[n_channels - 1] = v[n_channels - 1] / wp.max(1.0 - t, _ALPHA_FLOOR)
+            for c in range(n_background):
+                v[c] = v[c] + t * backgrounds[camera, c]
+            out_features[row + x] = v
 
     @wp.kernel(module="unique", enable_backward=False)
     def backward(drawn: wp.array(dtype=int), n_gaussians: int, means2d: wp.array(dtype=wp.vec2),
                  conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float), features: wp.array(dtype=vec),
                  per_camera: int, decay: wp.array(dtype=wp.float64), row_offsets: wp.array(dtype=int),
-                 spans: wp.array(dtype=wp.vec3i), width: int, height: int, stop: wp.array(dtype=int),
+                 spans: wp.array(dtype=wp.vec3i), width: int, height: int, backgrounds: wp.array2d(dtype=float),
+                 n_background: int, expected_depth: int, out_features: wp.array(dtype=vec),
+                 stop: wp.array(dtype=int), grad_finished: wp.array(dtype=vec), grad_finished_alphas: wp.array(dtype=float),
                  grad_out_features: wp.array(dtype=vec), grad_out_alphas: wp.array(dtype=float),
                  transmittance: wp.array(dtype=float), behind: wp.array(dtype=float),
                  grad_means2d: wp.array(dtype=wp.vec2), grad_conics: wp.array(dtype=wp.vec3),
@@ -190,6 +204,20 @@ def _composite_kernels(n_channels: int):
         r = wp.tid()
         py = float(r % height) + 0.5
         row = r * width
+        # gradients of the finished pixels -> of the composited sums and alpha (grad_out_*: written here)
+        camera = r // height
+        for x in range(width):
+            grad_v = grad_finished[row + x]
+            grad_a = grad_finished_alphas[row + x]
+            for c in range(n_background):
+                grad_a -= grad_v[c] * backgrounds[camera, c]
+            if expected_depth != 0:
+                a = 1.0 - transmittance[row + x]
+                if a > _ALPHA_FLOOR:
+                    grad_a -= grad_v[n_channels - 1] * out_features[row + x][n_channels - 1] / a
+                grad_v[n_channels - 1] = grad_v[n_channels - 1] / wp.max(a, _ALPHA_FLOOR)
+            grad_out_features[row + x] = grad_v
+            grad_out_alphas[row + x] = grad_a
         j = row_offsets[r + 1] - 1
         while j >= row_offsets[r]:
             g, x0, x1 = spans[j][0], spans[j][1], spans[j][2]
@@ -272,37 +300,44 @@ def row_spans(drawn: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor, 
 
 
 class _Composite(torch.autograd.Function):
-    """Differentiable compositing of float32 instances over precomputed row spans, one Warp thread per image row."""
+    """Differentiable compositing of float32 instances over precomputed row spans into finished pixels (expected
+    depth, background), one Warp thread per image row."""
 
     @staticmethod
     def forward(ctx, means2d, conics, opacities, features, drawn, per_camera: int, decay, row_offsets, spans,
-                width: int, height: int):
+                width: int, height: int, backgrounds, expected_depth: int):
         forward_kernel, _, vec = _composite_kernels(features.shape[1])
         n_rows = len(row_offsets) - 1
         device, n_pixels = means2d.device, n_rows * width
         out_features = torch.empty(n_pixels, features.shape[1], dtype=torch.float32, device=device)
-        final_t = torch.empty(n_pixels, dtype=torch.float32, device=device)
+        out_alphas, final_t = (torch.empty(n_pixels, dtype=torch.float32, device=device) for _ in range(2))
         stop = torch.empty(n_pixels, dtype=torch.int32, device=device)
+        ctx.finish = [width, height, warp_view(backgrounds), backgrounds.shape[1] * int(backgrounds.shape[0] > 0),
+                      expected_depth]
         launch(forward_kernel, n_rows, _span_arrays(means2d, conics, opacities, features, drawn, per_camera, decay,
-                                                    row_offsets, spans, vec) + [
-            width, height, warp_view(out_features, vec), warp_view(final_t), warp_view(stop)], device)
-        ctx.save_for_backward(means2d, conics, opacities, features, drawn, decay, row_offsets, spans, final_t, stop)
-        ctx.per_camera, ctx.width, ctx.height = per_camera, width, height
-        return out_features, 1.0 - final_t
+                                                    row_offsets, spans, vec) + ctx.finish + [
+            warp_view(out_features, vec), warp_view(out_alphas), warp_view(final_t), warp_view(stop)], device)
+        ctx.save_for_backward(means2d, conics, opacities, features, drawn, decay, row_offsets, spans, final_t, stop,
+                              out_features, backgrounds)
+        ctx.per_camera = per_camera
+        return out_features, out_alphas
 
     @staticmethod
     def backward(ctx, grad_features_image, grad_alphas_image):
-        means2d, conics, opacities, features, drawn, decay, row_offsets, spans, final_t, stop = ctx.saved_tensors
+        (means2d, conics, opacities, features, drawn, decay, row_offsets, spans, final_t, stop, out_features,
+         _) = ctx.saved_tensors
         _, backward_kernel, vec = _composite_kernels(features.shape[1])
         grads = [torch.zeros_like(t) for t in (means2d, conics, opacities, features)]
-        scratch = [final_t.clone(), torch.zeros_like(final_t)]   # T, behind
+        scratch = [torch.empty_like(out_features), torch.empty_like(final_t), final_t.clone(),
+                   torch.zeros_like(final_t)]   # gradients of the sums and alpha, T, behind
         launch(backward_kernel, len(row_offsets) - 1, _span_arrays(
-            means2d, conics, opacities, features, drawn, ctx.per_camera, decay, row_offsets, spans, vec) + [
-            ctx.width, ctx.height, warp_view(stop), warp_view(grad_features_image.contiguous(), vec),
-            warp_view(grad_alphas_image.contiguous())] + [warp_view(t) for t in scratch] + [
+            means2d, conics, opacities, features, drawn, ctx.per_camera, decay, row_offsets, spans, vec) + ctx.finish
+            + [warp_view(out_features, vec), warp_view(stop), warp_view(grad_features_image.contiguous(), vec),
+               warp_view(grad_alphas_image.contiguous()), warp_view(scratch[0], vec)]
+            + [warp_view(t) for t in scratch[1:]] + [
             warp_view(grads[0], wp.vec2), warp_view(grads[1], wp.vec3), warp_view(grads[2]),
             warp_view(grads[3], vec)], means2d.device)
-        return (*grads, None, None, None, None, None, None, None)
+        return (*grads, None, None, None, None, None, None, None, None, None)
 
 
 def _span_arrays(means2d, conics, opacities, features, drawn, per_camera, decay, row_offsets, spans, vec) -> list:
@@ -312,15 +347,18 @@ def _span_arrays(means2d, conics, opacities, features, drawn, per_camera, decay,
 
 
 def composite_warp(means2d: torch.Tensor, conics: torch.Tensor, radii: torch.Tensor, opacities: torch.Tensor,
-                   features: torch.Tensor, drawn: torch.Tensor, width: int, height: int,
-                   n_images: int) -> tuple[torch.Tensor, torch.Tensor]:
+                   features: torch.Tensor, drawn: torch.Tensor, width: int, height: int, n_images: int,
+                   backgrounds: torch.Tensor | None = None,
+                   expected_depth: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Warp twin of ``splat_torch.composite_instances`` (same arguments, same rule, same outputs): the instances
-    are gathered inside the kernels and their gradients scattered back there."""
+    are gathered inside the kernels, their gradients scattered back there, and the pixels finished there."""
     f32 = [t.float().contiguous() for t in (means2d.reshape(-1, 2), conics.reshape(-1, 3), opacities,
                                              features.reshape(-1, features.shape[-1]))]
     drawn = drawn.int()
     row_offsets, spans, decay = row_spans(drawn, *(t.detach() for t in f32[:2]), radii.reshape(-1).int(),
                                           f32[2].detach(), width, height, n_images)
+    backgrounds = (torch.zeros(0, 1, device=means2d.device) if backgrounds is None
+                   else backgrounds.detach().float().contiguous())
     out_features, out_alphas = _Composite.apply(*f32, drawn, int(features.dim() == 3), decay, row_offsets, spans,
-                                                width, height)
+                                                width, height, backgrounds, int(expected_depth))
     return out_features.to(features.dtype), out_alphas.to(features.dtype)
