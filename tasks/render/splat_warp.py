@@ -67,10 +67,10 @@ def _row_span(geometry: _vec6, threshold: float, box: wp.vec4i, y: int):
     disc = (b * b - a * c) * dy * dy + 2.0 * a * threshold
     if threshold < 0.0 or disc < 0.0:
         return 0, 0
-    root = wp.sqrt(disc)
-    lo = geometry[0] - 0.5 + (-b * dy - root) / a
-    hi = geometry[0] - 0.5 + (-b * dy + root) / a
-    return wp.max(box[0], int(wp.ceil(lo))), wp.min(box[1], int(wp.floor(hi)) + 1)
+    inv_a = 1.0 / a
+    middle = geometry[0] - 0.5 - b * dy * inv_a
+    half = wp.sqrt(disc) * inv_a
+    return wp.max(box[0], int(wp.ceil(middle - half))), wp.min(box[1], int(wp.floor(middle + half)) + 1)
 
 
 @wp.kernel
