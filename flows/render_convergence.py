@@ -26,15 +26,16 @@ register_render_study_config()
 def run_render_study(cfg: DictConfig) -> Path:
     """Validate, run the settings through the cached steps, write the study; returns its JSON path."""
     from conf.schema import ConfigError
-    from flows.pipeline import appearance_refinement_step, gbuffer_step, run_object_local, seed_scope, step_params
     from flows.preflight import preflight
-    from tasks.verification import render_convergence as rc
 
-    preflight(cfg)  # the base config and its input files, one line before anything starts
     try:
         validate_render_study(cfg)
     except ConfigError as exc:
         raise SystemExit(f"config error: {exc}") from None
+    preflight(cfg)  # the base config and its input files, one line before anything starts
+    from flows.pipeline import appearance_refinement_step, gbuffer_step, run_object_local, seed_scope, step_params
+    from tasks.verification import render_convergence as rc
+
     obj, variant, root = cfg.object, cfg.variant, str(cfg.paths.artifacts)
     base = run_object_local(cfg, obj, variant, root, until=appearance_refinement_step.name)
 

@@ -112,3 +112,15 @@ def test_a_tiny_study_measures_every_knob_and_a_rerun_is_cached(tmp_path, compos
     assert by[("frame_stride", 2)]["frames"] * 2 - 1 <= by[("frame_stride", 1)]["frames"]
     again = json.loads(run_render_study(cfg).read_text())["rows"]
     assert [r["seconds"] for r in again] == [r["seconds"] for r in rows]  # served from the cache, same times
+
+
+def test_a_bad_setting_list_is_one_line_naming_the_key(tmp_path, compose_cfg):
+    from flows.render_convergence import run_render_study
+
+    cfg = compose_cfg("render_convergence", [f"paths.artifacts={tmp_path / 'artifacts'}",
+                                             f"paths.reports={tmp_path / 'reports'}", "render_study.resolutions=[8,64]"])
+    with pytest.raises(SystemExit) as exc:
+        run_render_study(cfg)
+    assert str(exc.value) == ("config error: render_study.resolutions must list at least two distinct values >= 16, "
+                              "got [8, 64]")
+    assert not (tmp_path / "artifacts").exists()  # refused before any work
