@@ -4,7 +4,7 @@ differentiable renderer R(Theta_p; v, t) of eq. 7.
 
 Two backends implement the same maths: ``"torch"``, the pure-torch reference (``splat_projection``, ``splat_torch``:
 the test oracle), and ``"warp"``, Warp kernels (``splat_warp_projection`` with Warp's generated adjoint,
-``splat_warp`` with the hand-written 3DGS backward), the default because it is 15-30x faster
+``splat_warp`` with the hand-written 3DGS backward), the default because it is 13-30x faster
 (``tasks.render.benchmark``).  Both run on the device of the inputs (CPU or CUDA).
 """
 
