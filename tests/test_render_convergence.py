@@ -76,8 +76,10 @@ def test_the_run_report_section_reads_the_latest_study(tmp_path):
     assert report_section({}) is None
     cfg = {"paths": {"reports": str(tmp_path)}, "render": {"width": 192, "frame_stride": 2},
            "refinement": {"iterations": 60}}
-    title, text = report_section(cfg)
-    assert title == SECTION_TITLE and text.startswith("Not measured yet for this reports folder")
+    title, text = report_section(cfg)  # no study here yet: the study of record shipped with the code
+    assert title == SECTION_TITLE and text.startswith("From the study of record shipped with the code "
+                                                      "(`render_knobs_measured.json`); no study in this reports folder")
+    assert "| 192 (default) |" in text and "| 2 (default) |" in text and "| 60 (default) |" in text
     path = write_study(tmp_path / "render_convergence" / "tomato-1", _rows(), {"object": "tomato", "variant": "full",
                                                                                "written": "today", "machine": "x"})
     assert json.loads(path.read_text())["rows"][2]["psnr_db"] == math.inf

@@ -39,6 +39,9 @@ import numpy as np
 STUDY_DIR = "render_convergence"   # under paths.reports: <run>/render_knobs.json and render_knobs.md
 STUDY_FILE = "render_knobs.json"
 SECTION_TITLE = "Render and effect knobs: error against run time (python -m flows.render_convergence)"
+# the study of record (python -m flows.render_convergence on the default tomato), shown where a reports folder has
+# none of its own: every report states each setting's time and error
+RECORD = Path(__file__).resolve().parents[2] / "conf" / "render_knobs_measured.json"
 KNOBS = {  # knob -> (config key it sets, what its error compares, the stage whose time is reported)
     "resolution": ("render.width = render.height (px)", "G-buffer RGB resized to the reference's size", "gbuffer"),
     "frame_stride": ("render.frame_stride", "G-buffer RGB held between rendered frames, every simulated frame",
@@ -156,21 +159,22 @@ def current_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def report_section(cfg: Mapping[str, Any]) -> tuple[str, str] | None:
-    """The run report's (title, markdown): the latest study under the run's ``paths.reports`` with the default and
-    this run's setting marked, or a line saying how to measure them; None without ``paths.reports``."""
+    """The run report's (title, markdown): the latest study under the run's ``paths.reports`` (else the study of
+    record, ``RECORD``) with the default and this run's setting marked; None without ``paths.reports``."""
     reports_root = (cfg.get("paths") or {}).get("reports")
     if reports_root is None:
         return None
     found = latest_study(reports_root)
     if found is None:
-        return SECTION_TITLE, ("Not measured yet for this reports folder: `python -m flows.render_convergence` (one "
-                               "object, a few minutes) measures time and error per setting of "
-                               f"{', '.join(v[0] for v in KNOBS.values())}.\n\n- {DIFFUSION_NOTE}")
-    path, study = found
+        path, study = RECORD, json.loads(RECORD.read_text())
+        source = (f"From the study of record shipped with the code (`{RECORD.name}`); no study in this reports "
+                  "folder yet: `python -m flows.render_convergence` measures them on this machine")
+    else:
+        path, study = found
+        source = f"From `{path}`"
     meta = study.get("meta", {})
-    return SECTION_TITLE, (f"From `{path}` ({meta.get('object')}, {meta.get('variant')}; written "
-                           f"{meta.get('written')}; {meta.get('machine')}).\n\n"
-                           + knob_tables(study["rows"], current_settings(cfg)))
+    return SECTION_TITLE, (f"{source} ({meta.get('object')}, {meta.get('variant')}; written {meta.get('written')}; "
+                           f"{meta.get('machine')}).\n\n" + knob_tables(study["rows"], current_settings(cfg)))
 
 
 # ----------------------------------------------------------------------------------------------- per-knob rows
