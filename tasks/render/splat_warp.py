@@ -152,6 +152,8 @@ def _composite_kernels(n_channels: int):
             stop[row + x] = _NO_STOP
         for j in range(row_offsets[r], row_offsets[r + 1]):
             g, x0, x1 = spans[j][0], spans[j][1], spans[j][2]
+            if x1 <= x0:
+                continue   # an empty span (a box row the Gaussian cannot reach with alpha >= 1/255)
             k = drawn[g]
             n = k % n_gaussians
             geo = _geometry(means2d, conics, opacities, k, n)
@@ -222,6 +224,8 @@ def _composite_kernels(n_channels: int):
         while j >= row_offsets[r]:
             g, x0, x1 = spans[j][0], spans[j][1], spans[j][2]
             j -= 1
+            if x1 <= x0:
+                continue
             k = drawn[g]
             n = k % n_gaussians
             geo = _geometry(means2d, conics, opacities, k, n)
@@ -258,12 +262,10 @@ def _composite_kernels(n_channels: int):
                     m1 += grad_sigma * dx
                     m2 += grad_sigma * dx * dx
                     grad_opacity += gauss * grad_alpha
-            if x1 > x0:
-                wp.atomic_add(grad_means2d, k, wp.vec2(-(geo[2] * m1 + geo[3] * dy * m0),
-                                                       -(geo[3] * m1 + geo[4] * dy * m0)))
-                wp.atomic_add(grad_conics, k, wp.vec3(0.5 * m2, dy * m1, 0.5 * dy * dy * m0))
-                wp.atomic_add(grad_opacities, n, grad_opacity)
-                wp.atomic_add(grad_features, row_f, grad_f)
+            wp.atomic_add(grad_means2d, k, wp.vec2(-(geo[2] * m1 + geo[3] * dy * m0), -(geo[3] * m1 + geo[4] * dy * m0)))
+            wp.atomic_add(grad_conics, k, wp.vec3(0.5 * m2, dy * m1, 0.5 * dy * dy * m0))
+            wp.atomic_add(grad_opacities, n, grad_opacity)
+            wp.atomic_add(grad_features, row_f, grad_f)
 
     return forward, backward, vec
 
