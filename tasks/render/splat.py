@@ -4,7 +4,7 @@ differentiable renderer R(Theta_p; v, t) of eq. 7.
 
 Two backends implement the same maths: ``"torch"``, the pure-torch reference (``splat_projection``, ``splat_torch``:
 the test oracle), and ``"warp"``, Warp kernels (``splat_warp_projection`` with Warp's generated adjoint,
-``splat_warp`` with the hand-written 3DGS backward), the default because it is 10-20x faster
+``splat_warp`` with the hand-written 3DGS backward), the default because it is 13-30x faster
 (``tasks.render.benchmark``).  Both run on the device of the inputs (CPU or CUDA).
 """
 
@@ -12,15 +12,15 @@ from typing import Literal
 
 import torch
 
-from .splat_projection import pixel_boxes, project_gaussians, quat_scale_to_covar
-from .splat_torch import composite_pairs
+from .splat_projection import project_gaussians, quat_scale_to_covar
+from .splat_torch import composite_instances
 from .splat_warp import composite_warp
 from .splat_warp_projection import project_gaussians_warp, quat_scale_to_covar_warp
 
 Backend = Literal["torch", "warp"]
 RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
 # per backend: (quats, scales -> covars), projection, compositing
-STAGES = {"torch": (quat_scale_to_covar, project_gaussians, composite_pairs),
+STAGES = {"torch": (quat_scale_to_covar, project_gaussians, composite_instances),
           "warp": (quat_scale_to_covar_warp, project_gaussians_warp, composite_warp)}
 DEFAULT_BACKEND: Backend = "warp"
 
@@ -78,34 +78,22 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor | None, scales: torch
     with torch.no_grad():
         drawn = torch.nonzero(proj.radii.flatten() > 0).squeeze(1)
         drawn = drawn[torch.sort(proj.depths.flatten()[drawn], stable=True).indices]
-        camera_ids, gaussian_ids = drawn // len(means), drawn % len(means)
-    means2d = proj.means2d.reshape(-1, 2).index_select(0, drawn)
-    boxes = pixel_boxes(means2d.detach(), proj.radii.flatten()[drawn], width, height)
 
-    # 4. per-instance features: colour channels, then depth
-    inst_colors = colors.reshape(-1, colors.shape[-1]).index_select(0, drawn if colors.dim() == 3 else gaussian_ids)
-    inst_depths = proj.depths.reshape(-1, 1).index_select(0, drawn)
-    features = {"RGB": inst_colors, "D": inst_depths, "ED": inst_depths}.get(render_mode)
+    # 4. features per Gaussian (N, D) or per camera and Gaussian (C, N, D): colour channels, then depth
+    depths = proj.depths[..., None]
+    features = {"RGB": colors, "D": depths, "ED": depths}.get(render_mode)
     if features is None:
-        features = torch.cat([inst_colors, inst_depths.to(inst_colors.dtype)], dim=-1)
+        features = torch.cat([colors.expand(n_cameras, *colors.shape[-2:]), depths.to(colors.dtype)], dim=-1)
 
-    # 5. compositing
-    flat_features, flat_alphas = composite(
-        means2d, proj.conics.reshape(-1, 3).index_select(0, drawn), opacities.index_select(0, gaussian_ids),
-        features, boxes, camera_ids * (height * width), width, height, n_cameras)
+    # 5. compositing into finished pixels: expected depth, background
+    expected = render_mode in ("ED", "RGB+ED")
+    shown_backgrounds = backgrounds if render_mode not in ("D", "ED") else None
+    flat_features, flat_alphas = composite(proj.means2d, proj.conics, proj.radii, opacities, features, drawn, width,
+                                           height, n_cameras, shown_backgrounds, expected)
     render_colors = flat_features.reshape(n_cameras, height, width, -1)
     render_alphas = flat_alphas.reshape(n_cameras, height, width, 1)
-
-    # 6. expected depth and background
-    if render_mode in ("ED", "RGB+ED"):
-        expected = render_colors[..., -1:] / render_alphas.clamp_min(1e-10)
-        render_colors = torch.cat([render_colors[..., :-1], expected], dim=-1)
-    if backgrounds is not None and render_mode not in ("D", "ED"):
-        n_color = backgrounds.shape[-1]
-        shown = render_colors[..., :n_color] + (1.0 - render_alphas) * backgrounds[:, None, None, :]
-        render_colors = torch.cat([shown, render_colors[..., n_color:]], dim=-1)
     meta = {"radii": proj.radii, "means2d": proj.means2d, "depths": proj.depths, "conics": proj.conics,
-            "camera_ids": camera_ids, "gaussian_ids": gaussian_ids, "width": width, "height": height,
+            "camera_ids": drawn // len(means), "gaussian_ids": drawn % len(means), "width": width, "height": height,
             "n_cameras": n_cameras, "backend": backend}
     return render_colors, render_alphas, meta
 

@@ -12,9 +12,50 @@ alpha image = sum_i w_i = 1 - T_final.
 
 import torch
 
+from .splat_projection import pixel_boxes
+
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 TRANSMITTANCE_MIN = 1e-4
+ALPHA_FLOOR = 1e-10   # expected depth divides by max(alpha, ALPHA_FLOOR)
+
+
+def composite_instances(means2d: torch.Tensor, conics: torch.Tensor, radii: torch.Tensor, opacities: torch.Tensor,
+                        features: torch.Tensor, drawn: torch.Tensor, width: int, height: int, n_images: int,
+                        backgrounds: torch.Tensor | None = None,
+                        expected_depth: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """Composite the drawn (camera, Gaussian) instances of a projection into finished flat pixel buffers.
+
+    means2d (C, N, 2) px, conics (C, N, 3) 1/px^2, radii (C, N) px of the projection; opacities (N,); features
+    (N, K) or per camera (C, N, K); drawn (G,) int, the instances' flat index camera * N + Gaussian, sorted front
+    to back; n_images = C; backgrounds (C, B) and expected_depth as in ``finish_pixels``.  Returns features
+    (C * height * width, K) and alphas (C * height * width,), differentiable w.r.t. means2d, conics, opacities
+    and features.
+    """
+    n = len(opacities)
+    gaussian_ids = drawn % n
+    means = means2d.reshape(-1, 2).index_select(0, drawn)
+    boxes = pixel_boxes(means.detach(), radii.reshape(-1)[drawn], width, height)
+    inst_features = features.reshape(-1, features.shape[-1]).index_select(0, drawn if features.dim() == 3
+                                                                           else gaussian_ids)
+    sums, alphas = composite_pairs(means, conics.reshape(-1, 3).index_select(0, drawn),
+                                   opacities.index_select(0, gaussian_ids), inst_features, boxes,
+                                   (drawn // n) * (height * width), width, height, n_images)
+    return finish_pixels(sums, alphas, backgrounds, expected_depth), alphas
+
+
+def finish_pixels(sums: torch.Tensor, alphas: torch.Tensor, backgrounds: torch.Tensor | None,
+                  expected_depth: bool) -> torch.Tensor:
+    """The finished pixels of composited sums (C * P, K) with alphas (C * P,): with expected_depth the last
+    channel becomes sum_i w_i z_i / max(alpha, ALPHA_FLOOR) (m), then backgrounds (C, B) add (1 - alpha) times
+    the camera's background to the first B channels."""
+    if expected_depth:
+        sums = torch.cat([sums[:, :-1], sums[:, -1:] / alphas[:, None].clamp_min(ALPHA_FLOOR)], dim=-1)
+    if backgrounds is None:
+        return sums
+    n_back = backgrounds.shape[1]
+    shown = sums[:, :n_back] + (1.0 - alphas[:, None]) * backgrounds.repeat_interleave(len(sums) // len(backgrounds), 0)
+    return torch.cat([shown, sums[:, n_back:]], dim=-1)
 
 
 def composite_pairs(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, features: torch.Tensor,

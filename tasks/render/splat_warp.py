@@ -7,11 +7,15 @@ Design (chosen by measurement, ``tasks.render.benchmark``): one thread per image
 its x span on that row, so only pairs that can reach alpha >= 1/255 are ever visited; the spans are bucketed by row
 (a counting sort: count from a difference array, scan, fill) and each row's bucket is insertion-sorted by instance,
 i.e. front to back (instances arrive sorted by depth; on the CPU a launch runs in order, so the buckets are sorted
-already, on CUDA the atomics scramble them).  (2) Forward: a row's thread composites its spans front to back into
-the row's pixels (transmittance, channels, stop marker) - no per-pixel lists and no sort of pairs.  (3) Backward:
-the same thread walks its spans back to front, recovers T_i = T_final / prod (1 - alpha_j) and the sums behind each
-Gaussian per pixel, and accumulates each span's gradient in registers before one atomic add per (instance, row).
-Computation is float32 whatever the input dtype; one pair of kernels is compiled per channel count.
+already and the sort is skipped, on CUDA the atomics scramble them).  (2) Forward: a row's thread composites its
+spans front to back into the row's pixels (transmittance, channels, stop marker) - no per-pixel lists and no sort of
+pairs.  Along a row sigma(x) is quadratic in x, so the Gaussian exp(-sigma) is evaluated by a recurrence (two
+multiplies per pixel, in float64 so that it drifts < 1e-12 over a span; two exps per span and one per instance)
+instead of an exp per pair.  (3) Backward: the same thread walks its spans back to front, recovers
+T_i = T_final / prod (1 - alpha_j) and the sum behind each Gaussian per pixel, and accumulates each span's gradient
+in registers - the geometry's as three moments of dL/dsigma along the span (dy is constant on a row) - before one
+atomic add per (instance, row).  Computation is float32 (the recurrence float64) whatever the input dtype; one pair
+of kernels is compiled per channel count.
 """
 
 import functools
@@ -19,7 +23,7 @@ import functools
 import torch
 import warp as wp
 
-from .splat_torch import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
+from .splat_torch import ALPHA_FLOOR, ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
 from .warp_interop import launch, warp_view
 
 wp.set_module_options({"enable_backward": False})   # the backward pass is hand-written
@@ -27,17 +31,32 @@ wp.set_module_options({"enable_backward": False})   # the backward pass is hand-
 _ALPHA_MIN = wp.constant(ALPHA_MIN)
 _ALPHA_MAX = wp.constant(ALPHA_MAX)
 _T_MIN = wp.constant(TRANSMITTANCE_MIN)
+_ALPHA_FLOOR = wp.constant(ALPHA_FLOOR)
 _NO_STOP = wp.constant(2**31 - 1)   # stop marker of a pixel that never stops
-SPAN_MARGIN = 1e-3   # added to the exponent threshold so the spans hold every pair the rule keeps
+_GAUSS_MAX = wp.constant(wp.float64(1.0 + 1e-6))   # exp(-sigma) above it: sigma < 0 beyond the recurrence's rounding
+_SPAN_MARGIN = wp.constant(1e-3)   # added to the exponent threshold so the spans hold every pair the rule keeps
 _vec6 = wp.types.vector(length=6, dtype=float)   # an instance's geometry: mean x, y px; conic a, b, c; opacity
 
 
 @wp.func
-def _exponent(geometry: _vec6, px: float, py: float):
-    """sigma = 0.5 (a dx^2 + c dy^2) + b dx dy at pixel centre (px, py) and the offset d = centre - mean."""
-    dx = px - geometry[0]
-    dy = py - geometry[1]
-    return 0.5 * (geometry[2] * dx * dx + geometry[4] * dy * dy) + geometry[3] * dx * dy, dx, dy
+def _geometry(means2d: wp.array(dtype=wp.vec2), conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float),
+              k: int, n: int):
+    """The geometry of the instance of camera-Gaussian k (flat camera * N + Gaussian) and Gaussian n."""
+    m, q = means2d[k], conics[k]
+    return _vec6(m[0], m[1], q[0], q[1], q[2], opacities[n])
+
+
+@wp.func
+def _span_start(geometry: _vec6, x0: int, py: float):
+    """exp(-sigma) at the first pixel x0 of a row span and its first step ratio, float64 (module docstring).
+
+    sigma(x) = 0.5 (a dx^2 + c dy^2) + b dx dy at pixel centre (x + 0.5, py) with d = centre - mean; it is
+    quadratic in x, so along the row exp(-sigma(x + 1)) = exp(-sigma(x)) ratio(x), ratio(x + 1) = ratio(x) exp(-a)."""
+    a, b, c = wp.float64(geometry[2]), wp.float64(geometry[3]), wp.float64(geometry[4])
+    dx = wp.float64(float(x0) + 0.5 - geometry[0])
+    dy = wp.float64(py - geometry[1])
+    sigma = wp.float64(0.5) * (a * dx * dx + c * dy * dy) + b * dx * dy
+    return wp.exp(-sigma), wp.exp(-(a * (dx + wp.float64(0.5)) + b * dy))
 
 
 @wp.func
@@ -48,23 +67,52 @@ def _row_span(geometry: _vec6, threshold: float, box: wp.vec4i, y: int):
     disc = (b * b - a * c) * dy * dy + 2.0 * a * threshold
     if threshold < 0.0 or disc < 0.0:
         return 0, 0
-    root = wp.sqrt(disc)
-    lo = geometry[0] - 0.5 + (-b * dy - root) / a
-    hi = geometry[0] - 0.5 + (-b * dy + root) / a
-    return wp.max(box[0], int(wp.ceil(lo))), wp.min(box[1], int(wp.floor(hi)) + 1)
+    inv_a = 1.0 / a
+    middle = geometry[0] - 0.5 - b * dy * inv_a
+    half = wp.sqrt(disc) * inv_a
+    return wp.max(box[0], int(wp.ceil(middle - half))), wp.min(box[1], int(wp.floor(middle + half)) + 1)
 
 
 @wp.kernel
-def _fill_rows(geometry: wp.array(dtype=_vec6), thresholds: wp.array(dtype=float), boxes: wp.array(dtype=wp.vec4i),
-               image_rows: wp.array(dtype=int), row_offsets: wp.array(dtype=int), cursors: wp.array(dtype=int),
+def _bin(drawn: wp.array(dtype=int), n_gaussians: int, means2d: wp.array(dtype=wp.vec2),
+         conics: wp.array(dtype=wp.vec3), radii: wp.array(dtype=int), width: int, height: int,
+         boxes: wp.array(dtype=wp.vec4i), decay: wp.array(dtype=wp.float64), marks: wp.array(dtype=int)):
+    """Per instance i: its pixel box (``splat_projection.pixel_boxes``; no rows when empty), exp(-a) and +1 / -1 in
+    the difference array of per-row span counts at its first / past-last row."""
+    i = wp.tid()
+    k = drawn[i]
+    m, r = means2d[k], float(radii[k])
+    x0 = int(wp.clamp(wp.ceil(m[0] - r - 0.5), 0.0, float(width)))
+    x1 = int(wp.clamp(wp.floor(m[0] + r - 0.5) + 1.0, 0.0, float(width)))
+    y0 = int(wp.clamp(wp.ceil(m[1] - r - 0.5), 0.0, float(height)))
+    y1 = int(wp.clamp(wp.floor(m[1] + r - 0.5) + 1.0, 0.0, float(height)))
+    if x1 <= x0:
+        y1 = y0
+    boxes[i] = wp.vec4i(x0, x1, y0, y1)
+    decay[i] = wp.exp(-wp.float64(conics[k][0]))
+    if y1 > y0:
+        first = (k // n_gaussians) * height
+        wp.atomic_add(marks, first + y0, 1)
+        wp.atomic_add(marks, first + y1, -1)
+
+
+@wp.kernel
+def _fill_rows(drawn: wp.array(dtype=int), n_gaussians: int, means2d: wp.array(dtype=wp.vec2),
+               conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float), boxes: wp.array(dtype=wp.vec4i),
+               height: int, row_offsets: wp.array(dtype=int), cursors: wp.array(dtype=int),
                spans: wp.array(dtype=wp.vec3i)):
-    """spans[row_offsets[r] + k] = (instance, x_begin, x_end) for every box row r of every instance."""
-    g = wp.tid()
-    box = boxes[g]
+    """spans[row_offsets[r] + j] = (instance, x_begin, x_end) for every box row r of every instance: the part of
+    the row where sigma <= ln(opacity / ALPHA_MIN) (+ _SPAN_MARGIN)."""
+    i = wp.tid()
+    k = drawn[i]
+    geo = _geometry(means2d, conics, opacities, k, k % n_gaussians)
+    threshold = wp.log(wp.max(geo[5], 1e-12) / _ALPHA_MIN) + _SPAN_MARGIN
+    box = boxes[i]
+    first = (k // n_gaussians) * height
     for y in range(box[2], box[3]):
-        x0, x1 = _row_span(geometry[g], thresholds[g], box, y)
-        r = image_rows[g] + y
-        spans[row_offsets[r] + wp.atomic_add(cursors, r, 1)] = wp.vec3i(g, x0, x1)
+        x0, x1 = _row_span(geo, threshold, box, y)
+        r = first + y
+        spans[row_offsets[r] + wp.atomic_add(cursors, r, 1)] = wp.vec3i(i, x0, x1)
 
 
 @wp.kernel
@@ -83,13 +131,18 @@ def _sort_rows(row_offsets: wp.array(dtype=int), spans: wp.array(dtype=wp.vec3i)
 
 @functools.cache
 def _composite_kernels(n_channels: int):
-    """Forward and backward compositing kernels for n_channels feature channels (compiled once per count)."""
+    """Forward and backward compositing kernels for n_channels feature channels (compiled once per count).
+    Instance i is camera-Gaussian k = drawn[i] (flat camera * N + Gaussian), Gaussian n = k % N; its features are
+    row k of ``features`` when per_camera, else row n."""
     vec = wp.types.vector(length=n_channels, dtype=float)
 
     @wp.kernel(module="unique", enable_backward=False)
-    def forward(geometry: wp.array(dtype=_vec6), features: wp.array(dtype=vec), row_offsets: wp.array(dtype=int),
-                spans: wp.array(dtype=wp.vec3i), width: int, height: int, out_features: wp.array(dtype=vec),
-                transmittance: wp.array(dtype=float), stop: wp.array(dtype=int)):
+    def forward(drawn: wp.array(dtype=int), n_gaussians: int, means2d: wp.array(dtype=wp.vec2),
+                conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float), features: wp.array(dtype=vec),
+                per_camera: int, decay: wp.array(dtype=wp.float64), row_offsets: wp.array(dtype=int),
+                spans: wp.array(dtype=wp.vec3i), width: int, height: int, backgrounds: wp.array2d(dtype=float),
+                n_background: int, expected_depth: int, out_features: wp.array(dtype=vec),
+                out_alphas: wp.array(dtype=float), transmittance: wp.array(dtype=float), stop: wp.array(dtype=int)):
         r = wp.tid()
         py = float(r % height) + 0.5
         row = r * width
@@ -97,17 +150,25 @@ def _composite_kernels(n_channels: int):
             out_features[row + x] = vec()
             transmittance[row + x] = 1.0
             stop[row + x] = _NO_STOP
-        for i in range(row_offsets[r], row_offsets[r + 1]):
-            g, x0, x1 = spans[i][0], spans[i][1], spans[i][2]
-            geo = _vec6(geometry[g])
-            f = vec(features[g])
+        for j in range(row_offsets[r], row_offsets[r + 1]):
+            g, x0, x1 = spans[j][0], spans[j][1], spans[j][2]
+            if x1 <= x0:
+                continue   # an empty span (a box row the Gaussian cannot reach with alpha >= 1/255)
+            k = drawn[g]
+            n = k % n_gaussians
+            geo = _geometry(means2d, conics, opacities, k, n)
+            f = vec(features[wp.where(per_camera != 0, k, n)])
+            step = decay[g]
+            gauss, ratio = _span_start(geo, x0, py)
             for x in range(x0, x1):
+                gauss_x = wp.float64(gauss)
+                gauss = gauss * ratio
+                ratio = ratio * step
                 t = transmittance[row + x]
                 if t < 0.0:
                     continue   # a stopped pixel
-                sigma, dx, dy = _exponent(geo, float(x) + 0.5, py)
-                alpha = wp.min(_ALPHA_MAX, geo[5] * wp.exp(-sigma))
-                if sigma < 0.0 or alpha < _ALPHA_MIN:
+                alpha = wp.min(_ALPHA_MAX, geo[5] * float(gauss_x))
+                if gauss_x > _GAUSS_MAX or alpha < _ALPHA_MIN:   # sigma < 0 or too faint
                     continue
                 next_t = t * (1.0 - alpha)
                 if next_t < _T_MIN:
@@ -116,133 +177,190 @@ def _composite_kernels(n_channels: int):
                     continue
                 out_features[row + x] = out_features[row + x] + (alpha * t) * f
                 transmittance[row + x] = next_t
+        # the finished pixels (``finish_pixels``): alpha, expected depth, background
+        camera = r // height
         for x in range(width):
-            transmittance[row + x] = wp.abs(transmittance[row + x])
+            t = wp.abs(transmittance[row + x])
+            transmittance[row + x] = t
+            out_alphas[row + x] = 1.0 - t
+            v = out_features[row + x]
+            if expected_depth != 0:
+                v[n_channels - 1] = v[n_channels - 1] / wp.max(1.0 - t, _ALPHA_FLOOR)
+            for c in range(n_background):
+                v[c] = v[c] + t * backgrounds[camera, c]
+            out_features[row + x] = v
 
     @wp.kernel(module="unique", enable_backward=False)
-    def backward(geometry: wp.array(dtype=_vec6), features: wp.array(dtype=vec), row_offsets: wp.array(dtype=int),
-                 spans: wp.array(dtype=wp.vec3i), width: int, height: int, stop: wp.array(dtype=int),
+    def backward(drawn: wp.array(dtype=int), n_gaussians: int, means2d: wp.array(dtype=wp.vec2),
+                 conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float), features: wp.array(dtype=vec),
+                 per_camera: int, decay: wp.array(dtype=wp.float64), row_offsets: wp.array(dtype=int),
+                 spans: wp.array(dtype=wp.vec3i), width: int, height: int, backgrounds: wp.array2d(dtype=float),
+                 n_background: int, expected_depth: int, out_features: wp.array(dtype=vec),
+                 stop: wp.array(dtype=int), grad_finished: wp.array(dtype=vec), grad_finished_alphas: wp.array(dtype=float),
                  grad_out_features: wp.array(dtype=vec), grad_out_alphas: wp.array(dtype=float),
-                 transmittance: wp.array(dtype=float), behind_f: wp.array(dtype=float),
-                 behind_a: wp.array(dtype=float), grad_geometry: wp.array(dtype=_vec6),
-                 grad_features: wp.array(dtype=vec)):
-        # transmittance starts as the final one and is divided back to T_i; behind_f and behind_a (start 0) hold
-        # what the Gaussians behind the current one add to grad . features and to alpha, per unit T in front of them
+                 transmittance: wp.array(dtype=float), behind: wp.array(dtype=float),
+                 grad_means2d: wp.array(dtype=wp.vec2), grad_conics: wp.array(dtype=wp.vec3),
+                 grad_opacities: wp.array(dtype=float), grad_features: wp.array(dtype=vec)):
+        # transmittance starts as the final one and is divided back to T_i; behind (starts 0) holds what the
+        # Gaussians behind the current one add to grad . features + grad_alpha_image * alpha, per unit T in front
         r = wp.tid()
         py = float(r % height) + 0.5
         row = r * width
-        i = row_offsets[r + 1] - 1
-        while i >= row_offsets[r]:
-            g, x0, x1 = spans[i][0], spans[i][1], spans[i][2]
-            i -= 1
-            geo = _vec6(geometry[g])
-            f = vec(features[g])
-            grad_geo = _vec6()
+        # gradients of the finished pixels -> of the composited sums and alpha (grad_out_*: written here)
+        camera = r // height
+        for x in range(width):
+            grad_v = grad_finished[row + x]
+            grad_a = grad_finished_alphas[row + x]
+            for c in range(n_background):
+                grad_a -= grad_v[c] * backgrounds[camera, c]
+            if expected_depth != 0:
+                a = 1.0 - transmittance[row + x]
+                if a > _ALPHA_FLOOR:
+                    grad_a -= grad_v[n_channels - 1] * out_features[row + x][n_channels - 1] / a
+                grad_v[n_channels - 1] = grad_v[n_channels - 1] / wp.max(a, _ALPHA_FLOOR)
+            grad_out_features[row + x] = grad_v
+            grad_out_alphas[row + x] = grad_a
+        j = row_offsets[r + 1] - 1
+        while j >= row_offsets[r]:
+            g, x0, x1 = spans[j][0], spans[j][1], spans[j][2]
+            j -= 1
+            if x1 <= x0:
+                continue
+            k = drawn[g]
+            n = k % n_gaussians
+            geo = _geometry(means2d, conics, opacities, k, n)
+            row_f = wp.where(per_camera != 0, k, n)
+            f = vec(features[row_f])
+            step = decay[g]
+            dy = py - geo[1]
             grad_f = vec()
+            # dL/dsigma moments over the span (dy is the row's): sum g_s, sum g_s dx, sum g_s dx^2; sum G dL/dalpha
+            m0, m1, m2, grad_opacity = float(0.0), float(0.0), float(0.0), float(0.0)
+            gauss64, ratio = _span_start(geo, x0, py)
             for x in range(x0, x1):
+                gauss_x = wp.float64(gauss64)
+                gauss64 = gauss64 * ratio
+                ratio = ratio * step
                 p = row + x
                 if g >= stop[p]:
                     continue   # at or behind the pixel's stop
-                sigma, dx, dy = _exponent(geo, float(x) + 0.5, py)
-                gauss = wp.exp(-sigma)
+                gauss = float(gauss_x)
                 alpha = wp.min(_ALPHA_MAX, geo[5] * gauss)
-                if sigma < 0.0 or alpha < _ALPHA_MIN:
+                if gauss_x > _GAUSS_MAX or alpha < _ALPHA_MIN:
                     continue
                 t = transmittance[p] / (1.0 - alpha)   # T_i, in front of Gaussian i
                 transmittance[p] = t
                 grad_pixel = grad_out_features[p]
-                grad_dot_f = wp.dot(grad_pixel, f)
+                grad_here = wp.dot(grad_pixel, f) + grad_out_alphas[p]
                 grad_f += (alpha * t) * grad_pixel
-                grad_alpha = t * (grad_dot_f - behind_f[p] + grad_out_alphas[p] * (1.0 - behind_a[p]))
-                behind_f[p] = alpha * grad_dot_f + (1.0 - alpha) * behind_f[p]
-                behind_a[p] = alpha + (1.0 - alpha) * behind_a[p]
+                grad_alpha = t * (grad_here - behind[p])
+                behind[p] = alpha * grad_here + (1.0 - alpha) * behind[p]
                 if geo[5] * gauss <= _ALPHA_MAX:   # a clamped alpha passes no gradient to its geometry and opacity
                     grad_sigma = -alpha * grad_alpha
-                    grad_geo += _vec6(-(geo[2] * dx + geo[3] * dy) * grad_sigma,
-                                      -(geo[3] * dx + geo[4] * dy) * grad_sigma, 0.5 * dx * dx * grad_sigma,
-                                      dx * dy * grad_sigma, 0.5 * dy * dy * grad_sigma, gauss * grad_alpha)
-            if x1 > x0:
-                wp.atomic_add(grad_geometry, g, grad_geo)
-                wp.atomic_add(grad_features, g, grad_f)
+                    dx = float(x) + 0.5 - geo[0]
+                    m0 += grad_sigma
+                    m1 += grad_sigma * dx
+                    m2 += grad_sigma * dx * dx
+                    grad_opacity += gauss * grad_alpha
+            wp.atomic_add(grad_means2d, k, wp.vec2(-(geo[2] * m1 + geo[3] * dy * m0), -(geo[3] * m1 + geo[4] * dy * m0)))
+            wp.atomic_add(grad_conics, k, wp.vec3(0.5 * m2, dy * m1, 0.5 * dy * dy * m0))
+            wp.atomic_add(grad_opacities, n, grad_opacity)
+            wp.atomic_add(grad_features, row_f, grad_f)
 
     return forward, backward, vec
 
 
-def row_spans(geometry: torch.Tensor, boxes: torch.Tensor, image_rows: torch.Tensor,
-              n_rows: int) -> tuple[torch.Tensor, torch.Tensor]:
+def row_spans(drawn: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor, radii: torch.Tensor,
+              opacities: torch.Tensor, width: int, height: int,
+              n_images: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Every image row's spans (instance, x_begin, x_end), front to back. No gradient.
 
-    geometry: (G, 6) float32 mean x, y px, conic a, b, c 1/px^2, opacity; boxes: (G, 4) int32 x0, x1, y0, y1;
-    image_rows: (G,) int64, the instance's image index times the image height; n_rows: images x height.
-    Returns offsets (n_rows + 1,) int32 and spans (sum of box heights, 3) int32: row r owns
+    drawn: (G,) int32 flat camera * N + Gaussian of the instances, front to back; means2d (C * N, 2) px, conics
+    (C * N, 3) 1/px^2, radii (C * N,) int32 px, opacities (N,), all float32 contiguous; n_images = C.
+    Returns offsets (C * height + 1,) int32, spans (sum of box heights, 3) int32 - row r owns
     ``spans[offsets[r]:offsets[r + 1]]``; a span is the part of the box row where the instance can reach
-    alpha >= 1/255 (empty when x_end <= x_begin).
+    alpha >= 1/255 (empty when x_end <= x_begin) - and each instance's exp(-a) (G,) float64.
     """
-    device = geometry.device
-    # 1. per-row counts of box rows from a difference array, 2. their scan
-    marks = torch.zeros(n_rows + 1, dtype=torch.int64, device=device)
-    ones = torch.ones(len(boxes), dtype=torch.int64, device=device)
-    marks.index_add_(0, image_rows + boxes[:, 2], ones).index_add_(0, image_rows + boxes[:, 3], -ones)
+    device, n_rows, n_gaussians = drawn.device, n_images * height, len(opacities)
+    # 1. boxes and the difference array of per-row counts, 2. its scan
+    boxes = torch.empty(len(drawn), 4, dtype=torch.int32, device=device)
+    decay = torch.empty(len(drawn), dtype=torch.float64, device=device)
+    marks = torch.zeros(n_rows + 1, dtype=torch.int32, device=device)
+    views = [warp_view(drawn), n_gaussians, warp_view(means2d, wp.vec2), warp_view(conics, wp.vec3)]
+    launch(_bin, len(drawn), views + [warp_view(radii), width, height, warp_view(boxes, wp.vec4i),
+                                      warp_view(decay, wp.float64), warp_view(marks)], device)
     offsets = torch.zeros(n_rows + 1, dtype=torch.int32, device=device)
     torch.cumsum(torch.cumsum(marks[:-1], 0), 0, out=offsets[1:])
-    # 3. spans where sigma <= ln(opacity / ALPHA_MIN) (+ margin), 4. each row sorted front to back
-    thresholds = torch.log(geometry[:, 5].clamp_min(1e-12) / ALPHA_MIN) + SPAN_MARGIN
+    # 3. the spans, 4. each row sorted front to back
     spans = torch.empty(int(offsets[-1]), 3, dtype=torch.int32, device=device)
-    launch(_fill_rows, len(geometry), [warp_view(geometry, _vec6), warp_view(thresholds), warp_view(boxes, wp.vec4i),
-                                        warp_view(image_rows.int()), warp_view(offsets),
-                                        warp_view(torch.zeros(n_rows, dtype=torch.int32, device=device)),
-                                        warp_view(spans, wp.vec3i)], device)
-    launch(_sort_rows, n_rows, [warp_view(offsets), warp_view(spans, wp.vec3i)], device)
-    return offsets, spans
+    launch(_fill_rows, len(drawn), views + [warp_view(opacities), warp_view(boxes, wp.vec4i), height,
+                                            warp_view(offsets), warp_view(torch.zeros_like(marks)),
+                                            warp_view(spans, wp.vec3i)], device)
+    if device.type != "cpu":   # a CPU launch runs its threads in order: the buckets are filled sorted
+        launch(_sort_rows, n_rows, [warp_view(offsets), warp_view(spans, wp.vec3i)], device)
+    return offsets, spans, decay
 
 
 class _Composite(torch.autograd.Function):
-    """Differentiable compositing of float32 instances over precomputed row spans, one Warp thread per image row."""
+    """Differentiable compositing of float32 instances over precomputed row spans into finished pixels (expected
+    depth, background), one Warp thread per image row."""
 
     @staticmethod
-    def forward(ctx, geometry, features, row_offsets, spans, width: int, height: int):
+    def forward(ctx, means2d, conics, opacities, features, drawn, per_camera: int, decay, row_offsets, spans,
+                width: int, height: int, backgrounds, expected_depth: int):
         forward_kernel, _, vec = _composite_kernels(features.shape[1])
         n_rows = len(row_offsets) - 1
-        device, n_pixels = geometry.device, n_rows * width
+        device, n_pixels = means2d.device, n_rows * width
         out_features = torch.empty(n_pixels, features.shape[1], dtype=torch.float32, device=device)
-        final_t = torch.empty(n_pixels, dtype=torch.float32, device=device)
+        out_alphas, final_t = (torch.empty(n_pixels, dtype=torch.float32, device=device) for _ in range(2))
         stop = torch.empty(n_pixels, dtype=torch.int32, device=device)
-        launch(forward_kernel, n_rows, _span_arrays(geometry, features, row_offsets, spans, vec) + [
-            width, height, warp_view(out_features, vec), warp_view(final_t), warp_view(stop)], device)
-        ctx.save_for_backward(geometry, features, row_offsets, spans, final_t, stop)
-        ctx.width, ctx.height = width, height
-        return out_features, 1.0 - final_t
+        ctx.finish = [width, height, warp_view(backgrounds), backgrounds.shape[1] * int(backgrounds.shape[0] > 0),
+                      expected_depth]
+        launch(forward_kernel, n_rows, _span_arrays(means2d, conics, opacities, features, drawn, per_camera, decay,
+                                                    row_offsets, spans, vec) + ctx.finish + [
+            warp_view(out_features, vec), warp_view(out_alphas), warp_view(final_t), warp_view(stop)], device)
+        ctx.save_for_backward(means2d, conics, opacities, features, drawn, decay, row_offsets, spans, final_t, stop,
+                              out_features, backgrounds)
+        ctx.per_camera = per_camera
+        return out_features, out_alphas
 
     @staticmethod
     def backward(ctx, grad_features_image, grad_alphas_image):
-        geometry, features, row_offsets, spans, final_t, stop = ctx.saved_tensors
+        (means2d, conics, opacities, features, drawn, decay, row_offsets, spans, final_t, stop, out_features,
+         _) = ctx.saved_tensors
         _, backward_kernel, vec = _composite_kernels(features.shape[1])
-        grad_geometry, grad_features = torch.zeros_like(geometry), torch.zeros_like(features)
-        scratch = [final_t.clone(), torch.zeros_like(final_t), torch.zeros_like(final_t)]   # T, behind_f, behind_a
-        launch(backward_kernel, len(row_offsets) - 1, _span_arrays(geometry, features, row_offsets, spans, vec) + [
-            ctx.width, ctx.height, warp_view(stop), warp_view(grad_features_image.contiguous(), vec),
-            warp_view(grad_alphas_image.contiguous())] + [warp_view(t) for t in scratch] + [
-            warp_view(grad_geometry, _vec6), warp_view(grad_features, vec)], geometry.device)
-        return grad_geometry, grad_features, None, None, None, None
+        grads = [torch.zeros_like(t) for t in (means2d, conics, opacities, features)]
+        scratch = [torch.empty_like(out_features), torch.empty_like(final_t), final_t.clone(),
+                   torch.zeros_like(final_t)]   # gradients of the sums and alpha, T, behind
+        launch(backward_kernel, len(row_offsets) - 1, _span_arrays(
+            means2d, conics, opacities, features, drawn, ctx.per_camera, decay, row_offsets, spans, vec) + ctx.finish
+            + [warp_view(out_features, vec), warp_view(stop), warp_view(grad_features_image.contiguous(), vec),
+               warp_view(grad_alphas_image.contiguous()), warp_view(scratch[0], vec)]
+            + [warp_view(t) for t in scratch[1:]] + [
+            warp_view(grads[0], wp.vec2), warp_view(grads[1], wp.vec3), warp_view(grads[2]),
+            warp_view(grads[3], vec)], means2d.device)
+        return (*grads, None, None, None, None, None, None, None, None, None)
 
 
-def _span_arrays(geometry, features, row_offsets, spans, vec) -> list:
-    return [warp_view(geometry, _vec6), warp_view(features, vec), warp_view(row_offsets), warp_view(spans, wp.vec3i)]
+def _span_arrays(means2d, conics, opacities, features, drawn, per_camera, decay, row_offsets, spans, vec) -> list:
+    return [warp_view(drawn), len(opacities), warp_view(means2d, wp.vec2), warp_view(conics, wp.vec3),
+            warp_view(opacities), warp_view(features, vec), per_camera, warp_view(decay, wp.float64),
+            warp_view(row_offsets), warp_view(spans, wp.vec3i)]
 
 
-def composite_warp(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor, features: torch.Tensor,
-                   boxes: torch.Tensor, pixel_offsets: torch.Tensor, width: int, height: int,
-                   n_images: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """Warp twin of ``splat_torch.composite_pairs`` (same arguments, same rule, same outputs).
-
-    means2d: (G, 2) px; conics: (G, 3) 1/px^2; opacities: (G,); features: (G, K); boxes: (G, 4) int; pixel_offsets:
-    (G,) int (image index times width * height); instances sorted front to back. Returns features
-    (n_images * height * width, K) and alphas (n_images * height * width,) in the dtype of ``features``,
-    differentiable w.r.t. means2d, conics, opacities and features.
-    """
-    geometry = torch.cat([means2d, conics, opacities[:, None]], dim=1).float().contiguous()
-    row_offsets, spans = row_spans(geometry.detach(), boxes.int().contiguous(), pixel_offsets.long() // width,
-                                   n_images * height)
-    out_features, out_alphas = _Composite.apply(geometry, features.float().contiguous(), row_offsets, spans, width,
-                                                height)
+def composite_warp(means2d: torch.Tensor, conics: torch.Tensor, radii: torch.Tensor, opacities: torch.Tensor,
+                   features: torch.Tensor, drawn: torch.Tensor, width: int, height: int, n_images: int,
+                   backgrounds: torch.Tensor | None = None,
+                   expected_depth: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+    """Warp twin of ``splat_torch.composite_instances`` (same arguments, same rule, same outputs): the instances
+    are gathered inside the kernels, their gradients scattered back there, and the pixels finished there."""
+    f32 = [t.float().contiguous() for t in (means2d.reshape(-1, 2), conics.reshape(-1, 3), opacities,
+                                             features.reshape(-1, features.shape[-1]))]
+    drawn = drawn.int()
+    row_offsets, spans, decay = row_spans(drawn, *(t.detach() for t in f32[:2]), radii.reshape(-1).int(),
+                                          f32[2].detach(), width, height, n_images)
+    backgrounds = (torch.zeros(0, 1, device=means2d.device) if backgrounds is None
+                   else backgrounds.detach().float().contiguous())
+    out_features, out_alphas = _Composite.apply(*f32, drawn, int(features.dim() == 3), decay, row_offsets, spans,
+                                                width, height, backgrounds, int(expected_depth))
     return out_features.to(features.dtype), out_alphas.to(features.dtype)

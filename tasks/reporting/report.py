@@ -20,6 +20,7 @@ from tasks.core.artifacts import ArtifactError, ArtifactRef, read_artifact
 from tasks.reporting.media_cache import MediaCache
 from tasks.reporting.video_tables import paper_metric_reasons, table1, table3, video_metric_rows
 from tasks.reporting.watch import STYLE, SYNC_SCRIPT, object_html, object_media, overview_html
+from tasks.verification.render_convergence import report_section as render_knob_section
 
 
 def code_revision() -> str:
@@ -355,7 +356,9 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
                    report_dir / f"{obj}_{variant}_snapshots.png")] if p]
 
     summary = rollout_summary(refs)
-    sections = ([("Squeeze simulation (MPM)", summary)] if summary else []) + list(sections or [])
+    knobs = render_knob_section(cfg)  # the latest render/effect knob study: time and error per setting
+    sections = ([("Squeeze simulation (MPM)", summary)] if summary else []) + list(sections or []) + (
+        [knobs] if knobs else [])
     md = [f"# VirSqueezer run `{report_dir.name}`", "",
           f"- wall time: {wall_seconds:.1f} s; tasks: {table.summary()}; peak memory of the flow process "
           f"{peak_rss_mb():.0f} MB (Dask workers not included)",

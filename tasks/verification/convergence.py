@@ -36,9 +36,10 @@ import pandas as pd
 from conf.convergence_schema import ERROR_COLUMNS
 
 NOT_SWEPT = (
-    ("The render and effect knobs (render.width/height, render.frame_stride, refinement.iterations, "
-     "generation.steps) are not swept by this study yet: it compares the physics (the deformation chain) only; "
-     "their cost per stage is in every run report's profile table."),
+    ("The render and effect knobs (render.width/height, render.frame_stride, refinement.iterations) have their "
+     "own study, python -m flows.render_convergence (every run report shows its latest tables); this one compares "
+     "the physics (the deformation chain) only.  generation.steps is not measured: its error needs the diffusion "
+     "weights, which are not on this machine."),
     ("`sampling.surface_points` (the number of 3D Gaussians, also the contact surface) is not swept: it changes "
     "the tracked points themselves, so there is nothing to compare positions against."),
     ("`mpm.cells_across` does not act in the rollout: the grid spacing is always `mpm.dx` when set, otherwise "
