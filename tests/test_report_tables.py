@@ -88,7 +88,8 @@ def test_one_seed_keeps_the_single_run_cells():
 
 def test_metric_rows_keep_one_row_per_seed(tmp_path):
     from tasks.core.artifacts import Array, write_artifact
-    from tasks.reporting.report_tables import metric_rows, seed_scope, split_seed_scope
+    from tasks.core.scope import seed_scope, split_seed_scope
+    from tasks.reporting.report_tables import metric_rows
 
     assert seed_scope("can", 0) == "can" and seed_scope("can", 2) == "can@seed2"
     assert split_seed_scope("can@seed2") == ("can", 2) and split_seed_scope("can") == ("can", 0)
@@ -106,8 +107,8 @@ def test_report_of_a_seed_grid_shows_mean_std_the_spread_note_and_per_seed_rows(
     """What the user reads: Table 2 cells ``mean ± std``, the ≈ mark and its caption; metrics.csv one row per seed."""
     from flows.runtime import RunTable
     from tasks.core.artifacts import Array, write_artifact
+    from tasks.core.scope import seed_scope
     from tasks.reporting.report import write_run_report
-    from tasks.reporting.report_tables import seed_scope
 
     refs: dict = {}
     for i, r in enumerate(_seed_rows().itertuples(index=False)):

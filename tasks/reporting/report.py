@@ -17,6 +17,7 @@ import numpy as np
 
 from conf.hand import FINGERS
 from tasks.core.artifacts import ArtifactError, ArtifactRef, read_artifact
+from tasks.core.scope import split_seed_scope
 from tasks.reporting.media_cache import MediaCache
 from tasks.reporting.video_tables import PAPER_ONLY, table1, table3, video_metric_rows
 from tasks.reporting.watch import STYLE, SYNC_SCRIPT, object_html, object_media, overview_html
@@ -249,7 +250,7 @@ def wall_findings(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
 
 def metric_bars_figure(obj: str, df, labels: Mapping[str, str], path: Path) -> Optional[Path]:
     """The four Table 2 scores of one object, one bar per variant."""
-    from tasks.reporting.report_tables import TABLE2, split_seed_scope
+    from tasks.reporting.report_tables import TABLE2
 
     name, seed = split_seed_scope(obj)
     sub = df[(df["object"] == name) & (df["seed"] == seed)] if len(df) else df
@@ -294,7 +295,6 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
         metric_rows,
         paper_layout,
         seed_note,
-        split_seed_scope,
         stored_definitions,
         write_metric_files,
     )
