@@ -327,6 +327,15 @@ def _fill_from_stats(row: Row, stats: list, sim_time: float) -> None:
     row.stiffness_scale = float(stats[-1].stiffness_scale)
 
 
+def _judged(case: Case, progress: _Progress, sim_time: float, outcome: str, reason: str) -> Row:
+    """The row of a case that ran to its end without a guard stopping it, judged by the suite itself: the
+    statistics of its frames, ``outcome`` and ``reason``."""
+    row = Row(case.name, case.category)
+    _fill_from_stats(row, progress.stats, sim_time)
+    row.outcome, row.reason = outcome, reason
+    return row
+
+
 # ============================================================================================ compression cases
 @dataclass
 class _Column:
@@ -500,10 +509,8 @@ def run_push_out(case: Case, ctx: SuiteContext, progress: _Progress | None = Non
         st = solver.step_frame(fdt, dirichlet=DirichletPoints(face, np.tile([-speed, 0, 0], (len(face), 1))))
         progress.stats.append(st)
         face[:, 0] -= speed * fdt
-    row = Row(case.name, case.category)
-    _fill_from_stats(row, progress.stats, solver.time)
-    row.outcome, row.reason = "unstable", "UNCAUGHT by the solver guards: material pushed 0.1 m through a 1-cell margin"
-    return row
+    return _judged(case, progress, solver.time, "unstable",
+                   "UNCAUGHT by the solver guards: material pushed 0.1 m through a 1-cell margin")
 
 
 def run_nan_state(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
@@ -517,10 +524,7 @@ def run_nan_state(case: Case, ctx: SuiteContext, progress: _Progress | None = No
     solver.set_velocities(v)
     for _ in range(3):
         progress.stats.append(solver.step_frame(1.0 / FRAME_RATE_HUMAN))
-    row = Row(case.name, case.category)
-    _fill_from_stats(row, progress.stats, solver.time)
-    row.outcome, row.reason = "unstable", "UNCAUGHT by the solver guards: NaN velocity was not detected"
-    return row
+    return _judged(case, progress, solver.time, "unstable", "UNCAUGHT by the solver guards: NaN velocity was not detected")
 
 
 def run_nan_input(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
@@ -535,10 +539,7 @@ def run_nan_input(case: Case, ctx: SuiteContext, progress: _Progress | None = No
         if f >= 1:
             vel[len(vel) // 2, 2] = np.nan
         progress.stats.append(solver.step_frame(1.0 / FRAME_RATE_HUMAN, dirichlet=DirichletPoints(pts, vel)))
-    row = Row(case.name, case.category)
-    _fill_from_stats(row, progress.stats, solver.time)
-    row.outcome, row.reason = "error", "no guard refused the NaN boundary input"
-    return row
+    return _judged(case, progress, solver.time, "error", "no guard refused the NaN boundary input")
 
 
 # ============================================================================================ squeeze cases
