@@ -196,8 +196,8 @@ def test_work_limits_refuse_fast_and_the_default_grid_passes_with_a_margin(compo
 
 
 def test_a_rescaled_mesh_is_stated_and_a_recording_far_from_the_object_is_refused(tmp_path, compose_cfg, capsys):
-    """A mesh in millimetres is fitted into geometry.size with a visible line giving the factor; a recording in
-    another frame (1 m away) is refused, naming the object."""
+    """A mesh in millimetres is fitted into geometry.size with a visible line giving the factor, one of a micron
+    is refused; a recording in another frame (1 m away) is refused, naming the object."""
     import trimesh
 
     from flows.preflight import preflight
@@ -208,6 +208,14 @@ def test_a_rescaled_mesh_is_stated_and_a_recording_far_from_the_object_is_refuse
     assert capsys.readouterr().out.splitlines() == [
         f"object.geometry.path: mesh {tmp_path / 'mm.stl'} spans 50 x 50 x 50 (file units): scaled by 0.001 to fit "
         f"geometry.size [0.05, 0.05, 0.05] m"]
+    trimesh.creation.icosphere(radius=5e-7).export(tmp_path / "um.stl")  # 1 micron across: refused, not rescaled
+    with pytest.raises(SystemExit) as exc:
+        preflight(compose_cfg("squeeze", ["object=clay", "object.geometry.kind=mesh",
+                                          "object.geometry.size=[0.05,0.05,0.05]", f"object.geometry.path={tmp_path / 'um.stl'}"]))
+    assert str(exc.value) == (
+        f"input error: object.geometry.path: mesh {tmp_path / 'um.stl'} spans 1e-06 x 1e-06 x 1e-06 (file units) and "
+        f"would be scaled by 5e+04 to fit geometry.size [0.05, 0.05, 0.05] m: export it in metres or millimetres, or "
+        f"set geometry.size to the object's real size")
     far = _recording(tmp_path / "far.csv", offset=1.0)
     with pytest.raises(SystemExit) as exc:
         preflight(compose_cfg("squeeze", ["object=can", "signal=csv", f"signal.path={far}"]))
