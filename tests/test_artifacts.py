@@ -309,8 +309,9 @@ def test_a_temporary_whose_pid_was_reused_is_removed(tmp_path):
     started = round(1000 * process_started(os.getpid()))
     assert f"-{os.getpid()}-{started}-" in mine.name
     reused = mine.with_name(mine.name.replace(f"-{started}-", f"-{started - 3_600_000}-"))  # an hour earlier
-    for d in (mine, reused):
+    unstamped = mine.with_name(mine.name.replace(f"-{started}-", "-"))  # named before start times were recorded
+    for d in (mine, reused, unstamped):
         (d / "x").mkdir(parents=True)
         (d / "x" / "0").write_bytes(b"1" * 1000)
     assert remove_stale_temporaries(tmp_path) == (1, 1000)
-    assert [p.name for p in step.iterdir()] == [mine.name]
+    assert sorted(p.name for p in step.iterdir()) == sorted([mine.name, unstamped.name])  # its pid is alive

@@ -296,7 +296,7 @@ def _seal(attrs: Mapping[str, Any]) -> str:
 
 
 _HOST = re.sub(r"[^A-Za-z0-9_.]", "_", socket.gethostname()) or "host"
-# owner: host (no "-" in it), pid and, from format 2 on, the process's start time in ms
+# owner: host (no "-" in it), pid and (names written since it was added) the process's start time in ms
 _SCRATCH = re.compile(r"^\..+\.(?P<kind>tmp|trash)-(?:(?P<host>[^-]+)-(?P<pid>\d+)-(?:(?P<started>\d+)-)?)?"
                       r"[0-9a-f]{12}$")
 
