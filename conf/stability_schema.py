@@ -7,6 +7,7 @@ production settings; ``cases`` / ``quick`` select what runs.  A typo in an overr
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from conf.mpm_schema import MPMConfig
 from conf.oracle_schema import OracleConfig
@@ -46,7 +47,7 @@ def register_stability_config() -> None:
     ConfigStore.instance().store(name="stability_schema", node=StabilityConfig)
 
 
-def validate_stability(cfg: object) -> None:
+def validate_stability(cfg: Any) -> None:
     """The checks a pipeline run's simulation groups get (:func:`conf.schema.validate_simulation`), with every
     catalog object (a case may take its material from any): an unknown key (``+mpm.foo=1``) or a non-finite
     number (``mpm.dt=inf``) anywhere, or a value out of range, raises :class:`conf.schema.ConfigError` naming it."""
