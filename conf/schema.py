@@ -310,12 +310,24 @@ class ConfigError(ValueError):
     """A config value is out of its valid range; the message names the key and the fix."""
 
 
+def _need(ok: bool, key: str, msg: str) -> None:
+    if not ok:
+        raise ConfigError(f"{key} {msg}")
+
+
 def validate(cfg: Any) -> None:
     """Range checks the type system cannot express.  Raises :class:`ConfigError` naming the key."""
-    def need(ok: bool, key: str, msg: str) -> None:
-        if not ok:
-            raise ConfigError(f"{key} {msg}")
+    validate_simulation(cfg, [("object", cfg.object)] if cfg.object is not None else
+                        [(f"catalog.{n}", cfg.catalog[n]) for n in cfg.grid.objects if n in cfg.catalog])
+    _validate_pipeline(cfg)
 
+
+def validate_simulation(cfg: Any, objects: list[tuple[str, Any]]) -> None:
+    """The checks of what a simulation reads, shared by the pipeline and the stability suite
+    (:func:`conf.stability_schema.validate_stability`): no unknown key and no non-finite number anywhere in
+    ``cfg``; the ``signal``, ``control``, ``sampling``, ``simulation``, ``mpm`` and ``oracle`` groups; the geometry
+    and material of ``objects`` ((config key, object) pairs).  Raises :class:`ConfigError` naming the key."""
+    need = _need
     _refuse_unknown_keys(cfg)
     _refuse_non_finite(cfg)
     s, c = cfg.signal, cfg.control
@@ -337,11 +349,6 @@ def validate(cfg: Any) -> None:
     need(c.displacement.eta >= 0, "control.displacement.eta", f"must be >= 0 m, got {c.displacement.eta}")
     need(cfg.sampling.surface_points >= 100, "sampling.surface_points", f"must be >= 100, got {cfg.sampling.surface_points}")
     need(cfg.sampling.seed >= 0, "sampling.seed", f"must be >= 0, got {cfg.sampling.seed}")
-    if cfg.grid.seeds is not None:
-        seeds = list(cfg.grid.seeds)
-        need(len(seeds) > 0, "grid.seeds", "is empty: give at least one seed, e.g. grid.seeds=[0,1,2], or leave it unset")
-        need(len(set(seeds)) == len(seeds), "grid.seeds", f"lists a seed twice: {seeds}")
-        need(min(seeds) >= 0, "grid.seeds", f"must be >= 0, got {seeds}")
     need(cfg.sampling.particle_spacing > 0, "sampling.particle_spacing", f"must be > 0 m, got {cfg.sampling.particle_spacing}")
     sim = cfg.simulation
     need(sim.fluid_tait_exponent >= 1, "simulation.fluid_tait_exponent", f"must be >= 1, got {sim.fluid_tait_exponent}")
@@ -351,7 +358,17 @@ def validate(cfg: Any) -> None:
          f"must be in (0, 1] (a fraction of the released material's sound speed), got {sim.release_mach_max}")
     need(0 < sim.ruptured_softening <= 1, "simulation.ruptured_softening",
          f"must be in (0, 1], got {sim.ruptured_softening}")
-    _validate_inputs(cfg, need)
+    _validate_inputs(cfg, objects, need)
+
+
+def _validate_pipeline(cfg: Any) -> None:
+    """The grid, limits, variants and the metric, render and generation groups of a pipeline run."""
+    need = _need
+    if cfg.grid.seeds is not None:
+        seeds = list(cfg.grid.seeds)
+        need(len(seeds) > 0, "grid.seeds", "is empty: give at least one seed, e.g. grid.seeds=[0,1,2], or leave it unset")
+        need(len(set(seeds)) == len(seeds), "grid.seeds", f"lists a seed twice: {seeds}")
+        need(min(seeds) >= 0, "grid.seeds", f"must be >= 0, got {seeds}")
     lim = cfg.limits
     for key in ("max_frames", "max_particle_steps", "max_artifact_bytes"):
         need(lim[key] > 0, f"limits.{key}", f"must be > 0, got {lim[key]}")
@@ -378,7 +395,7 @@ def validate(cfg: Any) -> None:
         raise ConfigError(str(exc)) from None
 
 
-def _validate_inputs(cfg: Any, need: Any) -> None:
+def _validate_inputs(cfg: Any, objects: list[tuple[str, Any]], need: Any) -> None:
     """What a run reads besides the method's knobs: the selected objects' geometry and material overrides, the
     MPM grid and the material oracle.  Each error names the key to change.  (Input *files* - existence, size,
     format - are checked by :mod:`flows.preflight` before the flow starts.)"""
@@ -390,9 +407,7 @@ def _validate_inputs(cfg: Any, need: Any) -> None:
     def positive(value: Any) -> bool:
         return value is not None and math.isfinite(float(value)) and float(value) > 0
 
-    selected = ([("object", cfg.object)] if cfg.object is not None else
-                [(f"catalog.{n}", cfg.catalog[n]) for n in cfg.grid.objects if n in cfg.catalog])
-    for key, obj in selected:
+    for key, obj in objects:
         g, m = obj.geometry, obj.material
         need(len(g.size) == 3 and all(positive(v) for v in g.size), f"{key}.geometry.size",
              f"must be three lengths > 0 m (x, y, z), got {list(g.size)}")

@@ -7,6 +7,7 @@ production settings; ``cases`` / ``quick`` select what runs.  A typo in an overr
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 from conf.mpm_schema import MPMConfig
 from conf.oracle_schema import OracleConfig
@@ -44,3 +45,12 @@ def register_stability_config() -> None:
     from hydra.core.config_store import ConfigStore
 
     ConfigStore.instance().store(name="stability_schema", node=StabilityConfig)
+
+
+def validate_stability(cfg: Any) -> None:
+    """The checks a pipeline run's simulation groups get (:func:`conf.schema.validate_simulation`), with every
+    catalog object (a case may take its material from any): an unknown key (``+mpm.foo=1``) or a non-finite
+    number (``mpm.dt=inf``) anywhere, or a value out of range, raises :class:`conf.schema.ConfigError` naming it."""
+    from conf.schema import validate_simulation
+
+    validate_simulation(cfg, [(f"catalog.{name}", obj) for name, obj in cfg.catalog.items()])

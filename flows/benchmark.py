@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import platform
 import subprocess
@@ -103,6 +104,29 @@ def _subprocess_json(cmd: list[str], timeout: float) -> dict:
     raise RuntimeError(f"benchmark subprocess failed ({' '.join(cmd)}):\n{out.stdout[-2000:]}\n{out.stderr[-4000:]}")
 
 
+MAX_PARTICLES = 20_000_000  # a scene beyond this would not fit a laptop's memory in the three solvers
+
+
+def check_args(a: argparse.Namespace) -> None:
+    """One line (``SystemExit``) naming a flag whose value no scene can be built from, before Warp is loaded."""
+    def need(ok: bool, flag: str, msg: str) -> None:
+        if not ok:
+            raise SystemExit(f"input error: {flag} {msg}")
+
+    for flag, v in (("--E", a.E), ("--rho", a.rho), ("--courant", a.courant), ("--cube", a.cube)):
+        need(math.isfinite(v) and v > 0, flag, f"must be a finite number > 0, got {v}")
+    need(math.isfinite(a.v0), "--v0", f"must be a finite speed (m/s), got {a.v0}")
+    need(0 <= a.nu < 0.5, "--nu", f"must be in [0, 0.5), got {a.nu}")
+    need(a.n_grid >= 2 * BOUND + 4, "--n-grid", f"must be >= {2 * BOUND + 4} (walls of {BOUND} nodes), got {a.n_grid}")
+    need(a.cube <= 0.8, "--cube", f"must be <= 0.8 (the side in the unit box, walls and fall included), got {a.cube}")
+    for flag, v in (("--ppc-axis", a.ppc_axis), ("--substeps", a.substeps), ("--repeats", a.repeats),
+                    ("--rounds", a.rounds), ("--polar-iters", a.polar_iters)):
+        need(v >= 1, flag, f"must be >= 1, got {v}")
+    n = round(a.cube * a.n_grid * a.ppc_axis) ** 3
+    need(n <= MAX_PARTICLES, "--n-grid", f"{a.n_grid} with --cube {a.cube} and --ppc-axis {a.ppc_axis} gives {n:.3g} "
+         f"particles, above {MAX_PARTICLES:.0e}: lower one of them")
+
+
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--n-grid", type=int, default=64)
@@ -137,6 +161,7 @@ def main(argv: list[str] | None = None) -> dict:
         return res
     if a.quick:
         a.n_grid, a.substeps, a.rounds, a.cube = 32, 40, 1, 0.4
+    check_args(a)
 
     import warp as wp
 

@@ -1,4 +1,6 @@
 """The eight-object evaluation grid:  ``python -m flows.evaluate``  (``-m`` for sweeps)."""
+from typing import Callable
+
 import hydra
 from omegaconf import DictConfig
 
@@ -7,18 +9,24 @@ from conf.schema import register_configs
 register_configs()
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="evaluate")
-def main(cfg: DictConfig) -> None:
-    from flows.lifecycle import begin_run
+def pipeline_main(config_name: str) -> Callable[..., None]:
+    """The Hydra main of a pipeline flow composed from ``conf/<config_name>.yaml`` (the flow's label, too)."""
+    @hydra.main(version_base="1.3", config_path="../conf", config_name=config_name)
+    def main(cfg: DictConfig) -> None:
+        from flows.lifecycle import begin_run
 
-    begin_run(cfg.paths.artifacts)  # Prefect's home under paths.artifacts, Ctrl-C handling; before Prefect loads
-    from flows.preflight import preflight
+        begin_run(cfg.paths.artifacts)  # Prefect's home under paths.artifacts, Ctrl-C handling; before Prefect loads
+        from flows.preflight import preflight
 
-    preflight(cfg)  # bad config or input: one line, before the engine, Prefect or a server is loaded
-    from flows.pipeline import run
+        preflight(cfg)  # bad config or input: one line, before the engine, Prefect or a server is loaded
+        from flows.pipeline import run
 
-    run(cfg, "evaluate")
+        run(cfg, config_name)
 
+    return main
+
+
+main = pipeline_main("evaluate")
 
 if __name__ == "__main__":
     main()

@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from tasks.evaluation.human_study import analyse, read_answers, write_questionnaire
+from tasks.evaluation.human_study import HumanStudyError, analyse, read_answers, write_questionnaire
 
 
 def study_items(report: Path, variants: list[str]) -> list[tuple[str, str, Path]]:
@@ -29,6 +29,25 @@ def study_items(report: Path, variants: list[str]) -> list[tuple[str, str, Path]
     return items
 
 
+def check_inputs(command: str, report: Path, answers: list[Path]) -> None:
+    """One line (``SystemExit``) naming a missing input and the fix, before anything is read or written."""
+    if not report.is_dir():
+        raise SystemExit(f"input error: report folder {report} does not exist: give a run's report folder "
+                         f"(reports/evaluate-<time>)")
+    if command != "analyse":
+        return
+    if not answers:
+        raise SystemExit("analyse needs the participants' answer CSVs: python -m flows.human_study analyse REPORT a.csv")
+    key = report / "human_study" / "key.json"
+    if not key.is_file():
+        raise SystemExit(f"input error: {key} does not exist: analyse the report folder whose questionnaire was built "
+                         f"(python -m flows.human_study build {report})")
+    missing = [str(p) for p in answers if not p.is_file()]
+    if missing:
+        raise SystemExit(f"input error: answer file(s) not found: {', '.join(missing[:3])}"
+                         f"{f' (+{len(missing) - 3} more)' if len(missing) > 3 else ''}")
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("command", choices=("build", "analyse"))
@@ -38,6 +57,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--reference", default="full", help="method the others are tested against (analyse)")
     ap.add_argument("--seed", type=int, default=0, help="randomisation seed of the questionnaire (build)")
     a = ap.parse_args(argv)
+    check_inputs(a.command, a.report, a.answers)
     out = a.report / "human_study"
     if a.command == "build":
         items = study_items(a.report, a.variants.split(","))
@@ -46,9 +66,10 @@ def main(argv: list[str] | None = None) -> None:
         path = write_questionnaire(items, out, a.seed)
         print(f"questionnaire: {path} ({len(items)} videos); key: {out / 'key.json'} (keep it from participants)")
         return
-    if not a.answers:
-        raise SystemExit("analyse needs the participants' answer CSVs: python -m flows.human_study analyse REPORT a.csv")
-    table = analyse(read_answers(a.answers, out / "key.json"), a.reference)
+    try:
+        table = analyse(read_answers(a.answers, out / "key.json"), a.reference)
+    except HumanStudyError as exc:
+        raise SystemExit(f"input error: {exc}") from None
     table.to_csv(out / "human_study.csv", index=False)
     print(table.to_string(index=False))
     print(f"written: {out / 'human_study.csv'}")

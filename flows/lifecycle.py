@@ -37,6 +37,8 @@ import time
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
+from tasks.core.processes import process_started, same_process
+
 STOP_DEADLINE_S = 10.0  # the stopping process exits after this many seconds whatever its cleanup is doing
 SERVER_GRACE_S = 5.0  # an orphaned server gets this long to close its database after SIGTERM, then SIGKILL
 EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}  # 128 + signal number, as a shell reports them
@@ -295,23 +297,13 @@ def temporary_server() -> Iterator[str | None]:
 
 
 # ------------------------------------------------------------------------------------------- server records
-def _started(pid: int) -> float | None:
-    """The start time of process ``pid`` (s since the epoch), None when there is no such process."""
-    import psutil
-
-    try:
-        return psutil.Process(pid).create_time()
-    except psutil.Error:
-        return None
-
-
 def _record_server(home: Path, server_pid: int, api_url: str) -> None:
     """``<home>/servers/<flow pid>.json``: who started which server, when (written whole, then renamed)."""
     folder = home / "servers"
     folder.mkdir(parents=True, exist_ok=True)
     me = os.getpid()
-    record = {"server_pid": server_pid, "server_started": _started(server_pid), "flow_pid": me,
-              "flow_started": _started(me), "flow_command": " ".join(sys.argv), "api_url": api_url}
+    record = {"server_pid": server_pid, "server_started": process_started(server_pid), "flow_pid": me,
+              "flow_started": process_started(me), "flow_command": " ".join(sys.argv), "api_url": api_url}
     path = folder / f"{me}.json"
     tmp = folder / f".{me}.json.tmp"
     tmp.write_text(json.dumps(record))
@@ -324,12 +316,6 @@ def _forget_server_record() -> None:
     if path is not None:
         with contextlib.suppress(OSError):
             path.unlink()
-
-
-def _same_process(pid: int, started: float | None) -> bool:
-    """True when ``pid`` is still the process that started at ``started`` (pids are reused)."""
-    now = _started(pid)
-    return now is not None and started is not None and abs(now - started) < 1.0
 
 
 def is_prefect_server(cmdline: list[str]) -> bool:
@@ -355,9 +341,9 @@ def end_orphaned_servers(home: Path) -> list[str]:
         except (OSError, ValueError, KeyError, TypeError):
             path.unlink(missing_ok=True)  # unreadable: nothing to act on
             continue
-        if _same_process(flow_pid, rec.get("flow_started")):
+        if same_process(flow_pid, rec.get("flow_started")):
             continue  # a run in progress
-        if _same_process(server_pid, rec.get("server_started")):
+        if same_process(server_pid, rec.get("server_started")):
             with contextlib.suppress(psutil.Error):
                 proc = psutil.Process(server_pid)
                 if is_prefect_server(proc.cmdline()):

@@ -33,6 +33,7 @@ from prefect.logging import get_logger
 from flows.lifecycle import temporary_server
 from flows.preflight import preflight
 from flows.runtime import RunTable, make_task_runner, profile_table, result_storage_settings, runner_workers
+from flows.selection import selected_backends, selected_objects, selected_seeds, selected_variants
 from tasks.control.contact_patches import contact_patches_step
 from tasks.control.dirichlet_field import dirichlet_field_step
 from tasks.control.force_coefficients import force_coefficients_step
@@ -41,6 +42,7 @@ from tasks.control.signal_smoothing import signal_smoothing_step
 from tasks.control.squeeze_signals import squeeze_signals_step
 from tasks.core.artifacts import ArtifactRef, remove_stale_temporaries
 from tasks.core.params import resolve_reads
+from tasks.core.scope import seed_scope
 from tasks.core.step import StepTask, WiringError
 from tasks.evaluation.deformation_metrics import deformation_metrics_step
 from tasks.evaluation.llm_evaluation import llm_evaluation_step
@@ -54,7 +56,6 @@ from tasks.render.conditions import conditions_step
 from tasks.render.gbuffer import gbuffer_step
 from tasks.reporting.media_cache import MEDIA_DIR
 from tasks.reporting.report import write_run_report
-from tasks.reporting.report_tables import seed_scope
 
 log = get_logger("virsqueezer")
 
@@ -104,32 +105,6 @@ def check_wiring(per_object: tuple[StepTask, ...] = PER_OBJECT, per_variant: tup
 check_wiring()
 
 
-def _selected(single: Any, catalog: Any, names: Any, what: str) -> list[DictConfig]:
-    """``single`` when the user picked one (``object=NAME`` / ``variant=NAME``), else ``catalog[n]`` for every name
-    in ``names`` (``grid.objects`` / ``grid.variants``)."""
-    if single is not None:
-        return [single]
-    missing = [n for n in names if n not in catalog]
-    if missing:
-        raise SystemExit(f"grid.{what}s names unknown {what}s {missing}: known {sorted(catalog)}")
-    return [catalog[n] for n in names]
-
-
-def selected_objects(cfg: DictConfig) -> list[DictConfig]:
-    """``object=NAME`` selects one object; otherwise every name in ``grid.objects`` from the catalog."""
-    return _selected(cfg.object, cfg.catalog, cfg.grid.objects, "object")
-
-
-def selected_variants(cfg: DictConfig) -> list[DictConfig]:
-    """``variant=NAME`` selects one variant; otherwise every name in ``grid.variants`` from ``variants``."""
-    return _selected(cfg.variant, cfg.variants, cfg.grid.variants, "variant")
-
-
-def selected_seeds(cfg: DictConfig) -> list[int]:
-    """``grid.seeds`` when given, else the one ``sampling.seed``."""
-    return [int(s) for s in cfg.grid.seeds] if cfg.grid.seeds is not None else [int(cfg.sampling.seed)]
-
-
 def with_seed(cfg: DictConfig, seed: int) -> DictConfig:
     """``cfg`` with ``sampling.seed`` = ``seed`` (one run of the seed grid)."""
     return OmegaConf.merge(cfg, {"sampling": {"seed": int(seed)}})
@@ -138,11 +113,6 @@ def with_seed(cfg: DictConfig, seed: int) -> DictConfig:
 def step_params(step: StepTask, cfg: DictConfig, obj: DictConfig, variant: DictConfig | None = None) -> dict:
     """Exactly the config values ``step`` declares (its parameters and cache key) for one object and variant."""
     return resolve_reads(step.name, step.spec.reads, step.spec.files, cfg, obj, variant)
-
-
-def selected_backends(cfg: DictConfig) -> list[str]:
-    """``grid.backends`` when set, else the one ``generation.backend``."""
-    return list(cfg.grid.backends) if cfg.grid.backends else [cfg.generation.backend]
 
 
 def backend_config(cfg: DictConfig, backend: str) -> DictConfig:

@@ -18,24 +18,20 @@ A bad input stops the run with one line naming the input (its config key) and th
    is recorded in ``generation.weights_digest``, which is part of the effect step's cache key;
 7. the paper metrics' weight files named in ``paper_metrics`` (absent ones are reported "not computed" by the
    step): the present files' digests are recorded in ``paper_metrics.weights_digest`` (cache key).
+
+The stability suite (``python -m flows.stability``) has its own config: :func:`preflight_stability` checks it
+the same way (its simulation groups and catalog, and the case names) before any case runs.
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from conf.schema import ConfigError, validate
-
-
-def _objects(cfg: DictConfig) -> list[tuple[str, Any]]:
-    if cfg.object is not None:
-        return [("object", cfg.object)]
-    return [(f"catalog.{name}", cfg.catalog[name]) for name in cfg.grid.objects if name in cfg.catalog]
-
+from flows.selection import object_entries, selected_backends
 
 # A hand's fingertips come closer than this to the object they squeeze (m; or twice the object's largest size)
 _NEAR = 0.25
@@ -68,7 +64,7 @@ def estimate_work(cfg: DictConfig, span: float) -> WorkEstimate:
     r, points = cfg.render, int(cfg.sampling.surface_points)
     gbuffer = math.ceil(frames / r.frame_stride) * r.views * r.width * r.height * _GBUFFER_BYTES_PER_PIXEL
     steps, largest, particles_max = 0.0, (0.0, ""), 0
-    for key, obj in _objects(cfg):
+    for key, obj in object_entries(cfg):
         particles = int(math.prod(obj.geometry.size) / cfg.sampling.particle_spacing ** 3)
         particles_max = max(particles_max, particles)
         steps += n_variants * particles * substeps * frames
@@ -100,7 +96,7 @@ def check_work(cfg: DictConfig, est: WorkEstimate, span_from: str) -> None:
 def _check_reach(cfg: DictConfig, tips: np.ndarray, time: np.ndarray) -> None:
     """Refuse a recording whose fingertips never come near a selected object (centred at the origin): it was
     recorded in another frame (e.g. the tracker's room coordinates) and would squeeze nothing."""
-    for key, obj in _objects(cfg):
+    for key, obj in object_entries(cfg):
         half = 0.5 * np.asarray(obj.geometry.size, float)
         gap = np.linalg.norm(np.maximum(np.abs(tips) - half, 0.0), axis=-1)  # (sample, finger) m to the box
         i = int(np.argmin(gap.min(axis=1)))
@@ -136,7 +132,7 @@ def preflight(cfg: DictConfig) -> None:
     # 3. the work, before any geometry file is loaded
     check_work(cfg, estimate_work(cfg, span), span_from)
     # 4. geometry files of the selected objects
-    for key, obj in _objects(cfg):
+    for key, obj in object_entries(cfg):
         if obj.geometry.kind in ("mesh", "ply"):
             from tasks.control.gaussian_ply import GaussianPlyError
             from tasks.control.object_model import ObjectModelError, check_geometry_file
@@ -156,8 +152,7 @@ def preflight(cfg: DictConfig) -> None:
         except LLMJudgeError as exc:
             raise SystemExit(f"config error: {exc}") from None
     # 6. diffusion weights
-    backends = list(cfg.grid.backends) if cfg.grid.backends else [cfg.generation.backend]
-    if {"diffusers", "text_only"} & set(backends):
+    if {"diffusers", "text_only"} & set(selected_backends(cfg)):
         from tasks.core.artifacts import digest_of
         from tasks.generation.components import (
             check_weights,
@@ -178,3 +173,18 @@ def preflight(cfg: DictConfig) -> None:
 
         cfg.paper_metrics.weights_digest = digest_of(weights_identity(cfg.paper_metrics))
     _PASSED[:] = [OmegaConf.to_yaml(cfg)]
+
+
+def preflight_stability(cfg: DictConfig) -> list:
+    """The stability suite's config (:func:`conf.stability_schema.validate_stability`) and its selected cases
+    (``cases``, ``quick``), or one line (``SystemExit``) before any case runs.  Returns the cases."""
+    from conf.stability_schema import validate_stability
+    from tasks.verification.stability import select_cases
+
+    try:
+        validate_stability(cfg)
+        return select_cases(list(cfg.cases), bool(cfg.quick))
+    except ConfigError as exc:
+        raise SystemExit(f"config error: {exc}") from None
+    except ValueError as exc:  # an unknown case name
+        raise SystemExit(f"config error: cases: {exc}") from None

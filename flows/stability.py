@@ -21,20 +21,11 @@ register_stability_config()
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="stability")
 def main(cfg: DictConfig) -> None:
-    from conf.mpm_schema import MPMConfigError, mpm_config_from
-    from tasks.verification.stability import (
-        SuiteContext,
-        run_suite,
-        select_cases,
-        table_text,
-        write_report,
-    )
+    from flows.preflight import preflight_stability
 
-    try:
-        mpm_config_from(cfg.mpm)
-        cases = select_cases(list(cfg.cases), bool(cfg.quick))
-    except (MPMConfigError, ValueError) as exc:
-        raise SystemExit(f"config error: {exc}") from None
+    cases = preflight_stability(cfg)  # bad config: one line, before any case runs
+    from tasks.verification.stability import SuiteContext, run_suite, table_text, write_report
+
     run = cfg.run_name or f"stability-{datetime.now():%Y%m%d-%H%M%S}"
     out = Path(cfg.paths.reports) / "stability" / run
     print(f"stability suite: {len(cases)} cases -> {out}")

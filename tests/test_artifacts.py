@@ -294,3 +294,24 @@ def test_stale_temporaries_of_dead_processes_are_removed_and_live_ones_kept(tmp_
     assert remove_stale_temporaries(tmp_path) == (3, 3000)
     assert sorted(p.name for p in step.iterdir()) == sorted([mine.name, other_host.name, "k.zarr"])
     assert remove_stale_temporaries(tmp_path / "not-there") == (0, 0)
+
+
+def test_a_temporary_whose_pid_was_reused_is_removed(tmp_path):
+    """The name records the process's start time with its pid: a folder named for a live pid whose process
+    started at another time (the pid was reused after its writer died) is stale; the live writer's is kept."""
+    import os
+
+    from tasks.core.processes import process_started
+
+    step = tmp_path / "obj" / "step"
+    step.mkdir(parents=True)
+    mine = _scratch_name(step / "k.zarr", "tmp")
+    started = round(1000 * process_started(os.getpid()))
+    assert f"-{os.getpid()}-{started}-" in mine.name
+    reused = mine.with_name(mine.name.replace(f"-{started}-", f"-{started - 3_600_000}-"))  # an hour earlier
+    unstamped = mine.with_name(mine.name.replace(f"-{started}-", "-"))  # named before start times were recorded
+    for d in (mine, reused, unstamped):
+        (d / "x").mkdir(parents=True)
+        (d / "x" / "0").write_bytes(b"1" * 1000)
+    assert remove_stale_temporaries(tmp_path) == (1, 1000)
+    assert sorted(p.name for p in step.iterdir()) == sorted([mine.name, unstamped.name])  # its pid is alive

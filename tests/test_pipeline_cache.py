@@ -290,7 +290,34 @@ def run_control_chain(compose_cfg, root: Path) -> dict[str, tuple[str, str]]:
         return control_chain()
 
 
-def test_a_moved_or_copied_artifacts_folder_works_from_its_new_place(prefect_server, tmp_path, compose_cfg, caplog):
+class StepWarnings(logging.Handler):
+    """The warning lines of the step runner's own logger.  Attached to that logger, not the root: a Prefect flow
+    run may set up logging again, which replaces the root's handlers (and with them pytest's caplog)."""
+
+    def __init__(self) -> None:
+        super().__init__(logging.WARNING)
+        self.lines: list[str] = []
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.lines.append(record.getMessage())
+
+    def take(self) -> list[str]:
+        lines, self.lines = self.lines, []
+        return lines
+
+
+@pytest.fixture
+def step_warnings():
+    from tasks.core.step import log
+
+    handler = StepWarnings()
+    log.addHandler(handler)
+    yield handler
+    log.removeHandler(handler)
+
+
+def test_a_moved_or_copied_artifacts_folder_works_from_its_new_place(prefect_server, tmp_path, compose_cfg,
+                                                                      step_warnings):
     """``mv A B``: the run on B is served from B's cache records and artifacts; a step recomputed there reads
     its inputs from B (A no longer exists).  ``cp -a B C`` then damage B: C's run is unaffected, B's recomputes
     the damaged step.  No cache record holds an absolute path."""
@@ -315,12 +342,12 @@ def test_a_moved_or_copied_artifacts_folder_works_from_its_new_place(prefect_ser
     subprocess.run(["cp", "-a", str(b), str(c)], check=True)
     [patches] = (b / "rubber_ball" / "contact_patches").glob("*.zarr")
     problem = _flip_byte(patches, "patch_centers")
-    warning_lines(caplog)
+    step_warnings.take()
     copied = run_control_chain(compose_cfg, c)
     assert copied == {s: ("cached", p.replace(str(b.resolve()), str(c.resolve()))) for s, (_, p) in again.items()}
-    assert warning_lines(caplog) == []
+    assert step_warnings.take() == []
     original = run_control_chain(compose_cfg, b)
-    assert warning_lines(caplog) == [f"rubber_ball/contact_patches: artifact {patches} is damaged ({problem}): removed, the "
+    assert step_warnings.take() == [f"rubber_ball/contact_patches: artifact {patches} is damaged ({problem}): removed, the "
                              "step is recomputed"]
     assert original["contact_patches"][0] == "ran" and original["dirichlet_field"][0] == "cached"
 

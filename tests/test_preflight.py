@@ -196,8 +196,8 @@ def test_work_limits_refuse_fast_and_the_default_grid_passes_with_a_margin(compo
 
 
 def test_a_rescaled_mesh_is_stated_and_a_recording_far_from_the_object_is_refused(tmp_path, compose_cfg, capsys):
-    """A mesh in millimetres is fitted into geometry.size with a visible line giving the factor; a recording in
-    another frame (1 m away) is refused, naming the object."""
+    """A mesh in millimetres is fitted into geometry.size with a visible line giving the factor, one of a micron
+    is refused; a recording in another frame (1 m away) is refused, naming the object."""
     import trimesh
 
     from flows.preflight import preflight
@@ -208,6 +208,14 @@ def test_a_rescaled_mesh_is_stated_and_a_recording_far_from_the_object_is_refuse
     assert capsys.readouterr().out.splitlines() == [
         f"object.geometry.path: mesh {tmp_path / 'mm.stl'} spans 50 x 50 x 50 (file units): scaled by 0.001 to fit "
         f"geometry.size [0.05, 0.05, 0.05] m"]
+    trimesh.creation.icosphere(radius=5e-7).export(tmp_path / "um.stl")  # 1 micron across: refused, not rescaled
+    with pytest.raises(SystemExit) as exc:
+        preflight(compose_cfg("squeeze", ["object=clay", "object.geometry.kind=mesh",
+                                          "object.geometry.size=[0.05,0.05,0.05]", f"object.geometry.path={tmp_path / 'um.stl'}"]))
+    assert str(exc.value) == (
+        f"input error: object.geometry.path: mesh {tmp_path / 'um.stl'} spans 1e-06 x 1e-06 x 1e-06 (file units) and "
+        f"would be scaled by 5e+04 to fit geometry.size [0.05, 0.05, 0.05] m: export it in metres or millimetres, or "
+        f"set geometry.size to the object's real size")
     far = _recording(tmp_path / "far.csv", offset=1.0)
     with pytest.raises(SystemExit) as exc:
         preflight(compose_cfg("squeeze", ["object=can", "signal=csv", f"signal.path={far}"]))
@@ -226,3 +234,72 @@ def test_llm_judge_settings_are_checked_before_the_flow(compose_cfg):
     with pytest.raises(SystemExit) as exc:
         preflight(compose_cfg("squeeze", ["llm_judge.url=http://127.0.0.1:9/v1", "llm_judge.frames=0"]))
     assert str(exc.value) == "config error: llm_judge.frames 0 must be an integer >= 1 (e.g. 8)"
+
+
+# ----------------------------------------------------------------------------------------------- stability suite
+@pytest.mark.parametrize("override, expected", [
+    ("mpm.dt=inf", "config error: mpm.dt must be a finite number, got inf"),
+    ("catalog.clay.material.density=nan", "config error: catalog.clay.material.density must be a finite number, got nan"),
+    ("+control.force.gama=2", "config error: control.force.gama is not a key of ForceConfig (it would be ignored): "
+                              "did you mean control.force.gamma?"),
+    ("+mpm.massscaling=off", "config error: mpm.massscaling is not a key of MPMConfig (it would be ignored): did "
+                             "you mean mpm.mass_scaling?"),
+    ("signal.duration=-1", "config error: signal.duration must be > 0 s, got -1.0"),
+])
+def test_a_bad_stability_input_is_one_line_before_any_case_runs(compose_cfg, capsys, override, expected):
+    """python -m flows.stability goes through the same checks as the pipeline's mains: the entry point stops with
+    exactly this line (Python prints a SystemExit's message as the one line on stderr) and prints nothing before
+    it (no case, no report folder)."""
+    import flows.stability
+
+    with pytest.raises(SystemExit) as exc:
+        flows.stability.main(compose_cfg("stability", [override]))
+    assert str(exc.value) == expected
+    assert capsys.readouterr().out == ""
+
+
+def test_preflight_imports_no_prefect():
+    """The checks run before Prefect is loaded (and so before a server can start): after a full preflight of the
+    default grid, no Prefect module is imported."""
+    code = ("import sys; from tests.conftest import compose; from flows.preflight import preflight; "
+            "preflight(compose('evaluate', [])); print(sorted(m for m in sys.modules if m.split('.')[0] == 'prefect'))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines()[-1] == "[]"
+
+
+# ----------------------------------------------------------------------------------------------- argparse entry points
+def test_benchmark_and_human_study_refuse_bad_input_in_one_line(tmp_path, capsys):
+    """python -m flows.benchmark and python -m flows.human_study stop on a bad flag or a missing file with one
+    line naming it, before Warp is loaded or anything is read or written."""
+    import flows.benchmark
+    import flows.human_study
+
+    report = tmp_path / "evaluate-1"
+    cases = [
+        (flows.benchmark.main, ["--E", "inf"], "input error: --E must be a finite number > 0, got inf"),
+        (flows.benchmark.main, ["--nu", "0.5"], "input error: --nu must be in [0, 0.5), got 0.5"),
+        (flows.benchmark.main, ["--n-grid", "2000"], "input error: --n-grid 2000 with --cube 0.4 and --ppc-axis 2 "
+                                                     "gives 4.1e+09 particles, above 2e+07: lower one of them"),
+        (flows.human_study.main, ["build", str(report)],
+         f"input error: report folder {report} does not exist: give a run's report folder (reports/evaluate-<time>)"),
+    ]
+    for main, argv, expected in cases:
+        with pytest.raises(SystemExit) as exc:
+            main(argv)
+        assert str(exc.value) == expected
+    report.mkdir()
+    with pytest.raises(SystemExit) as exc:
+        flows.human_study.main(["analyse", str(report), str(tmp_path / "a.csv")])
+    assert str(exc.value) == (f"input error: {report / 'human_study' / 'key.json'} does not exist: analyse the report "
+                              f"folder whose questionnaire was built (python -m flows.human_study build {report})")
+    (report / "human_study").mkdir()
+    (report / "human_study" / "key.json").write_text('{"format": "something else"}')
+    with pytest.raises(SystemExit) as exc:
+        flows.human_study.main(["analyse", str(report), str(tmp_path / "a.csv")])
+    assert str(exc.value) == f"input error: answer file(s) not found: {tmp_path / 'a.csv'}"
+    (tmp_path / "a.csv").write_text("x\n")
+    with pytest.raises(SystemExit) as exc:
+        flows.human_study.main(["analyse", str(report), str(tmp_path / "a.csv")])
+    assert str(exc.value).startswith(f"input error: {report / 'human_study' / 'key.json'} is not a questionnaire key")
+    assert capsys.readouterr().out == ""

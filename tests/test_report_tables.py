@@ -88,7 +88,8 @@ def test_one_seed_keeps_the_single_run_cells():
 
 def test_metric_rows_keep_one_row_per_seed(tmp_path):
     from tasks.core.artifacts import Array, write_artifact
-    from tasks.reporting.report_tables import metric_rows, seed_scope, split_seed_scope
+    from tasks.core.scope import seed_scope, split_seed_scope
+    from tasks.reporting.report_tables import metric_rows
 
     assert seed_scope("can", 0) == "can" and seed_scope("can", 2) == "can@seed2"
     assert split_seed_scope("can@seed2") == ("can", 2) and split_seed_scope("can") == ("can", 0)
@@ -106,8 +107,8 @@ def test_report_of_a_seed_grid_shows_mean_std_the_spread_note_and_per_seed_rows(
     """What the user reads: Table 2 cells ``mean ± std``, the ≈ mark and its caption; metrics.csv one row per seed."""
     from flows.runtime import RunTable
     from tasks.core.artifacts import Array, write_artifact
+    from tasks.core.scope import seed_scope
     from tasks.reporting.report import write_run_report
-    from tasks.reporting.report_tables import seed_scope
 
     refs: dict = {}
     for i, r in enumerate(_seed_rows().itertuples(index=False)):
@@ -123,3 +124,41 @@ def test_report_of_a_seed_grid_shows_mean_std_the_spread_note_and_per_seed_rows(
     assert "Mean ± sample standard deviation over 3 sampling seeds [0, 1, 2]" in md
     rows = pd.read_csv(tmp_path / "report" / "metrics.csv")
     assert len(rows) == 12 and sorted(set(rows["seed"])) == [0, 1, 2]
+
+
+def test_report_shows_the_quasi_static_check_as_the_solver_applied_it(tmp_path):
+    """The rollout table gives the check's measure over the frames it checked, its limit and whether it warned;
+    the physical figures table and the definitions give the same measure (not the per-frame KE/IE of old)."""
+    from flows.runtime import RunTable
+    from tasks.core.artifacts import Array, write_artifact
+    from tasks.evaluation.deformation_metrics import DEFINITIONS
+    from tasks.reporting.report import quasi_static_cell, rollout_summary, write_run_report
+
+    T = 6
+    frame_arrays = {"squeeze_strain": Array(np.full((T, 5), 0.1), ("frame", "finger"), "1"),
+                    "feedback_force": Array(np.full((T, 5), 2.0), ("frame", "finger"), "N"),
+                    **{k: Array(np.zeros(T), ("frame",), "1") for k in ("dirichlet_tracking_error", "ke_ie_ratio")}}
+    qs = {"mass_scale": 4.0, "limit": 0.1, "max_ke_ie_in_contact": 0.3, "median_ke_ie_in_contact": 0.05,
+          "frames_over_limit": 2, "frames_checked": 5, "frames_in_contact": 6}
+    rollout = write_artifact(tmp_path / "r.zarr", frame_arrays, step="mpm_rollout", scope="can", config_digest="-",
+                             attrs={"threshold_event": {"threshold": 0.3, "crossed": False}, "boundary": "force",
+                                    "n_particles": 10, "substeps_total": 60, "mass_scale": 4.0, "quasi_static": qs})
+    summary = rollout_summary({"can": {"variants": {"no_dirichlet": {"mpm_rollout": rollout}}}})
+    assert "| quasi-static check: max KE/IE / limit |" in summary.splitlines()[0]
+    assert "| x4 | 0.3 / 0.1: WARNED in 2 frame(s) (5 frames checked) |" in summary
+    assert quasi_static_cell({**qs, "frames_over_limit": 0, "max_ke_ie_in_contact": 0.02}) == \
+        "0.02 / 0.1: ok (5 frames checked)"
+    assert quasi_static_cell({**qs, "frames_checked": 0, "max_ke_ie_in_contact": 0.0}) == \
+        "not checked (no mass scaling or no loaded frame)"
+    metrics = write_artifact(tmp_path / "m.zarr", {"x": Array(np.zeros(1), ("i",), "1")}, step="deformation_metrics",
+                             scope="can", config_digest="-",
+                             attrs={"metrics": {"bdc_t": 0.5, "max_ke_ie_in_contact": 0.3, "quasi_static_warned": 1.0},
+                                    "definitions": DEFINITIONS})
+    md = write_run_report(tmp_path / "report", cfg={}, table=RunTable(), refs={"can": {"variants": {
+        "no_dirichlet": {"deformation_metrics": metrics}}}}, wall_seconds=1.0, variants=LABELS).read_text()
+    physical = md.split("## Physical figures per object and variant")[1].split("##")[0]
+    assert "| object | seed | variant | max_ke_ie_in_contact | quasi_static_warned |" in physical
+    assert "| can | 0 | no_dirichlet | 0.3 | 1 |" in physical
+    assert f"- **max_ke_ie_in_contact**: {DEFINITIONS['max_ke_ie_in_contact']}" in md
+    assert "over the frames it checks" in DEFINITIONS["max_ke_ie_in_contact"]
+    assert f"- **quasi_static_warned**: {DEFINITIONS['quasi_static_warned']}" in md

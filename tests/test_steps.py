@@ -157,3 +157,30 @@ def test_the_pipeline_wiring_agrees_with_every_declaration(compose_cfg):
         check_wiring((by_name["object_model"], by_name["dirichlet_field"]), ())
     with pytest.raises(WiringError, match="reads the variant"):
         check_wiring(PER_OBJECT + (by_name["mpm_rollout"],), ())
+
+
+def test_a_long_step_reports_its_progress_once_per_tenth(tmp_path):
+    """A step of many frames logs where it is (issue 15: no silent hours): one line per tenth of its work, named
+    by object and step, whatever the number of frames."""
+    import logging
+    import re
+
+    from tasks.core.step import log, report_progress
+
+    @artifact_step("long", outputs=("x",))
+    def long(inputs, params):
+        for f in range(1, 201):
+            report_progress(f, 200)
+        return {"x": Array(np.zeros(1), ("i",), "1")}, {}
+
+    lines: list[str] = []
+    handler = logging.Handler(logging.INFO)
+    handler.emit = lambda record: lines.append(record.getMessage())
+    log.addHandler(handler)
+    try:
+        long.run_local(root=str(tmp_path), scope="ball", params={}, label="ball")
+    finally:
+        log.removeHandler(handler)
+    progress = [line for line in lines if line.startswith("ball/long: ")]
+    assert [re.sub(r", \d+ s$", "", line) for line in progress] == [
+        f"ball/long: frame {20 * k}/200 ({10 * k} %)" for k in range(1, 11)]

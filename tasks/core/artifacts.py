@@ -20,8 +20,9 @@ recomputed):
   (:func:`verify_artifact`): a cache hit on it is refused and the step recomputes, and reading it as an input
   fails with a line naming it.  Arrays above 16 MiB are chunked along the leading axis in blocks of about
   16 MiB (many frames per file, :func:`chunk_shape`).  Temporary and trash folders are named
-  ``.<name>.tmp-<host>-<pid>-<id>`` / ``.<name>.trash-<host>-<pid>-<id>`` so that a later run can remove those
-  of dead processes (:func:`remove_stale_temporaries`).
+  ``.<name>.tmp-<host>-<pid>-<start>-<id>`` / ``.<name>.trash-<host>-<pid>-<start>-<id>`` (``start`` = the
+  process's start time in ms) so that a later run can remove those of dead processes, also when their pid has
+  been reused by another process (:func:`remove_stale_temporaries`).
 * 1 - no manifest, one chunk per frame above 8 MiB, absolute paths in references (no longer read).
 """
 from __future__ import annotations
@@ -42,6 +43,8 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 import zarr
 from pydantic import BaseModel, ConfigDict, PrivateAttr, field_validator
+
+from tasks.core.processes import START_TOLERANCE, process_started
 
 FORMAT_VERSION = 2
 
@@ -293,12 +296,18 @@ def _seal(attrs: Mapping[str, Any]) -> str:
 
 
 _HOST = re.sub(r"[^A-Za-z0-9_.]", "_", socket.gethostname()) or "host"
-_SCRATCH = re.compile(r"^\..+\.(?P<kind>tmp|trash)-(?:(?P<host>.+)-(?P<pid>\d+)-)?[0-9a-f]{12}$")
+# owner: host (no "-" in it), pid and (names written since it was added) the process's start time in ms
+_SCRATCH = re.compile(r"^\..+\.(?P<kind>tmp|trash)-(?:(?P<host>[^-]+)-(?P<pid>\d+)-(?:(?P<started>\d+)-)?)?"
+                      r"[0-9a-f]{12}$")
 
 
 def _scratch_name(final: Path, kind: str) -> Path:
-    """``.<name>.<kind>-<host>-<pid>-<id>`` next to ``final``: whose it is, so a later run can tell it stale."""
-    return final.with_name(f".{final.name}.{kind}-{_HOST}-{os.getpid()}-{uuid.uuid4().hex[:12]}")
+    """``.<name>.<kind>-<host>-<pid>-<start>-<id>`` next to ``final``: whose it is (the process and when it
+    started), so a later run can tell it stale."""
+    pid = os.getpid()
+    started = process_started(pid)
+    owner = f"{_HOST}-{pid}" + (f"-{round(1000 * started)}" if started is not None else "")
+    return final.with_name(f".{final.name}.{kind}-{owner}-{uuid.uuid4().hex[:12]}")
 
 
 def _move_away(final: Path) -> None:
@@ -455,7 +464,7 @@ def remove_stale_temporaries(root: str | Path) -> tuple[int, int]:
                 if not d.endswith(".zarr") and d != ".prefect":  # no need to look inside groups or Prefect's home
                     descend.append(d)
                 continue
-            if m["pid"] is None or (m["host"] == _HOST and not _process_alive(int(m["pid"]))):
+            if m["pid"] is None or (m["host"] == _HOST and not _owner_alive(int(m["pid"]), m["started"])):
                 path = Path(dirpath) / d
                 size = directory_size(path)
                 shutil.rmtree(path, ignore_errors=True)
@@ -465,14 +474,17 @@ def remove_stale_temporaries(root: str | Path) -> tuple[int, int]:
     return count, freed
 
 
-def _process_alive(pid: int) -> bool:
+def _owner_alive(pid: int, started_ms: str | None) -> bool:
+    """Whether the process that named a scratch folder still runs: ``pid`` is alive and, when the name records
+    its start time (``started_ms``), started then (else the pid was reused by another process)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
     except PermissionError:  # another user's live process
-        return True
-    return True
+        pass
+    now = process_started(pid) if started_ms is not None else None
+    return now is None or abs(now - int(started_ms) / 1000) < START_TOLERANCE  # unknown start: keep it
 
 
 def directory_size(path: str | Path) -> int:

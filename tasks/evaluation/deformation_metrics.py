@@ -89,8 +89,14 @@ DEFINITIONS: dict[str, str] = {
     "peak_applied_force": "peak_applied_force (N, per finger) = max_t |applied_force[t, k]| (force mode).",
     "peak_feedback_force": "peak_feedback_force (N, per finger) = max_t feedback_force[t, k] (glove resistance).",
     "max_ke_ie_in_contact": (
-        "max_ke_ie_in_contact (1) = max of the kinetic / internal energy ratio over the frames in which any "
-        "patch is active (the quasi-static check of mass scaling); NaN without contact."),
+        "max_ke_ie_in_contact (1) = the largest value of the quasi-static check's measure (mass scaling, "
+        "tasks/physics/mpm/solver.py) over the frames it checks: sum KE / sum IE of the mass-scaled material over "
+        "the checked frames of the current contact so far (ke_ie_contact), a frame being checked when a finger "
+        "loads the object, past the contact's first frames and before a rupture; NaN when no frame is checked "
+        "(no mass scaling, no contact)."),
+    "quasi_static_warned": (
+        "quasi_static_warned = 1 when the check warned (ke_ie_contact > mpm.quasi_static_ke_ie_max in a checked "
+        "frame: the squeeze was dynamic in the scaled time), 0 when it passed, NaN when no frame is checked."),
     "threshold_time": "threshold_time (s): time of the squeeze-threshold crossing (rupture); NaN when not crossed.",
 }
 
@@ -343,17 +349,18 @@ def trajectory_metrics(sensed: np.ndarray, reconstructed: np.ndarray, contact: n
 
 # ----------------------------------------------------------------------------------------------- physics
 def physical_figures(particle_J: np.ndarray, volumes: np.ndarray, strain: np.ndarray, reaction: np.ndarray,
-                     applied: np.ndarray, feedback: np.ndarray, ke_ie: np.ndarray, in_contact: np.ndarray,
+                     applied: np.ndarray, feedback: np.ndarray, ke_ie_contact: np.ndarray, ke_ie_limit: float,
                      threshold_event: Mapping[str, Any] | None) -> tuple[dict[str, float], dict[str, np.ndarray],
                                                                          np.ndarray]:
     """Physical figures of one rollout: (scalars, per-finger arrays, volume_ratio (frame,)).
 
     volume_ratio[t] = sum v0 J[t] / sum v0; max_volume_change = max |volume_ratio - 1|; max_squeeze_strain =
     max strain; rebound_ratio = 1 - m[-1] / max m with m = max_k strain[:, k] (NaN if max m < 1e-6);
-    max_ke_ie_in_contact = max ke_ie over ``in_contact`` frames (NaN without contact); threshold_time (s) =
-    threshold_event["time"] if crossed else NaN.  Per finger (N): peak |reaction|, peak |applied| and peak
-    feedback force.  Shapes: particle_J (frame, particle), volumes (particle,) m^3, strain and feedback
-    (frame, finger), reaction and applied (frame, finger, xyz) N, ke_ie and in_contact (frame,).
+    max_ke_ie_in_contact = max of the quasi-static check's measure ``ke_ie_contact`` over the frames it checked
+    (not NaN) and quasi_static_warned = 1 if it exceeded ``ke_ie_limit`` there, else 0 (both NaN when no frame was
+    checked); threshold_time (s) = threshold_event["time"] if crossed else NaN.  Per finger (N): peak |reaction|,
+    peak |applied| and peak feedback force.  Shapes: particle_J (frame, particle), volumes (particle,) m^3, strain
+    and feedback (frame, finger), reaction and applied (frame, finger, xyz) N, ke_ie_contact (frame,).
     """
     J = _checked("particle_J", particle_J, (None, None))
     T = J.shape[0]
@@ -362,8 +369,8 @@ def physical_figures(particle_J: np.ndarray, volumes: np.ndarray, strain: np.nda
     rf = _checked("reaction_force", reaction, (T, N_FINGERS, 3))
     af = _checked("applied_force", applied, (T, N_FINGERS, 3))
     fb = _checked("feedback_force", feedback, (T, N_FINGERS))
-    ratio_ke = _checked("ke_ie_ratio", ke_ie, (T,))
-    contact = _checked("in_contact", in_contact, (T,), bool)
+    measure = _checked("ke_ie_contact", ke_ie_contact, (T,))
+    measure = measure[~np.isnan(measure)]  # the checked frames
     if T == 0 or v0.sum() <= 0:
         raise ValueError(f"particle_J needs >= 1 frame and the particle volumes a positive sum, got {J.shape}, "
                          f"{v0.sum()} m^3")
@@ -375,7 +382,8 @@ def physical_figures(particle_J: np.ndarray, volumes: np.ndarray, strain: np.nda
         "max_volume_change": float(np.abs(volume_ratio - 1.0).max()),
         "max_squeeze_strain": float(eps.max()),
         "rebound_ratio": 1.0 - float(m[-1]) / peak if peak >= 1e-6 else math.nan,
-        "max_ke_ie_in_contact": float(ratio_ke[contact].max()) if contact.any() else math.nan,
+        "max_ke_ie_in_contact": float(measure.max()) if measure.size else math.nan,
+        "quasi_static_warned": float((measure > ke_ie_limit).any()) if measure.size else math.nan,
         "threshold_time": float(event["time"]) if event.get("crossed") else math.nan,
     }
     per_finger = {
@@ -450,7 +458,7 @@ def deformation_metrics(rollout: Mapping[str, np.ndarray], rollout_attrs: Mappin
                          f"{shell.size + interior.size} (shell + interior) from the object")
     phys, phys_finger, volume_ratio = physical_figures(
         J, v0, observed, rollout["reaction_force"], rollout["applied_force"], rollout["feedback_force"],
-        rollout["ke_ie_ratio"], active.any(axis=1), rollout_attrs.get("threshold_event"))
+        rollout["ke_ie_contact"], float(rollout_attrs["quasi_static"]["limit"]), rollout_attrs.get("threshold_event"))
 
     metrics = {"bdc_t": score_t, "bdc_s": score_s, "sdc": score_c, "miou": score_m,
                **{k: traj[k] for k in ("ate", "mte", "tce", "cosine_similarity")}, **phys}

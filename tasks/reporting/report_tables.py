@@ -14,24 +14,13 @@ import numpy as np
 import pandas as pd
 
 from tasks.core.artifacts import ArtifactError, read_group_attrs
+from tasks.core.scope import split_seed_scope
 
 # (column in the metrics rows, heading in the tables, higher is better)
 TABLE2 = (("bdc_t", "BDC-T", True), ("bdc_s", "BDC-S", True), ("sdc", "SDC", True), ("miou", "mIoU", True))
 TRAJECTORY = (("ate", "ATE (mm)", False), ("mte", "MTE (mm)", False), ("tce", "TCE (mm/s)", False),
               ("cosine_similarity", "Cosine sim.", True))
 _MILLI = {"ate", "mte", "tce"}  # shown in mm (mm/s); stored in SI
-
-
-def seed_scope(obj: str, seed: int) -> str:
-    """The artifact scope and report key of ``obj`` run with ``sampling.seed`` = ``seed``: the object's name for
-    seed 0 (the default grid's scopes), ``<object>@seed<k>`` otherwise."""
-    return obj if int(seed) == 0 else f"{obj}@seed{int(seed)}"
-
-
-def split_seed_scope(key: str) -> tuple[str, int]:
-    """(object, seed) of a report key written by :func:`seed_scope`."""
-    obj, sep, seed = key.rpartition("@seed")
-    return (obj, int(seed)) if sep and seed.isdigit() else (key, 0)
 
 
 def metric_rows(refs: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:

@@ -48,7 +48,7 @@ def method_label(variant_label: str, backend: str) -> str:
 
 def video_metric_rows(refs: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
     """One row per (object, seed, variant, backend): the video metrics (NaN where they do not apply)."""
-    from tasks.reporting.report_tables import split_seed_scope
+    from tasks.core.scope import split_seed_scope
 
     rows = []
     for key, obj_refs in refs.items():

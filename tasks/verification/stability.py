@@ -40,8 +40,9 @@ Measures (SI)
     energy_drift    FREE phase of a compression case only: (KE + IE)(end) / (KE + IE)(release) - 1 (no gravity, no
                     boundary after the release, so a conservative system: < 0 is numerical dissipation, > 0 is
                     energy created by the integrator);
-    ke_ie_max       DRIVEN phases (loading/hold of a compression case, the whole squeeze of a rollout while a finger
-                    touches): the largest kinetic/internal energy ratio, the quasi-static measure;
+    ke_ie_max       DRIVEN phases: a compression case's loading/hold, the largest kinetic/internal energy ratio; a
+                    rollout, the quasi-static check's measure (sum KE / sum IE over the contact) at its largest in
+                    the frames the solver checks (NaN: none checked);
     courant         largest c_p dt / dx over the frames (c_p after scaling);
     accuracy_error  compression: F_top / (E A eps_mid) - 1 over the second half of the loading (E the REAL modulus,
                     eps_mid the mean compressive strain F_zz - 1 of the middle third of the column, A = W^2): the
@@ -326,6 +327,15 @@ def _fill_from_stats(row: Row, stats: list, sim_time: float) -> None:
     row.stiffness_scale = float(stats[-1].stiffness_scale)
 
 
+def _judged(case: Case, progress: _Progress, sim_time: float, outcome: str, reason: str) -> Row:
+    """The row of a case that ran to its end without a guard stopping it, judged by the suite itself: the
+    statistics of its frames, ``outcome`` and ``reason``."""
+    row = Row(case.name, case.category)
+    _fill_from_stats(row, progress.stats, sim_time)
+    row.outcome, row.reason = outcome, reason
+    return row
+
+
 # ============================================================================================ compression cases
 @dataclass
 class _Column:
@@ -499,10 +509,8 @@ def run_push_out(case: Case, ctx: SuiteContext, progress: _Progress | None = Non
         st = solver.step_frame(fdt, dirichlet=DirichletPoints(face, np.tile([-speed, 0, 0], (len(face), 1))))
         progress.stats.append(st)
         face[:, 0] -= speed * fdt
-    row = Row(case.name, case.category)
-    _fill_from_stats(row, progress.stats, solver.time)
-    row.outcome, row.reason = "unstable", "UNCAUGHT by the solver guards: material pushed 0.1 m through a 1-cell margin"
-    return row
+    return _judged(case, progress, solver.time, "unstable",
+                   "UNCAUGHT by the solver guards: material pushed 0.1 m through a 1-cell margin")
 
 
 def run_nan_state(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
@@ -516,10 +524,7 @@ def run_nan_state(case: Case, ctx: SuiteContext, progress: _Progress | None = No
     solver.set_velocities(v)
     for _ in range(3):
         progress.stats.append(solver.step_frame(1.0 / FRAME_RATE_HUMAN))
-    row = Row(case.name, case.category)
-    _fill_from_stats(row, progress.stats, solver.time)
-    row.outcome, row.reason = "unstable", "UNCAUGHT by the solver guards: NaN velocity was not detected"
-    return row
+    return _judged(case, progress, solver.time, "unstable", "UNCAUGHT by the solver guards: NaN velocity was not detected")
 
 
 def run_nan_input(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
@@ -534,10 +539,7 @@ def run_nan_input(case: Case, ctx: SuiteContext, progress: _Progress | None = No
         if f >= 1:
             vel[len(vel) // 2, 2] = np.nan
         progress.stats.append(solver.step_frame(1.0 / FRAME_RATE_HUMAN, dirichlet=DirichletPoints(pts, vel)))
-    row = Row(case.name, case.category)
-    _fill_from_stats(row, progress.stats, solver.time)
-    row.outcome, row.reason = "error", "no guard refused the NaN boundary input"
-    return row
+    return _judged(case, progress, solver.time, "error", "no guard refused the NaN boundary input")
 
 
 # ============================================================================================ squeeze cases
@@ -662,7 +664,8 @@ def run_squeeze(case: Case, ctx: SuiteContext, progress: _Progress | None = None
     row.simulated_seconds = float(fr["time"][-1] - fr["time"][0])
     row.substeps_per_simulated_second = row.substeps / row.simulated_seconds
     row.mass_scale = float(attrs["mass_scale"])
-    row.ke_ie_max = float(attrs["quasi_static"]["max_ke_ie_in_contact"])
+    qs = attrs["quasi_static"]
+    row.ke_ie_max = float(qs["max_ke_ie_in_contact"]) if qs["frames_checked"] else math.nan  # NaN: no frame checked
     # up to the rupture: afterwards a torn patch is no longer driven, so the prescribed strain is not a reference
     last = int(attrs["threshold_event"]["frame"]) + 1 if attrs["threshold_event"].get("crossed") else None
     pred, obs = a["predicted_squeeze_strain"][:last].max(), a["squeeze_strain"][:last].max()
@@ -891,8 +894,9 @@ def write_report(rows: Sequence[Row], out_dir: str | Path, config: Mapping[str, 
            "scaling); substeps_per_simulated_second = substeps / simulated time."),
            ("- energy_drift: compression cases only, free phase (no gravity, no boundary, conservative): "
            "(KE+IE)(end)/(KE+IE)(release) - 1.  Negative = numerical dissipation of the MPM transfers."),
-           ("- ke_ie_max: driven phases (plate loading/hold; a rollout while a finger touches): largest kinetic / "
-           "internal energy ratio (quasi-static measure; mass scaling assumes it small)."),
+           ("- ke_ie_max: driven phases: plate loading/hold, the largest kinetic / internal energy ratio; a rollout, "
+           "the largest value of the solver's quasi-static check (sum KE / sum IE over the contact) in the frames it "
+           "checks (mass scaling assumes it small; its limit is mpm.quasi_static_ke_ie_max)."),
            ("- accuracy_error: compression: F_top / (E A eps_mid) - 1 over the second half of the loading, E the real "
            "modulus (uniaxial stress between frictionless plates; shows inertia from mass scaling and the force factor "
            "of stiffness scaling); squeeze: observed / prescribed peak squeeze strain - 1."),
