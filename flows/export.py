@@ -28,6 +28,7 @@ def main(cfg: DictConfig) -> None:
     from flows.pipeline import run_object_local
     from tasks.core.artifacts import read_artifact
     from tasks.generation.ply_sequence import write_ply_sequence
+    from tasks.render.scene import drawn_covariances
 
     refs = run_object_local(cfg, cfg.object, cfg.variant, cfg.paths.artifacts, until="appearance_refinement")
     obj, rollout, g, refined = (read_artifact(refs[k]) for k in ("object_model", "mpm_rollout", "gbuffer",
@@ -40,7 +41,8 @@ def main(cfg: DictConfig) -> None:
         index = np.zeros(0, int)
         colors, opacities, scales = np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3))
     out = Path(cfg.paths.export or Path(cfg.paths.reports) / "ply" / f"{cfg.object.name}_{cfg.variant.name}")
-    paths = write_ply_sequence(out, rollout["gaussian_positions"][frames], rollout["gaussian_covariances"][frames],
+    covariances = drawn_covariances(rollout["gaussian_covariances"][frames], obj["gaussian_scales"])  # as rendered
+    paths = write_ply_sequence(out, rollout["gaussian_positions"][frames], covariances,
                                obj["gaussian_colors"], obj["gaussian_opacities"],
                                rollout["particle_positions"][frames][:, index], g["released_visible"][:, index],
                                colors, opacities, scales, frames)

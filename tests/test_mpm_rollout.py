@@ -11,6 +11,7 @@ from omegaconf import OmegaConf
 
 from conf.schema import Config, SimulationConfig
 from tasks.core.artifacts import read_artifact
+from tasks.physics.attachment import detached_summary, distance_from_body
 from tasks.physics.free_flight import free_flying, released_flight
 from tasks.physics.labels import CORE, INTERIOR, RUPTURED, SHELL
 from tasks.physics.material_oracle import material_oracle
@@ -96,6 +97,36 @@ def test_interior_plan_simulates_the_interior_only_when_the_threshold_can_be_rea
     assert interior_plan(tomato, False, np.full((3, 5), 0.2))[:2] == (False, False)  # no cavity to fill
     ball = material_oracle("a hollow rubber ball", "rubber_ball")
     assert interior_plan(ball, True, np.full((3, 5), 0.9))[:2] == (False, False)
+
+
+def test_distance_from_the_deformed_body_of_a_torn_shell():
+    """A spherical shell (R = 40 mm, particles 4 mm apart, dx = 8 mm) round a core: a flake of its skin pushed
+    2 dx outward is loose but within 3 dx of the body; one pushed 5 dx outward is detached, 5 dx off the body (up
+    to one particle spacing: its nearest body particle is on the rim of the hole it left); released juice is not
+    body."""
+    dx, R, s = 8e-3, 0.04, 4e-3
+    n = int(4 * math.pi * R**2 / s**2)
+    k = np.arange(n) + 0.5
+    phi, theta = np.arccos(1 - 2 * k / n), math.pi * (1 + 5**0.5) * k  # Fibonacci sphere
+    unit = np.stack([np.cos(theta) * np.sin(phi), np.sin(theta) * np.sin(phi), np.cos(phi)], axis=1)
+    core = np.stack(np.meshgrid(*[np.arange(-0.03, 0.031, s)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    core = core[np.linalg.norm(core, axis=1) < R - s]
+    near, far = unit[:, 2] > 0.98, (unit[:, 0] > 0.98)  # two caps of ~1 % of the shell each
+    shell = R * unit
+    shell[near] += 2 * dx * unit[near]
+    shell[far] += 5 * dx * unit[far]
+    juice = np.array([[0.0, 0.0, R + 10 * dx]])
+    x = np.concatenate([shell, core, juice])
+    labels = np.concatenate([np.where(near | far, RUPTURED, SHELL), np.full(len(core), CORE), [INTERIOR]])
+    d = distance_from_body(x, labels != INTERIOR, dx)
+    assert d[:n][~(near | far)].max() == 0 and d[n:-1].max() == 0  # the body itself
+    assert (d[:n][near] > dx).all() and (d[:n][near] <= 3 * dx).all()
+    assert (d[:n][far] > 5 * dx).all() and d[:n][far].max() <= 5 * dx + s
+    assert d[-1] == pytest.approx(10 * dx, abs=2 * s)
+    summary = detached_summary(x, labels, (SHELL, RUPTURED, CORE), {"shell": SHELL, "ruptured": RUPTURED}, dx)
+    assert summary["shell_detached"] == 0.0
+    assert summary["ruptured_detached"] == pytest.approx(far.sum() / (near | far).sum())
+    assert summary["max_distance"] == pytest.approx(d[:n][far].max())
 
 
 def test_resistive_feedback_is_yield_stress_times_area_or_the_contact_force():
@@ -265,6 +296,9 @@ def _check_release(art, min_outward: float) -> dict:
     outside = _outside_rest_surface(art, x[-1, rel])
     assert (outside > 0.002).sum() >= 0.1 * rel.sum(), np.percentile(outside, [50, 90])
     assert r["j_min"][1:].min() > 0.05 and r["j_max"].max() < 20.0  # the guards' range (they raise outside it)
+    # how much skin ends off the object is measured (tasks.physics.attachment) and stays within the domain
+    attached = r.attrs["skin_attachment"]
+    assert 0.0 <= attached["ruptured_detached"] <= 1.0 and attached["max_distance"] < 0.5, attached
     return {"outward": outward, "outside": outside}
 
 

@@ -7,7 +7,13 @@ import pytest
 import torch
 
 from tasks.render.cameras import orbit_cameras
-from tasks.render.scene import frame_scene, released_gaussians, released_visibility
+from tasks.render.scene import (
+    MAX_SURFACE_STRETCH,
+    drawn_covariances,
+    frame_scene,
+    released_gaussians,
+    released_visibility,
+)
 from tasks.render.splat import rasterization
 
 torch.set_num_threads(int(os.environ.get("VIRSQUEEZER_TORCH_THREADS", "1")))
@@ -92,3 +98,45 @@ def test_frame_scene_mask_channel_marks_released_material_only():
     assert mask[left].max() < 0.01
     assert torch.allclose(depth[left], torch.tensor(2.0), atol=0.01)   # the sheet, not the slab behind it
     assert alphas[0, ..., 0][above].max() < 1e-6   # where only the unreleased particles are
+
+
+def _sym6(c: np.ndarray) -> np.ndarray:
+    return c[..., (0, 0, 0, 1, 1, 2), (0, 1, 2, 1, 2, 2)]
+
+
+def _full(c6: np.ndarray) -> np.ndarray:
+    i, j = (0, 0, 0, 1, 1, 2), (0, 1, 2, 1, 2, 2)
+    out = np.zeros(c6.shape[:-1] + (3, 3))
+    out[..., i, j] = c6
+    out[..., j, i] = c6
+    return out
+
+
+def test_a_plastically_stretched_surface_gaussian_is_drawn_with_a_bounded_axis():
+    """A flat surface Gaussian (rest scales 2, 2, 0.2 mm) stretched plastically 1000x along a rotated axis (a torn
+    flake: F Sigma F^T has a 2 m axis) is drawn with its longest axis at MAX_SURFACE_STRETCH x 2 mm, along the same
+    direction; its other axes and a mildly sheared Gaussian (within the bound) are drawn exactly as simulated.
+    Rendered, the flake covers a few pixels instead of a streak across the image."""
+    rest = np.array([[2e-3, 2e-3, 2e-4], [2e-3, 2e-3, 2e-4]])
+    c, s_ = np.cos(0.4), np.sin(0.4)
+    R = np.array([[c, -s_, 0.0], [s_, c, 0.0], [0.0, 0.0, 1.0]])
+    streak = R @ np.diag([1000.0, 1.0, 0.5]) @ R.T
+    sheared = np.array([[1.5, 0.4, 0.0], [0.0, 1.0, 0.0], [0.0, 0.1, 0.9]])
+    cov = np.stack([F @ np.diag(r**2) @ F.T for F, r in zip([streak, sheared], rest)])
+    drawn = _full(drawn_covariances(_sym6(cov)[None], rest)[0].astype(np.float64))
+    w, q = np.linalg.eigh(drawn[0])
+    assert np.sqrt(w[-1]) == pytest.approx(MAX_SURFACE_STRETCH * 2e-3, rel=1e-4)  # 8 mm, not 2 m
+    assert abs(q[:, -1] @ R[:, 0]) == pytest.approx(1.0, abs=1e-6)  # still along the stretch
+    assert np.sqrt(w[:2]) == pytest.approx([1e-4, 2e-3], rel=1e-4)  # the untouched axes
+    assert np.allclose(drawn[1], cov[1], rtol=1e-5, atol=1e-12)  # within the bound: as simulated
+    with pytest.raises(ValueError, match="rest_scales"):
+        drawn_covariances(_sym6(cov), rest[:1])
+
+    viewmats, Ks = orbit_cameras(np.zeros(3), 0.5, 1, 0.0, 40.0, 64, 64, azimuth0_deg=-90.0)  # edge-on
+    footprint = []
+    for covars in (_sym6(cov[:1]), drawn_covariances(_sym6(cov[:1]), rest[:1])):
+        _, alphas, _ = rasterization(torch.zeros(1, 3), None, None, torch.ones(1), torch.ones(1, 3),
+                                     torch.from_numpy(viewmats).float(), torch.from_numpy(Ks).float(), 64, 64,
+                                     covars=torch.from_numpy(np.asarray(covars, np.float32)))
+        footprint.append(int((alphas[0, ..., 0] > 0.01).sum()))
+    assert footprint[0] > 60 and footprint[1] < 30, footprint  # a streak through the image; a small splat

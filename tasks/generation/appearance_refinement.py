@@ -27,7 +27,7 @@ from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
 from tasks.render.colour import srgb_uint8_to_linear, to_srgb_uint8
 from tasks.render.device import torch_device
-from tasks.render.scene import RELEASED_SCALE_FACTOR, released_appearance, rollout_particle_volumes
+from tasks.render.scene import RELEASED_SCALE_FACTOR, drawn_covariances, released_appearance, rollout_particle_volumes
 from tasks.render.splat import rasterization
 
 
@@ -151,7 +151,8 @@ def appearance_refinement_step(inputs, params):
         return torch.as_tensor(np.asarray(a), dtype=torch.float32, device=device)
 
     frozen = FrozenFrames(tensor(rollout["gaussian_positions"][frames_sim]),
-                          tensor(rollout["gaussian_covariances"][frames_sim]), tensor(obj["gaussian_colors"]),
+                          tensor(drawn_covariances(rollout["gaussian_covariances"][frames_sim], obj["gaussian_scales"])),
+                          tensor(obj["gaussian_colors"]),
                           tensor(obj["gaussian_opacities"]), tensor(rollout["particle_positions"][frames_sim][:, index]),
                           torch.as_tensor(visible_all[:, index], device=device))
     theta = ReleasedAppearance(np.tile(np.asarray(look["color"], float), (len(index), 1)),

@@ -49,6 +49,7 @@ from conf.hand import N_FINGERS
 from conf.mpm_schema import MPMConfig, mpm_config_from
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
+from tasks.physics.attachment import detached_summary
 from tasks.physics.free_flight import free_flying, released_flight
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
 from tasks.physics.mpm.materials import Material, material_from_dict
@@ -517,6 +518,8 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
                                               float(scene.config.quasi_static_ke_ie_max)),
         "energy_guard": {"tolerance": float(scene.config.energy_guard_tolerance),
                          "max_energy_growth": float(rec.stats["energy_growth"].max())},
+        "skin_attachment": detached_summary(rec.particle_positions[-1], mid, (SHELL, RUPTURED, CORE),
+                                            {"shell": SHELL, "ruptured": RUPTURED}, scene.dx),
     }
     return arrays, attrs
 

@@ -1,7 +1,8 @@
 """The G-buffer of a simulated squeeze, G_t^v = {I_t^v, D_t^v, M_t^v} (paper sec. 3.2, last paragraph; sec. 3.3).
 
 Every rendered frame t of the MPM rollout is one set of 3D Gaussians (:mod:`tasks.render.scene`): the surface
-Gaussians of the object model, deformed by the MPM (means and F Sigma F^T covariances of the rollout), and the
+Gaussians of the object model, deformed by the MPM (means and F Sigma F^T covariances of the rollout, each axis
+capped at ``MAX_SURFACE_STRETCH`` x its rest scale: :func:`tasks.render.scene.drawn_covariances`), and the
 released interior material (juice, cola, stuffing) as isotropic Gaussians from the frame of its release on, with
 the look of ``render.released``.  They are rendered from the orbit rig (:mod:`tasks.render.cameras`) with our
 differentiable rasteriser (:func:`tasks.render.splat.rasterization`):
@@ -30,7 +31,13 @@ from tasks.physics.labels import INTERIOR
 from tasks.render.cameras import distance_for_object, orbit_cameras
 from tasks.render.colour import to_srgb_uint8
 from tasks.render.device import torch_device
-from tasks.render.scene import frame_scene, released_appearance, released_visibility, rollout_particle_volumes
+from tasks.render.scene import (
+    drawn_covariances,
+    frame_scene,
+    released_appearance,
+    released_visibility,
+    rollout_particle_volumes,
+)
 from tasks.render.splat import rasterization
 
 
@@ -107,7 +114,8 @@ def gbuffer_step(inputs, params):
     interior = (materials.get("interior") or {}).get("name")
     look = released_appearance(render, interior)
     # 2. render
-    g = render_gbuffer(rollout["gaussian_positions"][frames], rollout["gaussian_covariances"][frames],
+    covariances = drawn_covariances(rollout["gaussian_covariances"][frames], obj["gaussian_scales"])
+    g = render_gbuffer(rollout["gaussian_positions"][frames], covariances,
                        obj["gaussian_colors"], obj["gaussian_opacities"], rollout["particle_positions"][frames],
                        rollout_particle_volumes(obj.arrays, n_particles), visible, np.asarray(look["color"]),
                        float(look["opacity"]), viewmats, Ks, render["width"], render["height"],

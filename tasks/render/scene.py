@@ -16,6 +16,12 @@ import numpy as np
 # summation), |ripple| ~ 6 exp(-2 pi^2 k^2): 0.5 % at k = 0.6, 4 % at k = 0.5, 28 % at k = 0.4.
 RELEASED_SCALE_FACTOR = 0.6
 
+# A drawn surface Gaussian's axes are at most MAX_SURFACE_STRETCH x its largest rest scale (standard deviation).
+# The squeezes of the default grid stretch no surface Gaussian beyond 3.04x (plush toy; rubber duck 2.95x, clay
+# 1.28x), so the bound leaves them as simulated; torn skin flakes stretched plastically up to 2e4x (tomato: a 30 m
+# axis on a 1.8 mm Gaussian) drew long streaks over the whole image.
+MAX_SURFACE_STRETCH = 4.0
+
 
 class GaussianScene(NamedTuple):
     """Renderable Gaussians. means (G, 3) m; covars (G, 6) m^2 xx xy xz yy yz zz; colors (G, 4) linear RGB in
@@ -95,6 +101,34 @@ def frame_scene(surface_positions: np.ndarray, surface_covariances: np.ndarray, 
                                   np.asarray(particle_volumes)[visible_released], released_colour,
                                   released_opacity, scale_factor)
     return _float32(GaussianScene(*(np.concatenate([a, b]) for a, b in zip(surface, released))))
+
+
+def drawn_covariances(covariances: np.ndarray, rest_scales: np.ndarray,
+                      max_stretch: float = MAX_SURFACE_STRETCH) -> np.ndarray:
+    """The covariances surface Gaussians are drawn with: F Sigma F^T with every axis length capped.
+
+    covariances: (..., point, 6) m^2 xx xy xz yy yz zz, the rollout's ``gaussian_covariances`` (F Sigma F^T);
+    rest_scales: (point, 3) m, the object model's ``gaussian_scales`` (standard deviations at rest).  Each
+    covariance keeps its principal axes (eigenvectors) and every axis length (sqrt of an eigenvalue) is capped at
+    ``max_stretch`` x the Gaussian's largest rest scale, so no Gaussian becomes a streak whatever its (plastic)
+    stretch: a torn flake draws as a bounded splat, an opening as a gap.  Gaussians within the bound are drawn
+    exactly as simulated (the rotation polar(F) q0 with a clamped stretch would alter every sheared one).
+    Returns (..., point, 6) m^2 float32.
+    """
+    cov = np.asarray(covariances, dtype=np.float64)
+    rest = np.asarray(rest_scales, dtype=np.float64)
+    if cov.shape[-1] != 6 or rest.shape != (cov.shape[-2], 3) or not max_stretch > 0:
+        raise ValueError(f"covariances must be (..., point, 6) and rest_scales (point, 3) with max_stretch > 0; "
+                         f"got {cov.shape}, {rest.shape}, {max_stretch}")
+    i, j = (0, 0, 0, 1, 1, 2), (0, 1, 2, 1, 2, 2)
+    full = np.zeros(cov.shape[:-1] + (3, 3))
+    full[..., i, j] = cov
+    full[..., j, i] = cov
+    w, q = np.linalg.eigh(full)
+    cap = (max_stretch * rest.max(axis=1)) ** 2
+    w = np.clip(w, 0.0, cap[:, None])
+    bounded = np.einsum("...ik,...k,...jk->...ij", q, w, q)
+    return bounded[..., i, j].astype(np.float32)
 
 
 def _float32(scene: GaussianScene) -> GaussianScene:

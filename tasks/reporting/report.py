@@ -176,6 +176,10 @@ def rollout_summary(refs: Mapping[str, Mapping[str, Any]]) -> Optional[str]:
         event = (f"crossed at {ev['time']:.2f} s (strain {ev['strain']:.3f} >= {ev['threshold']}), "
                  f"{ev['released_particles']} released" if ev.get("crossed")
                  else ("never crossed" if ev.get("threshold") is not None else "no threshold"))
+        attached = a.get("skin_attachment") or {}
+        if attached.get("ruptured_detached") is not None:  # the skin stays on the object (tasks.physics.attachment)
+            event += (f"; torn skin > 3 cells off the object {attached['ruptured_detached']:.0%} "
+                      f"(intact shell {attached['shell_detached']:.0%})")
         eps = r["squeeze_strain"].max(axis=1)
         qs = a.get("quasi_static", {})
         tracking = (f"{1e3 * r['dirichlet_tracking_error'].max():.2f}" if a["boundary"] == "dirichlet" else "-")
