@@ -823,26 +823,35 @@ def k_tracer_g2p(gi: GridInfo, grid: wp.array3d(dtype=wp.vec4), dt: float, tx: w
     p = wp.tid()
     s = point_stencil(tx[p], gi, flags, substep, p)
     b = s.base
-    f = s.f
-    v = wp.vec3(0.0)
-    B = wp.mat33(0.0)
-    dbar = wp.vec3(0.0)
-    wsum = float(0.0)
+    # separable sums over the massive nodes, lanes (v, 1): acc = sum w (v_i, 1), s_c = sum w o_c (v_i, 1) with o the
+    # node offset (0, 1, 2) along axis c (as in :func:`gather_apic`)
+    acc = wp.vec4(0.0)
+    s0 = wp.vec4(0.0)
+    s1 = wp.vec4(0.0)
+    s2 = wp.vec4(0.0)
     for i in range(3):
         for j in range(3):
+            wij = s.wx[i] * s.wy[j]
+            row = wp.vec4(0.0)
             for k in range(3):
                 n = grid[b[0] + i, b[1] + j, b[2] + k]
                 if n[3] > 0.0:
-                    w = stencil_weight(s, i, j, k)
-                    gv = wp.vec3(n[0], n[1], n[2])
-                    d = wp.vec3(float(i) - f[0], float(j) - f[1], float(k) - f[2])
-                    v = v + w * gv
-                    B = B + w * wp.outer(gv, d)
-                    dbar = dbar + w * d
-                    wsum += w
+                    wn = (wij * s.wz[k]) * wp.vec4(n[0], n[1], n[2], 1.0)
+                    row = row + wn
+                    s2 = s2 + float(k) * wn
+            acc = acc + row
+            s0 = s0 + float(i) * row
+            s1 = s1 + float(j) * row
+    wsum = acc[3]
     if wsum > 1.0e-6:
-        v = v / wsum
-        # normalised MLS velocity gradient: 4/dx sum w (v_i - v) d^T / W  (= 4/dx sum w v_i d^T for a full stencil)
-        Cm = (4.0 * gi.inv_dx / wsum) * (B - wp.outer(v, dbar))
+        v = wp.vec3(acc[0], acc[1], acc[2]) / wsum
+        # normalised MLS velocity gradient 4/dx sum w (v_i - v) d^T / W, d = o - f the node offset from the point:
+        # column c is 4/dx (s_c.xyz - v s_c.w) / W (the f terms cancel; = 4/dx sum w v_i d^T for a full stencil)
+        c = 4.0 * gi.inv_dx / wsum
+        Cm = wp.mat33(
+            c * (s0[0] - v[0] * s0[3]), c * (s1[0] - v[0] * s1[3]), c * (s2[0] - v[0] * s2[3]),
+            c * (s0[1] - v[1] * s0[3]), c * (s1[1] - v[1] * s1[3]), c * (s2[1] - v[1] * s2[3]),
+            c * (s0[2] - v[2] * s0[3]), c * (s1[2] - v[2] * s1[3]), c * (s2[2] - v[2] * s2[3]),
+        )
         tx[p] = tx[p] + dt * v
         tF[p] = (wp.identity(n=3, dtype=float) + dt * Cm) @ tF[p]
