@@ -72,6 +72,7 @@ C_GAMMA = wp.constant(M.COL_GAMMA)
 C_CRUSH = wp.constant(M.COL_CRUSH)
 C_DILATION = wp.constant(M.COL_DILATION)
 C_PHYSICAL_DENSITY = wp.constant(M.COL_PHYSICAL_DENSITY)
+C_DAMPING = wp.constant(M.COL_DAMPING)
 
 
 @wp.struct
@@ -470,6 +471,33 @@ def g2p_end(r: G2PResult, p: int, ps: Particles, sp: StepParams, flags: wp.array
 
 
 @wp.func
+def sign0(x: float) -> float:
+    """-1, 0 or 1 (``wp.sign`` gives 1 at 0: a particle at rest would be pushed along its first acceleration)."""
+    if x > 0.0:
+        return 1.0
+    if x < 0.0:
+        return -1.0
+    return 0.0
+
+
+@wp.func
+def local_damping(r: G2PResult, p: int, mid: int, ps: Particles, mats: MaterialTable) -> G2PResult:
+    """Local non-viscous damping (Cundall 1987) of particle p with coefficient a = ``C_DAMPING`` of its material
+    (0 <= a < 1): each component of the velocity change dv = v_new - v_old over the substep loses a |dv| against the
+    old velocity's direction, i.e. the force m dv / dt becomes F - a |F| sign(v).  It vanishes where the net force
+    does (a body at equilibrium or following a slowly varying load), so it damps vibration without a viscous lag.
+    Damped particles store their velocity every substep (the next substep's v_old)."""
+    a = mats.par[mid, C_DAMPING]
+    if a > 0.0:
+        v0 = ps.v[p]
+        dv = r.v - v0
+        r.v = r.v - a * wp.vec3(wp.abs(dv[0]) * sign0(v0[0]), wp.abs(dv[1]) * sign0(v0[1]),
+                                wp.abs(dv[2]) * sign0(v0[2]))
+        ps.v[p] = r.v
+    return r
+
+
+@wp.func
 def corotated_update(r: G2PResult, p: int, ps: Particles, sp: StepParams, mu: float, lam: float) -> G2PResult:
     """Fixed-corotated part of the G2P: rotation of the trial F_E (warm-started from, and stored into, q[p]) and
     the Kirchhoff stress (Pa; mu, lam in Pa)."""
@@ -483,8 +511,9 @@ def corotated_update(r: G2PResult, p: int, ps: Particles, sp: StepParams, mu: fl
 def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable, gi: GridInfo, sp: StepParams,
                grid: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32)) -> G2PResult:
     """G2P of one particle, any model: gather v and C, F_E <- (I + dt C) F_E, return mapping (eq. 5), Kirchhoff
-    stress of the new state (eq. 4), advection, guards; stores x, F_E and the model's state (rotation q of
-    fixed-corotated, plastic strain alpha of von Mises / foam).  Velocity and C are returned, not stored."""
+    stress of the new state (eq. 4), advection, guards, :func:`local_damping`; stores x, F_E and the model's state
+    (rotation q of fixed-corotated, plastic strain alpha of von Mises / foam).  Velocity and C are returned, stored
+    only for a damped particle's velocity."""
     r = g2p_begin(p, ps, gi, sp, grid, flags)
     mu = mats.par[mid, C_MU]
     lam = mats.par[mid, C_LAMBDA]
@@ -506,7 +535,7 @@ def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable,
         r.alpha = pr.alpha
         ps.alpha[p] = r.alpha
     g2p_end(r, p, ps, sp, flags)
-    return r
+    return local_damping(r, p, mid, ps, mats)
 
 
 @wp.func
@@ -516,7 +545,7 @@ def g2p_update_fc(p: int, mid: int, ps: Particles, mats: MaterialTable, gi: Grid
     r = corotated_update(g2p_begin(p, ps, gi, sp, grid, flags), p, ps, sp, mats.par[mid, C_MU],
                          mats.par[mid, C_LAMBDA])
     g2p_end(r, p, ps, sp, flags)
-    return r
+    return local_damping(r, p, mid, ps, mats)
 
 
 @wp.func
