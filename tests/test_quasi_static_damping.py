@@ -53,3 +53,12 @@ def test_force_driven_block_rings_undamped_and_settles_on_the_static_compression
         assert np.ptp(drop[-10:]) < 0.05 * static
         assert ratio < 0.1 and all(st.quasi_static_ok for st in stats)
         assert all(st.local_damping == damping for st in stats)
+
+
+def test_damping_coefficient_out_of_range_is_refused_in_one_line():
+    from conf.mpm_schema import MPMConfigError, mpm_config_from
+
+    for bad in (1.0, -0.1, float("nan")):
+        with pytest.raises(MPMConfigError) as err:
+            mpm_config_from(dict(quasi_static_damping=bad))
+        assert str(err.value) == f"mpm.quasi_static_damping: must be in [0, 1) (0 = off; got {bad})"
