@@ -68,6 +68,13 @@ class MPMConfig:
         mass_scale: the factor s of ``manual`` (>= 1, dimensionless).
         target_substeps_per_frame: N of ``global`` and ``selective``: substeps per output frame the elastic CFL
             of the scaled materials may need.
+        quasi_static_damping: local damping coefficient a in [0, 1) (0 = off): dynamic relaxation of the materials the
+            quasi-static check measures (mass-scaled solids, not released material or fluids), in the frames before
+            a rupture: the net force on a particle becomes F - a |F| sign(v) (Cundall's local damping, as FLAC and
+            PFC use for static solutions, 0.8 there; see :class:`tasks.physics.mpm.solver.MPMSolver`).  It vanishes
+            at equilibrium and damps the ringing of a mass-scaled body (a block pushed by a constant force settles on
+            its closed-form compression).  Off in the project's defaults: in the squeezes, whose loads rise within a
+            few frames, the particles' substep-scale force noise makes it act as friction and delays the response.
         stiffness_scaling: factor on E (and K) of every material; yield stresses are unchanged.
     Guards
         j_min, j_max: admissible range of det(F_E); outside raises SimulationError.
@@ -118,6 +125,7 @@ class MPMConfig:
     mass_scale: float = 1.0
     target_substeps_per_frame: int = 100
     quasi_static_ke_ie_max: float = 0.1
+    quasi_static_damping: float = 0.0
     stiffness_scaling: float = 1.0
     j_min: float = 0.05
     j_max: float = 20.0
@@ -173,6 +181,8 @@ def validate_mpm_config(cfg: MPMConfig) -> MPMConfig:
         bad("mass_scaling", f"'{cfg.mass_scaling}' is not one of {', '.join(MASS_SCALING_MODES)}")
     if not cfg.mass_scale >= 1.0 and cfg.mass_scaling == "manual":
         bad("mass_scale", f"must be >= 1 (got {cfg.mass_scale})")
+    if not 0 <= cfg.quasi_static_damping < 1:
+        bad("quasi_static_damping", f"must be in [0, 1) (0 = off; got {cfg.quasi_static_damping})")
     if cfg.target_substeps_per_frame < 1:
         bad("target_substeps_per_frame", "must be >= 1")
     if not cfg.stiffness_scaling > 0:

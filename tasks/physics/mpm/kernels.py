@@ -72,6 +72,7 @@ C_GAMMA = wp.constant(M.COL_GAMMA)
 C_CRUSH = wp.constant(M.COL_CRUSH)
 C_DILATION = wp.constant(M.COL_DILATION)
 C_PHYSICAL_DENSITY = wp.constant(M.COL_PHYSICAL_DENSITY)
+C_DAMPING = wp.constant(M.COL_DAMPING)
 
 
 @wp.struct
@@ -585,6 +586,33 @@ def g2p_end(r: G2PResult, p: int, ps: Particles, sp: StepParams, flags: wp.array
 
 
 @wp.func
+def sign0(x: float) -> float:
+    """-1, 0 or 1 (``wp.sign`` gives 1 at 0: a particle at rest would be pushed along its first acceleration)."""
+    if x > 0.0:
+        return 1.0
+    if x < 0.0:
+        return -1.0
+    return 0.0
+
+
+@wp.func
+def local_damping(r: G2PResult, p: int, mid: int, ps: Particles, mats: MaterialTable) -> G2PResult:
+    """Local non-viscous damping (Cundall 1987) of particle p with coefficient a = ``C_DAMPING`` of its material
+    (0 <= a < 1): each component of the velocity change dv = v_new - v_old over the substep loses a |dv| against the
+    old velocity's direction, i.e. the force m dv / dt becomes F - a |F| sign(v).  It vanishes where the net force
+    does (a body at equilibrium or following a slowly varying load), so it damps vibration without a viscous lag.
+    Damped particles store their velocity every substep (the next substep's v_old)."""
+    a = mats.par[mid, C_DAMPING]
+    if a > 0.0:
+        v0 = ps.v[p]
+        dv = r.v - v0
+        r.v = r.v - a * wp.vec3(wp.abs(dv[0]) * sign0(v0[0]), wp.abs(dv[1]) * sign0(v0[1]),
+                                wp.abs(dv[2]) * sign0(v0[2]))
+        ps.v[p] = r.v
+    return r
+
+
+@wp.func
 def corotated_update(r: G2PResult, p: int, ps: Particles, sp: StepParams, mu: float, lam: float) -> G2PResult:
     """Fixed-corotated part of the G2P: rotation of the trial F_E (warm-started from, and stored into, q[p]) and
     the Kirchhoff stress (Pa; mu, lam in Pa)."""
@@ -598,8 +626,9 @@ def corotated_update(r: G2PResult, p: int, ps: Particles, sp: StepParams, mu: fl
 def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable, gi: GridInfo, sp: StepParams,
                grid: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32)) -> G2PResult:
     """G2P of one particle, any model: gather v and C, F_E <- (I + dt C) F_E, return mapping (eq. 5), Kirchhoff
-    stress of the new state (eq. 4), advection, guards; stores x, F_E and the model's state (rotation q of
-    fixed-corotated, plastic strain alpha of von Mises / foam).  Velocity and C are returned, not stored."""
+    stress of the new state (eq. 4), advection, guards, :func:`local_damping`; stores x, F_E and the model's state
+    (rotation q of fixed-corotated, plastic strain alpha of von Mises / foam).  Velocity and C are returned, stored
+    only for a damped particle's velocity."""
     r = g2p_begin(p, ps, gi, sp, grid, flags)
     mu = mats.par[mid, C_MU]
     lam = mats.par[mid, C_LAMBDA]
@@ -621,7 +650,7 @@ def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable,
         r.alpha = pr.alpha
         ps.alpha[p] = r.alpha
     g2p_end(r, p, ps, sp, flags)
-    return r
+    return local_damping(r, p, mid, ps, mats)
 
 
 @wp.func
@@ -631,7 +660,7 @@ def g2p_update_fc(p: int, mid: int, ps: Particles, mats: MaterialTable, gi: Grid
     r = corotated_update(g2p_begin(p, ps, gi, sp, grid, flags), p, ps, sp, mats.par[mid, C_MU],
                          mats.par[mid, C_LAMBDA])
     g2p_end(r, p, ps, sp, flags)
-    return r
+    return local_damping(r, p, mid, ps, mats)
 
 
 @wp.func
@@ -950,26 +979,35 @@ def k_tracer_g2p(gi: GridInfo, grid: wp.array3d(dtype=wp.vec4), dt: float, tx: w
     p = wp.tid()
     s = point_stencil(tx[p], gi, flags, substep, p)
     b = s.base
-    f = s.f
-    v = wp.vec3(0.0)
-    B = wp.mat33(0.0)
-    dbar = wp.vec3(0.0)
-    wsum = float(0.0)
+    # separable sums over the massive nodes, lanes (v, 1): acc = sum w (v_i, 1), s_c = sum w o_c (v_i, 1) with o the
+    # node offset (0, 1, 2) along axis c (as in :func:`gather_apic`)
+    acc = wp.vec4(0.0)
+    s0 = wp.vec4(0.0)
+    s1 = wp.vec4(0.0)
+    s2 = wp.vec4(0.0)
     for i in range(3):
         for j in range(3):
+            wij = s.wx[i] * s.wy[j]
+            row = wp.vec4(0.0)
             for k in range(3):
                 n = grid[b[0] + i, b[1] + j, b[2] + k]
                 if n[3] > 0.0:
-                    w = stencil_weight(s, i, j, k)
-                    gv = wp.vec3(n[0], n[1], n[2])
-                    d = wp.vec3(float(i) - f[0], float(j) - f[1], float(k) - f[2])
-                    v = v + w * gv
-                    B = B + w * wp.outer(gv, d)
-                    dbar = dbar + w * d
-                    wsum += w
+                    wn = (wij * s.wz[k]) * wp.vec4(n[0], n[1], n[2], 1.0)
+                    row = row + wn
+                    s2 = s2 + float(k) * wn
+            acc = acc + row
+            s0 = s0 + float(i) * row
+            s1 = s1 + float(j) * row
+    wsum = acc[3]
     if wsum > 1.0e-6:
-        v = v / wsum
-        # normalised MLS velocity gradient: 4/dx sum w (v_i - v) d^T / W  (= 4/dx sum w v_i d^T for a full stencil)
-        Cm = (4.0 * gi.inv_dx / wsum) * (B - wp.outer(v, dbar))
+        v = wp.vec3(acc[0], acc[1], acc[2]) / wsum
+        # normalised MLS velocity gradient 4/dx sum w (v_i - v) d^T / W, d = o - f the node offset from the point:
+        # column c is 4/dx (s_c.xyz - v s_c.w) / W (the f terms cancel; = 4/dx sum w v_i d^T for a full stencil)
+        c = 4.0 * gi.inv_dx / wsum
+        Cm = wp.mat33(
+            c * (s0[0] - v[0] * s0[3]), c * (s1[0] - v[0] * s1[3]), c * (s2[0] - v[0] * s2[3]),
+            c * (s0[1] - v[1] * s0[3]), c * (s1[1] - v[1] * s1[3]), c * (s2[1] - v[1] * s2[3]),
+            c * (s0[2] - v[2] * s0[3]), c * (s1[2] - v[2] * s1[3]), c * (s2[2] - v[2] * s2[3]),
+        )
         tx[p] = tx[p] + dt * v
         tF[p] = (wp.identity(n=3, dtype=float) + dt * Cm) @ tF[p]

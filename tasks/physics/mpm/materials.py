@@ -68,7 +68,8 @@ COL_GAMMA = 7  # Tait exponent (fluid)
 COL_CRUSH = 8  # foam volumetric crush strain (>= 0)
 COL_PHYSICAL_DENSITY = 9  # physical (unscaled) density, kg/m^3: the weight m_phys g the particle feels
 COL_DILATION = 10  # foam volumetric dilation (tear) strain (>= 0)
-N_COLS = 11
+COL_DAMPING = 11  # local damping coefficient in [0, 1) (quasi-static damping of mass-scaled solids; 0 = none)
+N_COLS = 12
 
 
 class MaterialError(ValueError):
@@ -229,17 +230,19 @@ def canonical_model(model: str | int) -> str:
 
 
 def pack_table(materials: Sequence[Material], stiffness_scale: float = 1.0,
-               mass_scale: float | Sequence[float] = 1.0) -> tuple[np.ndarray, np.ndarray]:
+               mass_scale: float | Sequence[float] = 1.0,
+               damping: float | Sequence[float] = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Pack materials into ``(models int32 [M], params float32 [M, N_COLS])`` for the kernels.
 
     ``stiffness_scale`` multiplies E (hence mu, lambda) and K; ``mass_scale`` (one factor, or one per material)
     multiplies the density of column ``COL_DENSITY`` (the inertia); ``COL_PHYSICAL_DENSITY`` keeps the physical
     density (the weight).  Yield stress and hardening are not scaled (stiffness scaling of a plastic material
-    changes its yield strain).
+    changes its yield strain).  ``damping`` (one coefficient, or one per material) fills ``COL_DAMPING``.
     """
     if len(materials) == 0:
         raise MaterialError("at least one material is needed")
     scales = np.broadcast_to(np.asarray(mass_scale, np.float64), (len(materials),))
+    damp = np.broadcast_to(np.asarray(damping, np.float64), (len(materials),))
     models = np.zeros(len(materials), dtype=np.int32)
     params = np.zeros((len(materials), N_COLS), dtype=np.float32)
     for i, (m, s) in enumerate(zip(materials, scales.tolist())):
@@ -256,6 +259,7 @@ def pack_table(materials: Sequence[Material], stiffness_scale: float = 1.0,
         params[i, COL_GAMMA] = m.fluid_gamma
         params[i, COL_CRUSH] = m.crush_strain
         params[i, COL_DILATION] = m.dilation_strain
+        params[i, COL_DAMPING] = damp[i]
     return models, params
 
 

@@ -39,7 +39,16 @@ import warp as wp
 from conf.mpm_schema import MPMConfig, mpm_config_from
 
 from . import kernels as K
-from .materials import COL_DENSITY, COL_PHYSICAL_DENSITY, MODEL_CODES, N_COLS, PLASTIC_MODELS, Material, pack_table
+from .materials import (
+    COL_DAMPING,
+    COL_DENSITY,
+    COL_PHYSICAL_DENSITY,
+    MODEL_CODES,
+    N_COLS,
+    PLASTIC_MODELS,
+    Material,
+    pack_table,
+)
 
 FIXED_COROTATED = MODEL_CODES["fixed_corotated"]
 # Loaded frames at the start of every contact that the quasi-static check skips: where a finger first touches, the
@@ -156,6 +165,7 @@ class FrameStats:
     quasi_static_checked: bool = False  # the quasi-static check applied to this frame (see MPMSolver)
     ke_ie_contact: float = math.nan  # checked frames: sum KE / sum IE of the measured materials over the contact
     energy_growth: float = 0.0  # energy guard measure: unexplained energy growth / energy scale (EnergyBudget)
+    local_damping: float = 0.0  # local damping coefficient of the measured materials during the frame (class doc)
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -337,6 +347,19 @@ class MPMSolver:
     dynamic response does not.  When it exceeds ``config.quasi_static_ke_ie_max`` the solver warns once, in one
     line naming object, frame, time and knobs.
 
+    Quasi-static damping (``config.quasi_static_damping`` = a, 0 = off): mass scaling slows a scaled body's
+    vibration modes by sqrt(s) to periods of a few output frames, so a body pushed by a force (or loaded next to a
+    finger) rings instead of following its load.  As in explicit quasi-static analyses by dynamic relaxation (FLAC's
+    and PFC's local damping, Cundall 1987), the materials the quasi-static check measures get local non-viscous
+    damping (:func:`tasks.physics.mpm.kernels.local_damping`: the net force on a particle becomes F - a |F| sign(v),
+    per component) in every frame the caller declares quasi-static (``step_frame(quasi_static=True)``) of a
+    mass-scaled run.  It removes a fixed fraction of the vibration energy per cycle at any frequency and vanishes at
+    equilibrium (a block pushed by a constant force settles on its static compression).  It is not a cure for a
+    load that rises as fast as the scaled body's slowest mode (measured in the squeezes: the response then lags, see
+    ``conf/mpm/default.yaml``): there only less mass scaling helps.  Released material, fluids and every frame after
+    a rupture (``quasi_static=False``) keep their inertia undamped; an unscaled run is never damped.
+    ``FrameStats.local_damping`` is the coefficient a the measured materials had in the frame.
+
     Energy guard (``config.energy_guard_tolerance``): after every frame the total energy E = kinetic + internal +
     gravitational (-m_phys g . x) is compared with its value at the reference frame (construction, or the end of the
     first frame after a state setter) plus the work the boundary put in since (per frame, the positive part of the
@@ -387,6 +410,7 @@ class MPMSolver:
         self._warned_quasi_static = False
         self._loaded_frames = 0  # consecutive frames in which the boundary loaded the material (quasi-static check)
         self._contact_energy = [0.0, 0.0]  # J: sum of KE and IE of the measured materials over the checked frames
+        self._damping = np.zeros(len(self.materials))  # local damping coefficient per material (quasi-static damping)
         present = sorted(set(int(i) for i in np.unique(mid)))
         self._present = present
         codes_present = {self.materials[i].code for i in present}
@@ -522,7 +546,8 @@ class MPMSolver:
     def _upload_materials(self) -> None:
         """Material table with the per-material mass scales, wave speeds, and where gravity acts: uniform scale s
         among the materials present -> the grid adds g / s (``self.gravity``); mixed -> the P2G adds dt m_phys g."""
-        models, params = pack_table(self.materials, self.stiffness_scale, self.material_mass_scale)
+        models, params = pack_table(self.materials, self.stiffness_scale, self.material_mass_scale, self._damping)
+        self._mat_params = params
         self.mat_model.assign(models)
         self.mat_par.assign(params)
         present = self._present
@@ -892,6 +917,7 @@ class MPMSolver:
             raise ValueError("frame_dt must be > 0")
         wall0 = time.perf_counter()
         self._resolve_auto_mass_scale(frame_dt)
+        self._set_damping(quasi_static)
         cfg = self.cfg
         d = self.device
         bc_fn = dirichlet if callable(dirichlet) else None
@@ -999,6 +1025,17 @@ class MPMSolver:
         self.last_stats = stats
         return stats
 
+    def _set_damping(self, quasi_static: bool) -> None:
+        """The frame's local damping coefficients (class doc, quasi-static damping): ``quasi_static_damping`` on the
+        measured materials of a mass-scaled run in a quasi-static frame, else none."""
+        a = float(self.cfg.quasi_static_damping)
+        on = quasi_static and self.mass_scale > 1.0 and a > 0.0
+        rates = np.where(self._quasi_static_materials(), a, 0.0) if on else np.zeros(len(self.materials))
+        if not np.array_equal(rates, self._damping):
+            self._damping = rates
+            self._mat_params[:, COL_DAMPING] = rates
+            self.mat_par.assign(self._mat_params)
+
     def _read_box(self) -> tuple[np.ndarray, np.ndarray]:
         """Node box [lo, hi] (inclusive) touched by the last P2G (stencil bases + 2), clamped to the grid."""
         b = (self._bbox_np if self._cpu else self.bbox.numpy()).tolist()
@@ -1017,6 +1054,7 @@ class MPMSolver:
         work = float(self.boundary_work.numpy()[0])
         measured = self._quasi_static_materials()
         ke_s, ie_s = float(per[measured, 0].sum()), float(per[measured, 1].sum())
+        local_damping = float(self._damping[measured].max(initial=0.0))
         ratio = ke_s / ie_s if ie_s > 1e-30 else (math.inf if ke_s > 0 else 0.0)
         reaction = self.finger_react.numpy().astype(np.float64) / frame_dt
         applied = self.finger_applied.numpy().astype(np.float64) / frame_dt
@@ -1053,7 +1091,7 @@ class MPMSolver:
             reaction=reaction, applied_force=applied,
             mass_scale=self.mass_scale, stiffness_scale=self.stiffness_scale, quasi_static_ok=qs_ok,
             wall_seconds=time.perf_counter() - wall0, gravitational_energy=float(per[:, 2].sum()),
-            boundary_work=work, quasi_static_checked=checked, ke_ie_contact=process,
+            boundary_work=work, quasi_static_checked=checked, ke_ie_contact=process, local_damping=local_damping,
         )
 
     def _quasi_static_materials(self) -> np.ndarray:
