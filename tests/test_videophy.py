@@ -1,0 +1,141 @@
+"""VideoPhy-2's physical-commonsense rater (our mPLUG-Owl-Video): a tiny randomly initialised stand-in saved in the
+release folder layout (``config.json``, safetensors weights, tokenizer files from an in-memory ``tokenizers``
+tokenizer) and loaded strictly through :func:`load_videophy`.  Random weights say nothing about physics: only shapes,
+determinism, loading, key names and the recipe's arithmetic (frame choice, prompt, parse) are tested."""
+from __future__ import annotations
+
+import json
+import re
+
+import numpy as np
+import pytest
+import torch
+
+from tasks.evaluation.videophy import (
+    PROMPT_PHYSICS,
+    MplugOwlVideo,
+    OwlConfig,
+    frame_indices,
+    load_videophy,
+    parse_rating,
+    video_pixels,
+)
+
+QUERIES = 4
+SPECIAL = ["<unk>", "<s>", "</s>"]
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    torch.set_num_threads(1)
+
+
+def _tokenizer():
+    from tokenizers import Tokenizer, decoders, models, pre_tokenizers
+    from transformers import PreTrainedTokenizerFast
+
+    words = sorted(set(re.findall(r"\w+|[^\w\s]", PROMPT_PHYSICS.replace("<|video|>", ""))) | set("012345"))
+    vocab = {w: i for i, w in enumerate(SPECIAL + words)}
+    tok = Tokenizer(models.WordLevel(vocab, unk_token="<unk>"))
+    tok.pre_tokenizer = pre_tokenizers.Whitespace()
+    tok.decoder = decoders.WordPiece()
+    return PreTrainedTokenizerFast(tokenizer_object=tok, unk_token="<unk>", bos_token="<s>", eos_token="</s>",
+                                   pad_token="<unk>")
+
+
+def _config(vocab: int) -> dict:
+    return {"model_type": "mplug-owl", "num_query_tokens": QUERIES,
+            "vision_config": {"hidden_size": 32, "intermediate_size": 64, "num_hidden_layers": 2,
+                              "num_attention_heads": 2, "image_size": 28, "patch_size": 14, "layer_norm_eps": 1e-6},
+            "visual_abstractor_config": {"hidden_size": 32, "intermediate_size": 64, "num_hidden_layers": 2,
+                                         "num_attention_heads": 2, "encoder_hidden_size": 32, "layer_norm_eps": 1e-6},
+            "text_config": {"model_type": "llama", "vocab_size": vocab, "hidden_size": 32, "intermediate_size": 64,
+                            "num_hidden_layers": 2, "num_attention_heads": 2, "num_key_value_heads": 2,
+                            "max_position_embeddings": 256, "bos_token_id": 1, "eos_token_id": 2,
+                            "pad_token_id": 0}}
+
+
+def _release(tmp_path, seed: int = 0):
+    """A tiny rater saved like the release folder; returns (folder, the network that was saved)."""
+    from safetensors.torch import save_file
+
+    tok = _tokenizer()
+    cfg = _config(len(tok))
+    torch.manual_seed(seed)
+    net = MplugOwlVideo(OwlConfig.from_json(cfg))
+    for p in net.parameters():  # the zero-initialised queries, eos and positions too
+        torch.nn.init.normal_(p, std=0.5)
+    folder = tmp_path / "videophy_2_autoeval"
+    folder.mkdir()
+    (folder / "config.json").write_text(json.dumps(cfg))
+    save_file({k: v.contiguous().clone() for k, v in net.state_dict().items()}, folder / "model.safetensors")
+    tok.save_pretrained(folder)
+    return folder, net
+
+
+def _video(frames: int = 40, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, (frames, 48, 64, 3), dtype=np.uint8)
+
+
+def test_release_names_match_the_published_module_tree(tmp_path):
+    folder, net = _release(tmp_path)
+    keys = set(net.state_dict())
+    for key in ("vision_model.embeddings.cls_token", "vision_model.embeddings.patch_embed.weight",
+                "vision_model.embeddings.position_embedding", "vision_model.embeddings.pre_layernorm.weight",
+                "vision_model.encoder.layers.1.temporal.conv.weight", "vision_model.encoder.layers.0.temporal.ln.bias",
+                "vision_model.encoder.layers.0.self_attn.query_key_value.weight",
+                "vision_model.encoder.layers.0.mlp.fc2.bias", "vision_model.post_layernorm.weight",
+                "query_tokens", "temporal_query_tokens",
+                "abstractor.encoder.layers.1.crossattention.attention.key.weight",
+                "abstractor.encoder.layers.0.crossattention.output.mlp.ffn_ln.weight",
+                "abstractor.encoder.layers.0.crossattention.normk.bias", "abstractor.temporal_visual_fc.weight",
+                "abstractor.vit_eos", "language_model.model.layers.1.self_attn.q_proj.weight",
+                "language_model.lm_head.weight"):
+        assert key in keys, key
+    assert "vision_model.embeddings.patch_embed.bias" not in keys  # the released patch convolution has no bias
+    # the released SwiGLU width: 2/3 of intermediate_size rounded up to a multiple of 256
+    assert net.abstractor.encoder.layers[0].crossattention.output.mlp.w1.weight.shape == (256, 32)
+
+
+def test_loads_strictly_round_trip_and_rejects_a_renamed_key(tmp_path):
+    from safetensors.torch import load_file, save_file
+
+    folder, net = _release(tmp_path)
+    rater = load_videophy(folder, frames=4)
+    loaded = rater.net.state_dict()
+    assert loaded.keys() == net.state_dict().keys()
+    assert all(torch.equal(loaded[k], v) for k, v in net.state_dict().items())
+    state = load_file(folder / "model.safetensors")
+    state["abstractor.vit_eos_renamed"] = state.pop("abstractor.vit_eos")
+    save_file(state, folder / "model.safetensors")
+    with pytest.raises(RuntimeError, match="abstractor.vit_eos"):
+        load_videophy(folder, frames=4)
+
+
+def test_rating_shapes_determinism_and_range(tmp_path):
+    folder, _ = _release(tmp_path)
+    rater = load_videophy(folder, frames=4)
+    ids = rater.prompt_ids()
+    assert ids[0] == rater.tokenizer.bos_token_id and ids.count(-2) == QUERIES + 1
+    pixels = video_pixels(_video(), 4, 28)
+    assert pixels.shape == (1, 3, 4, 28, 28)
+    with torch.inference_mode():
+        assert rater.net.video_embeddings(pixels).shape == (1, QUERIES + 1, 32)
+        assert rater.net.prompt_embeddings(ids, pixels).shape == (1, len(ids), 32)
+    first, second = rater.rate(_video()), rater.rate(_video())
+    assert first == second
+    assert 0 <= first[0] <= 5 and isinstance(first[1], str)
+    # the video matters: another video changes the language model's input
+    with torch.inference_mode():
+        other = rater.net.video_embeddings(video_pixels(_video(seed=1), 4, 28))
+        assert not torch.allclose(other, rater.net.video_embeddings(pixels))
+
+
+def test_recipe_arithmetic():
+    assert frame_indices(64, 32).tolist() == [int(63 / 64) + int(np.round(63 / 32 * i)) for i in range(32)]
+    assert frame_indices(33, 4).tolist() == [4, 12, 20, 28]
+    assert parse_rating("4") == 4 and parse_rating(" Five.") == 5 and parse_rating("no idea") == 0
+    assert parse_rating("score: 3/5") == 3  # VideoPhy-2's parser takes the first listed match ("3" before "5")
+    px = video_pixels(np.full((3, 10, 10, 3), 255, np.uint8), 2, 14)
+    assert torch.allclose(px[0, :, 0, 0, 0], (1 - torch.tensor([0.48145466, 0.4578275, 0.40821073]))
+                          / torch.tensor([0.26862954, 0.26130258, 0.27577711]), atol=1e-5)
