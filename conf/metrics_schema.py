@@ -68,13 +68,15 @@ class PaperMetricsConfig:
     downloaded (:mod:`tasks.evaluation.paper_metrics`).
 
     musiq_weights: path of MUSIQ's SPAQ checkpoint ``musiq_spaq_ckpt-358bb6af.pth`` (VBench imaging quality);
-    amt_weights: path of AMT-S's checkpoint ``amt-s.pth`` (VBench motion smoothness); unset (the default) = not
-    computed, at no cost.  views: the views scored, ``all`` (their mean) or ``view0``.
+    amt_weights: path of AMT-S's checkpoint ``amt-s.pth`` (VBench motion smoothness);
+    videophy_weights: folder of VideoPhy-2's rater ``videophy_2_auto`` (config.json, weights, tokenizer files;
+    physical commonsense); unset (the default) = not computed, at no cost.  views: the views scored, ``all`` (their mean) or ``view0``.
     weights_digest: set by the pre-flight check: content digest of the present weight files (cache key).
     """
 
     musiq_weights: Optional[str] = None
     amt_weights: Optional[str] = None
+    videophy_weights: Optional[str] = None
     views: str = "all"
     weights_digest: Optional[str] = None
 

@@ -167,7 +167,7 @@ def preflight(cfg: DictConfig) -> None:
             raise SystemExit(f"input error: generation.weights: {missing_weights_message(missing)}")
         cfg.generation.weights_digest = digest_of(weights_identity(weights))
     # 7. the paper metrics' weight files
-    if cfg.paper_metrics.musiq_weights or cfg.paper_metrics.amt_weights:
+    if cfg.paper_metrics.musiq_weights or cfg.paper_metrics.amt_weights or cfg.paper_metrics.videophy_weights:
         from tasks.core.artifacts import digest_of
         from tasks.evaluation.paper_weights import weights_identity
 

@@ -16,7 +16,6 @@ from tasks.core.artifacts import Array, write_artifact
 from tasks.evaluation.amt import AMT, AmtConfig, amt_midpoint, load_amt
 from tasks.evaluation.musiq import MUSIQ, MusiqConfig, load_musiq, musiq_frame_scores
 from tasks.evaluation.paper_metrics import paper_metrics, paper_metrics_step
-from tasks.evaluation.paper_weights import PHYSICAL_COMMONSENSE_REASON
 from tasks.evaluation.video_quality import vfi_smoothness
 from tasks.reporting.video_tables import PAPER_COLUMNS, paper_metric_reasons, table1
 
@@ -118,8 +117,10 @@ def test_absent_weights_give_the_report_line_naming_what_to_fetch_and_where(tmp_
     assert reasons["motion_smoothness_amt"] == (
         f"not computed: weights not present (no file at {tmp_path}/nowhere/amt-s.pth, named by "
         f"paper_metrics.amt_weights; download amt-s.pth from {AMT_URL} to that path)")
-    assert reasons["physical_commonsense"] == PHYSICAL_COMMONSENSE_REASON
-    assert "transformers 5.24 has no mPLUG-Owl architecture" in PHYSICAL_COMMONSENSE_REASON
+    assert reasons["physical_commonsense"] == (
+        "not computed: weights not present (paper_metrics.videophy_weights is not set; download videophy_2_auto from "
+        "https://huggingface.co/videophysics/videophy_2_auto and run with "
+        "paper_metrics.videophy_weights=/path/to/videophy_2_auto)")
     # a run that named no weight file has no paper_metrics artifact: the report gives the "not set" lines
     lines = paper_metric_reasons({})
     assert lines["VBench imaging quality (MUSIQ, SPAQ)"] == reasons["imaging_quality_musiq"]
@@ -151,7 +152,7 @@ def test_the_step_scores_the_final_video_with_the_tiny_stand_ins_and_the_report_
     import pandas as pd
 
     df = pd.DataFrame([{"object": "o", "variant": "full", "backend": "physics",
-                        **{k: metrics[k] for k, _, _ in PAPER_COLUMNS}}])
+                        **{k: (math.nan if metrics[k] is None else metrics[k]) for k, _, _ in PAPER_COLUMNS}}])
     header, rows, _ = table1(df, {"full": "Full"}, {})
     assert rows[0][header.index("VBench imaging quality (MUSIQ, SPAQ)")] == f"{metrics['imaging_quality_musiq']:.3f}"
 

@@ -101,7 +101,7 @@ def test_loads_strictly_round_trip_and_rejects_a_renamed_key(tmp_path):
     from safetensors.torch import load_file, save_file
 
     folder, net = _release(tmp_path)
-    rater = load_videophy(folder, frames=4)
+    rater = load_videophy(folder, frames=4, dtype=torch.float32)
     loaded = rater.net.state_dict()
     assert loaded.keys() == net.state_dict().keys()
     assert all(torch.equal(loaded[k], v) for k, v in net.state_dict().items())
@@ -109,15 +109,16 @@ def test_loads_strictly_round_trip_and_rejects_a_renamed_key(tmp_path):
     state["abstractor.vit_eos_renamed"] = state.pop("abstractor.vit_eos")
     save_file(state, folder / "model.safetensors")
     with pytest.raises(RuntimeError, match="abstractor.vit_eos"):
-        load_videophy(folder, frames=4)
+        load_videophy(folder, frames=4, dtype=torch.float32)
 
 
 def test_rating_shapes_determinism_and_range(tmp_path):
     folder, _ = _release(tmp_path)
-    rater = load_videophy(folder, frames=4)
+    rater = load_videophy(folder, frames=4)  # bfloat16, as VideoPhy-2 runs it
+    assert rater.net.language_model.lm_head.weight.dtype == torch.bfloat16
     ids = rater.prompt_ids()
     assert ids[0] == rater.tokenizer.bos_token_id and ids.count(-2) == QUERIES + 1
-    pixels = video_pixels(_video(), 4, 28)
+    pixels = video_pixels(_video(), 4, 28).bfloat16()
     assert pixels.shape == (1, 3, 4, 28, 28)
     with torch.inference_mode():
         assert rater.net.video_embeddings(pixels).shape == (1, QUERIES + 1, 32)
@@ -127,7 +128,7 @@ def test_rating_shapes_determinism_and_range(tmp_path):
     assert 0 <= first[0] <= 5 and isinstance(first[1], str)
     # the video matters: another video changes the language model's input
     with torch.inference_mode():
-        other = rater.net.video_embeddings(video_pixels(_video(seed=1), 4, 28))
+        other = rater.net.video_embeddings(video_pixels(_video(seed=1), 4, 28).bfloat16())
         assert not torch.allclose(other, rater.net.video_embeddings(pixels))
 
 

@@ -1,11 +1,11 @@
 """The paper's own video metrics of one object, variant and effect backend, where their weights are present (paper
 sec. 4.1, Table 1): VBench imaging quality (MUSIQ, SPAQ weights; :mod:`tasks.evaluation.musiq`) and VBench motion
 smoothness (AMT-S; :mod:`tasks.evaluation.amt` with the protocol of
-:func:`tasks.evaluation.video_quality.vfi_smoothness`), by VBench's recipes, on the final video of each scored view
+:func:`tasks.evaluation.video_quality.vfi_smoothness`), by VBench's recipes, and VideoPhy-2 physical commonsense
+(:mod:`tasks.evaluation.videophy`, VideoPhy-2's recipe), on the final video of each scored view
 (``paper_metrics.views``), mean over the views.  The checkpoints are read from the files named in ``paper_metrics``
 (:mod:`tasks.evaluation.paper_weights`); a metric whose file is absent is NaN with the report's "not computed:
-weights not present (...)" line, and costs nothing.  VideoPhy-2 physical commonsense is never computed (reason in
-:data:`tasks.evaluation.paper_weights.PHYSICAL_COMMONSENSE_REASON`).
+weights not present (...)" line, and costs nothing.
 """
 from __future__ import annotations
 
@@ -22,8 +22,9 @@ from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
 from tasks.evaluation.amt import amt_midpoint, load_amt
 from tasks.evaluation.musiq import load_musiq, musiq_frame_scores
-from tasks.evaluation.paper_weights import PAPER_WEIGHTS, PHYSICAL_COMMONSENSE_REASON, absent_reason, present_weights
+from tasks.evaluation.paper_weights import PAPER_WEIGHTS, absent_reason, present_weights
 from tasks.evaluation.video_quality import to_srgb_uint8, vfi_smoothness
+from tasks.evaluation.videophy import load_videophy
 from tasks.render.device import torch_device
 
 # AMT-S's 4-level correlation pyramid at 1/8 resolution needs >= 2 cells per side at its coarsest level (frames padded
@@ -38,23 +39,29 @@ DEFINITIONS: dict[str, str] = {
         "VBench motion smoothness (1, in [0, 1]): each odd frame predicted by AMT-S at t = 1/2 from its even "
         "neighbours (replicate padding to multiples of 16, uint8 by truncation), (255 - mean |odd - predicted|) / "
         "255 on uint8 RGB; mean over the scored views."),
-    "physical_commonsense": "VideoPhy-2 physical commonsense (VideoCon-Physics 1-5 score): not computed here.",
+    "physical_commonsense": (
+        "VideoPhy-2 physical commonsense (1-5, higher is better): the videophy_2_auto rater (mPLUG-Owl-Video 7B, "
+        "bfloat16) asked whether the video adheres to the physical laws, on 32 frames at the centres of equal segments "
+        "resized to 224 x 224 (CLIP normalisation), greedy answer parsed for its rating (0 when none); mean over "
+        "the scored views."),
 }
 
 
 @functools.cache
 def _network(kind: str, path: Path, size: int, mtime_ns: int):
-    """The loaded network of a checkpoint file (cached per file version within a process)."""
-    return (load_musiq if kind == "imaging_quality_musiq" else load_amt)(path)
+    """The loaded network of a checkpoint file or folder (cached per version within a process)."""
+    return {"imaging_quality_musiq": load_musiq, "motion_smoothness_amt": load_amt,
+            "physical_commonsense": load_videophy}[kind](path)
 
 
 def network(kind: str, path: Path):
-    """MUSIQ (``kind`` = imaging_quality_musiq) or AMT-S (motion_smoothness_amt) loaded strictly from ``path``;
-    RuntimeError naming the config key and file when it is not such a checkpoint."""
-    stat = path.stat()
+    """MUSIQ (``kind`` = imaging_quality_musiq), AMT-S (motion_smoothness_amt) or the VideoPhy-2 rater
+    (physical_commonsense, a folder) loaded strictly from ``path``; RuntimeError naming the config key and file when
+    it is not such a checkpoint."""
+    stat = (path / "config.json" if path.is_dir() else path).stat()
     try:
         return _network(kind, path, stat.st_size, stat.st_mtime_ns)
-    except (KeyError, RuntimeError, ValueError, OSError, pickle.UnpicklingError) as exc:
+    except (KeyError, RuntimeError, ValueError, OSError, ImportError, pickle.UnpicklingError) as exc:
         key = next(s.key for s in PAPER_WEIGHTS if s.metric == kind)
         raise RuntimeError(f"{key}: {path} is not a loadable {kind} checkpoint ({type(exc).__name__}: "
                            f"{str(exc).splitlines()[0][:200]}); download the file named in the report again") from None
@@ -65,8 +72,8 @@ def paper_metrics(final: np.ndarray, cfg: dict[str, Any]) -> tuple[dict[str, flo
     """The paper's metrics of one scene.  final: (view, frame, y, x, 3) uint8 sRGB or float linear RGB; cfg: the
     ``paper_metrics`` group.  Returns (values, reasons for NaN values, MUSIQ frame scores (view, frame) or None,
     seconds spent per metric)."""
-    values: dict[str, float] = {"physical_commonsense": math.nan}
-    reasons: dict[str, str] = {"physical_commonsense": PHYSICAL_COMMONSENSE_REASON}
+    values: dict[str, float] = {}
+    reasons: dict[str, str] = {}
     seconds: dict[str, float] = {}
     present = present_weights(cfg)
     views = range(final.shape[0]) if cfg["views"] == "all" else [0]
@@ -88,6 +95,8 @@ def paper_metrics(final: np.ndarray, cfg: dict[str, Any]) -> tuple[dict[str, flo
             video = to_srgb_uint8(final[v])
             if spec.metric == "imaging_quality_musiq":
                 scores.append(musiq_frame_scores(video, net))
+            elif spec.metric == "physical_commonsense":
+                scores.append(net.rate(video)[0])
             else:
                 scores.append(vfi_smoothness(video, functools.partial(amt_midpoint, net)))
             report_progress(i + 1, len(views), unit="view")
@@ -103,7 +112,8 @@ def paper_metrics(final: np.ndarray, cfg: dict[str, Any]) -> tuple[dict[str, flo
 @artifact_step("paper_metrics", inputs=("gbuffer", "effect"), reads=("paper_metrics", "render.device"),
                outputs=("musiq_frame_score?",))
 def paper_metrics_step(inputs, params):
-    """Table 1's VBench imaging quality and motion smoothness of one scene, or why they were not computed."""
+    """Table 1's VBench imaging quality and motion smoothness and VideoPhy-2 physical commonsense of one scene, or
+    why they were not computed."""
     torch_device(params["render.device"])  # thread count
     g, effect = inputs["gbuffer"], inputs["effect"]
     final = effect["frames"] if "frames" in effect else g["rgb"]

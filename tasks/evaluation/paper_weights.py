@@ -5,7 +5,8 @@ are absent (paper sec. 4.1, Table 1).  Nothing here downloads anything.
   release, the file VBench itself fetches), named by ``paper_metrics.musiq_weights``;
 * VBench motion smoothness: AMT-S, the file ``amt-s.pth`` (the AMT authors' release, VBench's ``amt_model``), named
   by ``paper_metrics.amt_weights``;
-* VideoPhy-2 physical commonsense (VideoCon-Physics): never computed here, :data:`PHYSICAL_COMMONSENSE_REASON`.
+* VideoPhy-2 physical commonsense: the release folder ``videophy_2_auto`` (``config.json``, weights, tokenizer
+  files; mPLUG-Owl-Video 7B, about 14 GB in bfloat16, :mod:`tasks.evaluation.videophy`), named by ``paper_metrics.videophy_weights``.
 """
 from __future__ import annotations
 
@@ -14,26 +15,31 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["PAPER_WEIGHTS", "PHYSICAL_COMMONSENSE_REASON", "PaperWeights", "absent_reason", "present_weights",
+__all__ = ["PAPER_WEIGHTS", "PaperWeights", "absent_reason", "present_weights",
            "weights_identity"]
 
 
 @dataclass(frozen=True)
 class PaperWeights:
-    """One downloadable checkpoint: the metric it enables, its config key, file name and where to get it."""
+    """One downloadable checkpoint: the metric it enables, its config key, file (or folder) name and where to get
+    it.  A folder checkpoint is present when its ``config.json`` is."""
 
     metric: str
     heading: str  # Table 1 column
-    key: str  # config path naming the local file
+    key: str  # config path naming the local file or folder
     file: str
     source: str
+    folder: bool = False
 
     def reason(self, path: str | None) -> str | None:
         """The report's "not computed" line when the file is not at ``path`` (None when it is there)."""
         if not path:
             return (f"not computed: weights not present ({self.key} is not set; download {self.file} from "
                     f"{self.source} and run with {self.key}=/path/to/{self.file})")
-        if not Path(path).expanduser().is_file():
+        if self.folder and not (Path(path).expanduser() / "config.json").is_file():
+            return (f"not computed: weights not present (no folder with a config.json at {path}, named by "
+                    f"{self.key}; download the {self.file} folder from {self.source} to that path)")
+        if not self.folder and not Path(path).expanduser().is_file():
             return (f"not computed: weights not present (no file at {path}, named by {self.key}; download "
                     f"{self.file} from {self.source} to that path)")
         return None
@@ -45,15 +51,13 @@ PAPER_WEIGHTS: tuple[PaperWeights, ...] = (
                  "https://github.com/chaofengc/IQA-PyTorch/releases/download/v0.1-weights/musiq_spaq_ckpt-358bb6af.pth"),
     PaperWeights("motion_smoothness_amt", "VBench motion smoothness (AMT-S)", "paper_metrics.amt_weights", "amt-s.pth",
                  "https://huggingface.co/lalala125/AMT/resolve/main/amt-s.pth"),
+    PaperWeights("physical_commonsense", "Physical commonsense (VideoPhy-2 / VideoCon-Physics)",
+                 "paper_metrics.videophy_weights", "videophy_2_auto",
+                 "https://huggingface.co/videophysics/videophy_2_auto", folder=True),
 )
 
-PHYSICAL_COMMONSENSE_REASON = (
-    "not computed: weights not present, and not loadable here with them: VideoPhy-2's physical-commonsense rater "
-    "(huggingface.co/videophysics/videophy2_autoeval, trained from VideoPhy-1's VideoCon-Physics, "
-    "videophysics/videocon_physics; 7B parameters, about 14 GB in bfloat16) is "
-    "mPLUG-Owl-Video 7B (LLaMA-7B + ViT-L/14 + visual abstractor), loaded by the custom mplug_owl_video code of "
-    "github.com/Hritikbansal/videophy; transformers 5.24 has no mPLUG-Owl architecture and no registry package "
-    "ships one")
+# a folder's files up to this size are digested by content; larger (weight shards) by name, size and mtime
+_CONTENT_DIGEST_BYTES = 64 << 20
 
 
 def _path(cfg: Mapping[str, Any], spec: PaperWeights) -> str | None:
@@ -70,8 +74,23 @@ def present_weights(cfg: Mapping[str, Any]) -> dict[str, Path]:
     return {s.metric: Path(_path(cfg, s)).expanduser() for s in PAPER_WEIGHTS if s.reason(_path(cfg, s)) is None}
 
 
-def weights_identity(cfg: Mapping[str, Any]) -> dict[str, str]:
-    """metric -> sha256 of the present checkpoint files (the pre-flight check records it in the cache key)."""
+def _identity(path: Path) -> str:
+    """sha256 of a checkpoint file; of a folder: of its files' names with their sha256 (small files) or size and
+    mtime (weight shards above 64 MiB, so that a 14 GB folder is not re-read on every run)."""
+    import hashlib
+
     from tasks.core.params import file_sha256
 
-    return {metric: file_sha256(path) for metric, path in present_weights(cfg).items()}
+    if path.is_file():
+        return file_sha256(path)
+    parts = []
+    for f in sorted(p for p in path.rglob("*") if p.is_file()):
+        st = f.stat()
+        parts.append(f"{f.relative_to(path)}:" + (file_sha256(f) if st.st_size <= _CONTENT_DIGEST_BYTES
+                                                  else f"{st.st_size}:{st.st_mtime_ns}"))
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()
+
+
+def weights_identity(cfg: Mapping[str, Any]) -> dict[str, str]:
+    """metric -> digest of the present checkpoints (the pre-flight check records it in the cache key)."""
+    return {metric: _identity(path) for metric, path in present_weights(cfg).items()}

@@ -21,7 +21,9 @@ language model is transformers' ``LlamaForCausalLM`` (attribute ``language_model
 VideoPhy-2's scoring recipe (``VIDEOPHY2/inference.py``, ``template.py``): 32 frames at the centres of equal segments
 of the video, resized to 224 x 224, CLIP-normalised; the physical-commonsense prompt (:data:`PROMPT_PHYSICS`) with a
 BOS token; greedy decoding; the answer is parsed for the first of "zero".."five", "0".."5" it contains (else 0), the
-1-5 rating (5 = full compliance with physical laws).  Weights are read in float32 on our device.
+1-5 rating (5 = full compliance with physical laws).  The release (huggingface.co/videophysics/videophy_2_auto:
+``config.json``, ``pytorch_model-0000?-of-00002.bin`` in bfloat16, ``tokenizer.model``) is run in bfloat16 like
+VideoPhy-2's inference, on the CPU.
 """
 from __future__ import annotations
 
@@ -351,7 +353,8 @@ class VideoPhyRater:
 
     def rate(self, video: np.ndarray) -> tuple[int, str]:
         """(1-5 rating, 0 when unparsable; the generated answer) of a (frame, y, x, 3) uint8 RGB video."""
-        pixels = video_pixels(video, self.frames, self.net.cfg.vision["image_size"])
+        dtype = self.net.query_tokens.dtype
+        pixels = video_pixels(video, self.frames, self.net.cfg.vision["image_size"]).to(dtype)
         with torch.inference_mode():
             embeds = self.net.prompt_embeddings(self.prompt_ids(), pixels)
             out = self.net.language_model.generate(
@@ -381,16 +384,24 @@ def _state_dict(folder: Path) -> dict[str, torch.Tensor]:
     return {k: v for k, v in state.items() if not k.endswith("rotary_emb.inv_freq")}
 
 
-def load_videophy(folder: str | Path, frames: int = 32) -> VideoPhyRater:
-    """The rater of a release folder (``config.json``, weights, tokenizer files), weights loaded with
-    ``strict=True`` in float32, in eval mode."""
-    from transformers import AutoTokenizer
+def _tokenizer(folder: Path):
+    """The folder's ``tokenizer.json`` when there is one, else its ``tokenizer.model`` read as VideoPhy-2 reads it
+    (``LlamaTokenizer``; converting the sentencepiece model needs the ``sentencepiece`` package)."""
+    from transformers import AutoTokenizer, LlamaTokenizer
 
+    if (folder / "tokenizer.json").is_file():
+        return AutoTokenizer.from_pretrained(folder)
+    return LlamaTokenizer.from_pretrained(folder)
+
+
+def load_videophy(folder: str | Path, frames: int = 32, dtype: torch.dtype = torch.bfloat16) -> VideoPhyRater:
+    """The rater of a release folder (``config.json``, weights, tokenizer files), weights loaded with
+    ``strict=True`` and cast to ``dtype``, in eval mode."""
     folder = Path(folder).expanduser()
     cfg = OwlConfig.from_json(json.loads((folder / "config.json").read_text()))
     net = MplugOwlVideo(cfg)
     state = _state_dict(folder)
     if "language_model.lm_head.weight" not in state and cfg.text.get("tie_word_embeddings"):
         state["language_model.lm_head.weight"] = state["language_model.model.embed_tokens.weight"]
-    net.load_state_dict({k: v.float() for k, v in state.items()}, strict=True)
-    return VideoPhyRater(net.eval(), AutoTokenizer.from_pretrained(folder), frames=frames)
+    net.load_state_dict(state, strict=True)
+    return VideoPhyRater(net.to(dtype).eval(), _tokenizer(folder), frames=frames)

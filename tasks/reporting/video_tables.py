@@ -3,8 +3,8 @@ objects and the average as columns), from the ``video_metrics`` artifacts of a r
 
 Methods are what ran: variant (``full``, ``no_dirichlet``) x effect backend (``physics``, ``diffusers``,
 ``text_only``).  The paper's own rows that need weights we cannot ship are listed as "n/a" with the reason; its
-VBench MUSIQ / AMT-S columns are filled where their weights were present (``paper_metrics``) and are "n/a" with the
-reason otherwise; its VideoCon-Physics and human columns are always "n/a" with the reason, never filled in.
+VBench MUSIQ / AMT-S and VideoPhy-2 physical-commonsense columns are filled where their weights were present
+(``paper_metrics``) and are "n/a" with the reason otherwise; its human column is always "n/a" with the reason.
 """
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ from typing import Any
 import pandas as pd
 
 from tasks.core.artifacts import ArtifactError, read_group_attrs
-from tasks.evaluation.paper_weights import PAPER_WEIGHTS, PHYSICAL_COMMONSENSE_REASON
+from tasks.evaluation.paper_weights import PAPER_WEIGHTS
 
 # (column, heading, higher is better)
 VIDEO_COLUMNS = (
@@ -35,7 +35,6 @@ VIDEO_COLUMNS = (
 PAPER_COLUMNS = tuple((spec.metric, spec.heading, True) for spec in PAPER_WEIGHTS)
 # the paper's metrics never computed in a run
 PAPER_ONLY = {
-    "Physical commonsense (VideoPhy-2 / VideoCon-Physics)": PHYSICAL_COMMONSENSE_REASON,
     "Human evaluation (1-5)": "not collected in this run (python -m flows.human_study builds the blinded kit)",
 }
 BACKEND_LABELS = {"physics": "physics-rendered effect", "diffusers": "diffusion effect",
