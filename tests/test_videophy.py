@@ -140,3 +140,85 @@ def test_recipe_arithmetic():
     px = video_pixels(np.full((3, 10, 10, 3), 255, np.uint8), 2, 14)
     assert torch.allclose(px[0, :, 0, 0, 0], (1 - torch.tensor([0.48145466, 0.4578275, 0.40821073]))
                           / torch.tensor([0.26862954, 0.26130258, 0.27577711]), atol=1e-5)
+
+
+def _sharded_release(tmp_path):
+    """The tiny rater in the published file layout: two bfloat16 ``pytorch_model-0000?-of-00002.bin`` shards."""
+    folder, net = _release(tmp_path)
+    (folder / "model.safetensors").unlink()
+    items = list(net.state_dict().items())
+    for i, part in enumerate((items[::2], items[1::2]), start=1):
+        torch.save({k: v.to(torch.bfloat16) for k, v in part}, folder / f"pytorch_model-0000{i}-of-00002.bin")
+    return folder, net
+
+
+def test_the_published_shard_layout_loads_in_bfloat16(tmp_path):
+    folder, net = _sharded_release(tmp_path)
+    loaded = load_videophy(folder, frames=4).net.state_dict()
+    assert all(torch.equal(loaded[k], v.to(torch.bfloat16)) for k, v in net.state_dict().items())
+
+
+def test_absent_or_broken_folder_gives_one_line_naming_the_key(tmp_path):
+    from tasks.evaluation.paper_metrics import paper_metrics
+
+    cfg = {"videophy_weights": str(tmp_path / "nowhere"), "views": "all"}
+    values, reasons, _, seconds = paper_metrics(_video()[None], cfg)
+    assert np.isnan(values["physical_commonsense"]) and seconds == {}
+    assert reasons["physical_commonsense"] == (
+        f"not computed: weights not present (no folder with a config.json at {tmp_path}/nowhere, named by "
+        "paper_metrics.videophy_weights; download the videophy_2_auto folder from "
+        "https://huggingface.co/videophysics/videophy_2_auto to that path)")
+    folder, _ = _release(tmp_path)
+    (folder / "model.safetensors").unlink()
+    with pytest.raises(RuntimeError) as err:
+        paper_metrics(_video()[None], {"videophy_weights": str(folder), "views": "all"})
+    assert str(err.value) == (f"paper_metrics.videophy_weights: {folder} is not a loadable physical_commonsense "
+                              f"checkpoint (FileNotFoundError: no *.safetensors or pytorch_model*.bin weights in "
+                              f"{folder}); download the file named in the report again")
+
+
+def test_the_step_rates_the_final_video_and_the_report_fills_the_column(tmp_path):
+    from tasks.core.artifacts import Array, read_artifact, write_artifact
+    from tasks.evaluation.paper_metrics import paper_metrics_step
+    from tasks.reporting.video_tables import PAPER_COLUMNS, paper_metric_reasons, table1
+
+    folder, _ = _sharded_release(tmp_path)
+    root = tmp_path / "artifacts"
+    g = write_artifact(root / "o/gbuffer/g.zarr", {"rgb": Array(_video(6)[None], ("view", "frame", "y", "x", "channel"),
+                                                                "1")}, step="gbuffer", scope="o", config_digest="g",
+                       root=root)
+    e = write_artifact(root / "o/effect/e.zarr", {}, step="effect", scope="o", config_digest="e", root=root)
+    params = {"paper_metrics": {"videophy_weights": str(folder), "views": "all", "weights_digest": None},
+              "render.device": "cpu"}
+    ref = paper_metrics_step.run_local(root=str(root), scope="o", params=params, inputs={"gbuffer": g, "effect": e})
+    attrs = read_artifact(ref).attrs
+    rating = attrs["metrics"]["physical_commonsense"]
+    assert rating in {0, 1, 2, 3, 4, 5} and "physical_commonsense" not in attrs["reasons"]
+    assert attrs["seconds"]["physical_commonsense"] > 0
+    refs = {"o": {"variants": {"full": {"backends": {"physics": {"paper_metrics": ref}}}}}}
+    assert "Physical commonsense (VideoPhy-2 / VideoCon-Physics)" not in paper_metric_reasons(refs)
+    import pandas as pd
+
+    df = pd.DataFrame([{"object": "o", "variant": "full", "backend": "physics",
+                        **{k: (np.nan if attrs["metrics"][k] is None else attrs["metrics"][k])
+                           for k, _, _ in PAPER_COLUMNS}}])
+    header, rows, _ = table1(df, {"full": "Full"}, {})
+    assert rows[0][header.index("Physical commonsense (VideoPhy-2 / VideoCon-Physics)")] == f"{rating:.3f}"
+
+
+def test_only_a_named_folder_runs_the_step_and_preflight_keys_it(tmp_path, compose_cfg):
+    from flows.pipeline import wanted
+    from flows.preflight import preflight
+    from tasks.evaluation.paper_metrics import paper_metrics_step
+
+    assert not wanted(paper_metrics_step, compose_cfg("squeeze", ["object=can"]))
+    folder, _ = _release(tmp_path)
+    cfg = compose_cfg("squeeze", ["object=can", f"paper_metrics.videophy_weights={folder}"])
+    assert wanted(paper_metrics_step, cfg)
+    preflight(cfg)
+    first = cfg.paper_metrics.weights_digest
+    config = json.loads((folder / "config.json").read_text())
+    (folder / "config.json").write_text(json.dumps({**config, "num_query_tokens": QUERIES}, indent=1))
+    cfg = compose_cfg("squeeze", ["object=can", f"paper_metrics.videophy_weights={folder}"])
+    preflight(cfg)
+    assert first and cfg.paper_metrics.weights_digest and cfg.paper_metrics.weights_digest != first
