@@ -334,12 +334,13 @@ def parse_rating(answer: str) -> int:
 
 @dataclass
 class VideoPhyRater:
-    """A loaded VideoPhy-2 rater: the network and its tokenizer."""
+    """A loaded VideoPhy-2 rater: the network and its tokenizer.  max_new_tokens: VideoPhy-2's ``max_length`` of 256,
+    which counts the generated tokens only when generation starts from embeddings."""
 
     net: MplugOwlVideo
     tokenizer: Any
     frames: int = 32
-    max_new_tokens: int = 8
+    max_new_tokens: int = 256
 
     def prompt_ids(self, prompt: str = PROMPT_PHYSICS) -> list[int]:
         """BOS, the prompt's tokens, the video as ``num_query_tokens + 1`` ids of -2 (mPLUG-Owl's video marker)."""
