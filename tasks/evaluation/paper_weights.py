@@ -6,7 +6,8 @@ are absent (paper sec. 4.1, Table 1).  Nothing here downloads anything.
 * VBench motion smoothness: AMT-S, the file ``amt-s.pth`` (the AMT authors' release, VBench's ``amt_model``), named
   by ``paper_metrics.amt_weights``;
 * VideoPhy-2 physical commonsense: the release folder ``videophy_2_auto`` (``config.json``, weights, tokenizer
-  files; mPLUG-Owl-Video 7B, about 14 GB in bfloat16, :mod:`tasks.evaluation.videophy`), named by ``paper_metrics.videophy_weights``.
+  files; mPLUG-Owl-Video 7B, about 14 GB in bfloat16, :mod:`tasks.evaluation.videophy`), named by
+  ``paper_metrics.videophy_weights``.
 """
 from __future__ import annotations
 
