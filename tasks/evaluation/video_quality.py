@@ -159,7 +159,7 @@ def to_srgb_uint8(video: np.ndarray) -> np.ndarray:
     return np.rint(to_srgb_unit(video) * np.float32(255.0)).astype(np.uint8)
 
 
-def _psnr_db(mse: float) -> float:
+def psnr_db(mse: float) -> float:
     """PSNR (dB) for data range 1; float('inf') when the mean squared error is 0 (identical pixels)."""
     return math.inf if mse == 0.0 else 10.0 * math.log10(1.0 / mse)
 
@@ -370,7 +370,7 @@ def masked_fidelity(final: np.ndarray, reference: np.ndarray, mask: np.ndarray) 
     difference = a - b
     mse = float(np.einsum("fyxc,fyxc->fyx", difference, difference)[outside].sum(dtype=np.float64) / (3 * count))
     ssim = float(masked_ssim_map(a, b, outside)[outside].mean())
-    return MaskedFidelity(psnr_db=_psnr_db(mse), ssim=ssim, outside_pixels=count)
+    return MaskedFidelity(psnr_db=psnr_db(mse), ssim=ssim, outside_pixels=count)
 
 
 @dataclass(frozen=True, eq=False)
@@ -454,11 +454,11 @@ def multiview_consistency(rendered: np.ndarray, target: np.ndarray, mask: np.nda
     with np.errstate(invalid="ignore", divide="ignore"):
         per_view_mae = per_view_ae / per_view_count
         per_view_mse = per_view_se / per_view_count
-    per_view_psnr = np.array([_psnr_db(m) if np.isfinite(m) else math.nan for m in per_view_mse])
+    per_view_psnr = np.array([psnr_db(m) if np.isfinite(m) else math.nan for m in per_view_mse])
     total = int(per_view_count.sum())
     if total == 0:
         return MultiviewConsistency(math.nan, math.nan, per_view_psnr, per_view_mae, 0)
-    return MultiviewConsistency(psnr_db=_psnr_db(float(per_view_se.sum() / total)),
+    return MultiviewConsistency(psnr_db=psnr_db(float(per_view_se.sum() / total)),
                                 mae=float(per_view_ae.sum() / total), per_view_psnr_db=per_view_psnr,
                                 per_view_mae=per_view_mae, compared_pixels=total // 3)
 

@@ -36,6 +36,9 @@ from typing import Any
 import cv2
 import numpy as np
 
+from tasks.evaluation.video_quality import psnr_db
+from tasks.reporting.report_tables import markdown_table
+
 STUDY_DIR = "render_convergence"   # under paths.reports: <run>/render_knobs.json and render_knobs.md
 STUDY_FILE = "render_knobs.json"
 SECTION_TITLE = "Render and effect knobs: error against run time (python -m flows.render_convergence)"
@@ -66,8 +69,7 @@ def image_errors(rgb: np.ndarray, reference: np.ndarray, region: np.ndarray | No
     diff = a - b if region is None else (a - b)[np.asarray(region, bool)]
     if diff.size == 0:
         return {"rgb_error": math.nan, "psnr_db": math.nan}
-    mse = float(np.mean(diff ** 2))
-    return {"rgb_error": float(np.mean(np.abs(diff))), "psnr_db": math.inf if mse == 0 else 10 * math.log10(1 / mse)}
+    return {"rgb_error": float(np.mean(np.abs(diff))), "psnr_db": psnr_db(float(np.mean(diff ** 2)))}
 
 
 def resized(rgb: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -113,17 +115,15 @@ def knob_tables(rows: Sequence[Mapping[str, Any]], current: Mapping[str, Any] | 
             continue
         extra = [c for c in own[0] if c not in ("knob", "setting", "seconds", "rgb_error", "psnr_db", "default",
                                                 "reference")]
-        md += [f"**{key}** ({compares}; time: the `{stage}` step)", "",
-               "| setting | time (s) | error: mean abs sRGB | PSNR (dB) | " + " | ".join(extra) + " |",
-               "|---|---|---|---|" + "---|" * len(extra)]
+        table = []
         for r in own:
             marks = [m for m, on in (("default", r["default"]), ("reference", r["reference"]),
                                      ("this run", current is not None and current.get(knob) == r["setting"]
                                       and not r["default"])) if on]
             label = f"{r['setting']}" + (f" ({', '.join(marks)})" if marks else "")
-            md.append(f"| {label} | {_fmt(r['seconds'])} | {_fmt(r['rgb_error'])} | {_fmt(r['psnr_db'])} | "
-                      + " | ".join(_fmt(r[c]) for c in extra) + " |")
-        md.append("")
+            table.append([label, *(_fmt(r[c]) for c in ("seconds", "rgb_error", "psnr_db", *extra))])
+        md += [f"**{key}** ({compares}; time: the `{stage}` step)", "",
+               markdown_table(["setting", "time (s)", "error: mean abs sRGB", "PSNR (dB)", *extra], table), ""]
     return "\n".join(md + [f"- {DIFFUSION_NOTE}"])
 
 
