@@ -5,6 +5,7 @@ otherwise the object's largest extent divided by ``cells_across``.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields
 from typing import Any, Mapping, Optional
 
@@ -68,6 +69,12 @@ class MPMConfig:
         mass_scale: the factor s of ``manual`` (>= 1, dimensionless).
         target_substeps_per_frame: N of ``global`` and ``selective``: substeps per output frame the elastic CFL
             of the scaled materials may need.
+        quasi_static_margin: k >= 0 (dimensionless, 0 = off): quasi-static bound of ``global`` / ``selective``
+            scaling: the scaled body's slowest mode (period T1(s) = sqrt(s) 4 H / c_s, H its height in m, c_s the
+            slowest physical shear-wave speed of its scaled solids in m/s) must be k times shorter than the rise time
+            t_load (s) of the fingers' load, so s <= (t_load / (k T1(1)))^2 (the rollout takes t_load from the
+            force coefficients); it costs sqrt(s_cfl / s) times the substeps where it binds (see
+            :func:`tasks.physics.mpm.solver.mass_scale_for`).
         quasi_static_damping: local damping coefficient a in [0, 1) (0 = off): dynamic relaxation of the materials the
             quasi-static check measures (mass-scaled solids, not released material or fluids), in the frames before
             a rupture: the net force on a particle becomes F - a |F| sign(v) (Cundall's local damping, as FLAC and
@@ -125,6 +132,7 @@ class MPMConfig:
     mass_scale: float = 1.0
     target_substeps_per_frame: int = 100
     quasi_static_ke_ie_max: float = 0.1
+    quasi_static_margin: float = 0.0
     quasi_static_damping: float = 0.0
     stiffness_scaling: float = 1.0
     j_min: float = 0.05
@@ -183,6 +191,8 @@ def validate_mpm_config(cfg: MPMConfig) -> MPMConfig:
         bad("mass_scale", f"must be >= 1 (got {cfg.mass_scale})")
     if not 0 <= cfg.quasi_static_damping < 1:
         bad("quasi_static_damping", f"must be in [0, 1) (0 = off; got {cfg.quasi_static_damping})")
+    if not 0 <= cfg.quasi_static_margin < math.inf:
+        bad("quasi_static_margin", f"must be a finite number >= 0 (0 = off; got {cfg.quasi_static_margin})")
     if cfg.target_substeps_per_frame < 1:
         bad("target_substeps_per_frame", "must be >= 1")
     if not cfg.stiffness_scaling > 0:

@@ -28,11 +28,12 @@ from tasks.physics.mpm import (
     SimulationError,
     deform_covariances,
     mass_scale_for,
+    material_mass_scales,
     polar_rotation,
 )
 from tasks.physics.mpm.constitutive import hencky_plastic_return, polar_rotation_quat, polar_track_quat
 from tasks.physics.mpm.kernels import stencil_at, stencil_weight
-from tasks.physics.mpm.solver import bspline_stencil
+from tasks.physics.mpm.solver import QuasiStaticLoad, bspline_stencil, lowest_period, quasi_static_bound
 
 DX = 0.005  # m
 
@@ -692,6 +693,102 @@ def test_mass_scale_for_closed_form_and_fluids_do_not_drive_it():
     assert mass_scale_for([JELLY], DX, 1 / 30, relaxed) == 1.0  # needs ~180 substeps: s is never below 1
     assert mass_scale_for([stiff], DX, None, mpm_config_from({"mass_scaling": "off"})) == 1.0
     assert mass_scale_for([stiff], DX, None, mpm_config_from({"mass_scaling": "manual", "mass_scale": 7.0})) == 7.0
+
+
+def test_quasi_static_bound_closed_form():
+    """s <= (t_load / (k T1(1)))^2 with T1(1) = 4 H / sqrt(mu / rho) of the softest solid; s = max(1, min(s_cfl,
+    s_qs)); off (inf) without a margin or a load; fluids do not set the period."""
+    stiff = Material(name="stiff", model="fixed_corotated", youngs_modulus=1e8, poisson_ratio=0.3, density=1000.0)
+    water = Material(name="water", model="fluid", density=1000.0, bulk_modulus=2.2e9)
+    H, t_load, k = 0.05, 0.2, 2.0
+    T1 = 4 * H / math.sqrt(JELLY.mu / JELLY.density)  # 0.0456 s: the jelly, 2000x softer, sets the slowest mode
+    assert lowest_period([stiff, JELLY, water], H) == pytest.approx(T1, rel=1e-12)
+    assert lowest_period([JELLY], H, mass_scale=9.0) == pytest.approx(3 * T1, rel=1e-12)  # T1(s) = sqrt(s) T1(1)
+    assert lowest_period([water], H) == math.inf
+    load = QuasiStaticLoad(rise_time=t_load, height=H)
+    cfg = mpm_config_from({"mass_scaling": "global", "target_substeps_per_frame": 20, "quasi_static_margin": k})
+    s_cfl = (stiff.p_wave_speed() * (1 / 30 / 20) / (0.3 * DX)) ** 2  # 3.2e4
+    s_qs = (t_load / (k * T1)) ** 2  # 4.8
+    assert quasi_static_bound([stiff, JELLY], cfg, load) == pytest.approx(s_qs, rel=1e-12)
+    assert mass_scale_for([stiff, JELLY], DX, 1 / 30, cfg, load) == pytest.approx(s_qs, rel=1e-12)
+    assert k * lowest_period([JELLY], H, mass_scale=s_qs) == pytest.approx(t_load, rel=1e-12)  # k T1(s) = t_load
+    assert mass_scale_for([stiff, JELLY], DX, 1 / 30, cfg) == pytest.approx(s_cfl, rel=1e-12)  # no load: no bound
+    off = mpm_config_from({"mass_scaling": "global", "target_substeps_per_frame": 20})
+    assert quasi_static_bound([JELLY], off, load) == math.inf
+    assert mass_scale_for([stiff, JELLY], DX, 1 / 30, off, load) == pytest.approx(s_cfl, rel=1e-12)
+    fast = QuasiStaticLoad(rise_time=0.01, height=H)  # s_qs = 0.012 < 1: never below 1
+    assert mass_scale_for([stiff, JELLY], DX, 1 / 30, cfg, fast) == 1.0
+    slow = QuasiStaticLoad(rise_time=100.0, height=H)  # s_qs > s_cfl: the CFL target decides
+    assert mass_scale_for([stiff, JELLY], DX, 1 / 30, cfg, slow) == pytest.approx(s_cfl, rel=1e-12)
+    sel = mpm_config_from({"mass_scaling": "selective", "target_substeps_per_frame": 20, "quasi_static_margin": k})
+    scales = material_mass_scales([stiff, JELLY, water], [stiff, JELLY, water], DX, 1 / 30, sel, load)
+    # each scaled material: its own CFL factor (stiff 3.2e4, jelly 83) capped by the body's bound; water: 1
+    np.testing.assert_allclose(scales, [s_qs, s_qs, 1.0], rtol=1e-12)
+    with pytest.raises(MPMConfigError, match=r"mpm.quasi_static_margin: must be a finite number >= 0 \(0 = off; "
+                                             r"got -1.0\)"):
+        mpm_config_from({"quasi_static_margin": -1.0})
+
+
+def test_lowest_period_of_a_slab_on_a_sticky_floor_matches_4H_over_c_s():
+    """The estimate T1 = 4 H / c_s is the shear fundamental of a layer held at its base (a quarter wave over H):
+    a slab 3x wider than tall, held by the sticky floor, started in that mode (v_x ~ sin(pi z / 2H)), swings with
+    the period :func:`lowest_period` gives, within 15 % (the sticky grid floor holds ~half a cell of the base)."""
+    H, W = 0.04, 0.12
+    X = lattice([0, 0, 0], [W, W / 4, H], DX / 2)
+    V = np.zeros_like(X)
+    V[:, 0] = 0.02 * np.sin(np.pi * X[:, 2] / (2 * H))
+    s = solver_for(X, (DX / 2) ** 3, JELLY, velocities=V, gravity=[0, 0, 0], floor_sticky=True, margin_cells=4)
+    T1 = lowest_period([JELLY], H)  # 0.036 s
+    top = X[:, 2] > 0.75 * H
+    t, u = [], []
+    for _ in range(60):  # 2.5 periods, 24 frames per period
+        s.step_frame(T1 / 24)
+        t.append(s.time)
+        u.append(s.positions()[top, 0].mean() - X[top, 0].mean())
+    t, u = np.array(t), np.array(u) - np.mean(u)
+    idx = np.flatnonzero(np.diff(np.sign(u)) != 0)
+    tz = t[idx] - u[idx] * (t[idx + 1] - t[idx]) / (u[idx + 1] - u[idx])
+    assert len(tz) >= 4
+    T_meas = 2 * np.mean(np.diff(tz))
+    assert abs(T_meas - T1) / T1 < 0.15, (T_meas, T1)
+
+
+def _pushed_cube(margin: float) -> tuple[list, list[str]]:
+    """A jelly cube (2 cm) on a sticky floor, left 3 frames under its weight, then pushed down on its top face by a force rising linearly to 1 N (5 %
+    strain) in 3 frames of 1/30 s and then held for 9 frames, under global mass scaling at 10 substeps per frame
+    (s = 330: the scaled cube's estimated slowest period 0.33 s, 10 frames) with ``mpm.quasi_static_margin``
+    ``margin``; returns the frame statistics and the warning lines."""
+    X, vol = cube(0.02)
+    fdt, ramp = 1 / 30, 3
+    s = MPMSolver(X, vol, JELLY, config=dict(device="cpu", dx=DX, mass_scaling="global", target_substeps_per_frame=10,
+                                             floor_sticky=True, quasi_static_margin=margin),
+                  label="cube", load=QuasiStaticLoad(rise_time=ramp * fdt, height=0.02))
+    top = X[X[:, 2] > X[:, 2].max() - 1e-9]
+    fid = np.zeros(len(top), int)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        stats = [s.step_frame(fdt) for _ in range(3)]  # start-up under the weight, before the push
+        for f in range(12):  # the force ramps within the frames too (a callable, evaluated every substep)
+            stats.append(s.step_frame(fdt, forces=lambda t, dt, t0=f * fdt: ForcePatch(
+                top, fid, np.array([[0.0, 0.0, -min((t0 + t) / (ramp * fdt), 1.0)]]))))
+    return stats, [str(w.message) for w in caught if issubclass(w.category, RuntimeWarning)]
+
+
+def test_force_driven_cube_is_quasi_static_with_the_bound_and_rings_without():
+    """The load rises in t_load = 0.1 s while the cube scaled for 10 substeps per frame swings with a period of
+    ~10 frames: it rings (KE/IE of the contact > 0.1, the check warns).  With the bound (k = 2: T1 <= t_load / 2) the
+    mass scale drops to (t_load / (2 T1(1)))^2 = 7.5 and the cube follows its load: KE/IE < 0.1, no warning, at
+    ~6.6x the substeps."""
+    ringing, lines = _pushed_cube(0.0)
+    assert ringing[0].mass_scale > 300 and len(lines) == 1 and "quasi-static check" in lines[0]
+    assert max(st.ke_ie_contact for st in ringing if st.quasi_static_checked) > 0.1
+    quiet, none = _pushed_cube(2.0)
+    T1 = lowest_period([JELLY], 0.02)
+    assert quiet[0].mass_scale == pytest.approx((0.1 / (2 * T1)) ** 2, rel=1e-9)
+    assert none == [] and all(st.quasi_static_ok for st in quiet)
+    assert max(st.ke_ie_contact for st in quiet if st.quasi_static_checked) < 0.1
+    cost = sum(st.substeps for st in quiet) / sum(st.substeps for st in ringing)
+    assert cost == pytest.approx(math.sqrt(ringing[0].mass_scale / quiet[0].mass_scale), rel=0.1)
 
 
 def test_mass_scaling_auto_caps_substeps_and_does_not_check_free_fall():

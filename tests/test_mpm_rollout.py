@@ -15,7 +15,13 @@ from tasks.physics.attachment import detached_summary, distance_from_body
 from tasks.physics.free_flight import free_flying, released_flight
 from tasks.physics.labels import CORE, INTERIOR, RUPTURED, SHELL
 from tasks.physics.material_oracle import material_oracle
-from tasks.physics.mpm_rollout import cauchy_free_measures, interior_plan, resistive_feedback
+from tasks.physics.mpm_rollout import (
+    _quasi_static_summary,
+    cauchy_free_measures,
+    interior_plan,
+    load_rise_time,
+    resistive_feedback,
+)
 from tasks.physics.regions import (
     CONTACT_CORE_PHI,
     finger_regions,
@@ -140,6 +146,30 @@ def test_resistive_feedback_is_yield_stress_times_area_or_the_contact_force():
     feedback, rule = resistive_feedback(ball, contact, patches, max_force=3.0)
     np.testing.assert_allclose(feedback, [[3.0, 2.0]])  # |contact| clipped at max_force
     assert rule.startswith("|contact force|")
+
+
+def test_load_rise_time_is_the_fastest_finger_ramp():
+    """t_load = min over the pushing fingers of peak / steepest rise: a linear ramp gives its duration (here 6 frames
+    of 1/30 s for the thumb, 12 for the index finger, whose slower push does not count); no push: None."""
+    c = np.zeros((30, 5))
+    c[5:12, 0] = np.linspace(0.0, 0.6, 7)  # 0 -> 0.6 in 6 frames, then held
+    c[12:, 0] = 0.6
+    c[5:18, 1] = np.linspace(0.0, 0.3, 13)
+    assert load_rise_time(c, 1 / 30) == pytest.approx(6 / 30)
+    assert load_rise_time(np.zeros((30, 5)), 1 / 30) is None
+
+
+def test_quasi_static_summary_is_none_when_no_frame_was_checked():
+    """An unchecked run (no mass scaling, or no loaded frame) has no KE/IE measure: None (JSON for NaN), never 0,
+    which would read as perfectly quasi-static."""
+    contact = np.zeros((6, 5, 3))
+    qs = _quasi_static_summary(np.full(6, np.nan), contact, 1.0, 0.1)
+    assert qs["max_ke_ie_in_contact"] is None and qs["median_ke_ie_in_contact"] is None
+    assert qs["frames_checked"] == 0 and qs["frames_over_limit"] == 0 and qs["frames_in_contact"] == 0
+    contact[3:, 0, 2] = 1.0
+    qs = _quasi_static_summary(np.array([np.nan] * 4 + [0.05, 0.3]), contact, 40.0, 0.1)
+    assert qs["max_ke_ie_in_contact"] == pytest.approx(0.3) and qs["median_ke_ie_in_contact"] == pytest.approx(0.175)
+    assert qs["frames_checked"] == 2 and qs["frames_over_limit"] == 1 and qs["frames_in_contact"] == 3
 
 
 def test_released_flight_of_a_parabola_recovers_g_and_the_mean_height():

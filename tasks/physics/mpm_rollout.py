@@ -57,6 +57,7 @@ from tasks.physics.mpm.solver import (
     DirichletPoints,
     ForcePatch,
     MPMSolver,
+    QuasiStaticLoad,
     deform_covariances,
     material_mass_scales,
     polar_rotation,
@@ -174,7 +175,7 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     Dirichlet field, ``patches`` the eq. 2 contact patches, ``materials`` the oracle's attributes."""
     if boundary not in ("dirichlet", "force"):
         raise ValueError(f"variant.boundary must be dirichlet or force, got {boundary!r}")
-    scene = build_scene(obj, obj_attrs, field, patches, times, materials, mpm, sim)
+    scene = build_scene(obj, obj_attrs, field, patches, times, materials, mpm, sim, forces)
     frames = run_frames(scene, obj, field, forces, patches, times, sim, boundary)
     return collect_outputs(scene, frames, times, patches, sim, boundary)
 
@@ -248,10 +249,23 @@ def scene_particles(obj: Mapping[str, np.ndarray], mats: ObjectMaterials, with_c
     return by_label, x0, vol, np.concatenate(ids)
 
 
+def load_rise_time(forces: np.ndarray, frame_dt: float) -> Optional[float]:
+    """How fast the fingers load the object, s: min over the fingers that push of max_t c_k / max_t dc_k/dt (the time
+    the force coefficient c_k of eq. 1, (frame, finger), would take to reach its peak at its steepest rise; a linear
+    ramp gives its duration).  The displacement field of eq. 3 follows the same coefficients.  None: no finger
+    pushes."""
+    c = np.asarray(forces, np.float64)
+    rate = np.diff(c, axis=0).max(axis=0, initial=0.0) / frame_dt  # (finger,) 1/s
+    pushing = (c.max(axis=0, initial=0.0) > 0) & (rate > 0)
+    return float(np.min(c.max(axis=0)[pushing] / rate[pushing])) if pushing.any() else None
+
+
 def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], field: Mapping[str, np.ndarray],
                 patches: Mapping[str, np.ndarray], times: np.ndarray, materials: Mapping[str, Any],
-                mpm: Mapping[str, Any], sim: Mapping[str, Any]) -> Scene:
-    """Stage 1: the MPM scene of one object (materials by label, particles, grid, time scaling, solver)."""
+                mpm: Mapping[str, Any], sim: Mapping[str, Any], forces: np.ndarray) -> Scene:
+    """Stage 1: the MPM scene of one object (materials by label, particles, grid, time scaling, solver).  The
+    force coefficients ``forces`` (frame, finger) set the load's time scale for the quasi-static bound of the mass
+    scale (``mpm.quasi_static_margin``)."""
     # 1. what the scene needs: interior particles only if they can be released
     mats = materials_from_dict(materials)
     T = len(times)
@@ -271,6 +285,9 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     spacing = float(obj_attrs["particle_spacing"])
     dx = cfg.dx or spacing * cfg.particles_per_cell ** (1.0 / 3.0)
     cfg = replace(cfg, dx=dx)  # the solver applies mpm.mass_scaling (per material; weights stay physical)
+    rise = load_rise_time(forces, frame_dt)
+    load = None if rise is None else QuasiStaticLoad(rise_time=rise, height=float(obj_attrs["bbox_max"][2]
+                                                                                 - obj_attrs["bbox_min"][2]))
     if with_interior:  # released material keeps its physical inertia under selective mass scaling
         mat_list[slot[INTERIOR]] = replace(mat_list[slot[INTERIOR]], mass_scaled=False)
     if with_interior and mat_list[slot[INTERIOR]].model == "fluid":
@@ -281,7 +298,7 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         # Under global (one-factor) scaling the former model is kept: c = 10 fluid_reference_speed, capped at the
         # solids' scaled P-wave speed (juice made from burst pulp appears mid-run and must not need a smaller step).
         present = [mat_list[i] for i in np.unique(slot[mid])]
-        scale_fluid = float(material_mass_scales(mat_list, present, dx, frame_dt, cfg)[slot[INTERIOR]])
+        scale_fluid = float(material_mass_scales(mat_list, present, dx, frame_dt, cfg, load)[slot[INTERIOR]])
         if cfg.mass_scaling == "selective":
             height = float(obj_attrs["bbox_max"][2] - obj_attrs["bbox_min"][2])
             v = max(float(sim["fluid_reference_speed"]),
@@ -299,7 +316,7 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
 
     # 4. the solver, with the surface points (3D Gaussians) as massless tracers
     solver = MPMSolver(x0, vol, mat_list, material_ids=slot[mid], config=cfg, tracers=obj["surface_points"],
-                       label=str(obj_attrs.get("name", "")))
+                       label=str(obj_attrs.get("name", "")), load=load)
     return Scene(oracle=mats, solver=solver, materials=mat_list, slot=slot, labels=mid, with_interior=with_interior,
                  dx=dx, config=cfg, frame_dt=frame_dt, surface0=obj["surface_points"].astype(np.float64),
                  regions=regions, notes=notes, bbox_min=np.asarray(obj_attrs["bbox_min"], float),
@@ -514,8 +531,9 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
         "released_free_fall_acceleration": free_fall if rec.released is not None else None,
         "feedback_rule": feedback_rule,
         "bytes_per_particle": float(solver.bytes_per_particle()),
-        "quasi_static": _quasi_static_summary(rec.stats["ke_ie_contact"], contact, solver.mass_scale,
-                                              float(scene.config.quasi_static_ke_ie_max)),
+        "quasi_static": {**_quasi_static_summary(rec.stats["ke_ie_contact"], contact, solver.mass_scale,
+                                                 float(scene.config.quasi_static_ke_ie_max)),
+                         **_quasi_static_bound(solver, scene.config)},
         "energy_guard": {"tolerance": float(scene.config.energy_guard_tolerance),
                          "max_energy_growth": float(rec.stats["energy_growth"].max())},
         "skin_attachment": detached_summary(rec.particle_positions[-1], mid, (SHELL, RUPTURED, CORE),
@@ -527,13 +545,23 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
 def _quasi_static_summary(ke_ie_contact: np.ndarray, contact: np.ndarray, mass_scale: float, limit: float) -> dict:
     """How well the mass-scaled run stayed quasi-static: the solver's measure ``ke_ie_contact`` (sum KE / sum IE over
     the contact so far) in the frames it checks (finite: the fingers load the object, past the contact onset,
-    before a rupture)."""
+    before a rupture).  The max and median are None (JSON for NaN) when no frame was checked."""
     in_contact = np.linalg.norm(contact, axis=-1).max(axis=1) > 0
     checked = np.isfinite(ke_ie_contact)
-    ratio = ke_ie_contact[checked] if checked.any() else np.zeros(1)
-    return {"mass_scale": mass_scale, "limit": limit, "max_ke_ie_in_contact": float(ratio.max()),
-            "median_ke_ie_in_contact": float(np.median(ratio)), "frames_over_limit": int((ratio > limit).sum()),
+    ratio = ke_ie_contact[checked]
+    return {"mass_scale": mass_scale, "limit": limit,
+            "max_ke_ie_in_contact": float(ratio.max()) if ratio.size else None,
+            "median_ke_ie_in_contact": float(np.median(ratio)) if ratio.size else None,
+            "frames_over_limit": int((ratio > limit).sum()),
             "frames_checked": int(checked.sum()), "frames_in_contact": int(in_contact.sum())}
+
+
+def _quasi_static_bound(solver: MPMSolver, cfg: MPMConfig) -> dict:
+    """The quasi-static bound of the mass scale as applied (``mpm.quasi_static_margin``): the margin k, the load's
+    rise time t_load (s, None: no finger pushes) and the scaled body's estimated slowest period T1 (s)."""
+    load = solver.load
+    return {"margin": float(cfg.quasi_static_margin), "load_rise_time": None if load is None else load.rise_time,
+            "lowest_period": None if load is None or not math.isfinite(solver.lowest_period()) else solver.lowest_period()}
 
 
 def _released_material(interior: Any, sim: Mapping[str, Any]) -> Material:

@@ -237,16 +237,45 @@ def bspline_stencil(g: np.ndarray):
     return base, w
 
 
-def mass_scale_for(materials: Sequence[Material], dx: float, frame_dt: float | None, cfg: MPMConfig) -> float:
+@dataclass(frozen=True)
+class QuasiStaticLoad:
+    """The time scale of the boundary load, for the quasi-static bound of the mass scale (see :func:`mass_scale_for`).
+
+    ``rise_time``: t_load in s, how fast the fingers load the body (the rollout: the fastest rise of a force
+    coefficient, :func:`tasks.physics.mpm_rollout.load_rise_time`).  ``height``: H in m, the body's extent along
+    gravity (it stands on the table, which holds its base)."""
+
+    rise_time: float
+    height: float
+
+
+def lowest_period(materials: Sequence[Material], height: float, stiffness_scale: float = 1.0,
+                  mass_scale: float = 1.0) -> float:
+    """Estimated period T1 (s) of the slowest vibration mode of a body of height ``height`` (m) held at its base: the
+    fundamental of a shear beam fixed at one end, T1 = 4 H / c_s (a quarter wave over H; for a 1-D bar fixed at one
+    end and free at the other, exact with its wave speed), c_s = sqrt(mu / (s rho)) the slowest shear-wave speed of
+    the solid ``materials`` (m/s, after stiffness scaling, densities x ``mass_scale``): the softest material sets
+    the slowest mode.  inf without a solid."""
+    speeds = [math.sqrt(m.mu * stiffness_scale / (m.density * mass_scale)) for m in materials if m.model != "fluid"]
+    return 4.0 * height / min(speeds) if speeds else math.inf
+
+
+def mass_scale_for(materials: Sequence[Material], dx: float, frame_dt: float | None, cfg: MPMConfig,
+                   load: Optional[QuasiStaticLoad] = None) -> float:
     """The density factor s >= 1 that ``cfg.mass_scaling`` prescribes for the scaled materials (dimensionless).
 
     ``off``: 1.  ``manual``: ``cfg.mass_scale``.  ``global`` / ``selective``: the smallest s for which the elastic
     CFL of the scaled ``materials`` (``global``: every non-fluid one; ``selective``: those with
     ``Material.is_mass_scaled``) needs at most N = ``cfg.target_substeps_per_frame`` substeps per output frame:
-    s = max(1, (c_p (frame_dt / N) / (C dx))^2), c_p the largest P-wave speed (m/s, after stiffness scaling) of
+    s_cfl = max(1, (c_p (frame_dt / N) / (C dx))^2), c_p the largest P-wave speed (m/s, after stiffness scaling) of
     those materials, C = ``cfg.courant``, ``dx`` the grid spacing (m), ``frame_dt`` the frame duration (s).
     Scaling rho by s slows every wave by sqrt(s).  Fluids do not drive s: a weakly compressible fluid's bulk
     modulus is an artificial choice that the caller sets for its Mach number (so its sound speed stays at its target).
+
+    Quasi-static bound (``cfg.quasi_static_margin`` = k > 0 and a ``load``): the scaled body's slowest mode must be k
+    times faster than the load rises, k T1(s) <= t_load, so s <= s_qs = (t_load / (k T1(1)))^2 with T1 from
+    :func:`lowest_period` (T1(s) = sqrt(s) T1(1)); s = max(1, min(s_cfl, s_qs)).  A smaller s costs
+    sqrt(s_cfl / s_qs) times the substeps.
     """
     if cfg.mass_scaling == "off":
         return 1.0
@@ -254,26 +283,40 @@ def mass_scale_for(materials: Sequence[Material], dx: float, frame_dt: float | N
         return float(cfg.mass_scale)
     if frame_dt is None:
         raise ValueError(f"mass_scaling={cfg.mass_scaling} needs the frame duration")
-    driving = [m.p_wave_speed(cfg.stiffness_scaling) for m in materials
-               if (m.is_mass_scaled if cfg.mass_scaling == "selective" else m.model != "fluid")]
-    if not driving:
+    scaled = [m for m in materials if (m.is_mass_scaled if cfg.mass_scaling == "selective" else m.model != "fluid")]
+    if not scaled:
         return 1.0
-    return max(1.0, (max(driving) * (frame_dt / cfg.target_substeps_per_frame) / (cfg.courant * dx)) ** 2)
+    c_p = max(m.p_wave_speed(cfg.stiffness_scaling) for m in scaled)
+    s = (c_p * (frame_dt / cfg.target_substeps_per_frame) / (cfg.courant * dx)) ** 2
+    return max(1.0, min(s, quasi_static_bound(scaled, cfg, load)))
+
+
+def quasi_static_bound(materials: Sequence[Material], cfg: MPMConfig, load: Optional[QuasiStaticLoad]) -> float:
+    """s_qs = (t_load / (k T1(1)))^2 of :func:`mass_scale_for` for a body of ``materials`` (inf: no bound, when
+    ``cfg.quasi_static_margin`` is 0 or there is no ``load``)."""
+    if not cfg.quasi_static_margin > 0 or load is None:
+        return math.inf
+    period = lowest_period(materials, load.height, cfg.stiffness_scaling)
+    return (load.rise_time / (cfg.quasi_static_margin * period)) ** 2
 
 
 def material_mass_scales(materials: Sequence[Material], present: Sequence[Material], dx: float,
-                         frame_dt: float | None, cfg: MPMConfig) -> np.ndarray:
+                         frame_dt: float | None, cfg: MPMConfig, load: Optional[QuasiStaticLoad] = None) -> np.ndarray:
     """Per-material density factors (material,) under ``cfg.mass_scaling`` (dimensionless).
 
     ``selective``: each material with ``Material.is_mass_scaled`` gets its own smallest factor
     :func:`mass_scale_for` ``([material])`` (the stiffest gets the s of ``global``, a softer solid less, a torn skin
     softened 100x needs 100x less), the others 1 (physical inertia): mass is scaled only where it buys time, which
     keeps the mass ratio between released material and the solids it must push past small.  Every other mode: the
-    one factor :func:`mass_scale_for` ``(present)`` of the materials ``present`` for every material.
+    one factor :func:`mass_scale_for` ``(present)`` of the materials ``present`` for every material.  ``load``: the
+    quasi-static bound of :func:`mass_scale_for`, from the slowest mode of the body made of the scaled ``present``
+    materials (it caps every material's factor).
     """
     if cfg.mass_scaling != "selective":
-        return np.full(len(materials), mass_scale_for(present, dx, frame_dt, cfg))
-    return np.array([mass_scale_for([m], dx, frame_dt, cfg) for m in materials], np.float64)
+        return np.full(len(materials), mass_scale_for(present, dx, frame_dt, cfg, load))
+    bound = quasi_static_bound([m for m in present if m.is_mass_scaled], cfg, load)
+    return np.array([min(mass_scale_for([m], dx, frame_dt, cfg), max(1.0, bound)) if m.is_mass_scaled else 1.0
+                     for m in materials], np.float64)
 
 
 def deform_covariances(F: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -320,6 +363,8 @@ class MPMSolver:
         device: overrides ``config.device``.
         n_fingers: size of the per-finger reaction/force arrays (grows automatically with the finger ids seen).
         label: name of the simulated object, quoted by the energy guard's message.
+        load: the time scale of the boundary load (:class:`QuasiStaticLoad`): with ``config.quasi_static_margin`` > 0
+            it bounds the mass scale of ``global`` / ``selective`` scaling (:func:`mass_scale_for`).
 
     Mass (time) scaling (``config.mass_scaling``; s from :func:`mass_scale_for`, fixed once: at construction, or for
     ``global``/``selective`` at the first :meth:`step_frame`): the densities of the scaled materials (all of them by
@@ -382,9 +427,11 @@ class MPMSolver:
         device: Optional[str] = None,
         n_fingers: int = 5,
         label: str = "",
+        load: Optional[QuasiStaticLoad] = None,
     ) -> None:
         self.cfg: MPMConfig = mpm_config_from(config)
         self.label = str(label)
+        self.load = load
         self.device = resolve_device(device or self.cfg.device)
         if self.cfg.debug:
             wp.set_module_options({"mode": "debug"}, K)
@@ -543,6 +590,16 @@ class MPMSolver:
     def _present_materials(self) -> list[Material]:
         return [self.materials[i] for i in self._present]
 
+    def lowest_period(self) -> float:
+        """Estimated period (s) of the slowest mode of the body as scaled (:func:`lowest_period` of the measured
+        materials present, each with its own mass scale, the height from ``load``); inf without a load."""
+        if self.load is None:
+            return math.inf
+        measured = self._quasi_static_materials()
+        return max((lowest_period([self.materials[i]], self.load.height, self.stiffness_scale,
+                                  float(self.material_mass_scale[i])) for i in self._present if measured[i]),
+                   default=math.inf)
+
     def _upload_materials(self) -> None:
         """Material table with the per-material mass scales, wave speeds, and where gravity acts: uniform scale s
         among the materials present -> the grid adds g / s (``self.gravity``); mixed -> the P2G adds dt m_phys g."""
@@ -678,9 +735,9 @@ class MPMSolver:
         if not self._mass_scale_pending:
             return
         self._mass_scale_pending = False
-        self.mass_scale = mass_scale_for(self._present_materials(), self.dx, frame_dt, self.cfg)
+        self.mass_scale = mass_scale_for(self._present_materials(), self.dx, frame_dt, self.cfg, self.load)
         self.material_mass_scale = material_mass_scales(self.materials, self._present_materials(), self.dx, frame_dt,
-                                                        self.cfg)
+                                                        self.cfg, self.load)
         self._upload_materials()
 
     # ------------------------------------------------------------------ boundary upload
