@@ -148,14 +148,19 @@ def test_resistive_feedback_is_yield_stress_times_area_or_the_contact_force():
     assert rule.startswith("|contact force|")
 
 
-def test_load_rise_time_is_the_fastest_finger_ramp():
-    """t_load = min over the pushing fingers of peak / steepest rise: a linear ramp gives its duration (here 6 frames
-    of 1/30 s for the thumb, 12 for the index finger, whose slower push does not count); no push: None."""
+def test_load_rise_time_is_the_ramp_time_of_the_total_push():
+    """t_load = peak / steepest rise of the total force coefficient: a linear ramp gives its duration (the thumb
+    0 -> 0.6 in 6 frames of 1/30 s); with the index finger pushing 0 -> 0.3 in 12 frames from the same frame, the
+    total peaks at 0.9 and rises by at most 0.125 per frame: 7.2 frames; an idle finger that flickers to 0.001 in
+    one frame changes nothing; no push: None."""
     c = np.zeros((30, 5))
-    c[5:12, 0] = np.linspace(0.0, 0.6, 7)  # 0 -> 0.6 in 6 frames, then held
+    c[5:12, 0] = np.linspace(0.0, 0.6, 7)
     c[12:, 0] = 0.6
-    c[5:18, 1] = np.linspace(0.0, 0.3, 13)
     assert load_rise_time(c, 1 / 30) == pytest.approx(6 / 30)
+    c[5:18, 1] = np.linspace(0.0, 0.3, 13)
+    c[18:, 1] = 0.3
+    c[2, 4] = 0.001
+    assert load_rise_time(c, 1 / 30) == pytest.approx(7.2 / 30)
     assert load_rise_time(np.zeros((30, 5)), 1 / 30) is None
 
 

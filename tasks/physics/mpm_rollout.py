@@ -250,14 +250,13 @@ def scene_particles(obj: Mapping[str, np.ndarray], mats: ObjectMaterials, with_c
 
 
 def load_rise_time(forces: np.ndarray, frame_dt: float) -> Optional[float]:
-    """How fast the fingers load the object, s: min over the fingers that push of max_t c_k / max_t dc_k/dt (the time
-    the force coefficient c_k of eq. 1, (frame, finger), would take to reach its peak at its steepest rise; a linear
-    ramp gives its duration).  The displacement field of eq. 3 follows the same coefficients.  None: no finger
-    pushes."""
-    c = np.asarray(forces, np.float64)
-    rate = np.diff(c, axis=0).max(axis=0, initial=0.0) / frame_dt  # (finger,) 1/s
-    pushing = (c.max(axis=0, initial=0.0) > 0) & (rate > 0)
-    return float(np.min(c.max(axis=0)[pushing] / rate[pushing])) if pushing.any() else None
+    """How fast the fingers load the object, s: the time the total force coefficient C_t = sum_k c_k,t of eq. 1
+    (``forces`` (frame, finger)) would take to reach its peak at its steepest rise, max C / max dC/dt (a linear ramp
+    gives its duration; a finger barely touching does not count, as it would alone).  The displacement field of
+    eq. 3 follows the same coefficients.  None: no finger pushes."""
+    total = np.asarray(forces, np.float64).sum(axis=1)
+    rate = float(np.diff(total).max(initial=0.0)) / frame_dt  # 1/s
+    return float(total.max()) / rate if rate > 0 else None
 
 
 def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], field: Mapping[str, np.ndarray],
