@@ -1138,8 +1138,9 @@ class MPMSolver:
                 f"ratio {process:.3g} of the mass-scaled material ({names}) over frames {since}-{self.frame} of the "
                 f"contact > mpm.quasi_static_ke_ie_max="
                 f"{self.cfg.quasi_static_ke_ie_max:g} while the boundary loads it: the squeeze is dynamic in the "
-                "scaled time and inertia distorts the deformation; scale less (mpm.mass_scaling=selective or off, "
-                "or a larger mpm.target_substeps_per_frame) or squeeze more slowly (a longer signal.duration)",
+                "scaled time and inertia distorts the deformation; scale less (mpm.quasi_static_margin=2 bounds the "
+                "scale by the load's rise time; mpm.mass_scaling=selective or off, or a larger "
+                "mpm.target_substeps_per_frame) or squeeze more slowly (a longer signal.duration)",
                 RuntimeWarning, stacklevel=3)
         return FrameStats(
             frame=self.frame, time=self.time, substeps=nsub, dt_min=min(dts), dt_max=max(dts),
