@@ -265,6 +265,8 @@ def test_clay_squeeze_is_quasi_static_and_within_the_energy_guard(clay):
     assert r["ke_ie_ratio"][~checked].max() > 0.5  # the start-up sag: dynamic, not checked
     assert qs["frames_checked"] == checked.sum() > 20 and qs["frames_over_limit"] == 0
     assert qs["max_ke_ie_in_contact"] < 0.05
+    # the quasi-static bound as applied: off (margin 0), with the load's ramp time and the scaled clay's slowest period
+    assert qs["margin"] == 0.0 and qs["load_rise_time"] > 0 and qs["lowest_period"] > 0
     assert guard["tolerance"] == 0.25 and guard["max_energy_growth"] < 0.05
 
 

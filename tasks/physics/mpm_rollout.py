@@ -558,9 +558,10 @@ def _quasi_static_summary(ke_ie_contact: np.ndarray, contact: np.ndarray, mass_s
 def _quasi_static_bound(solver: MPMSolver, cfg: MPMConfig) -> dict:
     """The quasi-static bound of the mass scale as applied (``mpm.quasi_static_margin``): the margin k, the load's
     rise time t_load (s, None: no finger pushes) and the scaled body's estimated slowest period T1 (s)."""
-    load = solver.load
-    return {"margin": float(cfg.quasi_static_margin), "load_rise_time": None if load is None else load.rise_time,
-            "lowest_period": None if load is None or not math.isfinite(solver.lowest_period()) else solver.lowest_period()}
+    period = solver.lowest_period()
+    return {"margin": float(cfg.quasi_static_margin),
+            "load_rise_time": None if solver.load is None else solver.load.rise_time,
+            "lowest_period": period if math.isfinite(period) else None}
 
 
 def _released_material(interior: Any, sim: Mapping[str, Any]) -> Material:

@@ -241,7 +241,7 @@ def bspline_stencil(g: np.ndarray):
 class QuasiStaticLoad:
     """The time scale of the boundary load, for the quasi-static bound of the mass scale (see :func:`mass_scale_for`).
 
-    ``rise_time``: t_load in s, how fast the fingers load the body (the rollout: the fastest rise of a force
+    ``rise_time``: t_load in s, how fast the fingers load the body (the rollout: the ramp time of the total force
     coefficient, :func:`tasks.physics.mpm_rollout.load_rise_time`).  ``height``: H in m, the body's extent along
     gravity (it stands on the table, which holds its base)."""
 
@@ -255,7 +255,8 @@ def lowest_period(materials: Sequence[Material], height: float, stiffness_scale:
     fundamental of a shear beam fixed at one end, T1 = 4 H / c_s (a quarter wave over H; for a 1-D bar fixed at one
     end and free at the other, exact with its wave speed), c_s = sqrt(mu / (s rho)) the slowest shear-wave speed of
     the solid ``materials`` (m/s, after stiffness scaling, densities x ``mass_scale``): the softest material sets
-    the slowest mode.  inf without a solid."""
+    the slowest mode.  Hollow bodies ring slower (shell bending: the force-driven rubber duck needed k = 4 in
+    :func:`mass_scale_for`, where k = 2 left KE/IE at 0.32).  inf without a solid."""
     speeds = [math.sqrt(m.mu * stiffness_scale / (m.density * mass_scale)) for m in materials if m.model != "fluid"]
     return 4.0 * height / min(speeds) if speeds else math.inf
 
