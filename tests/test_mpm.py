@@ -849,7 +849,7 @@ def test_quasi_static_check_is_quiet_for_a_slow_squeeze_and_warns_for_a_dynamic_
             rf"ratio {ratio:.3g} of the mass-scaled material \('jelly' {re.escape(shown)}\) over frames 6-6 of the "
             r"contact > "
             r"mpm.quasi_static_ke_ie_max=0.1 while the boundary loads it: the squeeze is dynamic in the scaled time "
-            r"and inertia distorts the deformation; scale less \(mpm.quasi_static_margin=2 bounds the scale by the "
+            r"and inertia distorts the deformation; scale less \(mpm.quasi_static_margin=4 bounds the scale by the "
             r"load's rise time; mpm.mass_scaling=selective or off, or a larger mpm.target_substeps_per_frame\) or "
             r"squeeze more slowly \(a longer signal.duration\)", lines[0]), lines[0]
 

@@ -1139,7 +1139,7 @@ class MPMSolver:
                 f"ratio {process:.3g} of the mass-scaled material ({names}) over frames {since}-{self.frame} of the "
                 f"contact > mpm.quasi_static_ke_ie_max="
                 f"{self.cfg.quasi_static_ke_ie_max:g} while the boundary loads it: the squeeze is dynamic in the "
-                "scaled time and inertia distorts the deformation; scale less (mpm.quasi_static_margin=2 bounds the "
+                "scaled time and inertia distorts the deformation; scale less (mpm.quasi_static_margin=4 bounds the "
                 "scale by the load's rise time; mpm.mass_scaling=selective or off, or a larger "
                 "mpm.target_substeps_per_frame) or squeeze more slowly (a longer signal.duration)",
                 RuntimeWarning, stacklevel=3)
