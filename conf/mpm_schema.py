@@ -74,8 +74,9 @@ class MPMConfig:
             slowest physical shear-wave speed of its scaled solids in m/s) must be k times shorter than the rise time
             t_load (s) of the fingers' load, so s <= (t_load / (k T1(1)))^2 (the rollout takes t_load from the
             force coefficients); it costs sqrt(s_cfl / s) times the substeps where it binds (see
-            :func:`tasks.physics.mpm.solver.mass_scale_for`).  Hollow bodies ring slower than T1 (shell bending) and
-            need k = 4 (measured on the force-driven rubber duck); off in the project's defaults (cost: README).
+            :func:`tasks.physics.mpm.solver.mass_scale_for`).  Hollow bodies ring slower than T1 (shell bending): the
+            force-driven rubber duck needed k = 4, the ball still rings then; off in the project's defaults (cost and
+            measurements: README, known limits).
         quasi_static_damping: local damping coefficient a in [0, 1) (0 = off): dynamic relaxation of the materials the
             quasi-static check measures (mass-scaled solids, not released material or fluids), in the frames before
             a rupture: the net force on a particle becomes F - a |F| sign(v) (Cundall's local damping, as FLAC and
