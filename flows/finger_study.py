@@ -2,6 +2,7 @@
 
     python -m flows.finger_study --objects rubber_ball clay rubber_duck
     python -m flows.finger_study --objects clay --modes surface_dirichlet surface_collider
+    python -m flows.finger_study --objects clay --modes surface_collider --extra mpm.quasi_static_damping=0.8
 
 Runs each object's chain through the cached pipeline steps up to the deformation metrics
 (:func:`flows.pipeline.run_object_local`, full variant, the default grid's config ``conf/evaluate.yaml`` with the
@@ -59,6 +60,7 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--objects", nargs="*", default=["rubber_ball", "clay", "rubber_duck"])
     ap.add_argument("--modes", nargs="*", default=list(MODES), choices=list(MODES))
+    ap.add_argument("--extra", nargs="*", default=[], help="config overrides added to every mode")
     ap.add_argument("--artifacts", default="artifacts", help="artifact root (the cache the runs share)")
     ap.add_argument("--out", default="reports/fingers", help="folder of finger_study.md")
     args = ap.parse_args(argv)
@@ -66,17 +68,18 @@ def main(argv: list[str] | None = None) -> None:
     fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
     lines = [f"# Finger modes on Table 2 ({datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, Warp CPU)", "",
              "Full variant, default grid config (`conf/evaluate.yaml`) plus the mode's overrides: "
-             + "; ".join(f"`{m}`: {' '.join(MODES[m])}" for m in args.modes) + ".  Seconds: the rollout step's "
+             + "; ".join(f"`{m}`: {' '.join(MODES[m])}" for m in args.modes)
+             + (f"; every mode also {' '.join(args.extra)}" if args.extra else "") + ".  Seconds: the rollout step's "
              "wall time on this shared machine.  Reaction: |reaction| per finger (N), peak over frames and fingers "
              "/ mean of the touching fingers' peaks.  Strain: peak squeeze strain observed / prescribed (eq. 3).", "",
              "| object | mode | BDC-T | BDC-S | SDC | mIoU | rollout s | substeps | reaction peak / mean (N) "
              "| feedback peak (N, rule) | strain obs / pred | KE/IE |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for obj in args.objects:
         for mode in args.modes:
-            r = run_case(obj, MODES[mode], args.artifacts)
+            r = run_case(obj, MODES[mode] + list(args.extra), args.artifacts)
             line = (f"| {obj} | {mode} | {' | '.join(fmt(r[k]) for k in METRICS)} | {r['seconds']:.0f} | "
                     f"{r['substeps']} | {r['reaction_peak']:.2f} / {r['reaction_mean_peak']:.2f} | "
-                    f"{r['feedback_peak']:.2f} ({r['feedback_rule']}) | {r['strain_peak']:.3f} / "
+                    f"{r['feedback_peak']:.2f} ({r['feedback_rule'].replace('|', '')}) | {r['strain_peak']:.3f} / "
                     f"{r['predicted_peak']:.3f} | {r['ke_ie']:.3f} |")
             print(line, flush=True)
             lines.append(line)

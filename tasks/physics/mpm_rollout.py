@@ -11,6 +11,16 @@ material dictates.  The ``force`` boundary mode (the
 no_dirichlet ablation) pushes with a total per-finger force ``force_per_coefficient * c_k,t`` along the
 inward patch normal instead.
 
+Collider fingers (``mpm.fingers = collider``, meant with ``mpm.contact = surface``): instead of the Dirichlet points,
+each active finger is a rigid sphere ``Collider`` of the fingertip pad radius (``conf.hand.FINGERTIP_PAD_RADIUS``)
+whose lowest point is the patch centre moved inwards by the eq. 3 amplitude eta c_k,t (read back from the field,
+:func:`fingertip_travel`), moved there from its previous place within each frame (:func:`finger_colliders`).  It
+acts on the particles whose surface it touches, pushes and never pulls (unilateral by construction, no tolerance),
+and its impulses are the finger's reaction.  Measured (README, ``python -m flows.finger_study``): the reaction
+converges (Hertz within 3-15 % at 1.5 cells per contact radius), but the squeeze no longer holds the material
+where eq. 3 puts it: under the default mass scaling a pushed clay keeps flowing past the finger and the one-layer
+rubber ball's shell buckles in, so Table 2 gets worse; not the default.
+
 Squeezing threshold (sec. 3.2): the squeeze strain of finger k is the indentation under the fingertip divided
 by the object's half extent along the squeeze direction, ``eps_k = mean(u . d_k) / h(d_k)``, the mean taken over
 the contact core of finger k's patch (the surface points of its region with patch weight phi >= exp(-1/2), i.e.
@@ -33,9 +43,10 @@ reach the threshold (predicted from the prescribed field before simulating), all
 interior material, no ``released`` array.  A fluid interior has no tension (``tasks.physics.mpm.constitutive``), so the
 released liquid separates from what stays instead of pulling back on it.
 
-Resistive force feedback (sec. 3.2): ``f_k = clip(tau_y * A_k, 0, feedback_max_force)`` with tau_y the
-shell's yield stress and A_k the contact patch area; for materials without a yield stress (elastic rubber)
-the simulated contact force |reaction_k| is used instead, clipped the same way.
+Resistive force feedback (sec. 3.2, ``simulation.feedback_rule``): the paper's ``f_k = clip(tau_y * A_k, 0,
+feedback_max_force)`` with tau_y the shell's yield stress and A_k the contact patch area (for materials without a
+yield stress, elastic rubber, the simulated contact force |reaction_k| instead, clipped the same way), or the
+simulated |reaction_k| clipped (``reaction``; ``auto`` picks it with collider fingers, whose reactions converge).
 """
 from __future__ import annotations
 
