@@ -52,7 +52,8 @@ class MPMConfig:
             sphere ``Collider`` of the fingertip pad radius (10 mm, the pad of the contact patches), its lowest point
             at the patch centre displaced by the eq. 3 amplitude eta c_k,t, moved there every frame: it pushes the
             particles it touches and never pulls; its impulses are the finger's reaction (N).  Meant for
-            ``contact: surface`` (both act where the material touches).
+            ``contact: surface`` (both act where the material touches).  Not the default: it lost Table 2 on the
+            rubber ball, clay and rubber duck (README, known limits; ``python -m flows.finger_study``).
         finger_friction: Coulomb coefficient of the collider fingertips (0 = frictionless, < 0 = no slip while
             touching), dimensionless.
     Acceleration knobs (each changes the physics; reported in the frame statistics)

@@ -732,8 +732,9 @@ ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_
                reads=("mpm", "simulation", "variant.boundary"),
                outputs=ROLLOUT_OUTPUTS)
 def mpm_rollout_step(inputs, params):
-    """The squeeze simulated with MLS-MPM (eqs. 4-5) under the eq. 3 field (``variant.boundary=dirichlet``) or the
-    per-finger force (``force``, the no_dirichlet ablation), with the oracle's materials."""
+    """The squeeze simulated with MLS-MPM (eqs. 4-5) under the eq. 3 field (``variant.boundary=dirichlet``: grid-node
+    Dirichlet points, or fingertip colliders with ``mpm.fingers=collider``) or the per-finger force (``force``, the
+    no_dirichlet ablation), with the oracle's materials."""
     obj = inputs["object_model"]
     return mpm_rollout(obj.arrays, {**obj.attrs, "name": obj.ref.scope}, inputs["dirichlet_field"].arrays,
                        inputs["force_coefficients"]["force_coefficients"], inputs["contact_patches"].arrays,
