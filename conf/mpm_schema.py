@@ -46,6 +46,17 @@ class MPMConfig:
             them, through the P2G momentum; the floor height defaults to the lowest particle's surface;
             ``floor_sticky`` then means no slip while touching).  ``Collider`` s passed to ``step_frame`` act at
             the surface in both modes; ``DirichletPoints``/``DirichletNodes`` always act on grid nodes.
+        fingers: how the squeeze's fingers drive the material (the ``dirichlet`` boundary of
+            :mod:`tasks.physics.mpm_rollout`; the force-driven ablation is unaffected).  ``dirichlet`` (default):
+            every surface point the eq. 3 field constrains is driven to its target as ``DirichletPoints`` on the
+            grid nodes of its B-spline stencil (a ~1.5 dx halo).  ``collider``: each active finger is a rigid
+            sphere ``Collider`` of the fingertip pad radius (10 mm, the pad of the contact patches), its lowest point
+            at the patch centre displaced by the eq. 3 amplitude eta c_k,t, moved there every frame: it pushes the
+            particles it touches and never pulls; its impulses are the finger's reaction (N).  Meant for
+            ``contact: surface`` (both act where the material touches).  Not the default: it lost Table 2 on the
+            rubber ball, clay and rubber duck (README, known limits; ``python -m flows.finger_study``).
+        finger_friction: Coulomb coefficient of the collider fingertips (0 = frictionless, < 0 = no slip while
+            touching), dimensionless.
     Acceleration knobs (each changes the physics; reported in the frame statistics)
         mass_scaling: time (mass) scaling, the one acceleration mechanism of the project.  ``off``; ``manual`` (every
             density x ``mass_scale``); ``global`` (every density x s, s the smallest factor >= 1 for which the
@@ -130,6 +141,8 @@ class MPMConfig:
     floor_sticky: bool = False
     wall_sticky: bool = False
     contact: str = "grid"
+    fingers: str = "dirichlet"
+    finger_friction: float = 0.0
     mass_scaling: str = "off"
     mass_scale: float = 1.0
     target_substeps_per_frame: int = 100
@@ -150,6 +163,7 @@ class MPMConfig:
 
 MASS_SCALING_MODES = ("selective", "global", "manual", "off")
 CONTACT_MODES = ("grid", "surface")
+FINGER_MODES = ("dirichlet", "collider")
 
 
 class MPMConfigError(ValueError):
@@ -187,6 +201,8 @@ def validate_mpm_config(cfg: MPMConfig) -> MPMConfig:
         bad("floor_friction", "must be >= 0")
     if cfg.contact not in CONTACT_MODES:
         bad("contact", f"'{cfg.contact}' is not one of {', '.join(CONTACT_MODES)}")
+    if cfg.fingers not in FINGER_MODES:
+        bad("fingers", f"'{cfg.fingers}' is not one of {', '.join(FINGER_MODES)}")
     if cfg.mass_scaling not in MASS_SCALING_MODES:
         bad("mass_scaling", f"'{cfg.mass_scaling}' is not one of {', '.join(MASS_SCALING_MODES)}")
     if not cfg.mass_scale >= 1.0 and cfg.mass_scaling == "manual":

@@ -211,6 +211,12 @@ class SimulationConfig:
         shocks and inverts: with 10 substeps per 1/15 s frame, c = 0.36 m/s and a 1.5 m/s release tore the can's,
         orange's and tomato's skins past the J guard).  At the default settings c >= 6 m/s: no effect.
     feedback_max_force: N, the glove's per-finger force-feedback range (resistive force is clipped to it).
+    feedback_rule: the resistive force per finger (sec. 3.2), clipped to ``feedback_max_force``: ``yield_area``
+        (the paper's rule: the shell's yield stress tau_y (Pa) x the contact patch area A_k (m^2); the simulated
+        |reaction| for a shell without a yield stress), ``reaction`` (the simulated |reaction| of the finger, N) or
+        ``auto`` (default: ``reaction`` with ``mpm.fingers=collider``, whose reactions come from the fingertip
+        impulses at the surface, ``yield_area`` with the grid-node Dirichlet fingers, whose reactions are not
+        converged).
     """
 
     fluid_reference_speed: float = 1.5
@@ -223,6 +229,7 @@ class SimulationConfig:
     release_mach_max: float = 0.3
     ruptured_softening: float = 1.0e-2
     feedback_max_force: float = 20.0
+    feedback_rule: str = "auto"
 
 
 # ----------------------------------------------------------------------------------------------- runner
@@ -358,6 +365,8 @@ def validate_simulation(cfg: Any, objects: list[tuple[str, Any]]) -> None:
          f"must be in (0, 1] (a fraction of the released material's sound speed), got {sim.release_mach_max}")
     need(0 < sim.ruptured_softening <= 1, "simulation.ruptured_softening",
          f"must be in (0, 1], got {sim.ruptured_softening}")
+    need(sim.feedback_rule in ("auto", "reaction", "yield_area"), "simulation.feedback_rule",
+         f"must be auto, reaction or yield_area, got {sim.feedback_rule!r}")
     _validate_inputs(cfg, objects, need)
 
 

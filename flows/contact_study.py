@@ -2,6 +2,7 @@
 
     python -m flows.contact_study                    # Hertz R/dx = 8, 12, 16; indentation; uniaxial L/dx = 8, 12, 16
     python -m flows.contact_study --hertz-cells 8 --indent-cells 2 --uniaxial-cells 8 --nu 0.3   # quick
+    python -m flows.contact_study --hertz-cells --indent-cells --uniaxial-cells --finger-cells 1 1.5 2   # fingers
 
 Wires :mod:`tasks.verification.contact` (Hertz: elastic half sphere on the floor and a rigid sphere indenting a
 block; uniaxial compression between frictionless plates; each with ``mpm.contact = grid`` and ``surface``): prints one line per case (force error,
@@ -23,11 +24,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--nu", type=float, nargs="*", default=[0.3, 0.45, 0.49], help="Poisson ratios (uniaxial)")
     ap.add_argument("--indent-cells", type=float, nargs="*", default=[1.5, 2.0, 2.7],
                     help="contact radius / dx of the rigid-sphere indentation (surface contact only)")
+    ap.add_argument("--finger-cells", type=float, nargs="*", default=[1.0, 1.5, 2.0],
+                    help="contact radius / dx (at 2 mm) of the collider finger driven by the eq. 3 field into a block")
     ap.add_argument("--modes", nargs="*", default=["grid", "surface"], choices=["grid", "surface"])
     ap.add_argument("--out", default="reports/contact", help="folder of contact_study.md")
     args = ap.parse_args(argv)
 
-    from tasks.verification.contact import hertz_case, indentation_case, summary_line, uniaxial_case
+    from tasks.verification.contact import fingertip_case, hertz_case, indentation_case, summary_line, uniaxial_case
 
     lines = [f"# Contact study ({datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, Warp CPU)", "",
              "Force error = simulated / closed form - 1.  Hertz: half sphere R = 35 mm, E = 2 MPa, nu = 0.45 on the "
@@ -49,6 +52,14 @@ def main(argv: list[str] | None = None) -> None:
     for c in args.indent_cells:
         r = indentation_case(c)
         print(f"indent   surface a/dx={c:g} dx={1e3 * r['dx']:.3g} mm force err at 2, 3, 4 mm: "
+              f"{pct(r['force_error'])}; {r['particles']} particles, {r['seconds']:.1f} s", flush=True)
+        lines.append(f"| {c:g} | {1e3 * r['dx']:.3g} | {pct(r['force_error'])} | {r['particles']} "
+                     f"| {r['seconds']:.0f} |")
+    lines += ["", "## Collider finger driven by the eq. 3 field into a block (Hertz, R = fingertip pad 10 mm)", "",
+              "| a/dx at 2 mm | dx (mm) | force err 1/1.5/2 mm | particles | seconds |", "|---|---|---|---|---|"]
+    for c in args.finger_cells:
+        r = fingertip_case(c)
+        print(f"finger   surface a/dx={c:g} dx={1e3 * r['dx']:.3g} mm force err at 1, 1.5, 2 mm: "
               f"{pct(r['force_error'])}; {r['particles']} particles, {r['seconds']:.1f} s", flush=True)
         lines.append(f"| {c:g} | {1e3 * r['dx']:.3g} | {pct(r['force_error'])} | {r['particles']} "
                      f"| {r['seconds']:.0f} |")

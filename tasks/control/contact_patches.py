@@ -85,10 +85,11 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
+from conf.hand import FINGERTIP_PAD_RADIUS
 from tasks.core.artifacts import Array, as_numpy, config_value
 from tasks.core.step import artifact_step, report_progress
 
-DEFAULT_PAD_RADIUS = 0.01  # m, fingertip pad radius of curvature (Hertz aspect of the force prior)
+DEFAULT_PAD_RADIUS = FINGERTIP_PAD_RADIUS  # m, fingertip pad radius of curvature (Hertz aspect of the force prior)
 DEFAULT_STANDOFF = 0.005  # m, reach = 2 sigma_max + standoff
 MAX_ASPECT = 4.0  # 1, largest sigma2/sigma1 of the force prior
 SHRINK_MIN = 0.25  # 1, smallest per-axis fraction of sigma0 the overlap term may shrink a patch to

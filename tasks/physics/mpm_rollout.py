@@ -11,6 +11,16 @@ material dictates.  The ``force`` boundary mode (the
 no_dirichlet ablation) pushes with a total per-finger force ``force_per_coefficient * c_k,t`` along the
 inward patch normal instead.
 
+Collider fingers (``mpm.fingers = collider``, meant with ``mpm.contact = surface``): instead of the Dirichlet points,
+each active finger is a rigid sphere ``Collider`` of the fingertip pad radius (``conf.hand.FINGERTIP_PAD_RADIUS``)
+whose lowest point is the patch centre moved inwards by the eq. 3 amplitude eta c_k,t (read back from the field,
+:func:`fingertip_travel`), moved there from its previous place within each frame (:func:`finger_colliders`).  It
+acts on the particles whose surface it touches, pushes and never pulls (unilateral by construction, no tolerance),
+and its impulses are the finger's reaction.  Measured (README, ``python -m flows.finger_study``): the reaction
+converges (Hertz within 3-15 % at 1.5 cells per contact radius), but the squeeze no longer holds the material
+where eq. 3 puts it: under the default mass scaling a pushed clay keeps flowing past the finger and the one-layer
+rubber ball's shell buckles in, so Table 2 gets worse; not the default.
+
 Squeezing threshold (sec. 3.2): the squeeze strain of finger k is the indentation under the fingertip divided
 by the object's half extent along the squeeze direction, ``eps_k = mean(u . d_k) / h(d_k)``, the mean taken over
 the contact core of finger k's patch (the surface points of its region with patch weight phi >= exp(-1/2), i.e.
@@ -33,9 +43,10 @@ reach the threshold (predicted from the prescribed field before simulating), all
 interior material, no ``released`` array.  A fluid interior has no tension (``tasks.physics.mpm.constitutive``), so the
 released liquid separates from what stays instead of pulling back on it.
 
-Resistive force feedback (sec. 3.2): ``f_k = clip(tau_y * A_k, 0, feedback_max_force)`` with tau_y the
-shell's yield stress and A_k the contact patch area; for materials without a yield stress (elastic rubber)
-the simulated contact force |reaction_k| is used instead, clipped the same way.
+Resistive force feedback (sec. 3.2, ``simulation.feedback_rule``): the paper's ``f_k = clip(tau_y * A_k, 0,
+feedback_max_force)`` with tau_y the shell's yield stress and A_k the contact patch area (for materials without a
+yield stress, elastic rubber, the simulated contact force |reaction_k| instead, clipped the same way), or the
+simulated |reaction_k| clipped (``reaction``; ``auto`` picks it with collider fingers, whose reactions converge).
 """
 from __future__ import annotations
 
@@ -45,7 +56,7 @@ from typing import Any, Mapping, Optional
 
 import numpy as np
 
-from conf.hand import N_FINGERS
+from conf.hand import FINGERTIP_PAD_RADIUS, N_FINGERS
 from conf.mpm_schema import MPMConfig, mpm_config_from
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
@@ -54,6 +65,7 @@ from tasks.physics.free_flight import free_flying, released_flight
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
 from tasks.physics.mpm.materials import Material, material_from_dict
 from tasks.physics.mpm.solver import (
+    Collider,
     DirichletPoints,
     ForcePatch,
     MPMSolver,
@@ -382,6 +394,69 @@ def dirichlet_points(scene: Scene, field: Mapping[str, np.ndarray], f: int, torn
     return bc, idx, target_x
 
 
+def fingertip_travel(field: Mapping[str, np.ndarray], patches: Mapping[str, np.ndarray], f: int) -> np.ndarray:
+    """The eq. 3 amplitude eta c_k,t (m) of every finger at frame f, read from the field: the least-squares A_k of
+    u_i . d_k = A_k phi_k(x_i) over finger k's constrained points (u the displacement, phi_k = the stored weight,
+    d_k the inward patch normal); exact where finger k's patch alone reaches (phi_k = 1 at the patch centre).
+    (finger,); 0 for a finger without constrained points."""
+    finger_of = field["finger"][f]
+    w = field["weight"][f].astype(np.float64)
+    inward = -patches["patch_normals"][f].astype(np.float64)
+    along = np.einsum("ij,ij->i", field["displacement"][f].astype(np.float64), inward[np.maximum(finger_of, 0)])
+    mine = finger_of[None, :] == np.arange(N_FINGERS)[:, None]
+    den = (mine * w * w).sum(axis=1)
+    return np.where(den > 0, (mine * w * along).sum(axis=1) / np.maximum(den, 1e-30), 0.0)
+
+
+def fingertip_centres(field: Mapping[str, np.ndarray], patches: Mapping[str, np.ndarray], f: int,
+                      radius: float) -> np.ndarray:
+    """Centre (m) of each finger's fingertip sphere (``radius`` m) at frame f (finger, xyz): its lowest point is
+    the patch centre moved inwards by the eq. 3 amplitude (:func:`fingertip_travel`), so at zero force it touches
+    the rest surface and at frame f it reaches the target the field prescribes at the patch centre."""
+    outward = patches["patch_normals"][f].astype(np.float64)
+    travel = fingertip_travel(field, patches, f)
+    return patches["patch_centers"][f].astype(np.float64) + (radius - travel)[:, None] * outward
+
+
+def finger_colliders(solver: MPMSolver, surface0: np.ndarray, field: Mapping[str, np.ndarray],
+                     patches: Mapping[str, np.ndarray], f: int, torn: np.ndarray, frame_dt: float,
+                     friction: float = 0.0) -> list[Collider]:
+    """The fingers of frame f under ``mpm.fingers = collider`` (module doc): a rigid sphere of the fingertip pad
+    radius per active finger, from its place at frame f - 1 to its place at frame f (:func:`fingertip_centres`) in
+    the frame's time, i.e. velocity = displacement / frame_dt (m/s).  A finger that was not active at frame f - 1
+    starts where it just touches the material (:func:`_touching`), not at the rest surface: particle surfaces stick
+    out of it by up to the sampling jitter, and a sphere placed over them would kick them out within one substep.
+    The contact is unilateral by construction (a collider pushes, never pulls), frictionless or with Coulomb
+    ``friction`` (``mpm.finger_friction``).  A finger whose patch centre lies on torn skin (``torn`` (point,) bool
+    over the rest surface points ``surface0`` (point, xyz) m: the one nearest to the centre ruptured) no longer
+    presses: the opening is free."""
+    radius, active = FINGERTIP_PAD_RADIUS, patches["patch_active"]
+    end = fingertip_centres(field, patches, f, radius)
+    start = fingertip_centres(field, patches, f - 1, radius)
+    centres = patches["patch_centers"][f].astype(np.float64)
+    nearest = np.argmin(((surface0[None, :, :] - centres[:, None, :]) ** 2).sum(axis=-1), axis=1)
+    on = [k for k in range(N_FINGERS) if active[f, k] and not torn[nearest[k]]]
+    arriving = [k for k in on if not active[f - 1, k]]
+    if arriving:
+        x, half = solver.positions().astype(np.float64), 0.5 * np.cbrt(solver.volumes())
+        for k in arriving:
+            start[k] = _touching(x, half, centres[k] + radius * patches["patch_normals"][f, k],
+                                 patches["patch_normals"][f, k], radius)
+    return [Collider("sphere", start[k], radius=radius, velocity=(end[k] - start[k]) / frame_dt,
+                     friction=float(friction), finger_id=k) for k in on]
+
+
+def _touching(x: np.ndarray, half: np.ndarray, centre: np.ndarray, outward: np.ndarray, radius: float) -> np.ndarray:
+    """The sphere (``radius`` m) at ``centre`` (m) moved out along ``outward`` until no particle surface (centre
+    ``x`` (particle, xyz) m + ``half`` its half spacing, m) lies inside it (a few fixed-point steps)."""
+    for _ in range(4):
+        depth = float(np.max(radius + half - np.linalg.norm(x - centre, axis=1), initial=0.0))
+        if depth <= 1e-6 * radius:
+            break
+        centre = centre + depth * np.asarray(outward, np.float64)
+    return centre
+
+
 def force_patch(scene: Scene, field: Mapping[str, np.ndarray], forces: np.ndarray,
                 patches: Mapping[str, np.ndarray], f: int, torn: np.ndarray,
                 sim: Mapping[str, Any]) -> Optional[ForcePatch]:
@@ -424,14 +499,18 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
     record_frame(rec, 0, scene, mu_phys, cov0, q0, torn)
     for f in range(1, T):
         # 1. boundary condition of the frame
-        bc, push = None, None
-        if boundary == "dirichlet":
+        bc, push, tips, idx = None, None, None, np.zeros(0, np.int64)
+        if boundary == "dirichlet":  # (the Dirichlet points also give the tracking error of the collider fingers)
             bc, idx, target_x = dirichlet_points(scene, field, f, torn, contact_tolerance)
+            if scene.config.fingers == "collider":
+                bc, tips = None, finger_colliders(solver, scene.surface0, field, patches, f, torn, scene.frame_dt,
+                                                  scene.config.finger_friction)
         else:
             push = force_patch(scene, field, forces, patches, f, torn, sim)
         # 2. one output frame of the solver (KE/IE per frame: summarised in the attrs)
         # (after the rupture the motion is dynamic by design: no quasi-static check)
-        st = solver.step_frame(scene.frame_dt, dirichlet=bc, forces=push, quasi_static=not rec.event["crossed"])
+        st = solver.step_frame(scene.frame_dt, dirichlet=bc, forces=push, quasi_static=not rec.event["crossed"],
+                               colliders=tips)
         if f == 1:
             scene.notes.append("stable substep per material (s): " + ", ".join(
                 f"{k} {v:.3g} ({math.ceil(scene.frame_dt / v)} substeps per frame)"
@@ -443,7 +522,7 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
         # 3. record
         record_frame(rec, f, scene, mu_phys, cov0, q0, torn)
         report_progress(f, T - 1)
-        if bc is not None:  # RMS distance of the imposed points from their targets at the end of the frame
+        if len(idx):  # RMS distance of the points the field imposes from their targets at the end of the frame
             rec.tracking[f] = np.sqrt(np.mean(np.sum((rec.gaussian_positions[f][idx] - target_x) ** 2, axis=1)))
         # 4. the threshold release (once)
         if (scene.with_interior and not rec.event["crossed"] and threshold is not None
@@ -467,15 +546,27 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
 
 # ----------------------------------------------------------------------------------------------- 3. the outputs
 def resistive_feedback(oracle: ObjectMaterials, contact: np.ndarray, patches: Mapping[str, np.ndarray],
-                       max_force: float) -> tuple[np.ndarray, str]:
-    """Resistive force feedback (sec. 3.2) per frame and finger, N: ``clip(tau_y A_k, 0, max_force)`` with
-    tau_y the shell's yield stress (Pa) and A_k the active patch area (m^2), or the contact force |``contact``|
-    (frame, finger, xyz) N for a shell without a yield stress.  Returns (feedback (frame, finger), rule)."""
+                       max_force: float, rule: str = "yield_area") -> tuple[np.ndarray, str]:
+    """Resistive force feedback (sec. 3.2) per frame and finger, N, clipped to [0, ``max_force``]: under ``rule``
+    ``yield_area`` (the paper's) tau_y A_k with tau_y the shell's yield stress (Pa) and A_k the active patch area
+    (m^2), or the contact force |``contact``| (frame, finger, xyz) N for a shell without a yield stress; under
+    ``reaction`` that contact force.  Returns (feedback (frame, finger), the rule applied)."""
     area = patches["patch_areas"] * patches["patch_active"]
-    tau_y = oracle.shell.yield_stress
+    tau_y = oracle.shell.yield_stress if rule == "yield_area" else 0.0
     raw_feedback = tau_y * area if tau_y else np.linalg.norm(contact, axis=-1)
     feedback = np.clip(raw_feedback, 0.0, max_force).astype(np.float32)
-    return feedback, "tau_y * area" if tau_y else "|contact force| (no yield stress)"
+    if tau_y:
+        return feedback, "tau_y * area"
+    return feedback, "|contact force|" + (" (no yield stress)" if rule == "yield_area" else "")
+
+
+def feedback_rule(sim: Mapping[str, Any], fingers: str) -> str:
+    """``simulation.feedback_rule`` resolved: ``auto`` is ``reaction`` with collider fingers (their reactions are
+    the fingertip impulses at the surface) and the paper's ``yield_area`` with grid-node Dirichlet fingers."""
+    rule = str(sim.get("feedback_rule", "auto"))
+    if rule == "auto":
+        return "reaction" if fingers == "collider" else "yield_area"
+    return rule
 
 
 def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: Mapping[str, np.ndarray],
@@ -485,7 +576,9 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
     solver, mid = scene.solver, rec.labels
     contact = rec.reaction if boundary == "dirichlet" else rec.applied
     free_fall = None
-    feedback, feedback_rule = resistive_feedback(scene.oracle, contact, patches, float(sim["feedback_max_force"]))
+    fingers = scene.config.fingers if boundary == "dirichlet" else "force"
+    feedback, rule = resistive_feedback(scene.oracle, contact, patches, float(sim["feedback_max_force"]),
+                                        feedback_rule(sim, fingers))
     arrays: dict[str, Array] = {
         "time": Array(times.astype(np.float64), ("frame",), "s"),
         "particle_positions": Array(rec.particle_positions, ("frame", "particle", "xyz"), "m"),
@@ -500,6 +593,8 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
                                       "F Sigma F^T: xx xy xz yy yz zz"),
         "gaussian_rotations": Array(rec.gaussian_rotations, ("frame", "point", "quat"), "1", "polar(F) q0, w first"),
         "reaction_force": Array(rec.reaction, ("frame", "finger", "xyz"), "N",
+                                "frame mean of the fingertip collider's impulses m dv / dt on the particles it touched"
+                                if fingers == "collider" else
                                 "sum m (v_bc - v*) / dt over the finger's constrained nodes, frame mean"),
         "applied_force": Array(rec.applied, ("frame", "finger", "xyz"), "N", "force mode push, frame mean"),
         "feedback_force": Array(feedback, ("frame", "finger"), "N", "resistive force for the glove"),
@@ -528,7 +623,7 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
         "threshold_event": rec.event, "notes": scene.notes,
         "material_mass_scales": {m.name: float(k) for m, k in zip(scene.materials, solver.material_mass_scale)},
         "released_free_fall_acceleration": free_fall if rec.released is not None else None,
-        "feedback_rule": feedback_rule,
+        "feedback_rule": rule, "fingers": fingers,
         "bytes_per_particle": float(solver.bytes_per_particle()),
         "quasi_static": {**_quasi_static_summary(rec.stats["ke_ie_contact"], contact, solver.mass_scale,
                                                  float(scene.config.quasi_static_ke_ie_max)),
@@ -665,8 +760,9 @@ ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_
                reads=("mpm", "simulation", "variant.boundary"),
                outputs=ROLLOUT_OUTPUTS)
 def mpm_rollout_step(inputs, params):
-    """The squeeze simulated with MLS-MPM (eqs. 4-5) under the eq. 3 field (``variant.boundary=dirichlet``) or the
-    per-finger force (``force``, the no_dirichlet ablation), with the oracle's materials."""
+    """The squeeze simulated with MLS-MPM (eqs. 4-5) under the eq. 3 field (``variant.boundary=dirichlet``: grid-node
+    Dirichlet points, or fingertip colliders with ``mpm.fingers=collider``) or the per-finger force (``force``, the
+    no_dirichlet ablation), with the oracle's materials."""
     obj = inputs["object_model"]
     return mpm_rollout(obj.arrays, {**obj.attrs, "name": obj.ref.scope}, inputs["dirichlet_field"].arrays,
                        inputs["force_coefficients"]["force_coefficients"], inputs["contact_patches"].arrays,

@@ -24,7 +24,10 @@ from typing import Optional
 
 import numpy as np
 
+from conf.hand import FINGERTIP_PAD_RADIUS, N_FINGERS
+from tasks.control.dirichlet_field import dirichlet_field
 from tasks.physics.mpm import Collider, DirichletPoints, Material, MPMSolver
+from tasks.physics.mpm_rollout import finger_colliders, fingertip_travel
 
 HERTZ_R = 0.035  # m (the issue's sphere: R = 35 mm, E = 2 MPa, nu = 0.45)
 HERTZ_E = 2.0e6  # Pa
@@ -247,6 +250,97 @@ def indentation_case(cells_per_contact_radius: float = 2.7, depth: float = 0.004
     at = np.asarray(depths, float)
     out.update(at=at, seconds=time.perf_counter() - t0, particles=len(X), dx=dx)
     out["force_at"] = np.interp(at, frame_mean(out["depth"]), out["force"])
+    out["hertz_at"] = hertz_force(at, R, E, nu)
+    out["force_error"] = out["force_at"] / out["hertz_at"] - 1.0
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- collider fingers
+def block_particles(half: float, deep: float, h: float) -> np.ndarray:
+    """Particles (spacing h, m) filling [-half, half]^2 x [0, deep] (m), cell-centred: (N, 3)."""
+    g = (np.arange(int(round(2 * half / h))) + 0.5) * h - half
+    z = (np.arange(int(round(deep / h))) + 0.5) * h
+    return np.stack(np.meshgrid(g, g, z, indexing="ij"), -1).reshape(-1, 3)
+
+
+def force_ramp(n: int, ramp: float = 0.2) -> np.ndarray:
+    """Force coefficients 0 .. 1 over n frames (1): constant rate after an accelerating first ``ramp`` fraction."""
+    u = np.linspace(0.0, 1.0, n)
+    return np.where(u < ramp, u * u / (2 * ramp), u - ramp / 2) / (1 - ramp / 2)
+
+
+def finger_field(surface: np.ndarray, centres: np.ndarray, normals: np.ndarray, c: np.ndarray, eta: float,
+                 sigma: float) -> tuple[dict, dict]:
+    """The eq. 3 field (:func:`tasks.control.dirichlet_field.dirichlet_field`, support 2.5 sigma) and the contact
+    patches of fixed round patches (radius ``sigma``, m) of the first fingers at ``centres`` (finger, xyz) m with
+    outward unit ``normals``, over the surface points ``surface`` (point, xyz) m, force coefficients ``c`` (frame,
+    finger) and ``eta`` (m per unit coefficient); the other fingers are inactive.  Returns (field, patches)."""
+    T, k = c.shape
+    def pad(a, fill=0.0):  # the remaining fingers
+        return np.concatenate([a, np.full((T, N_FINGERS - k) + a.shape[2:], fill)], axis=1)
+    C = pad(np.broadcast_to(centres, (T, k, 3)).copy())
+    N = pad(np.broadcast_to(normals, (T, k, 3)).copy())
+    N[:, k:, 2] = 1.0
+    axes = np.zeros((T, N_FINGERS, 2, 3))
+    for i in range(N_FINGERS):
+        u = np.cross(N[0, i], [1.0, 0.0, 0.0] if abs(N[0, i, 0]) < 0.9 else [0.0, 1.0, 0.0])
+        u /= np.linalg.norm(u)
+        axes[:, i] = [u, np.cross(N[0, i], u)]
+    radii, active = pad(np.full((T, k, 2), sigma)), pad(c > 0, False).astype(bool)
+    patches = {"patch_centers": C, "patch_normals": N, "patch_axes": axes, "patch_radii": radii,
+               "patch_active": active}
+    field = dirichlet_field(surface, C, N, axes, radii, active, pad(c), {"eta": eta, "support": 2.5,
+                                                                       "min_weight": 0.05})
+    return {name: a.data for name, a in field.items()}, patches
+
+
+def press_fingers(solver: MPMSolver, surface: np.ndarray, field: dict, patches: dict, frame_dt: float,
+                  fixed: Optional[Collider] = None) -> tuple[np.ndarray, np.ndarray]:
+    """Step one frame (``frame_dt`` s) per frame of the field after the first with the collider fingers of
+    :func:`tasks.physics.mpm_rollout.finger_colliders` (and the static collider ``fixed``).  Returns per frame the
+    reactions (frame, finger, xyz) N and the momentum at its end (frame, xyz) kg m/s."""
+    torn = np.zeros(len(surface), bool)
+    reactions, momenta = [], []
+    for f in range(1, len(field["weight"])):
+        tips = finger_colliders(solver, surface, field, patches, f, torn, frame_dt)
+        st = solver.step_frame(frame_dt, colliders=tips + ([fixed] if fixed is not None else []))
+        reactions.append(np.asarray(st.reaction)[:N_FINGERS])
+        momenta.append(np.asarray(st.momentum, float))
+    return np.array(reactions), np.array(momenta)
+
+
+def fingertip_case(cells_per_contact_radius: float = 1.5, depth: float = 0.002, E: float = HERTZ_E,
+                   nu: float = HERTZ_NU, c_of_frame: Optional[np.ndarray] = None, load_transits: float = 12.0,
+                   depths: tuple[float, ...] = (0.001, 0.0015, 0.002)) -> dict:
+    """A collider finger (sphere of the fingertip pad radius R) driven by the eq. 3 field into an elastic block
+    (Hertz's half-space: 8 contact radii a = sqrt(R depth) across, 5 deep, on a frictionless plane collider):
+    one patch (sigma = 2 a) on the top face's centre, eta = ``depth`` (m), force coefficients ``c_of_frame``
+    (default :func:`force_ramp` over 31 frames) over ``load_transits`` bar-wave transits of the block's depth;
+    dx = a / ``cells_per_contact_radius``.  Returns ``travel`` (frame,) m (the field's amplitude), ``reaction``
+    (frame - 1, finger, xyz) N, at ``depths``: ``at``, ``force_at``, ``hertz_at`` (N), ``force_error``;
+    ``seconds``, ``particles``, ``dx``."""
+    c = force_ramp(31) if c_of_frame is None else np.asarray(c_of_frame, float)
+    R = FINGERTIP_PAD_RADIUS
+    a = float(np.sqrt(R * depth))
+    dx = a / cells_per_contact_radius
+    h = dx / 2
+    X = block_particles(4 * a, 5 * a, h)
+    deep = X[:, 2].max() + h / 2
+    top = X[X[:, 2] > deep - h] + [0.0, 0.0, h / 2]  # the top face's surface points
+    field, patches = finger_field(top, np.array([[0.0, 0.0, deep]]), np.array([[0.0, 0.0, 1.0]]), c[:, None],
+                                  eta=depth, sigma=2 * a)
+    mat = Material(name="block", model="fixed_corotated", youngs_modulus=E, poisson_ratio=nu, density=DENSITY)
+    s = MPMSolver(X, h ** 3, mat, config=dict(device="cpu", dx=dx, gravity=[0.0, 0.0, 0.0], floor=False,
+                                              margin_cells=3, energy_guard_tolerance=0.0), label="fingertip")
+    frame_dt = load_transits * (5 * a) / mat.bar_wave_speed() / (len(c) - 1)
+    t0 = time.perf_counter()
+    reaction, _ = press_fingers(s, top, field, patches, frame_dt,
+                                Collider("plane", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), finger_id=N_FINGERS - 1))
+    travel = np.array([fingertip_travel(field, patches, f)[0] for f in range(len(c))])
+    at = np.asarray(depths, float)
+    out = {"travel": travel, "reaction": reaction, "at": at, "seconds": time.perf_counter() - t0,
+           "particles": len(X), "dx": dx}
+    out["force_at"] = np.interp(at, frame_mean(travel[1:]), -reaction[:, 0, 2])
     out["hertz_at"] = hertz_force(at, R, E, nu)
     out["force_error"] = out["force_at"] / out["hertz_at"] - 1.0
     return out

@@ -861,6 +861,7 @@ class MPMSolver:
             rows.append((Collider.KINDS.index(c.kind), a, b, float(c.radius), vel, float(c.friction),
                          int(c.finger_id)))
         self._grow_fingers(max([r[6] + 1 for r in rows], default=0))
+        self._collider_speed = max([float(np.linalg.norm(r[4])) for r in rows], default=0.0)
         if rows or self.col.count:
             self._set_colliders(rows)
         return len(rows)
@@ -983,6 +984,7 @@ class MPMSolver:
         bcs = self._upload_dirichlet(dirichlet(0.0, None) if bc_fn else dirichlet)
         fps = self._upload_forces(forces(0.0, None) if f_fn else forces)
         n_col = self._upload_colliders(colliders)
+        col_speed = self._collider_speed  # m/s: a moving collider bounds the step like a Dirichlet target's speed
         self.finger_react.zero_()
         self.finger_applied.zero_()
         self.boundary_work.zero_()
@@ -997,7 +999,7 @@ class MPMSolver:
         dts: list[float] = []
         self._frame_dts = dts  # the substeps taken so far (the guard messages quote their Courant number)
         self._times = [(self.substep, self.time)]
-        dt = self._next_dt(frame_dt, max(self._vmax, bc_speed))
+        dt = self._next_dt(frame_dt, max(self._vmax, bc_speed, col_speed))
         cur, other = self.grid_b, self.grid_a
         # P2G of the frame's first substep (stress from the stored state)
         self._reset_bbox()
@@ -1052,7 +1054,7 @@ class MPMSolver:
             if not math.isfinite(vmax):
                 self._vmax = vmax
                 self._check_flags(force_nonfinite=True)
-            dt_next = self._next_dt(remaining, max(vmax, bc_speed))
+            dt_next = self._next_dt(remaining, max(vmax, bc_speed, col_speed))
             if n_col:  # the next P2G sees the colliders where they are at its time
                 wp.launch(K.k_collider_advance, dim=n_col, device=d, inputs=[self.col, dt])
             self._reset_bbox()
