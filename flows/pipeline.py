@@ -44,7 +44,7 @@ from tasks.control.squeeze_signals import squeeze_signals_step
 from tasks.core.artifacts import ArtifactRef, remove_stale_temporaries
 from tasks.core.params import resolve_reads
 from tasks.core.scope import seed_scope
-from tasks.core.step import StepTask, WiringError
+from tasks.core.step import StepTask, WiringError, artifact_path, artifact_rel, step_key, valid_artifact
 from tasks.evaluation.deformation_metrics import deformation_metrics_step
 from tasks.evaluation.llm_evaluation import llm_evaluation_step
 from tasks.evaluation.paper_metrics import paper_metrics_step
@@ -194,11 +194,16 @@ class _MustRun(Exception):
     """A step of the grid has no intact artifact on disk."""
 
 
-def _cached(step: StepTask, *, label: str, **kw: Any) -> ArtifactRef:
-    ref = step.cached(**kw)
-    if ref is None:
+def _cached(step: StepTask, *, root: str, scope: str, params: dict, inputs: dict[str, ArtifactRef],
+            label: str) -> ArtifactRef:
+    """The step's intact artifact on disk, found as its task's cache policy finds it (same key, same check,
+    a damaged one removed with one warning line), without running anything."""
+    key = step_key(step.name, step.version, scope, params, {n: ref.at(root) for n, ref in inputs.items()})
+    attrs = valid_artifact(artifact_path(root, scope, step.name, key), scope, step.name)
+    if attrs is None:
         raise _MustRun(f"{label}/{step.name}")
-    return ref
+    return ArtifactRef(rel=artifact_rel(scope, step.name, key), digest=attrs["digest"], step=step.name, scope=scope,
+                       compute_seconds=float(attrs.get("compute_seconds", 0.0))).at(root)
 
 
 def cached_grid(cfg: DictConfig) -> dict[str, dict[tuple[str, str], ArtifactRef]] | None:
@@ -324,7 +329,6 @@ def run(cfg: DictConfig, flow_label: str) -> dict:
         print("effect backend: physics-rendered (weight-free). For the paper's diffusion backend put SD-1.5, an "
               "AnimateDiff motion adapter and a depth ControlNet under one folder and run generation=diffusers "
               "generation.weights=/path/to/models (README: Diffusion weights).")
-    runner = make_task_runner(cfg.runner)
     config = OmegaConf.to_container(cfg, resolve=True)
     job_dir = sweep_job_dir()
     if config.get("run_name") is None and job_dir is not None:
@@ -338,6 +342,7 @@ def run(cfg: DictConfig, flow_label: str) -> dict:
         refs = {name: nest({(step, chain): table.add_cached(name, step, ref, variant=chain)
                             for (step, chain), ref in steps.items()}) for name, steps in cached.items()}
         return write_report(OmegaConf.create(config), config, flow_label, job_dir, table, refs, t0)
+    runner = make_task_runner(cfg.runner)
     with result_storage_settings(cfg.paths.artifacts), temporary_server():
         return virsqueezer_flow.with_options(task_runner=runner, name=f"virsqueezer-{flow_label}")(
             config, flow_label, job_dir)

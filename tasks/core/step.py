@@ -229,14 +229,6 @@ class StepTask:
         return self.task.submit(root=str(root), scope=scope, params=dict(params), inputs=self._inputs(inputs),
                                 label=label or scope)
 
-    def cached(self, *, root: str, scope: str, params: Mapping[str, Any],
-               inputs: Mapping[str, ArtifactRef] | None = None) -> Optional[ArtifactRef]:
-        """The step's artifact when it is already on disk and intact (checked against its manifest, a damaged
-        one removed with one warning line: :func:`valid_artifact`), rooted at ``root``; ``None`` when the step
-        must run.  Same key as :meth:`submit` and :meth:`run_local`; nothing is computed."""
-        return _stored(self, str(root), scope, dict(params),
-                       {producer: ref.at(root) for producer, ref in self._inputs(inputs).items()})
-
     def run_local(self, *, root: str, scope: str, params: Mapping[str, Any],
                   inputs: Mapping[str, ArtifactRef] | None = None, label: str = "") -> ArtifactRef:
         """Run the step without Prefect (tests, notebooks): same key, same artifact."""
@@ -277,26 +269,16 @@ def report_progress(done: int, total: int, unit: str = "frame") -> None:
                  time.perf_counter() - state.started)
 
 
-def _stored(step: StepTask, root: str, scope: str, params: dict, inputs: dict[str, ArtifactRef],
-            reused: bool = False) -> Optional[ArtifactRef]:
-    """The intact artifact of this step run on disk (inputs rooted at ``root``), or None."""
-    key = step_key(step.name, step.version, scope, params, inputs)
-    attrs = valid_artifact(artifact_path(root, scope, step.name, key), scope, step.name)
-    if attrs is None:
-        return None
-    return ArtifactRef(rel=artifact_rel(scope, step.name, key), digest=attrs["digest"], step=step.name, scope=scope,
-                       compute_seconds=float(attrs.get("compute_seconds", 0.0)), reused=reused).at(root)
-
-
 def _execute(step: StepTask, root: str, scope: str, params: dict, inputs: dict[str, ArtifactRef],
              label: str) -> ArtifactRef:
     name = step.name
     inputs = {producer: ref.at(root) for producer, ref in inputs.items()}  # this run's folder, wherever written
-    stored = _stored(step, root, scope, params, inputs, reused=True)
-    if stored is not None:  # the artifact survived although its cache record did not (e.g. result storage wiped)
-        return stored
     key = step_key(name, step.version, scope, params, inputs)
     path = artifact_path(root, scope, name, key)
+    attrs = valid_artifact(path, scope, name)
+    if attrs is not None:  # the artifact survived although its cache record did not (e.g. result storage wiped)
+        return ArtifactRef(rel=artifact_rel(scope, name, key), digest=attrs["digest"], step=name, scope=scope,
+                           compute_seconds=float(attrs.get("compute_seconds", 0.0)), reused=True).at(root)
     loaded = {producer: read_artifact(ref) for producer, ref in inputs.items()}
     t0 = time.perf_counter()
     token = _PROGRESS.set(_Progress(f"{label}/{name}"))
