@@ -18,6 +18,11 @@ Tables 1 and 3:
 
     effect -> appearance_refinement (eq. 7) -> video_metrics; llm_evaluation; paper_metrics (only when a
     ``paper_metrics`` weight file is named: the paper's VBench metrics)
+
+Per object and variant, the report's media (videos, contact sheet, figures) are made on the task runner as soon as
+the artifacts they show exist (:func:`tasks.reporting.report.cache_scene_media`), so that the report build after
+the last task only links them.  A run whose every step is already on disk and intact (:func:`cached_grid`) writes
+the report without starting the Prefect server or the task runner.
 """
 from __future__ import annotations
 
