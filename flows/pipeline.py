@@ -234,8 +234,8 @@ def submit_scene_media(cfg: DictConfig, scope: str, futures: dict[tuple[str, str
     futures of just the steps its media show."""
     shown = nest({(step, chain): fut for (step, chain), fut in futures.items() if step in SCENE_MEDIA_INPUTS})
     return [scene_media_task.submit(scope, {**{k: v for k, v in shown.items() if k != "variants"},
-                                            "variants": {variant: refs}}, variant, cfg.paths.artifacts)
-            for variant, refs in shown.get("variants", {}).items()]
+                                            "variants": {variant: refs}}, variant, cfg.paths.artifacts, first=k == 0)
+            for k, (variant, refs) in enumerate(shown.get("variants", {}).items())]
 
 
 def run_object_local(cfg: DictConfig, obj: DictConfig, variant: DictConfig | None, root: str | Path,

@@ -306,13 +306,14 @@ SCENE_MEDIA_INPUTS = ("signal_smoothing", "force_coefficients", "contact_patches
                       "conditions", "effect", "appearance_refinement")
 
 
-def cache_scene_media(obj: str, obj_refs: Mapping[str, Any], variant: str, root: str) -> int:
+def cache_scene_media(obj: str, obj_refs: Mapping[str, Any], variant: str, root: str, first: bool) -> int:
     """Make the media the report shows of one scene (object ``obj``, ``variant``) in the media cache
     ``<root>/.media`` as soon as the scene's artifacts exist, so that the report build only links them: the
-    videos, loss curve and figures of the scene, and the object's contact sheet, signal plots and control
-    figure with its first variant.  ``obj_refs`` is the object's reference tree as :func:`write_run_report`
-    reads it, holding (at least) ``variant`` and the :data:`SCENE_MEDIA_INPUTS`.  Returns how many media were
-    made (the others were in the cache already).  Same keys, hence the same bytes, as the report build's."""
+    videos, loss curve and figures of the scene and, for the object's ``first`` variant, the object's contact
+    sheet, signal plots and control figure.  ``obj_refs`` is the object's reference tree as
+    :func:`write_run_report` reads it, with ``variant`` as its only variant and (at least) the
+    :data:`SCENE_MEDIA_INPUTS`.  Returns how many media were made (the others were in the cache already).  Same
+    keys, hence the same bytes, as the report build's."""
     def rooted(tree):
         return ({k: rooted(v) for k, v in tree.items()} if isinstance(tree, Mapping)
                 else tree.at(root) if isinstance(tree, ArtifactRef) else tree)
@@ -320,10 +321,10 @@ def cache_scene_media(obj: str, obj_refs: Mapping[str, Any], variant: str, root:
     obj_refs = rooted(obj_refs)
     cache = MediaCache(Path(root) / MEDIA_DIR)
     with tempfile.TemporaryDirectory(prefix="scene-media-") as scratch:
-        object_media(obj, obj_refs, Path(scratch), cache, only=variant)
+        object_media(obj, obj_refs, Path(scratch), cache, scenes_only=not first)
         pair = {**{k: v for k, v in obj_refs.items() if k != "variants"}, **obj_refs["variants"][variant]}
         scene_figures(cache, obj, variant, pair, Path(scratch))
-        if variant == next(iter(obj_refs["variants"])):
+        if first:
             _figure(cache, "control", control_figure, obj, obj_refs, Path(scratch) / f"{obj}_control.png")
     return cache.made
 

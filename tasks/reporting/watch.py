@@ -172,18 +172,15 @@ def _contact_sheet(first: Mapping[str, Any], path: Path) -> Path | None:
 
 
 def object_media(obj: str, obj_refs: Mapping[str, Any], out_dir: Path, cache: MediaCache | None = None,
-                 only: str | None = None) -> ObjectMedia | None:
+                 scenes_only: bool = False) -> ObjectMedia | None:
     """All media of one object: every variant's scene media, the contact sheet of the first variant, the
-    synchronised control plot (reused from ``cache`` when already made from the same artifacts).  ``only``
-    names one variant: its scene media alone, and the object's own media when it is the first variant (a scene
-    made as soon as its artifacts are, :func:`tasks.reporting.report.cache_scene_media`)."""
+    synchronised control plot (reused from ``cache`` when already made from the same artifacts).  With
+    ``scenes_only`` the variants' scene media alone (:func:`tasks.reporting.report.cache_scene_media`)."""
     cache = cache or MediaCache(None)
     variants = obj_refs.get("variants", {})
     media = ObjectMedia(obj)
     fps = None
     for variant, vrefs in variants.items():
-        if only is not None and variant != only:
-            continue
         g = _load(vrefs.get("gbuffer"), ["time"])
         if g is None:
             continue
@@ -195,8 +192,8 @@ def object_media(obj: str, obj_refs: Mapping[str, Any], out_dir: Path, cache: Me
             media.scenes.append(scene)
     if not media.scenes:
         return None
-    if only is not None and only != next(iter(variants)):
-        return media  # the object's own media go with its first variant
+    if scenes_only:
+        return media
     first = next(iter(variants.values()))
     sheet_inputs = {"gbuffer": first.get("gbuffer"), "mpm_rollout": first.get("mpm_rollout"),
                     "effect": next(iter(first.get("backends", {}).values()), {}).get("effect")}
