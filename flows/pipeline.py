@@ -18,16 +18,22 @@ Tables 1 and 3:
 
     effect -> appearance_refinement (eq. 7) -> video_metrics; llm_evaluation; paper_metrics (only when a
     ``paper_metrics`` weight file is named: the paper's VBench metrics)
+
+Per object and variant, the report's media (videos, contact sheet, figures) are made on the task runner as soon as
+the artifacts they show exist (:func:`tasks.reporting.report.cache_scene_media`), so that the report build after
+the last task only links them.  A run whose every step is already on disk and intact (:func:`cached_grid`) writes
+the report without starting the Prefect server or the task runner.
 """
 from __future__ import annotations
 
 import time
 from datetime import datetime
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from omegaconf import DictConfig, OmegaConf
-from prefect import flow
+from prefect import flow, task
+from prefect.cache_policies import NO_CACHE
 from prefect.logging import get_logger
 
 from flows.lifecycle import temporary_server
@@ -43,7 +49,7 @@ from tasks.control.squeeze_signals import squeeze_signals_step
 from tasks.core.artifacts import ArtifactRef, remove_stale_temporaries
 from tasks.core.params import resolve_reads
 from tasks.core.scope import seed_scope
-from tasks.core.step import StepTask, WiringError
+from tasks.core.step import StepTask, WiringError, artifact_path, artifact_rel, step_key, valid_artifact
 from tasks.evaluation.deformation_metrics import deformation_metrics_step
 from tasks.evaluation.llm_evaluation import llm_evaluation_step
 from tasks.evaluation.paper_metrics import paper_metrics_step
@@ -55,7 +61,7 @@ from tasks.physics.mpm_rollout import mpm_rollout_step
 from tasks.render.conditions import conditions_step
 from tasks.render.gbuffer import gbuffer_step
 from tasks.reporting.media_cache import MEDIA_DIR
-from tasks.reporting.report import write_run_report
+from tasks.reporting.report import SCENE_MEDIA_INPUTS, cache_scene_media, write_run_report
 
 log = get_logger("virsqueezer")
 
@@ -140,37 +146,96 @@ def variant_key(variant: str, backend: str | None = None) -> str:
 
 
 def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], backends: list[str] | None = None,
-                  per_variant: tuple[StepTask, ...] = PER_VARIANT, scope: str | None = None
-                  ) -> dict[tuple[str, str], Any]:
+                  per_variant: tuple[StepTask, ...] = PER_VARIANT, scope: str | None = None,
+                  call: Callable[..., Any] = StepTask.submit) -> dict[tuple[str, str], Any]:
     """Submit one object's steps: the per-object chain once, the per-variant chain for each variant, and the
     per-backend chain for each variant and backend.
 
     Returns the futures keyed by (step, chain): ``""`` for per-object steps, the variant name for per-variant
     steps and ``variant/backend`` for per-backend ones.  ``per_variant`` may be a leading part of
     :data:`PER_VARIANT` (e.g. the deformation chain alone, with ``backends=[]``); ``scope`` names the run's
-    artifacts and labels (default: the object's name)."""
+    artifacts and labels (default: the object's name).  ``call(step, root=, scope=, params=, inputs=, label=)``
+    makes each step's result from its inputs' (default :meth:`StepTask.submit`: a future)."""
     scope = scope or obj.name
     kw = dict(root=cfg.paths.artifacts, scope=scope)
     shared: dict[str, Any] = {}
     for step in PER_OBJECT:
-        shared[step.name] = step.submit(params=step_params(step, cfg, obj),
-                                        inputs={n: shared[n] for n in step.spec.inputs}, label=scope, **kw)
+        shared[step.name] = call(step, params=step_params(step, cfg, obj),
+                                 inputs={n: shared[n] for n in step.spec.inputs}, label=scope, **kw)
     out: dict[tuple[str, str], Any] = {(name, ""): fut for name, fut in shared.items()}
     for variant in variants:
         available = dict(shared)
         for step in per_variant:
-            available[step.name] = step.submit(
-                params=step_params(step, cfg, obj, variant), inputs={n: available[n] for n in step.spec.inputs},
+            available[step.name] = call(
+                step, params=step_params(step, cfg, obj, variant), inputs={n: available[n] for n in step.spec.inputs},
                 label=f"{scope}[{variant.name}]", **kw)
             out[(step.name, variant.name)] = available[step.name]
         for backend in (backends if backends is not None else selected_backends(cfg)):
             cfg_b, chain = backend_config(cfg, backend), dict(available)
             for step in filter(lambda s: wanted(s, cfg), PER_BACKEND):
-                chain[step.name] = step.submit(
-                    params=step_params(step, cfg_b, obj, variant), inputs={n: chain[n] for n in step.spec.inputs},
+                chain[step.name] = call(
+                    step, params=step_params(step, cfg_b, obj, variant), inputs={n: chain[n] for n in step.spec.inputs},
                     label=f"{scope}[{variant_key(variant.name, backend)}]", **kw)
                 out[(step.name, variant_key(variant.name, backend))] = chain[step.name]
     return out
+
+
+def nest(steps: dict[tuple[str, str], Any]) -> dict[str, Any]:
+    """One object's results keyed by (step, chain) as the report reads them: the shared steps at the top,
+    ``["variants"][variant][step]`` and ``["variants"][variant]["backends"][backend][step]``."""
+    tree: dict[str, Any] = {}
+    for (step, chain), value in steps.items():
+        variant, _, backend = chain.partition("/")
+        if backend:
+            tree["variants"][variant].setdefault("backends", {}).setdefault(backend, {})[step] = value
+        elif variant:
+            tree.setdefault("variants", {}).setdefault(variant, {})[step] = value
+        else:
+            tree[step] = value
+    return tree
+
+
+class _MustRun(Exception):
+    """A step of the grid has no intact artifact on disk."""
+
+
+def _cached(step: StepTask, *, root: str, scope: str, params: dict, inputs: dict[str, ArtifactRef],
+            label: str) -> ArtifactRef:
+    """The step's intact artifact on disk, found as its task's cache policy finds it (same key, same check,
+    a damaged one removed with one warning line), without running anything."""
+    key = step_key(step.name, step.version, scope, params, {n: ref.at(root) for n, ref in inputs.items()})
+    attrs = valid_artifact(artifact_path(root, scope, step.name, key), scope, step.name)
+    if attrs is None:
+        raise _MustRun(f"{label}/{step.name}")
+    return ArtifactRef(rel=artifact_rel(scope, step.name, key), digest=attrs["digest"], step=step.name, scope=scope,
+                       compute_seconds=float(attrs.get("compute_seconds", 0.0))).at(root)
+
+
+def cached_grid(cfg: DictConfig) -> dict[str, dict[tuple[str, str], ArtifactRef]] | None:
+    """Every step's artifact of the grid, keyed as the flow's futures, when each is already on disk and intact
+    (the same keys and manifest check as the cached tasks, in this process, without Prefect); None at the first
+    step that must run (a damaged artifact is removed with one warning line on the way: the flow recomputes it)."""
+    try:
+        return {seed_scope(obj.name, seed): submit_object(with_seed(cfg, seed), obj, selected_variants(cfg),
+                                                          scope=seed_scope(obj.name, seed), call=_cached)
+                for obj in selected_objects(cfg) for seed in selected_seeds(cfg)}
+    except _MustRun:
+        return None
+
+
+# the report media of one scene, made on the task runner as soon as its artifacts are (not cached by Prefect:
+# the media cache is by content, and a scene whose media are all there returns at once)
+scene_media_task = task(cache_scene_media, name="report_media", task_run_name="report_media[{obj}/{variant}]",
+                        cache_policy=NO_CACHE, persist_result=False)
+
+
+def submit_scene_media(cfg: DictConfig, scope: str, futures: dict[tuple[str, str], Any]) -> list:
+    """Submit the report media of each variant of one object (:func:`cache_scene_media`), each waiting for the
+    futures of just the steps its media show."""
+    shown = nest({(step, chain): fut for (step, chain), fut in futures.items() if step in SCENE_MEDIA_INPUTS})
+    return [scene_media_task.submit(scope, {**{k: v for k, v in shown.items() if k != "variants"},
+                                            "variants": {variant: refs}}, variant, cfg.paths.artifacts, first=k == 0)
+            for k, (variant, refs) in enumerate(shown.get("variants", {}).items())]
 
 
 def run_object_local(cfg: DictConfig, obj: DictConfig, variant: DictConfig | None, root: str | Path,
@@ -198,26 +263,27 @@ def virsqueezer_flow(config: dict, flow_label: str = "evaluate", report_dir: str
     """
     cfg = OmegaConf.create(config)
     t0 = time.perf_counter()
-    objects, variants = selected_objects(cfg), selected_variants(cfg)
-    futures = {seed_scope(obj.name, seed): submit_object(with_seed(cfg, seed), obj, variants,
-                                                         scope=seed_scope(obj.name, seed))
-               for obj in objects for seed in selected_seeds(cfg)}
+    futures, media = {}, []
+    for obj in selected_objects(cfg):
+        for seed in selected_seeds(cfg):
+            scope = seed_scope(obj.name, seed)
+            futures[scope] = submit_object(with_seed(cfg, seed), obj, selected_variants(cfg), scope=scope)
+            media += submit_scene_media(cfg, scope, futures[scope])  # queued behind this object's steps
     table = RunTable(total=sum(len(f) for f in futures.values()))
-    refs: dict[str, dict[str, Any]] = {}
-    for name, steps in futures.items():
-        refs[name] = {}
-        for (step, chain), fut in steps.items():
-            ref = table.add_future(name, step, fut, root=cfg.paths.artifacts, variant=chain)
-            variant, _, backend = chain.partition("/")
-            if backend:
-                refs[name]["variants"][variant].setdefault("backends", {}).setdefault(backend, {})[step] = ref
-            elif variant:
-                refs[name].setdefault("variants", {}).setdefault(variant, {})[step] = ref
-            else:
-                refs[name][step] = ref
+    refs = {name: nest({(step, chain): table.add_future(name, step, fut, root=cfg.paths.artifacts, variant=chain)
+                        for (step, chain), fut in steps.items()}) for name, steps in futures.items()}
+    for fut in media:
+        fut.wait()  # a scene whose media failed (or whose steps did) is made, or reported, by the report build
+    return write_report(cfg, config, flow_label, report_dir, table, refs, t0)
+
+
+def write_report(cfg: DictConfig, config: dict, flow_label: str, report_dir: str | None, table: RunTable,
+                 refs: dict[str, dict[str, Any]], t0: float) -> dict:
+    """Write the run report of ``refs`` (:func:`nest` per object) and print the per-task table; raise when a step
+    failed.  Returns the report folder and the per-task table (as records)."""
     report_dir = Path(report_dir) if report_dir else Path(cfg.paths.reports) / (cfg.run_name or _fresh_run_name(
         Path(cfg.paths.reports), flow_label))
-    labels = {v.name: v.label or v.name for v in variants}
+    labels = {v.name: v.label or v.name for v in selected_variants(cfg)}
     wall = time.perf_counter() - t0
     write_run_report(report_dir, cfg=config, table=table, refs=refs, variants=labels, wall_seconds=wall,
                      missing_backends=missing_backends(cfg),
@@ -268,11 +334,20 @@ def run(cfg: DictConfig, flow_label: str) -> dict:
         print("effect backend: physics-rendered (weight-free). For the paper's diffusion backend put SD-1.5, an "
               "AnimateDiff motion adapter and a depth ControlNet under one folder and run generation=diffusers "
               "generation.weights=/path/to/models (README: Diffusion weights).")
-    runner = make_task_runner(cfg.runner)
     config = OmegaConf.to_container(cfg, resolve=True)
     job_dir = sweep_job_dir()
     if config.get("run_name") is None and job_dir is not None:
         config["run_name"] = f"{flow_label}-{Path(job_dir).parent.name}-job{Path(job_dir).name}"
+    t0 = time.perf_counter()
+    cached = cached_grid(cfg)
+    if cached is not None:  # nothing to compute: the report alone, without a Prefect server or task runner
+        print(f"every step is cached ({sum(len(s) for s in cached.values())} artifacts checked in "
+              f"{time.perf_counter() - t0:.1f} s): no Prefect server or task runner started, writing the report")
+        table = RunTable(total=sum(len(s) for s in cached.values()))
+        refs = {name: nest({(step, chain): table.add_cached(name, step, ref, variant=chain)
+                            for (step, chain), ref in steps.items()}) for name, steps in cached.items()}
+        return write_report(OmegaConf.create(config), config, flow_label, job_dir, table, refs, t0)
+    runner = make_task_runner(cfg.runner)
     with result_storage_settings(cfg.paths.artifacts), temporary_server():
         return virsqueezer_flow.with_options(task_runner=runner, name=f"virsqueezer-{flow_label}")(
             config, flow_label, job_dir)

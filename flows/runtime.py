@@ -170,13 +170,22 @@ class RunTable:
         Prints one progress line per finished task (long steps log their own frame progress)."""
         future.wait()
         ref, row = self._row(obj, step, future, variant, root)
+        self._record(row)
+        return ref
+
+    def add_cached(self, obj: str, step: str, ref: ArtifactRef, *, variant: str = "") -> ArtifactRef:
+        """Record a step whose intact artifact ``ref`` was found on disk without running it (cached), with the
+        same progress line as :meth:`add_future`."""
+        self._record(_done_row(obj, step, ref, variant, cached=True))
+        return ref
+
+    def _record(self, row: TaskRow) -> None:
         self.rows.append(row)
         done = f"{len(self.rows)}/{self.total}" if self.total else str(len(self.rows))
-        what = f"{obj} {step}" + (f" [{variant}]" if variant else "")
+        what = f"{row.object} {row.step}" + (f" [{row.variant}]" if row.variant else "")
         took = f" {row.wall_seconds:.1f} s" if row.status == "ran" else ""
         print(f"[{done}] {what}: {row.status}{took}{(' - ' + row.note) if row.note else ''}"
               f" (elapsed {time.perf_counter() - self.started:.0f} s)", flush=True)
-        return ref
 
     def _row(self, obj: str, step: str, future, variant: str, root: str | Path) -> tuple[Optional[ArtifactRef], TaskRow]:
         state = future.state
@@ -190,11 +199,7 @@ class RunTable:
                 msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
             return None, TaskRow(obj, step, "failed", 0.0, 0, "", msg, variant)
         ref: ArtifactRef = future.result().at(root)
-        cached = state.name == "Cached" or ref.reused
-        warning = artifact_warning(ref.path)
-        note = "; ".join(n for n in ("reused from disk" if ref.reused else "", warning and f"WARNING {warning}") if n)
-        return ref, TaskRow(obj, step, "cached" if cached else "ran", 0.0 if cached else ref.compute_seconds,
-                            directory_size(ref.path), ref.path, note, variant, warning)
+        return ref, _done_row(obj, step, ref, variant, cached=state.name == "Cached" or ref.reused)
 
     def frame(self) -> pd.DataFrame:
         return pd.DataFrame([r.__dict__ for r in self.rows],
@@ -213,6 +218,14 @@ class RunTable:
         df["wall_seconds"] = df["wall_seconds"].map(lambda s: f"{s:.2f}")
         df["artifact_bytes"] = df["artifact_bytes"].map(_human_bytes)
         return df.drop(columns=["artifact"]).to_string(index=False)
+
+
+def _done_row(obj: str, step: str, ref: ArtifactRef, variant: str, cached: bool) -> TaskRow:
+    """The row of a step that produced (``cached``: found) the artifact ``ref``, with its stored warning."""
+    warning = artifact_warning(ref.path)
+    note = "; ".join(n for n in ("reused from disk" if ref.reused else "", warning and f"WARNING {warning}") if n)
+    return TaskRow(obj, step, "cached" if cached else "ran", 0.0 if cached else ref.compute_seconds,
+                   directory_size(ref.path), ref.path, note, variant, warning)
 
 
 def _human_bytes(n: int) -> str:

@@ -62,3 +62,44 @@ def test_a_second_report_build_encodes_nothing_and_gives_the_same_page(tmp_path,
     assert build() == first  # byte-identical page and videos
     assert len(encoded) == 2, "the second build encoded a video again"
     assert {p.name: p.stat().st_mtime_ns for p in cache.iterdir()} == entries  # nothing redrawn
+
+
+def test_scene_media_made_on_a_worker_are_the_report_s_own(tmp_path, compose_cfg, monkeypatch):
+    """The media of a scene made ahead (as the flow does on its task runner while other scenes still simulate)
+    are exactly those a report build makes: same cache entries, and the report build then encodes no video and
+    draws only the metric bars (which need every variant's metrics)."""
+    import tasks.reporting.watch as watch
+    from flows.pipeline import PER_BACKEND, PER_OBJECT, PER_VARIANT, run_object_local
+    from flows.runtime import RunTable
+    from tasks.reporting.report import cache_scene_media, write_run_report
+
+    root = tmp_path / "artifacts"
+    cfg = compose_cfg("evaluate", [f"paths.artifacts={root}", "object=tomato", "variant=full", *SMALL])
+    flat = run_object_local(cfg, cfg.object, cfg.variant, root)
+    pick = lambda steps: {s.name: flat[s.name] for s in steps if s.name in flat}  # noqa: E731
+    refs = {"tomato": {**pick(PER_OBJECT), "variants": {"full": {**pick(PER_VARIANT),
+                                                                  "backends": {"physics": pick(PER_BACKEND)}}}}}
+
+    def build(name: str) -> Path:
+        return write_run_report(tmp_path / name, cfg={}, table=RunTable(), refs=refs, wall_seconds=1.0,
+                                variants={"full": "Full"}, media_cache=root / ".media").parent
+
+    build("reference")  # every medium made by the report build itself
+    made_by_report = {p.name for p in (root / ".media").iterdir()}
+    import shutil
+
+    shutil.rmtree(root / ".media")
+    # a second variant's task makes its scene's media alone (the object's own go with the first variant)
+    assert cache_scene_media("tomato", refs["tomato"], "full", str(root), first=False) == 5
+    assert cache_scene_media("tomato", refs["tomato"], "full", str(root), first=True) == len(made_by_report) - 6
+    ahead = {p.name for p in (root / ".media").iterdir()}
+    encoded = []
+    real_encode = watch.encode_video
+    monkeypatch.setattr(watch, "encode_video", lambda *a, **k: encoded.append(a[1]) or real_encode(*a, **k))
+    report = build("report")
+    assert encoded == [], "the report build encoded a video the scene's media task had made"
+    assert {p.name for p in (root / ".media").iterdir()} - ahead == made_by_report - ahead and \
+        len(made_by_report - ahead) == 1  # the metric bars
+    assert (report / "index.html").read_text().count("<video") == 2
+    for medium in ("tomato_full_stages.mp4", "tomato_full_final.mp4", "tomato_contact_sheet.png"):
+        assert (report / medium).read_bytes() == (tmp_path / "reference" / medium).read_bytes()

@@ -9,6 +9,7 @@ import base64
 import html
 import json
 import subprocess
+import tempfile
 from pathlib import Path
 from typing import Any, Mapping, Optional
 
@@ -18,7 +19,7 @@ import numpy as np
 from conf.hand import FINGERS
 from tasks.core.artifacts import ArtifactError, ArtifactRef, read_artifact
 from tasks.core.scope import split_seed_scope
-from tasks.reporting.media_cache import MediaCache
+from tasks.reporting.media_cache import MEDIA_DIR, MediaCache
 from tasks.reporting.video_tables import paper_metric_reasons, table1, table3, video_metric_rows
 from tasks.reporting.watch import STYLE, SYNC_SCRIPT, object_html, object_media, overview_html
 from tasks.verification.render_convergence import report_section as render_knob_section
@@ -284,6 +285,50 @@ def metric_bars_figure(obj: str, df, labels: Mapping[str, str], path: Path) -> O
     return _save(fig, ax, path)
 
 
+def _figure(cache: MediaCache, kind: str, draw, title: str, inputs: Mapping[str, Any], path: Path,
+            params: Optional[Mapping[str, Any]] = None) -> Optional[Path]:
+    """The figure ``kind`` at ``path``: drawn once per content (``draw(title, inputs, path)``), then reused from
+    ``cache``."""
+    return cache.get(path, cache.key(kind, {"title": title, **(params or {})}, {k: inputs.get(k) for k in
+                     FIGURE_INPUTS[kind]}), lambda p: draw(title, inputs, p))
+
+
+def scene_figures(cache: MediaCache, obj: str, variant: str, pair: Mapping[str, Any], out_dir: Path) -> list[Path]:
+    """The rollout and particle-snapshot figures of one object and variant (``pair``: its refs), in ``out_dir``."""
+    return [p for p in [
+        _figure(cache, "rollout", rollout_figure, f"{obj} [{variant}]", pair, out_dir / f"{obj}_{variant}_rollout.png"),
+        _figure(cache, "snapshot", snapshot_figure, f"{obj} [{variant}]", pair,
+                out_dir / f"{obj}_{variant}_snapshots.png")] if p]
+
+
+# The steps whose artifacts the media of one scene show (videos, contact sheet, signal and scene figures)
+SCENE_MEDIA_INPUTS = ("signal_smoothing", "force_coefficients", "contact_patches", "mpm_rollout", "gbuffer",
+                      "conditions", "effect", "appearance_refinement")
+
+
+def cache_scene_media(obj: str, obj_refs: Mapping[str, Any], variant: str, root: str, first: bool) -> int:
+    """Make the media the report shows of one scene (object ``obj``, ``variant``) in the media cache
+    ``<root>/.media`` as soon as the scene's artifacts exist, so that the report build only links them: the
+    videos, loss curve and figures of the scene and, for the object's ``first`` variant, the object's contact
+    sheet, signal plots and control figure.  ``obj_refs`` is the object's reference tree as
+    :func:`write_run_report` reads it, with ``variant`` as its only variant and (at least) the
+    :data:`SCENE_MEDIA_INPUTS`.  Returns how many media were made (the others were in the cache already).  Same
+    keys, hence the same bytes, as the report build's."""
+    def rooted(tree):
+        return ({k: rooted(v) for k, v in tree.items()} if isinstance(tree, Mapping)
+                else tree.at(root) if isinstance(tree, ArtifactRef) else tree)
+
+    obj_refs = rooted(obj_refs)
+    cache = MediaCache(Path(root) / MEDIA_DIR)
+    with tempfile.TemporaryDirectory(prefix="scene-media-") as scratch:
+        object_media(obj, obj_refs, Path(scratch), cache, scenes_only=not first)
+        pair = {**{k: v for k, v in obj_refs.items() if k != "variants"}, **obj_refs["variants"][variant]}
+        scene_figures(cache, obj, variant, pair, Path(scratch))
+        if first:
+            _figure(cache, "control", control_figure, obj, obj_refs, Path(scratch) / f"{obj}_control.png")
+    return cache.made
+
+
 def _embed(png: Path) -> str:
     return "data:image/png;base64," + base64.b64encode(png.read_bytes()).decode()
 
@@ -349,25 +394,17 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
                          for title, *_ in video_tables})
     cache = MediaCache(media_cache)
     media = [m for m in (object_media(obj, refs[obj], report_dir, cache) for obj in refs) if m is not None]
-
-    def figure(kind, draw, title, inputs, path, params=None):  # drawn once per content, then reused from the cache
-        return cache.get(path, cache.key(kind, {"title": title, **(params or {})}, {k: inputs.get(k) for k in
-                         FIGURE_INPUTS[kind]}), lambda p: draw(title, inputs, p))
-
     figures: dict[str, list[Path]] = {}
     for obj in refs:
         name, seed = split_seed_scope(obj)
         bars = metrics[(metrics["object"] == name) & (metrics["seed"] == seed)].to_dict("records") if len(metrics) \
             else []
         figures[obj] = [p for p in [
-            figure("control", control_figure, obj, refs[obj], report_dir / f"{obj}_control.png"),
-            figure("metric_bars", lambda t, _, p: metric_bars_figure(t, metrics, labels, p), obj, {},
-                   report_dir / f"{obj}_metrics.png", {"rows": bars, "labels": labels})] if p]
+            _figure(cache, "control", control_figure, obj, refs[obj], report_dir / f"{obj}_control.png"),
+            _figure(cache, "metric_bars", lambda t, _, p: metric_bars_figure(t, metrics, labels, p), obj, {},
+                    report_dir / f"{obj}_metrics.png", {"rows": bars, "labels": labels})] if p]
     for obj, variant, pair in _variant_refs(refs):
-        figures[obj] += [p for p in [
-            figure("rollout", rollout_figure, f"{obj} [{variant}]", pair, report_dir / f"{obj}_{variant}_rollout.png"),
-            figure("snapshot", snapshot_figure, f"{obj} [{variant}]", pair,
-                   report_dir / f"{obj}_{variant}_snapshots.png")] if p]
+        figures[obj] += scene_figures(cache, obj, variant, pair, report_dir)
 
     summary = rollout_summary(refs)
     knobs = render_knob_section(cfg)  # the latest render/effect knob study: time and error per setting

@@ -171,10 +171,11 @@ def _contact_sheet(first: Mapping[str, Any], path: Path) -> Path | None:
     return path
 
 
-def object_media(obj: str, obj_refs: Mapping[str, Any], out_dir: Path, cache: MediaCache | None = None
-                 ) -> ObjectMedia | None:
+def object_media(obj: str, obj_refs: Mapping[str, Any], out_dir: Path, cache: MediaCache | None = None,
+                 scenes_only: bool = False) -> ObjectMedia | None:
     """All media of one object: every variant's scene media, the contact sheet of the first variant, the
-    synchronised control plot (reused from ``cache`` when already made from the same artifacts)."""
+    synchronised control plot (reused from ``cache`` when already made from the same artifacts).  With
+    ``scenes_only`` the variants' scene media alone (:func:`tasks.reporting.report.cache_scene_media`)."""
     cache = cache or MediaCache(None)
     variants = obj_refs.get("variants", {})
     media = ObjectMedia(obj)
@@ -191,6 +192,8 @@ def object_media(obj: str, obj_refs: Mapping[str, Any], out_dir: Path, cache: Me
             media.scenes.append(scene)
     if not media.scenes:
         return None
+    if scenes_only:
+        return media
     first = next(iter(variants.values()))
     sheet_inputs = {"gbuffer": first.get("gbuffer"), "mpm_rollout": first.get("mpm_rollout"),
                     "effect": next(iter(first.get("backends", {}).values()), {}).get("effect")}
