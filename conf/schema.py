@@ -233,6 +233,9 @@ class SimulationConfig:
 
 
 # ----------------------------------------------------------------------------------------------- runner
+RUNNER_KINDS = ("sequential", "threads", "dask")
+
+
 @dataclass
 class RunnerConfig:
     """Prefect task runner: ``sequential``, ``threads`` or ``dask`` (local cluster or ``address``)."""
@@ -378,6 +381,9 @@ def _validate_pipeline(cfg: Any) -> None:
         need(len(seeds) > 0, "grid.seeds", "is empty: give at least one seed, e.g. grid.seeds=[0,1,2], or leave it unset")
         need(len(set(seeds)) == len(seeds), "grid.seeds", f"lists a seed twice: {seeds}")
         need(min(seeds) >= 0, "grid.seeds", f"must be >= 0, got {seeds}")
+    if "runner" in cfg:
+        need(cfg.runner.kind in RUNNER_KINDS, "runner.kind",
+             f"must be one of {', '.join(RUNNER_KINDS)}, got {cfg.runner.kind!r}")
     lim = cfg.limits
     for key in ("max_frames", "max_particle_steps", "max_artifact_bytes"):
         need(lim[key] > 0, f"limits.{key}", f"must be > 0, got {lim[key]}")

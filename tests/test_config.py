@@ -164,8 +164,9 @@ def test_a_key_added_with_plus_to_a_structured_group_is_refused(compose_cfg, ove
     ("grid.seeds=[0,1,0]", "grid.seeds lists a seed twice: [0, 1, 0]"),
     ("grid.seeds=[-1,2]", "grid.seeds must be >= 0, got [-1, 2]"),
     ("sampling.seed=-3", "sampling.seed must be >= 0, got -3"),
+    ("runner.kind=dusk", "runner.kind must be one of sequential, threads, dask, got 'dusk'"),
 ])
-def test_bad_seed_grid_is_one_line_naming_the_key(compose_cfg, override, line):
+def test_bad_seed_grid_or_runner_is_one_line_naming_the_key(compose_cfg, override, line):
     with pytest.raises(ConfigError) as exc:
         validate(compose_cfg("evaluate", [override]))
     assert str(exc.value) == line
