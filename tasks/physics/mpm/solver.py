@@ -642,8 +642,6 @@ class MPMSolver:
         self.n_fingers = k
         self.finger_react = wp.zeros(k, dtype=wp.vec3, device=d)
         self.finger_applied = wp.zeros(k, dtype=wp.vec3, device=d)
-        self.finger_force = wp.zeros(k, dtype=wp.vec3, device=d)
-        self.finger_w = wp.zeros(k, dtype=float, device=d)
         self.col.impulse = self.finger_react  # the colliders' impulses are the fingers' reactions
         self._col_version += 1
 
@@ -820,7 +818,8 @@ class MPMSolver:
             ff = np.zeros((self.n_fingers, 3), np.float32)
             ff[: len(forces)] = forces
             out.append(dict(x=wp.array(pos, dtype=wp.vec3, device=d), f=wp.array(fid, dtype=wp.int32, device=d),
-                            F=wp.array(ff, dtype=wp.vec3, device=d), count=len(pos)))
+                            F=wp.array(ff, dtype=wp.vec3, device=d), w=wp.zeros(len(ff), dtype=float, device=d),
+                            count=len(pos)))
         return out
 
     def _set_colliders(self, rows: list[tuple[int, np.ndarray, np.ndarray, float, np.ndarray, float, int]]) -> None:
@@ -1016,13 +1015,14 @@ class MPMSolver:
             if nsub > 0 and f_fn is not None:
                 fps = self._upload_forces(f_fn(t, dt))
             for fp in fps:
-                self.finger_w.zero_()
-                self.finger_force.assign(fp["F"])
+                fp["w"].zero_()
                 wp.launch(K.k_force_weights, dim=fp["count"], device=d, inputs=[
-                    self.gi, fp["x"], fp["f"], cur, self.finger_w, self.flags, self.substep])
+                    self.gi, fp["x"], fp["f"], cur, fp["w"], self.flags, self.substep])
                 wp.launch(K.k_force_apply, dim=fp["count"], device=d, inputs=[
-                    self.gi, fp["x"], fp["f"], self.finger_force, self.finger_w, dt, cur, self.finger_applied,
-                    self.boundary_work])
+                    self.gi, fp["x"], fp["f"], fp["F"], fp["w"], dt, cur, self.finger_applied])
+            for fp in fps:  # the work, once every patch has pushed (k_force_work)
+                wp.launch(K.k_force_work, dim=fp["count"], device=d, inputs=[
+                    self.gi, fp["x"], fp["f"], fp["F"], fp["w"], dt, cur, self.boundary_work])
             for bc in bcs:
                 wp.launch(K.k_bc_scatter, dim=bc["count"], device=d, inputs=[
                     self.gi, bc["pts"], self.bc_grid, self.flags, self.substep])
