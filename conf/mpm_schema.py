@@ -65,9 +65,10 @@ class MPMConfig:
             practice asks KE below 5-10 % of IE over most of the process; see
             :class:`tasks.physics.mpm.solver.MPMSolver`).  The project's default (``conf/mpm/default.yaml``) is ``selective``; this
             schema's default ``off`` serves unit tests and closed-form checks.
-        multi_field: released material and fluids (``Material.is_mass_scaled`` False) get their own velocity field
-            on the grid (multi-field MPM, Bardenhagen et al. 2000) whenever they share the scene with the body: their
-            nodal velocity is no longer the (heavier, mass-scaled) body's, and the two fields meet only through a
+        multi_field: under ``mass_scaling=selective``, released material and fluids (``Material.is_mass_scaled``
+            False: physical inertia) get their own velocity field on the grid (multi-field MPM, Bardenhagen et al.
+            2000) whenever they share the scene with the body: their nodal velocity is no longer the (heavier,
+            mass-scaled) body's, and the two fields meet only through a
             frictionless, non-sticking contact at the nodes both carry mass on (normal from the body's mass
             gradient; approaching normal velocities become the centre-of-mass one, momentum-conserving; see
             :func:`tasks.physics.mpm.kernels.k_field_contact`).  Fingers (Dirichlet, force patches) act on the body

@@ -141,7 +141,8 @@ def test_second_field_is_used_only_while_both_fields_have_particles():
     """Before a release (body only) the solver runs one field and allocates no second grid; switching particles
     to the released material (``set_material_ids``) turns the second field on, and the grid mass counts both."""
     Xw = lattice([0.0, 0.0, 0.0], [0.02, 0.02, 0.02])
-    s = MPMSolver(Xw, (DX / 2) ** 3, [WALL, BLOB], config=dict(device="cpu", dx=DX, floor_height=0.0))
+    s = MPMSolver(Xw, (DX / 2) ** 3, [WALL, BLOB], config=dict(device="cpu", dx=DX, floor_height=0.0,
+                                                               mass_scaling="selective", target_substeps_per_frame=10))
     nbytes = s.grid_nbytes()
     s.step_frame(FRAME_DT)
     assert not s.two_fields and s.grid_nbytes() == nbytes

@@ -574,9 +574,12 @@ class MPMSolver:
                 self.dt_visc = min(self.dt_visc, rho * self.dx ** 2 / (6.0 * m.viscosity))
 
     def released_field_materials(self) -> np.ndarray:
-        """(material,) bool: the materials of the released velocity field under ``mpm.multi_field``: those that
-        keep their physical inertia (``Material.is_mass_scaled`` False: released material, fluids)."""
-        return np.array([self.cfg.multi_field and not m.is_mass_scaled for m in self.materials])
+        """(material,) bool: the materials of the released velocity field (``mpm.multi_field`` under
+        ``mpm.mass_scaling=selective``): those that keep their physical inertia while the body is scaled
+        (``Material.is_mass_scaled`` False: released material, fluids).  Under the other modes every material has
+        the same scale and one field is kept."""
+        on = self.cfg.multi_field and self.cfg.mass_scaling == "selective"
+        return np.array([on and not m.is_mass_scaled for m in self.materials])
 
     def _update_fields(self) -> None:
         """Velocity field of each material (kernels: ``MaterialTable.field``).  Two fields only while both the body
