@@ -884,18 +884,33 @@ def node_mass(grid: wp.array3d(dtype=wp.vec4), i: int, j: int, k: int) -> float:
                 wp.clamp(k, 0, grid.shape[2] - 1)][3]
 
 
+@wp.func
+def mass_gradient(grid: wp.array3d(dtype=wp.vec4), i: int, j: int, k: int) -> wp.vec3:
+    """Central-difference gradient of the nodal mass at node (i, j, k) (kg per node spacing)."""
+    return wp.vec3(node_mass(grid, i + 1, j, k) - node_mass(grid, i - 1, j, k),
+                   node_mass(grid, i, j + 1, k) - node_mass(grid, i, j - 1, k),
+                   node_mass(grid, i, j, k + 1) - node_mass(grid, i, j, k - 1))
+
+
 @wp.kernel
 def k_field_contact(gs: GridStep, cond: GridConditions, body: wp.array3d(dtype=wp.vec4),
                     free: wp.array3d(dtype=wp.vec4)):
-    """Frictionless contact of the two velocity fields (multi-field MPM: Bardenhagen et al. 2000, sec. 3; the
-    normal as in Homel & Herbold 2017), after both grid updates, over the active box (``gs.origin`` + launch
+    """Frictionless contact of the two velocity fields (multi-field MPM: Bardenhagen et al. 2000, sec. 3; normals
+    as discussed by Homel & Herbold 2017), after both grid updates, over the active box (``gs.origin`` + launch
     dims).  At a node where both the body field (``body``) and the released field (``free``) carry mass (after the
-    update: (velocity m/s, mass kg) per node), with n = -grad m_body / |grad m_body| the body's outward normal
-    (central differences of the nodal masses): if the fields approach, (v_free - v_body) . n < 0, both normal
-    components become the centre-of-mass normal velocity (m_b v_b + m_f v_f) . n / (m_b + m_f), which conserves
-    the node's momentum and stops the interpenetration while the tangential components stay free (no friction);
-    separating fields are left independent (no sticking).  The domain walls and the floor are applied again to
-    the corrected velocities."""
+    update: (velocity m/s, mass kg) per node), n is the unit contact normal from the body towards the released
+    material: the body's outward normal -grad m_body / |grad m_body| (central differences of the nodal masses)
+    unless it opposes the direction into the released material, grad m_free (more than 120 degrees apart), else
+    that direction grad m_free / |grad m_free|.  The body's normal is the accurate one next to a solid body (spray
+    falling past it is tangential to it, whatever the spray's own shape), but it flips sign across a shell one
+    particle thick (a can's wall): fluid pressing on such a wall from inside reaches nodes beyond it, where the
+    body's normal would call the fluid separating and let it through, while the fluid's mass gradient still
+    points from the wall into the fluid (there the two are opposite; at the edge of a fluid sheet sliding along a
+    wall they are ~90 degrees apart and the wall's normal must stay, or the sheet's own edge would brake it).  If the fields approach, (v_free - v_body) . n < 0, both normal components
+    become the centre-of-mass normal velocity (m_b v_b + m_f v_f) . n / (m_b + m_f), which conserves the node's
+    momentum and stops the interpenetration while the tangential components stay free (no friction); separating
+    fields are left independent (no sticking).  The domain walls and the floor are applied again to the corrected
+    velocities."""
     ti, tj, tk = wp.tid()
     i = ti + gs.origin[0]
     j = tj + gs.origin[1]
@@ -906,13 +921,17 @@ def k_field_contact(gs: GridStep, cond: GridConditions, body: wp.array3d(dtype=w
     mf = b[3]
     if mb <= 0.0 or mf <= 0.0:
         return
-    grad = wp.vec3(node_mass(body, i + 1, j, k) - node_mass(body, i - 1, j, k),
-                   node_mass(body, i, j + 1, k) - node_mass(body, i, j - 1, k),
-                   node_mass(body, i, j, k + 1) - node_mass(body, i, j, k - 1))
-    lg = wp.length(grad)
-    if lg <= 0.0:
+    gb = -mass_gradient(body, i, j, k)
+    gf = mass_gradient(free, i, j, k)
+    lb = wp.length(gb)
+    lf = wp.length(gf)
+    if lb <= 0.0 and lf <= 0.0:
         return
-    n = -grad / lg
+    n = wp.vec3(0.0)
+    if lf <= 0.0 or (lb > 0.0 and wp.dot(gb, gf) >= -0.5 * lb * lf):
+        n = gb / lb
+    else:
+        n = gf / lf
     vb = wp.vec3(a[0], a[1], a[2])
     vf = wp.vec3(b[0], b[1], b[2])
     if wp.dot(vf - vb, n) >= 0.0:
