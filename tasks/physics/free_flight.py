@@ -7,31 +7,23 @@ import numpy as np
 
 
 def free_flying(positions: np.ndarray, released: np.ndarray, box_min: np.ndarray, box_max: np.ndarray,
-                floor: float, margin: float, domain_min: np.ndarray | None = None,
-                domain_max: np.ndarray | None = None) -> np.ndarray:
+                floor: float, margin: float) -> np.ndarray:
     """Which released particles fly free in each frame.
 
     A particle flies free when it is released, lies outside the object's rest box grown by ``margin`` (m) on every
-    side, is more than ``margin`` above the table plane z = ``floor`` (m) and, when the simulation domain is given,
-    more than ``margin`` inside its faces (spray that reached a domain wall slides down it or piles up in its
-    corner: not free flight).
+    side, and is more than ``margin`` above the table plane z = ``floor`` (m).
 
     Args:
         positions: (frame, particle, xyz) m.
         released: (particle,) bool, the released material.
         box_min, box_max: (3,) m, the object's rest bounding box.
-        domain_min, domain_max: (3,) m, the inner faces of the domain walls (optional).
     Returns:
         (frame, particle) bool.
     """
     x = np.asarray(positions, np.float64)
     lo, hi = np.asarray(box_min, np.float64) - margin, np.asarray(box_max, np.float64) + margin
     outside = np.any((x < lo) | (x > hi), axis=-1)
-    free = outside & (x[..., 2] > floor + margin) & np.asarray(released, bool)[None, :]
-    if domain_min is not None and domain_max is not None:
-        dlo, dhi = np.asarray(domain_min, np.float64) + margin, np.asarray(domain_max, np.float64) - margin
-        free &= np.all((x > dlo) & (x < dhi), axis=-1)
-    return free
+    return outside & (x[..., 2] > floor + margin) & np.asarray(released, bool)[None, :]
 
 
 def released_flight(positions: np.ndarray, free: np.ndarray, frame_dt: float) -> tuple[np.ndarray, float]:
