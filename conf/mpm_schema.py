@@ -62,8 +62,8 @@ class MPMConfig:
             density x ``mass_scale``); ``global`` (every density x s, s the smallest factor >= 1 for which the
             elastic CFL of the non-fluid materials needs at most ``target_substeps_per_frame`` substeps per output
             frame, fixed at the first frame: s = max(1, (c_p frame_dt / (N C dx))^2), see
-            :func:`tasks.physics.mpm.solver.mass_scale_for`; ``auto`` is its former name); ``selective`` (default:
-            the same s, but only for the materials that deform quasi-statically, ``Material.is_mass_scaled``: every
+            :func:`tasks.physics.mpm.solver.mass_scale_for`; ``auto`` is its former name); ``selective`` (the same
+            s, but only for the materials that deform quasi-statically, ``Material.is_mass_scaled``: every
             model but fluids unless a material says otherwise; released material and fluids keep their physical
             inertia, as Abaqus/Explicit variable mass scaling by element set or LS-DYNA selective mass scaling).
             A scaled material's waves are sqrt(s) slower; gravity acts with the PHYSICAL weight (the grid node's
@@ -75,8 +75,17 @@ class MPMConfig:
             (the fingers load the object; its first two frames, the start-up sag under the weight before any contact
             and the frames after a rupture are not checked), exceeds ``quasi_static_ke_ie_max`` (0.1: explicit FE
             practice asks KE below 5-10 % of IE over most of the process; see
-            :class:`tasks.physics.mpm.solver.MPMSolver`).  The project's default (``conf/mpm/default.yaml``) is ``selective``; this
-            schema's default ``off`` serves unit tests and closed-form checks.
+            :class:`tasks.physics.mpm.solver.MPMSolver`).  The project's default (``conf/mpm/default.yaml``) is ``global`` (README, known
+            limits: why not ``selective`` yet); this schema's default ``off`` serves unit tests and closed-form
+            checks.
+        multi_field: under ``mass_scaling=selective``, released material and fluids (``Material.is_mass_scaled``
+            False: physical inertia) get their own velocity field on the grid (multi-field MPM, Bardenhagen et al.
+            2000) whenever they share the scene with the body: their nodal velocity is no longer the (heavier,
+            mass-scaled) body's, and the two fields meet only through a
+            frictionless, non-sticking contact at the nodes both carry mass on (normal from the body's mass
+            gradient; approaching normal velocities become the centre-of-mass one, momentum-conserving; see
+            :func:`tasks.physics.mpm.kernels.k_field_contact`).  Fingers (Dirichlet, force patches) act on the body
+            field.  False: one shared field (the former behaviour).
         mass_scale: the factor s of ``manual`` (>= 1, dimensionless).
         target_substeps_per_frame: N of ``global`` and ``selective``: substeps per output frame the elastic CFL
             of the scaled materials may need.
@@ -144,6 +153,7 @@ class MPMConfig:
     fingers: str = "dirichlet"
     finger_friction: float = 0.0
     mass_scaling: str = "off"
+    multi_field: bool = True
     mass_scale: float = 1.0
     target_substeps_per_frame: int = 100
     quasi_static_ke_ie_max: float = 0.1

@@ -202,6 +202,23 @@ def test_released_flight_of_a_parabola_recovers_g_and_the_mean_height():
     assert np.isnan(released_flight(x[:2], free[:2], frame_dt)[1])  # fewer than 3 frames: no acceleration
 
 
+def test_free_flight_excludes_released_material_held_by_the_table_a_wall_or_the_body():
+    """With the domain given, released clusters linked (within the margin) to the table, a domain wall or the body
+    are held, not flying: a two-particle pile on the table (its top particle is above the table margin), a particle
+    sliding down a wall and a drop hanging on the body are excluded; a drop flying clear of them stays free."""
+    margin = 0.005
+    x = np.array([[[0.05, 0.0, 0.003], [0.05, 0.0, 0.007],  # pile on the table
+                   [0.098, 0.0, 0.05],  # at the wall x = 0.1
+                   [0.038, 0.0, 0.03], [0.034, 0.0, 0.03],  # drop on the bulging body (last: a body particle)
+                   [0.06, 0.05, 0.05]]])  # flying clear
+    released = np.array([True, True, True, True, False, True])
+    box = (np.array([-0.03, -0.03, 0.0]), np.array([0.03, 0.03, 0.06]))
+    old = free_flying(x, released, *box, 0.0, margin)
+    np.testing.assert_array_equal(old[0], [False, True, True, True, False, True])
+    new = free_flying(x, released, *box, 0.0, margin, np.array([-0.1, -0.1, 0.0]), np.array([0.1, 0.1, 0.2]))
+    np.testing.assert_array_equal(new[0], [False, False, False, False, False, True])
+
+
 # ------------------------------------------------------------------------------------------ real rollouts
 
 

@@ -4,26 +4,53 @@ to be plotted against the free-fall parabola and checked against g."""
 from __future__ import annotations
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 
 def free_flying(positions: np.ndarray, released: np.ndarray, box_min: np.ndarray, box_max: np.ndarray,
-                floor: float, margin: float) -> np.ndarray:
+                floor: float, margin: float, domain_min: np.ndarray | None = None,
+                domain_max: np.ndarray | None = None) -> np.ndarray:
     """Which released particles fly free in each frame.
 
     A particle flies free when it is released, lies outside the object's rest box grown by ``margin`` (m) on every
-    side, and is more than ``margin`` above the table plane z = ``floor`` (m).
+    side, and is more than ``margin`` above the table plane z = ``floor`` (m).  When the simulation domain's inner
+    faces ``domain_min``/``domain_max`` (m) are given, support is also excluded: released material linked (any two
+    particles within ``margin``) to something that holds it is not in free flight, i.e. every cluster of released
+    particles with a member within ``margin`` of the table, of a domain wall or of a particle that is not released
+    (the body).  This keeps a pool on the table, spray piled in a corner of the domain or sliding down a wall, and
+    a stream still attached to the object out of the measure; a blob flying clear of all of them stays in.
 
     Args:
         positions: (frame, particle, xyz) m.
         released: (particle,) bool, the released material.
         box_min, box_max: (3,) m, the object's rest bounding box.
+        domain_min, domain_max: (3,) m, the inner faces of the domain walls (optional, see above).
     Returns:
         (frame, particle) bool.
     """
     x = np.asarray(positions, np.float64)
+    rel = np.asarray(released, bool)
     lo, hi = np.asarray(box_min, np.float64) - margin, np.asarray(box_max, np.float64) + margin
     outside = np.any((x < lo) | (x > hi), axis=-1)
-    return outside & (x[..., 2] > floor + margin) & np.asarray(released, bool)[None, :]
+    free = outside & (x[..., 2] > floor + margin) & rel[None, :]
+    if domain_min is None or domain_max is None or not rel.any():
+        return free
+    dlo, dhi = np.asarray(domain_min, np.float64) + margin, np.asarray(domain_max, np.float64) - margin
+    idx = np.flatnonzero(rel)
+    for f in range(len(x)):
+        if not free[f].any():
+            continue
+        xr = x[f, idx]
+        held = (xr[:, 2] <= floor + margin) | np.any((xr <= dlo) | (xr >= dhi), axis=1)
+        if (~rel).any():
+            held |= cKDTree(x[f, ~rel]).query(xr, distance_upper_bound=margin)[0] <= margin
+        pairs = cKDTree(xr).query_pairs(margin, output_type="ndarray")
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(idx), len(idx)))
+        _, cluster = connected_components(graph, directed=False)
+        free[f, idx[np.isin(cluster, cluster[held])]] = False
+    return free
 
 
 def released_flight(positions: np.ndarray, free: np.ndarray, frame_dt: float) -> tuple[np.ndarray, float]:

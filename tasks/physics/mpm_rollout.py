@@ -609,8 +609,10 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
         arrays["plastic_strain"] = Array(rec.plastic_strain, ("frame", "particle"), "1", "equivalent plastic strain")
     if rec.released is not None:
         arrays["released"] = Array(rec.released, ("particle",), "1", "released at the threshold crossing")
+        pad = scene.config.padding * solver.dx  # the domain walls: the node layers within ``padding`` of the faces
         free = free_flying(rec.particle_positions, mid == INTERIOR, scene.bbox_min, scene.bbox_max,
-                           float(solver.floor_height if solver.floor_height is not None else -np.inf), 2.0 * scene.dx)
+                           float(solver.floor_height if solver.floor_height is not None else -np.inf), 2.0 * scene.dx,
+                           solver.lo + pad, solver.lo + (np.asarray(solver.dims) - 1) * solver.dx - pad)
         height, free_fall = released_flight(rec.particle_positions, free, scene.frame_dt)
         arrays["released_height"] = Array(height.astype(np.float32), ("frame",), "m",
                                           "mean z of the released particles flying free (NaN: none)")

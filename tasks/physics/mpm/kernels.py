@@ -18,6 +18,13 @@ is updated through its one per-launch struct (``sp`` or ``gs``), by name.
 Grid layout: ``wp.array3d(dtype=wp.vec4)``, node (i, j, k) at ``lo + (i, j, k) dx``; after P2G a node holds
 (momentum, mass), after the grid update (velocity, mass).
 
+Two velocity fields (multi-field MPM, Bardenhagen et al. 2000): each material belongs to field 0 (the body) or
+field 1 (released material, fluids; ``MaterialTable.field``).  Field-1 particles scatter into and gather from a
+second pair of grid buffers (``grid2_*``), updated by the same grid kernel (gravity, walls, floor; the Dirichlet
+constraints and force patches act on the body field only) and coupled to the body only by the frictionless contact
+of :func:`k_field_contact`.  While no particle is in field 1 the second grid is never touched (the solver passes a
+one-node placeholder and skips its launches), so the single-field path is unchanged.
+
 Index safety: every particle or point coordinate is checked against the safe band of the grid before any grid
 access; an offending coordinate (including NaN) is clamped into the band and an error flag is raised in
 ``flags`` (read by the host, which raises :class:`~tasks.physics.mpm.solver.SimulationError`).  No kernel ever
@@ -106,6 +113,7 @@ class MaterialTable:
 
     model: wp.array(dtype=wp.int32)  # (material,) model code, one of the MODEL_* constants
     par: wp.array2d(dtype=float)  # (material, N_COLS) parameters, columns C_* (SI units)
+    field: wp.array(dtype=wp.int32)  # (material,) velocity field: 0 the body's grid, 1 the released field's grid
 
 
 @wp.struct
@@ -541,12 +549,14 @@ def contact_velocity(col: Colliders, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.
 
 @wp.func
 def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles, mats: MaterialTable,
-                     gi: GridInfo, sp: StepParams, grid: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32),
+                     gi: GridInfo, sp: StepParams, grid: wp.array3d(dtype=wp.vec4),
+                     grid2: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32),
                      bbox: wp.array(dtype=wp.int32), col: Colliders):
     """MLS-MPM P2G of particle p at r.x with velocity r.v, affine matrix r.C and Kirchhoff stress r.tau, over
     dt = ``sp.dt_p2g``: affine momentum A = -dt V0 4/dx^2 tau + m C (Hu et al. 2018, eq. 29).  Momentum m v plus the
     weight impulse dt m_phys ``sp.weight_g`` (selective mass scaling: each node then gains dt g sum w m_phys); with
-    colliders, v after the surface contact (:func:`contact_velocity`)."""
+    colliders, v after the surface contact (:func:`contact_velocity`).  A particle of the released field
+    (``mats.field``) scatters into ``grid2``, the others into ``grid``."""
     g = checked_grid_coord(r.x, gi, flags, OUT_OF_GRID, substep, p)
     vol = ps.vol[p]
     mass = particle_mass(p, mid, ps, mats)
@@ -559,17 +569,26 @@ def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles
         A = A + cr.A
     if sp.weight_in_p2g != 0:
         mv = mv + (sp.dt_p2g * physical_mass(p, mid, ps, mats)) * sp.weight_g
-    scatter_apic(grid, stencil_at(g), gi.dx, mass, mv, A, bbox)
+    if mats.field[mid] == 0:
+        scatter_apic(grid, stencil_at(g), gi.dx, mass, mv, A, bbox)
+    else:
+        scatter_apic(grid2, stencil_at(g), gi.dx, mass, mv, A, bbox)
 
 
 @wp.func
-def g2p_begin(p: int, ps: Particles, gi: GridInfo, sp: StepParams, grid: wp.array3d(dtype=wp.vec4),
+def g2p_begin(p: int, mid: int, ps: Particles, mats: MaterialTable, gi: GridInfo, sp: StepParams,
+              grid: wp.array3d(dtype=wp.vec4), grid2: wp.array3d(dtype=wp.vec4),
               flags: wp.array(dtype=wp.int32)) -> G2PResult:
-    """First part of the G2P of particle p, common to every model: gather v (m/s) and C (1/s), the advected position
-    x + dt v (m) and the trial elastic deformation gradient (I + dt C) F_E, before the model's update."""
+    """First part of the G2P of particle p, common to every model: gather v (m/s) and C (1/s) from its velocity
+    field's grid (``grid``, or ``grid2`` for the released field), the advected position x + dt v (m) and the trial
+    elastic deformation gradient (I + dt C) F_E, before the model's update."""
     xp = ps.x[p]
     g = checked_grid_coord(xp, gi, flags, OUT_OF_GRID, sp.substep, p)
-    r = gather_apic(grid, stencil_at(g), gi.inv_dx)
+    r = G2PResult()
+    if mats.field[mid] == 0:
+        r = gather_apic(grid, stencil_at(g), gi.inv_dx)
+    else:
+        r = gather_apic(grid2, stencil_at(g), gi.inv_dx)
     r.F = (wp.identity(n=3, dtype=float) + sp.dt_g2p * r.C) @ ps.F[p]
     r.x = xp + sp.dt_g2p * r.v
     r.q = wp.quat_identity()
@@ -624,12 +643,13 @@ def corotated_update(r: G2PResult, p: int, ps: Particles, sp: StepParams, mu: fl
 
 @wp.func
 def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable, gi: GridInfo, sp: StepParams,
-               grid: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32)) -> G2PResult:
+               grid: wp.array3d(dtype=wp.vec4), grid2: wp.array3d(dtype=wp.vec4),
+               flags: wp.array(dtype=wp.int32)) -> G2PResult:
     """G2P of one particle, any model: gather v and C, F_E <- (I + dt C) F_E, return mapping (eq. 5), Kirchhoff
     stress of the new state (eq. 4), advection, guards, :func:`local_damping`; stores x, F_E and the model's state
     (rotation q of fixed-corotated, plastic strain alpha of von Mises / foam).  Velocity and C are returned, stored
     only for a damped particle's velocity."""
-    r = g2p_begin(p, ps, gi, sp, grid, flags)
+    r = g2p_begin(p, mid, ps, mats, gi, sp, grid, grid2, flags)
     mu = mats.par[mid, C_MU]
     lam = mats.par[mid, C_LAMBDA]
     if model == MODEL_FIXED_COROTATED:
@@ -655,9 +675,10 @@ def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable,
 
 @wp.func
 def g2p_update_fc(p: int, mid: int, ps: Particles, mats: MaterialTable, gi: GridInfo, sp: StepParams,
-                  grid: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32)) -> G2PResult:
+                  grid: wp.array3d(dtype=wp.vec4), grid2: wp.array3d(dtype=wp.vec4),
+                  flags: wp.array(dtype=wp.int32)) -> G2PResult:
     """:func:`g2p_update` specialised for a fixed-corotated particle (the common fast path, no model branches)."""
-    r = corotated_update(g2p_begin(p, ps, gi, sp, grid, flags), p, ps, sp, mats.par[mid, C_MU],
+    r = corotated_update(g2p_begin(p, mid, ps, mats, gi, sp, grid, grid2, flags), p, ps, sp, mats.par[mid, C_MU],
                          mats.par[mid, C_LAMBDA])
     g2p_end(r, p, ps, sp, flags)
     return local_damping(r, p, mid, ps, mats)
@@ -680,7 +701,8 @@ def elastic_energy_density(model: int, r: G2PResult, mid: int, mats: MaterialTab
 # ============================================================================================ particle kernels
 @wp.kernel
 def k_p2g(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid_out: wp.array3d(dtype=wp.vec4),
-          flags: wp.array(dtype=wp.int32), bbox: wp.array(dtype=wp.int32), col: Colliders):
+          grid2_out: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32), bbox: wp.array(dtype=wp.int32),
+          col: Colliders):
     """Stand-alone P2G (first substep of a frame), stress from the stored F_E (any model)."""
     p = wp.tid()
     mid = int(ps.mat_id[p])
@@ -688,34 +710,37 @@ def k_p2g(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid
     r = stored_state(p, mid, model, ps, mats, sp)
     if model == MODEL_FIXED_COROTATED:
         ps.q[p] = r.q
-    scatter_particle(r, p, mid, sp.substep, ps, mats, gi, sp, grid_out, flags, bbox, col)
+    scatter_particle(r, p, mid, sp.substep, ps, mats, gi, sp, grid_out, grid2_out, flags, bbox, col)
 
 
 @wp.kernel
 def k_g2p_p2g(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid_in: wp.array3d(dtype=wp.vec4),
-              grid_out: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32), bbox: wp.array(dtype=wp.int32),
+              grid_out: wp.array3d(dtype=wp.vec4), grid2_in: wp.array3d(dtype=wp.vec4),
+              grid2_out: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32), bbox: wp.array(dtype=wp.int32),
               col: Colliders):
-    """Fused G2P (substep n, from ``grid_in``) + P2G (substep n+1, into ``grid_out``), any model."""
+    """Fused G2P (substep n, from ``grid_in`` / ``grid2_in``) + P2G (substep n+1, into ``grid_out`` /
+    ``grid2_out``; the second grid of each pair is the released field's), any model."""
     p = wp.tid()
     mid = int(ps.mat_id[p])
-    r = g2p_update(p, mid, mats.model[mid], ps, mats, gi, sp, grid_in, flags)
-    scatter_particle(r, p, mid, sp.substep + 1, ps, mats, gi, sp, grid_out, flags, bbox, col)
+    r = g2p_update(p, mid, mats.model[mid], ps, mats, gi, sp, grid_in, grid2_in, flags)
+    scatter_particle(r, p, mid, sp.substep + 1, ps, mats, gi, sp, grid_out, grid2_out, flags, bbox, col)
 
 
 @wp.kernel
 def k_g2p_p2g_fc(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable,
                  grid_in: wp.array3d(dtype=wp.vec4), grid_out: wp.array3d(dtype=wp.vec4),
+                 grid2_in: wp.array3d(dtype=wp.vec4), grid2_out: wp.array3d(dtype=wp.vec4),
                  flags: wp.array(dtype=wp.int32), bbox: wp.array(dtype=wp.int32), col: Colliders):
     """Fused G2P + P2G when every particle is fixed-corotated (no model branches, no plastic state)."""
     p = wp.tid()
     mid = int(ps.mat_id[p])
-    r = g2p_update_fc(p, mid, ps, mats, gi, sp, grid_in, flags)
-    scatter_particle(r, p, mid, sp.substep + 1, ps, mats, gi, sp, grid_out, flags, bbox, col)
+    r = g2p_update_fc(p, mid, ps, mats, gi, sp, grid_in, grid2_in, flags)
+    scatter_particle(r, p, mid, sp.substep + 1, ps, mats, gi, sp, grid_out, grid2_out, flags, bbox, col)
 
 
 @wp.kernel
 def k_g2p(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid_in: wp.array3d(dtype=wp.vec4),
-          flags: wp.array(dtype=wp.int32), sums: wp.array(dtype=wp.float64), ext: wp.array(dtype=float),
+          grid2_in: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32), sums: wp.array(dtype=wp.float64), ext: wp.array(dtype=float),
           g_phys: wp.vec3, mat_energy: wp.array2d(dtype=wp.float64)):
     """Stand-alone G2P (last substep of a frame): stores x, v, C, F_E and the plastic state, and accumulates the
     frame statistics: sums = [KE, IE, px, py, pz, mass] (float64), ext = [J min, J max, max speed], and per material
@@ -724,7 +749,7 @@ def k_g2p(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid
     p = wp.tid()
     mid = int(ps.mat_id[p])
     model = mats.model[mid]
-    r = g2p_update(p, mid, model, ps, mats, gi, sp, grid_in, flags)
+    r = g2p_update(p, mid, model, ps, mats, gi, sp, grid_in, grid2_in, flags)
     ps.v[p] = r.v
     ps.C[p] = r.C
     mass = particle_mass(p, mid, ps, mats)
@@ -772,39 +797,13 @@ def dirichlet_velocity(v: wp.vec3, b: wp.vec3, A: wp.mat33, W: float) -> wp.vec3
     return v + V @ r
 
 
-@wp.kernel
-def k_grid_update(gs: GridStep, cond: GridConditions, grid: wp.array3d(dtype=wp.vec4),
-                  other: wp.array3d(dtype=wp.vec4), bc: DirichletGrid, gstats: wp.array(dtype=float),
-                  work: wp.array(dtype=wp.float64)):
-    """Momentum -> velocity, gravity, domain walls, floor, Dirichlet nodes (+ reaction), clear ``other``.
-
-    Launched over the active box only (``gs.origin`` + launch dims): the union of the node boxes touched by the
-    current and the previous P2G, so ``other`` (the previous substep's buffer) is fully cleared.
-    Walls: nodes within ``pad`` nodes of the grid faces; the velocity component into the wall is removed
-    (slip) or the whole velocity (sticky).  Floor: nodes at or below the plane z = floor (``floor_g`` in grid
-    units); the normal component is removed only when moving into the floor, the tangential part gets Coulomb
-    friction |dv_t| <= mu |v_n| (``floor_mu`` = 0: frictionless slip) or is zeroed (sticky).
-    Dirichlet nodes (``bc.target.w`` > 0): velocity <- :func:`dirichlet_velocity` (each constraint's prescribed
-    components, sticky or slip, several normals combined); the reaction m (v_bc - v*) / dt is stored per node
-    divided by the node's total weight, to be split among the fingers by :func:`k_bc_reaction`, and the work the
-    constraint did on the node, impulse . new velocity = m (v_bc - v*) . v_bc (J; the discrete work of symplectic
-    Euler, where a force does work on the velocity it leaves), is added to ``work[0]`` (energy guard).
-    """
-    ti, tj, tk = wp.tid()
-    i = ti + gs.origin[0]
-    j = tj + gs.origin[1]
-    k = tk + gs.origin[2]
-    dt = gs.dt
+@wp.func
+def fixed_boundaries(v_in: wp.vec3, i: int, j: int, k: int, cond: GridConditions, nx: int, ny: int,
+                     nz: int) -> wp.vec3:
+    """Velocity (m/s) of node (i, j, k) of an (nx, ny, nz) grid after the domain walls and the floor (see
+    :func:`k_grid_update`)."""
     pad = cond.pad
-    other[i, j, k] = wp.vec4(0.0)
-    n = grid[i, j, k]
-    m = n[3]
-    if m <= 0.0:
-        return
-    v = wp.vec3(n[0], n[1], n[2]) / m + dt * cond.gravity
-    nx = grid.shape[0]
-    ny = grid.shape[1]
-    nz = grid.shape[2]
+    v = v_in
     # 1. domain walls
     if cond.wall_sticky != 0:
         if i < pad or i >= nx - pad or j < pad or j >= ny - pad or k < pad or k >= nz - pad:
@@ -831,7 +830,40 @@ def k_grid_update(gs: GridStep, cond: GridConditions, grid: wp.array3d(dtype=wp.
                 else:
                     vt = vt * (1.0 - mu * vn / lt)
             v = vt
-    # 3. Dirichlet nodes
+    return v
+
+
+@wp.kernel
+def k_grid_update(gs: GridStep, cond: GridConditions, grid: wp.array3d(dtype=wp.vec4),
+                  other: wp.array3d(dtype=wp.vec4), bc: DirichletGrid, gstats: wp.array(dtype=float),
+                  work: wp.array(dtype=wp.float64)):
+    """Momentum -> velocity, gravity, domain walls, floor, Dirichlet nodes (+ reaction), clear ``other``.
+
+    Launched over the active box only (``gs.origin`` + launch dims): the union of the node boxes touched by the
+    current and the previous P2G, so ``other`` (the previous substep's buffer) is fully cleared.
+    Walls: nodes within ``pad`` nodes of the grid faces; the velocity component into the wall is removed
+    (slip) or the whole velocity (sticky).  Floor: nodes at or below the plane z = floor (``floor_g`` in grid
+    units); the normal component is removed only when moving into the floor, the tangential part gets Coulomb
+    friction |dv_t| <= mu |v_n| (``floor_mu`` = 0: frictionless slip) or is zeroed (sticky).
+    Dirichlet nodes (``bc.target.w`` > 0): velocity <- :func:`dirichlet_velocity` (each constraint's prescribed
+    components, sticky or slip, several normals combined); the reaction m (v_bc - v*) / dt is stored per node
+    divided by the node's total weight, to be split among the fingers by :func:`k_bc_reaction`, and the work the
+    constraint did on the node, impulse . new velocity = m (v_bc - v*) . v_bc (J; the discrete work of symplectic
+    Euler, where a force does work on the velocity it leaves), is added to ``work[0]`` (energy guard).
+    """
+    ti, tj, tk = wp.tid()
+    i = ti + gs.origin[0]
+    j = tj + gs.origin[1]
+    k = tk + gs.origin[2]
+    dt = gs.dt
+    other[i, j, k] = wp.vec4(0.0)
+    n = grid[i, j, k]
+    m = n[3]
+    if m <= 0.0:
+        return
+    v = fixed_boundaries(wp.vec3(n[0], n[1], n[2]) / m + dt * cond.gravity, i, j, k, cond, grid.shape[0],
+                         grid.shape[1], grid.shape[2])
+    # Dirichlet nodes
     if gs.has_bc != 0:
         b = bc.target[i, j, k]
         W = b[3]
@@ -843,6 +875,75 @@ def k_grid_update(gs: GridStep, cond: GridConditions, grid: wp.array3d(dtype=wp.
             v = vnew
     grid[i, j, k] = wp.vec4(v[0], v[1], v[2], m)
     wp.atomic_max(gstats, 0, wp.length(v))
+
+
+@wp.func
+def node_mass(grid: wp.array3d(dtype=wp.vec4), i: int, j: int, k: int) -> float:
+    """Mass (kg) of node (i, j, k), indices clamped into the grid."""
+    return grid[wp.clamp(i, 0, grid.shape[0] - 1), wp.clamp(j, 0, grid.shape[1] - 1),
+                wp.clamp(k, 0, grid.shape[2] - 1)][3]
+
+
+@wp.func
+def mass_gradient(grid: wp.array3d(dtype=wp.vec4), i: int, j: int, k: int) -> wp.vec3:
+    """Central-difference gradient of the nodal mass at node (i, j, k) (kg per node spacing)."""
+    return wp.vec3(node_mass(grid, i + 1, j, k) - node_mass(grid, i - 1, j, k),
+                   node_mass(grid, i, j + 1, k) - node_mass(grid, i, j - 1, k),
+                   node_mass(grid, i, j, k + 1) - node_mass(grid, i, j, k - 1))
+
+
+@wp.kernel
+def k_field_contact(gs: GridStep, cond: GridConditions, body: wp.array3d(dtype=wp.vec4),
+                    free: wp.array3d(dtype=wp.vec4)):
+    """Frictionless contact of the two velocity fields (multi-field MPM: Bardenhagen et al. 2000, sec. 3; normals
+    as discussed by Homel & Herbold 2017), after both grid updates, over the active box (``gs.origin`` + launch
+    dims).  At a node where both the body field (``body``) and the released field (``free``) carry mass (after the
+    update: (velocity m/s, mass kg) per node), n is the unit contact normal from the body towards the released
+    material: the body's outward normal -grad m_body / |grad m_body| (central differences of the nodal masses)
+    unless it opposes the direction into the released material, grad m_free (more than 120 degrees apart), else
+    that direction grad m_free / |grad m_free|.  The body's normal is the accurate one next to a solid body (spray
+    falling past it is tangential to it, whatever the spray's own shape), but it flips sign across a shell one
+    particle thick (a can's wall): fluid pressing on such a wall from inside reaches nodes beyond it, where the
+    body's normal would call the fluid separating and let it through, while the fluid's mass gradient still
+    points from the wall into the fluid (there the two are opposite; at the edge of a fluid sheet sliding along a
+    wall they are ~90 degrees apart and the wall's normal must stay, or the sheet's own edge would brake it).  If the fields approach, (v_free - v_body) . n < 0, both normal components
+    become the centre-of-mass normal velocity (m_b v_b + m_f v_f) . n / (m_b + m_f), which conserves the node's
+    momentum and stops the interpenetration while the tangential components stay free (no friction); separating
+    fields are left independent (no sticking).  The domain walls and the floor are applied again to the corrected
+    velocities."""
+    ti, tj, tk = wp.tid()
+    i = ti + gs.origin[0]
+    j = tj + gs.origin[1]
+    k = tk + gs.origin[2]
+    a = body[i, j, k]
+    b = free[i, j, k]
+    mb = a[3]
+    mf = b[3]
+    if mb <= 0.0 or mf <= 0.0:
+        return
+    gb = -mass_gradient(body, i, j, k)
+    gf = mass_gradient(free, i, j, k)
+    lb = wp.length(gb)
+    lf = wp.length(gf)
+    if lb <= 0.0 and lf <= 0.0:
+        return
+    n = wp.vec3(0.0)
+    if lf <= 0.0 or (lb > 0.0 and wp.dot(gb, gf) >= -0.5 * lb * lf):
+        n = gb / lb
+    else:
+        n = gf / lf
+    vb = wp.vec3(a[0], a[1], a[2])
+    vf = wp.vec3(b[0], b[1], b[2])
+    if wp.dot(vf - vb, n) >= 0.0:
+        return
+    vn = (mb * wp.dot(vb, n) + mf * wp.dot(vf, n)) / (mb + mf)
+    nx = body.shape[0]
+    ny = body.shape[1]
+    nz = body.shape[2]
+    vb = fixed_boundaries(vb + (vn - wp.dot(vb, n)) * n, i, j, k, cond, nx, ny, nz)
+    vf = fixed_boundaries(vf + (vn - wp.dot(vf, n)) * n, i, j, k, cond, nx, ny, nz)
+    body[i, j, k] = wp.vec4(vb[0], vb[1], vb[2], mb)
+    free[i, j, k] = wp.vec4(vf[0], vf[1], vf[2], mf)
 
 
 # ============================================================================================ boundary points

@@ -521,6 +521,8 @@ class MPMSolver:
         self.mat_table = K.MaterialTable()
         self.mat_table.model = self.mat_model
         self.mat_table.par = self.mat_par
+        self.mat_field = wp.zeros(len(self.materials), dtype=wp.int32, device=d)
+        self.mat_table.field = self.mat_field
         self._upload_materials()
 
         # ---------------- particle state (allocate only what the present models need)
@@ -544,6 +546,10 @@ class MPMSolver:
         self.grid_b = wp.zeros(self.dims, dtype=wp.vec4, device=d)
         self._bc_alloc = False
         dummy3 = wp.zeros((1, 1, 1), dtype=wp.vec4, device=d)
+        # the released field's grid buffer paired with each body buffer (a one-node placeholder while unused)
+        self._field2 = {id(self.grid_a): dummy3, id(self.grid_b): dummy3}
+        self.two_fields = False
+        self._update_fields()
         self.bc_grid = K.DirichletGrid()
         self.bc_grid.target = self.bc_grid.reaction = dummy3
         self.bc_grid.proj = wp.zeros((1, 1, 1), dtype=wp.mat33, device=d)
@@ -624,6 +630,34 @@ class MPMSolver:
             if m.model == "fluid" and m.viscosity > 0:
                 rho = m.density * float(self.material_mass_scale[i])
                 self.dt_visc = min(self.dt_visc, rho * self.dx ** 2 / (6.0 * m.viscosity))
+
+    def released_field_materials(self) -> np.ndarray:
+        """(material,) bool: the materials of the released velocity field (``mpm.multi_field`` under
+        ``mpm.mass_scaling=selective``): those that keep their physical inertia while the body is scaled
+        (``Material.is_mass_scaled`` False: released material, fluids).  Under the other modes every material has
+        the same scale and one field is kept."""
+        on = self.cfg.multi_field and self.cfg.mass_scaling == "selective"
+        return np.array([on and not m.is_mass_scaled for m in self.materials])
+
+    def _update_fields(self) -> None:
+        """Velocity field of each material (kernels: ``MaterialTable.field``).  Two fields only while both the body
+        (field 0) and the released field (field 1) have particles: otherwise everything is field 0 and the second
+        grid is neither allocated nor launched (the single-field path, unchanged).  The second pair of grid buffers
+        is allocated (zeroed) when the second field first appears."""
+        released = self.released_field_materials()
+        present = np.zeros(len(self.materials), bool)
+        present[self._present] = True
+        two = bool((released & present).any() and (~released & present).any())
+        field = (released & two).astype(np.int32)
+        self.mat_field.assign(field)
+        if two and self._field2[id(self.grid_a)].shape != self.grid_a.shape:
+            self._field2 = {id(g): wp.zeros(self.dims, dtype=wp.vec4, device=self.device)
+                            for g in (self.grid_a, self.grid_b)}
+        if two != self.two_fields:
+            self._cmds = None  # the recorded launches hold the grid buffers
+            for g in self._field2.values():
+                g.zero_()
+        self.two_fields = two
 
     def stable_dt_per_material(self) -> dict[str, float]:
         """The stable substep (s) each material of the table needs alone, present or not yet (a ruptured skin, a
@@ -908,12 +942,21 @@ class MPMSolver:
         cmds: dict = {"sp": self._step_params(0.0, 0.0), "gs": K.GridStep()}
         fused_kernel = K.k_g2p_p2g_fc if self.all_corotated else K.k_g2p_p2g
         conditions = self._grid_conditions()
+        cmds["gs2"] = K.GridStep()  # the released field's grid update: no Dirichlet nodes
         for cur, other in ((self.grid_a, self.grid_b), (self.grid_b, self.grid_a)):
+            cur2, other2 = self._field2[id(cur)], self._field2[id(other)]
             fused = wp.launch(fused_kernel, dim=self.n_particles, device=d, record_cmd=True, inputs=[
-                self.gi, cmds["sp"], self.particles, self.mat_table, cur, other, self.flags, self.bbox, self.col])
+                self.gi, cmds["sp"], self.particles, self.mat_table, cur, other, cur2, other2, self.flags,
+                self.bbox, self.col])
             grid = wp.launch(K.k_grid_update, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
                 cmds["gs"], conditions, cur, other, self.bc_grid, self.gstats, self.boundary_work])
-            cmds[id(cur)] = (fused, grid)
+            fields = None
+            if self.two_fields:
+                fields = (wp.launch(K.k_grid_update, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
+                    cmds["gs2"], conditions, cur2, other2, self.bc_grid, self.gstats, self.boundary_work]),
+                    wp.launch(K.k_field_contact, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
+                        cmds["gs"], conditions, cur, cur2]))
+            cmds[id(cur)] = (fused, grid, fields)
         cmds["col_version"] = {id(self.grid_a): self._col_version, id(self.grid_b): self._col_version}
         self._cmds = cmds
         return cmds
@@ -926,9 +969,10 @@ class MPMSolver:
             wp.copy(self.bbox, self.bbox_init)
 
     def _launch_grid(self, cur, box_lo: np.ndarray, box_hi: np.ndarray, dt: float, has_bc: int) -> float:
-        """Grid update over the node box [box_lo, box_hi]; returns the max grid speed (m/s)."""
+        """Grid update over the node box [box_lo, box_hi] (with two velocity fields: both fields' updates, then
+        their contact, :func:`tasks.physics.mpm.kernels.k_field_contact`); returns the max grid speed (m/s)."""
         cmds = self._recorded()
-        grid = cmds[id(cur)][1]
+        grid, fields = cmds[id(cur)][1], cmds[id(cur)][2]
         if self._cpu:
             self._gstats_np[0] = 0.0
         else:
@@ -937,9 +981,17 @@ class MPMSolver:
         gs.origin = wp.vec3i(int(box_lo[0]), int(box_lo[1]), int(box_lo[2]))
         gs.dt = float(dt)
         gs.has_bc = int(has_bc)
-        grid.set_dim(tuple(int(a) for a in box_hi - box_lo + 1))
+        dims = tuple(int(a) for a in box_hi - box_lo + 1)
+        grid.set_dim(dims)
         grid.set_param_by_name("gs", gs)
         grid.launch()
+        if fields is not None:
+            gs2 = cmds["gs2"]
+            gs2.origin, gs2.dt, gs2.has_bc = gs.origin, gs.dt, 0
+            for launch, params in zip(fields, (gs2, gs)):
+                launch.set_dim(dims)
+                launch.set_param_by_name("gs", params)
+                launch.launch()
         return float(self._gstats_np[0]) if self._cpu else float(self.gstats.numpy()[0])
 
     def _launch_fused(self, cur, dt: float, dt_next: float) -> None:
@@ -1003,8 +1055,8 @@ class MPMSolver:
         # P2G of the frame's first substep (stress from the stored state)
         self._reset_bbox()
         wp.launch(K.k_p2g, dim=n, device=d, inputs=[
-            self.gi, self._step_params(0.0, dt, restart=True), self.particles, self.mat_table, cur, self.flags,
-            self.bbox, self.col])
+            self.gi, self._step_params(0.0, dt, restart=True), self.particles, self.mat_table, cur,
+            self._field2[id(cur)], self.flags, self.bbox, self.col])
         box_cur = self._read_box()
         box_prev = self._last_box if self._last_box is not None else box_cur
         while True:
@@ -1046,7 +1098,7 @@ class MPMSolver:
                 wp.copy(self.ext, self.ext_init)
                 wp.launch(K.k_g2p, dim=n, device=d, inputs=[
                     self.gi, self._step_params(dt, 0.0, restart=True), self.particles, self.mat_table, cur,
-                    self.flags, self.sums, self.ext, wp.vec3(*self.cfg.gravity), self.mat_energy])
+                    self._field2[id(cur)], self.flags, self.sums, self.ext, wp.vec3(*self.cfg.gravity), self.mat_energy])
                 self.substep += 1
                 self._times.append((self.substep, self.time + t))
                 self._last_box = box_cur
@@ -1336,8 +1388,10 @@ class MPMSolver:
         return self.tF.numpy()[: self.n_tracers].copy()
 
     def grid_mass(self) -> float:
-        """Total mass (kg) on the grid from the last P2G (float64 sum of the nodal masses)."""
-        return float(self.grid_a.numpy()[..., 3].astype(np.float64).sum())
+        """Total mass (kg) on the grid from the last P2G (float64 sum of the nodal masses of both velocity
+        fields)."""
+        grids = [self.grid_a] + ([self._field2[id(self.grid_a)]] if self.two_fields else [])
+        return float(sum(g.numpy()[..., 3].astype(np.float64).sum() for g in grids))
 
     def set_velocities(self, v: np.ndarray) -> None:
         self._energy_state_changed()
@@ -1371,6 +1425,7 @@ class MPMSolver:
         self._present = sorted(set(int(i) for i in np.unique(ids)))
         self.all_corotated = {self.materials[i].code for i in self._present} == {FIXED_COROTATED}
         self._upload_materials()
+        self._update_fields()
 
     def affine_velocities(self) -> np.ndarray:
         """APIC affine velocity matrices C (N, 3, 3), 1/s (the particle's velocity gradient, stored at frame ends)."""
@@ -1401,7 +1456,8 @@ class MPMSolver:
         return sum(self.state_nbytes().values()) / self.n_particles
 
     def grid_nbytes(self) -> int:
-        """Bytes of the grid arrays: two vec4 buffers, plus the Dirichlet target, reaction (vec4) and projector
-        (mat33) arrays once a constraint was used."""
+        """Bytes of the grid arrays: two vec4 buffers (four once a second velocity field was used), plus the
+        Dirichlet target, reaction (vec4) and projector (mat33) arrays once a constraint was used."""
         nodes = int(np.prod(self.dims))
-        return nodes * (2 * 16 + ((16 + 16 + 36) if self._bc_alloc else 0))
+        fields = 2 if self._field2[id(self.grid_a)].shape == self.grid_a.shape else 1
+        return nodes * (2 * 16 * fields + ((16 + 16 + 36) if self._bc_alloc else 0))

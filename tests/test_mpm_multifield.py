@@ -1,0 +1,153 @@
+"""Two velocity fields on the grid (multi-field MPM, Bardenhagen et al. 2000): released material and fluids move
+with their own nodal velocities, coupled to the (mass-scaled) body only by a frictionless, non-sticking contact
+(:func:`tasks.physics.mpm.kernels.k_field_contact`).  Known answers: free fall at g next to a scaled body, a blob
+thrown at a heavy wall keeps its tangential velocity and loses its normal one without passing through, separating
+fields do not stick, the contact conserves momentum node by node."""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import warp as wp
+
+from tasks.physics.mpm import kernels as K
+from tasks.physics.mpm.materials import Material
+from tasks.physics.mpm.solver import MPMSolver
+
+DX = 0.005  # m
+FRAME_DT = 1.0 / 60.0  # s
+WALL = Material(name="wall", model="fixed_corotated", youngs_modulus=1e6, poisson_ratio=0.3, density=1000.0)
+BLOB = Material(name="blob", model="fluid", youngs_modulus=2e4, poisson_ratio=0.3, density=1000.0, viscosity=0.01,
+                mass_scaled=False)
+
+
+def lattice(lo, hi, h=DX / 2):
+    """Cell-centred particle lattice of spacing h (m) filling the box [lo, hi]."""
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    n = np.maximum(np.round((hi - lo) / h).astype(int), 1)
+    axes = [lo[i] + (np.arange(n[i]) + 0.5) * (hi[i] - lo[i]) / n[i] for i in range(3)]
+    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+
+
+def wall_and_blob(blob_lo, blob_hi, multi_field=True, gravity=(0.0, 0.0, -9.81), floor=True, velocity=(0, 0, 0)):
+    """A stiff wall (2 x 8 x 6 cm, mass-scaled under selective scaling: heavy) standing on the floor at x in
+    [0, 0.02] m, and a fluid blob with physical inertia (field 1) in the box [blob_lo, blob_hi] with ``velocity``."""
+    Xw = lattice([0.0, 0.0, 0.0], [0.02, 0.08, 0.06])
+    Xb = lattice(blob_lo, blob_hi)
+    ids = np.repeat([0, 1], [len(Xw), len(Xb)])
+    v = np.zeros((len(ids), 3), np.float32)
+    v[ids == 1] = velocity
+    cfg = dict(device="cpu", dx=DX, mass_scaling="selective", target_substeps_per_frame=10, floor=floor,
+               floor_height=0.0, floor_sticky=True, gravity=list(gravity), multi_field=multi_field,
+               domain_lo=[-0.04, -0.02, -0.02], domain_hi=[0.1, 0.1, 0.12])
+    return MPMSolver(np.concatenate([Xw, Xb]), (DX / 2) ** 3, [WALL, BLOB], material_ids=ids, velocities=v,
+                     config=cfg), ids
+
+
+def run(s, frames, frame_dt=FRAME_DT):
+    """Step ``frames`` frames of ``frame_dt`` s; returns (frame, particle, xyz) positions and velocities."""
+    xs, vs = [s.positions()], [s.velocities()]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # free flight is all kinetic energy
+        for _ in range(frames):
+            s.step_frame(frame_dt)
+            xs.append(s.positions())
+            vs.append(s.velocities())
+    return np.array(xs), np.array(vs)
+
+
+def test_released_blob_falls_at_g_beside_a_scaled_body_only_with_its_own_field():
+    """A blob 1 cm wide starting half a cell from the wall's face (their B-spline stencils share nodes) falls
+    along it for 5 frames: with its own field its centroid's fitted acceleration is g within 1 % (the wall, scaled
+    ~x10^3, does not hold it: the contact is frictionless and they do not approach); in one shared field the
+    heavy wall's nodes drag it (it falls at well under half of g)."""
+    acc = {}
+    for mf in (True, False):
+        s, ids = wall_and_blob([0.0225, 0.015, 0.045], [0.0325, 0.025, 0.055], multi_field=mf)
+        assert s.two_fields == mf
+        xs, _ = run(s, 5)
+        t = FRAME_DT * np.arange(len(xs))
+        acc[mf] = 2.0 * np.polyfit(t, xs[:, ids == 1, 2].mean(axis=1), 2)[0]
+        assert s.material_mass_scale[0] > 100 and s.material_mass_scale[1] == 1.0
+    assert acc[True] == pytest.approx(-9.81, rel=0.01)
+    assert acc[False] > -0.5 * 9.81
+
+
+def test_blob_thrown_at_a_heavy_wall_stops_at_it_and_keeps_its_tangential_velocity():
+    """No gravity, no floor: a fluid blob moving at (-1, 0.5, 0) m/s hits the wall's face (x = 0.02 m)
+    frictionlessly; 25 ms, before the splash reaches the wall's edges.  Known answers: no blob particle passes the
+    face (the two fields meet where their stencils overlap, so the blob stops about one cell off it); its mean normal
+    velocity goes from -1 m/s to about zero (|v_x| < 0.1 m/s); its mean tangential velocity stays 0.5 m/s within
+    1 % (frictionless); the heavy wall barely moves (< 1 mm/s); the total momentum (scaled masses) is conserved
+    within 0.1 % of the blob's."""
+    s, ids = wall_and_blob([0.03, 0.025, 0.025], [0.04, 0.035, 0.035], gravity=(0.0, 0.0, 0.0), floor=False,
+                           velocity=(-1.0, 0.5, 0.0))
+    xs, vs = run(s, 3, FRAME_DT / 2)
+    m = s.masses().astype(np.float64)
+    blob = ids == 1
+    assert xs[:, blob, 0].min() >= 0.02
+    v_end = vs[-1, blob].mean(axis=0)
+    assert abs(v_end[0]) < 0.1
+    assert v_end[1] == pytest.approx(0.5, rel=0.01)
+    assert np.abs(vs[-1, ~blob]).max() < 1e-3
+    p = np.einsum("p,fpc->fc", m, vs.astype(np.float64))
+    assert np.abs(p - p[0]).max() < 1e-3 * m[blob].sum() * 1.0
+
+
+def test_separating_fields_do_not_stick():
+    """No gravity, no floor: a blob touching the wall's face (stencils overlapping) moves away from it at
+    0.3 m/s.  With its own field it keeps that velocity within 1 % (separating fields are left independent); in
+    one shared field the heavy wall holds it back (it keeps less than half)."""
+    kept = {}
+    for mf in (True, False):
+        s, ids = wall_and_blob([0.0205, 0.015, 0.02], [0.0305, 0.025, 0.03], multi_field=mf, gravity=(0, 0, 0),
+                               floor=False, velocity=(0.3, 0.0, 0.0))
+        _, vs = run(s, 2)
+        kept[mf] = vs[-1, ids == 1, 0].mean() / 0.3
+    assert kept[True] == pytest.approx(1.0, rel=0.01)
+    assert kept[False] < 0.5
+
+
+def test_field_contact_kernel_conserves_momentum_and_keeps_tangential_velocity():
+    """The contact kernel on a 5x5x5 grid: the body fills the nodes x <= 2 with mass 8 kg, the released field the
+    nodes x >= 2 with 1 kg (contact normal +x at node (2, 2, 2)).  Known answers at (2, 2, 2): approaching
+    (body (0, 0, 0), released (-1, 0.5, 0) m/s) -> both normal components become the centre-of-mass one,
+    8 * 0 + 1 * (-1) / 9 = -1/9 m/s, the tangential ones stay (0 and 0.5), and the node's momentum is unchanged;
+    separating (released (+1, 0.5, 0)) -> nothing changes."""
+    for vx, expect_b, expect_f in ((-1.0, -1.0 / 9.0, -1.0 / 9.0), (1.0, 0.0, 1.0)):
+        body = np.zeros((5, 5, 5, 4), np.float32)
+        body[:3, :, :, 3] = 8.0
+        free = np.zeros((5, 5, 5, 4), np.float32)
+        free[2:, :, :, 3] = 1.0
+        free[2, 2, 2, :3] = (vx, 0.5, 0.0)
+        gb = wp.array(body, dtype=wp.vec4, device="cpu")
+        gf = wp.array(free, dtype=wp.vec4, device="cpu")
+        gs = K.GridStep()
+        gs.origin = wp.vec3i(1, 1, 1)
+        gs.dt = 1e-3
+        gs.has_bc = 0
+        cond = K.GridConditions()
+        cond.gravity = wp.vec3(0.0, 0.0, 0.0)
+        cond.pad = 0
+        wp.launch(K.k_field_contact, dim=(3, 3, 3), inputs=[gs, cond, gb, gf], device="cpu")
+        b, f = gb.numpy()[2, 2, 2], gf.numpy()[2, 2, 2]
+        np.testing.assert_allclose(b[:3], [expect_b, 0.0, 0.0], atol=1e-6)
+        np.testing.assert_allclose(f[:3], [expect_f, 0.5, 0.0], atol=1e-6)
+        np.testing.assert_allclose(8.0 * b[:3] + 1.0 * f[:3], [vx, 0.5, 0.0], atol=1e-6)
+
+
+def test_second_field_is_used_only_while_both_fields_have_particles():
+    """Before a release (body only) the solver runs one field and allocates no second grid; switching particles
+    to the released material (``set_material_ids``) turns the second field on, and the grid mass counts both."""
+    Xw = lattice([0.0, 0.0, 0.0], [0.02, 0.02, 0.02])
+    s = MPMSolver(Xw, (DX / 2) ** 3, [WALL, BLOB], config=dict(device="cpu", dx=DX, floor_height=0.0,
+                                                               mass_scaling="selective", target_substeps_per_frame=10))
+    nbytes = s.grid_nbytes()
+    s.step_frame(FRAME_DT)
+    assert not s.two_fields and s.grid_nbytes() == nbytes
+    ids = (Xw[:, 2] > 0.015).astype(np.int32)
+    s.set_material_ids(ids)
+    assert s.two_fields and s.grid_nbytes() == 2 * nbytes
+    s.step_frame(FRAME_DT)
+    assert s.grid_mass() == pytest.approx(float(s.masses().astype(np.float64).sum()), rel=1e-5)
