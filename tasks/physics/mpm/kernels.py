@@ -38,7 +38,7 @@ from .constitutive import (
     MODEL_FOAM,
     MODEL_NEO_HOOKEAN,
     fluid_reset,
-    hencky_plastic_return,
+    hencky_plastic_return_warm,
     polar_rotation_quat,
     polar_track_quat,
     psi_fixed_corotated,
@@ -94,7 +94,7 @@ class Particles:
     v: wp.array(dtype=wp.vec3)  # velocity, m/s (stored at frame ends)
     C: wp.array(dtype=wp.mat33)  # APIC affine velocity matrix (velocity gradient), 1/s (stored at frame ends)
     F: wp.array(dtype=wp.mat33)  # elastic deformation gradient F_E
-    q: wp.array(dtype=wp.quat)  # rotation of F_E (fixed-corotated)
+    q: wp.array(dtype=wp.quat)  # rotation of F_E (fixed-corotated); eigenbasis of F_E F_E^T (von Mises, foam)
     alpha: wp.array(dtype=float)  # equivalent plastic strain (von Mises, foam)
     vol: wp.array(dtype=float)  # initial volume, m^3
     mat_id: wp.array(dtype=wp.int32)  # row of the particle's material in the MaterialTable
@@ -627,7 +627,7 @@ def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable,
                grid: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32)) -> G2PResult:
     """G2P of one particle, any model: gather v and C, F_E <- (I + dt C) F_E, return mapping (eq. 5), Kirchhoff
     stress of the new state (eq. 4), advection, guards, :func:`local_damping`; stores x, F_E and the model's state
-    (rotation q of fixed-corotated, plastic strain alpha of von Mises / foam).  Velocity and C are returned, stored
+    (rotation q of fixed-corotated, eigenbasis q and plastic strain alpha of von Mises / foam).  Velocity and C are returned, stored
     only for a damped particle's velocity."""
     r = g2p_begin(p, ps, gi, sp, grid, flags)
     mu = mats.par[mid, C_MU]
@@ -640,8 +640,8 @@ def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable,
         r.tau = fluid_stress(r.F, r.C, mid, mats)
         r.F = fluid_reset(r.F)
     else:
-        pr = hencky_plastic_return(
-            r.F, mu, lam, mats.par[mid, C_YIELD], mats.par[mid, C_HARDENING], ps.alpha[p],
+        pr = hencky_plastic_return_warm(
+            r.F, ps.q[p], mu, lam, mats.par[mid, C_YIELD], mats.par[mid, C_HARDENING], ps.alpha[p],
             mats.par[mid, C_VISCOSITY], mats.par[mid, C_CRUSH], mats.par[mid, C_DILATION], int(model == MODEL_FOAM),
             sp.dt_g2p,
         )
@@ -649,6 +649,7 @@ def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable,
         r.tau = pr.tau
         r.alpha = pr.alpha
         ps.alpha[p] = r.alpha
+        ps.q[p] = pr.q
     g2p_end(r, p, ps, sp, flags)
     return local_damping(r, p, mid, ps, mats)
 

@@ -482,7 +482,7 @@ class MPMSolver:
         self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33, device=d)
         self.has_corotated = FIXED_COROTATED in codes_present
         self.has_plastic = any(m.code in PLASTIC_MODELS for m in self.materials)  # also one assigned mid-run
-        qn = n if self.has_corotated else 1
+        qn = n if self.has_corotated or self.has_plastic else 1  # rotation / eigenbasis warm starts
         self.q = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (qn, 1)), dtype=wp.quat, device=d)
         self.alpha = wp.zeros(n if self.has_plastic else 1, dtype=float, device=d)
         self.vol = wp.array(vol, dtype=float, device=d)
