@@ -131,6 +131,7 @@ class GridStep:
     origin: wp.vec3i  # lowest node of the active box (the launch covers origin + launch dims)
     dt: float  # substep, s
     has_bc: int  # 1: Dirichlet nodes are active this substep
+    substep: int  # global substep counter (error reports of the boundary points and tracers)
 
 
 @wp.struct
@@ -849,12 +850,12 @@ def k_grid_update(gs: GridStep, cond: GridConditions, grid: wp.array3d(dtype=wp.
 # ============================================================================================ boundary points
 @wp.kernel
 def k_bc_scatter(gi: GridInfo, pts: DirichletPointSet, bc: DirichletGrid, flags: wp.array(dtype=wp.int32),
-                 substep: int):
+                 gs: GridStep):
     """Project constrained points (target velocity, optional slip normal) onto the nodes of their stencils: the
     node accumulates w P v_target and w P (P = n n^T for a slip point, I for a sticky one), see
     :func:`dirichlet_velocity`."""
     p = wp.tid()
-    s = point_stencil(pts.x[p], gi, flags, substep, p)
+    s = point_stencil(pts.x[p], gi, flags, gs.substep, p)
     b = s.base
     vt = pts.v[p]
     nt = pts.n[p]
@@ -874,7 +875,7 @@ def k_bc_scatter(gi: GridInfo, pts: DirichletPointSet, bc: DirichletGrid, flags:
 
 
 @wp.kernel
-def k_bc_reaction(gi: GridInfo, pts: DirichletPointSet, dt: float, bc: DirichletGrid,
+def k_bc_reaction(gi: GridInfo, pts: DirichletPointSet, gs: GridStep, bc: DirichletGrid,
                   finger_impulse: wp.array(dtype=wp.vec3)):
     """finger_impulse[k] += dt * sum over the finger's points and stencil nodes of w * reaction/W."""
     p = wp.tid()
@@ -888,11 +889,11 @@ def k_bc_reaction(gi: GridInfo, pts: DirichletPointSet, dt: float, bc: Dirichlet
                 if w > pts.min_w:
                     r = bc.reaction[b[0] + i, b[1] + j, b[2] + k]
                     acc = acc + w * wp.vec3(r[0], r[1], r[2])
-    wp.atomic_add(finger_impulse, int(pts.finger[p]), dt * acc)
+    wp.atomic_add(finger_impulse, int(pts.finger[p]), gs.dt * acc)
 
 
 @wp.kernel
-def k_bc_clear_advance(gi: GridInfo, pts: DirichletPointSet, dt: float, bc: DirichletGrid):
+def k_bc_clear_advance(gi: GridInfo, pts: DirichletPointSet, gs: GridStep, bc: DirichletGrid):
     """Clear the boundary arrays at the stencil nodes, then move the points by dt * target velocity."""
     p = wp.tid()
     b = base_index(clamped_grid_coord(pts.x[p], gi))
@@ -903,7 +904,7 @@ def k_bc_clear_advance(gi: GridInfo, pts: DirichletPointSet, dt: float, bc: Diri
                 bc.proj[b[0] + i, b[1] + j, b[2] + k] = wp.mat33(0.0)
                 bc.reaction[b[0] + i, b[1] + j, b[2] + k] = wp.vec4(0.0)
     if pts.advect != 0:
-        pts.x[p] = pts.x[p] + dt * pts.v[p]
+        pts.x[p] = pts.x[p] + gs.dt * pts.v[p]
 
 
 @wp.kernel
@@ -970,16 +971,17 @@ def k_collider_advance(col: Colliders, dt: float):
 
 # ============================================================================================ tracers
 @wp.kernel
-def k_tracer_g2p(gi: GridInfo, grid: wp.array3d(dtype=wp.vec4), dt: float, tx: wp.array(dtype=wp.vec3),
-                 tF: wp.array(dtype=wp.mat33), flags: wp.array(dtype=wp.int32), substep: int):
+def k_tracer_g2p(gi: GridInfo, grid: wp.array3d(dtype=wp.vec4), gs: GridStep, tx: wp.array(dtype=wp.vec3),
+                 tF: wp.array(dtype=wp.mat33), flags: wp.array(dtype=wp.int32)):
     """Massless tracers (surface Gaussians): advect with the grid velocity, F <- (I + dt grad v) F.
 
     Interpolation is normalised over the stencil nodes that carry mass, so a tracer slightly outside the
     particle cloud follows the nearest material instead of being slowed by empty nodes.
     """
     p = wp.tid()
-    s = point_stencil(tx[p], gi, flags, substep, p)
+    s = point_stencil(tx[p], gi, flags, gs.substep, p)
     b = s.base
+    dt = gs.dt
     # separable sums over the massive nodes, lanes (v, 1): acc = sum w (v_i, 1), s_c = sum w o_c (v_i, 1) with o the
     # node offset (0, 1, 2) along axis c (as in :func:`gather_apic`)
     acc = wp.vec4(0.0)

@@ -841,9 +841,11 @@ class MPMSolver:
         return gc
 
     def _recorded(self) -> dict:
-        """Recorded launches of the two per-substep kernels (one per grid-buffer parity): replaying them avoids
-        re-packing the arguments per launch (Python overhead dominates small scenes).  A replay updates only the
-        per-launch struct of each kernel: ``sp`` (:class:`K.StepParams`) and ``gs`` (:class:`K.GridStep`)."""
+        """Recorded launches of the per-substep kernels (fused G2P/P2G, grid update, tracers; one set per grid-buffer
+        parity): replaying them avoids re-packing the arguments per launch (a ``wp.launch`` costs ~0.1-0.3 ms of
+        Python, which dominates small scenes).  A replay updates only the per-launch struct of each kernel: ``sp``
+        (:class:`K.StepParams`) and ``gs`` (:class:`K.GridStep`).  The boundary points' launches are recorded per
+        frame (:meth:`_record_bc`)."""
         if self._cmds is not None:
             return self._cmds
         d = self.device
@@ -855,7 +857,9 @@ class MPMSolver:
                 self.gi, cmds["sp"], self.particles, self.mat_table, cur, other, self.flags, self.bbox, self.col])
             grid = wp.launch(K.k_grid_update, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
                 cmds["gs"], conditions, cur, other, self.bc_grid, self.gstats, self.boundary_work])
-            cmds[id(cur)] = (fused, grid)
+            tracers = wp.launch(K.k_tracer_g2p, dim=max(self.n_tracers, 1), device=d, record_cmd=True, inputs=[
+                self.gi, cur, cmds["gs"], self.tx, self.tF, self.flags])
+            cmds[id(cur)] = (fused, grid, tracers)
         cmds["col_version"] = {id(self.grid_a): self._col_version, id(self.grid_b): self._col_version}
         self._cmds = cmds
         return cmds
@@ -867,21 +871,42 @@ class MPMSolver:
         else:
             wp.copy(self.bbox, self.bbox_init)
 
-    def _launch_grid(self, cur, box_lo: np.ndarray, box_hi: np.ndarray, dt: float, has_bc: int) -> float:
-        """Grid update over the node box [box_lo, box_hi]; returns the max grid speed (m/s)."""
-        cmds = self._recorded()
-        grid = cmds[id(cur)][1]
+    def _record_bc(self, bcs: list[dict]) -> None:
+        """Record the launches of each boundary point set (projection, reaction, clear + advance) into its dict under
+        ``cmds``, after the frame's uploads (which may re-allocate the finger and boundary arrays)."""
+        gs = self._recorded()["gs"]
+        for bc in bcs:
+            common = dict(dim=bc["count"], device=self.device, record_cmd=True)
+            bc["cmds"] = (
+                wp.launch(K.k_bc_scatter, **common, inputs=[self.gi, bc["pts"], self.bc_grid, self.flags, gs]),
+                wp.launch(K.k_bc_reaction, **common, inputs=[self.gi, bc["pts"], gs, self.bc_grid, self.finger_react]),
+                wp.launch(K.k_bc_clear_advance, **common, inputs=[self.gi, bc["pts"], gs, self.bc_grid]))
+
+    def _substep_params(self, dt: float, has_bc: int) -> K.GridStep:
+        """The per-launch struct ``gs`` of this substep (dt in s, Dirichlet nodes on or off, substep counter)."""
+        gs = self._recorded()["gs"]
+        gs.dt = float(dt)
+        gs.has_bc = int(has_bc)
+        gs.substep = int(self.substep)
+        return gs
+
+    @staticmethod
+    def _replay(cmd, gs: K.GridStep) -> None:
+        """Launch a recorded command with this substep's ``gs``."""
+        cmd.set_param_by_name("gs", gs)
+        cmd.launch()
+
+    def _launch_grid(self, cur, box_lo: np.ndarray, box_hi: np.ndarray, gs: K.GridStep) -> float:
+        """Grid update over the node box [box_lo, box_hi] with the substep's ``gs``; returns the max grid speed
+        (m/s)."""
+        grid = self._recorded()[id(cur)][1]
         if self._cpu:
             self._gstats_np[0] = 0.0
         else:
             self.gstats.zero_()
-        gs = cmds["gs"]
         gs.origin = wp.vec3i(int(box_lo[0]), int(box_lo[1]), int(box_lo[2]))
-        gs.dt = float(dt)
-        gs.has_bc = int(has_bc)
         grid.set_dim(tuple(int(a) for a in box_hi - box_lo + 1))
-        grid.set_param_by_name("gs", gs)
-        grid.launch()
+        self._replay(grid, gs)
         return float(self._gstats_np[0]) if self._cpu else float(self.gstats.numpy()[0])
 
     def _launch_fused(self, cur, dt: float, dt_next: float) -> None:
@@ -925,6 +950,7 @@ class MPMSolver:
         bcs = self._upload_dirichlet(dirichlet(0.0, None) if bc_fn else dirichlet)
         fps = self._upload_forces(forces(0.0, None) if f_fn else forces)
         n_col = self._upload_colliders(colliders)
+        self._record_bc(bcs)
         self.finger_react.zero_()
         self.finger_applied.zero_()
         self.boundary_work.zero_()
@@ -955,6 +981,8 @@ class MPMSolver:
                 bc_speed = max([b["speed"] for b in bcs], default=0.0)
             if nsub > 0 and f_fn is not None:
                 fps = self._upload_forces(f_fn(t, dt))
+            if nsub > 0 and (bc_fn is not None or f_fn is not None):  # new points, or re-allocated finger arrays
+                self._record_bc(bcs)
             for fp in fps:
                 self.finger_w.zero_()
                 self.finger_force.assign(fp["F"])
@@ -963,19 +991,15 @@ class MPMSolver:
                 wp.launch(K.k_force_apply, dim=fp["count"], device=d, inputs=[
                     self.gi, fp["x"], fp["f"], self.finger_force, self.finger_w, dt, cur, self.finger_applied,
                     self.boundary_work])
+            gs = self._substep_params(dt, has_bc)
             for bc in bcs:
-                wp.launch(K.k_bc_scatter, dim=bc["count"], device=d, inputs=[
-                    self.gi, bc["pts"], self.bc_grid, self.flags, self.substep])
-            vmax = self._launch_grid(cur, np.minimum(box_cur[0], box_prev[0]), np.maximum(box_cur[1], box_prev[1]),
-                                     dt, has_bc)
+                self._replay(bc["cmds"][0], gs)  # k_bc_scatter
+            vmax = self._launch_grid(cur, np.minimum(box_cur[0], box_prev[0]), np.maximum(box_cur[1], box_prev[1]), gs)
             for bc in bcs:
-                wp.launch(K.k_bc_reaction, dim=bc["count"], device=d, inputs=[
-                    self.gi, bc["pts"], dt, self.bc_grid, self.finger_react])
-                wp.launch(K.k_bc_clear_advance, dim=bc["count"], device=d, inputs=[
-                    self.gi, bc["pts"], dt, self.bc_grid])
+                self._replay(bc["cmds"][1], gs)  # k_bc_reaction
+                self._replay(bc["cmds"][2], gs)  # k_bc_clear_advance
             if self.n_tracers:
-                wp.launch(K.k_tracer_g2p, dim=self.n_tracers, device=d, inputs=[
-                    self.gi, cur, dt, self.tx, self.tF, self.flags, self.substep])
+                self._replay(self._recorded()[id(cur)][2], gs)  # k_tracer_g2p
             t += dt
             nsub += 1
             dts.append(dt)
