@@ -45,7 +45,7 @@ from .constitutive import (
     MODEL_FOAM,
     MODEL_NEO_HOOKEAN,
     fluid_reset,
-    hencky_plastic_return,
+    hencky_plastic_return_warm,
     polar_rotation_quat,
     polar_track_quat,
     psi_fixed_corotated,
@@ -101,7 +101,7 @@ class Particles:
     v: wp.array(dtype=wp.vec3)  # velocity, m/s (stored at frame ends)
     C: wp.array(dtype=wp.mat33)  # APIC affine velocity matrix (velocity gradient), 1/s (stored at frame ends)
     F: wp.array(dtype=wp.mat33)  # elastic deformation gradient F_E
-    q: wp.array(dtype=wp.quat)  # rotation of F_E (fixed-corotated)
+    q: wp.array(dtype=wp.quat)  # rotation of F_E (fixed-corotated); eigenbasis of F_E F_E^T (von Mises, foam)
     alpha: wp.array(dtype=float)  # equivalent plastic strain (von Mises, foam)
     vol: wp.array(dtype=float)  # initial volume, m^3
     mat_id: wp.array(dtype=wp.int32)  # row of the particle's material in the MaterialTable
@@ -139,6 +139,7 @@ class GridStep:
     origin: wp.vec3i  # lowest node of the active box (the launch covers origin + launch dims)
     dt: float  # substep, s
     has_bc: int  # 1: Dirichlet nodes are active this substep
+    substep: int  # global substep counter (error reports of the boundary points and tracers)
 
 
 @wp.struct
@@ -647,7 +648,7 @@ def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable,
                flags: wp.array(dtype=wp.int32)) -> G2PResult:
     """G2P of one particle, any model: gather v and C, F_E <- (I + dt C) F_E, return mapping (eq. 5), Kirchhoff
     stress of the new state (eq. 4), advection, guards, :func:`local_damping`; stores x, F_E and the model's state
-    (rotation q of fixed-corotated, plastic strain alpha of von Mises / foam).  Velocity and C are returned, stored
+    (rotation q of fixed-corotated, eigenbasis q and plastic strain alpha of von Mises / foam).  Velocity and C are returned, stored
     only for a damped particle's velocity."""
     r = g2p_begin(p, mid, ps, mats, gi, sp, grid, grid2, flags)
     mu = mats.par[mid, C_MU]
@@ -660,8 +661,8 @@ def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable,
         r.tau = fluid_stress(r.F, r.C, mid, mats)
         r.F = fluid_reset(r.F)
     else:
-        pr = hencky_plastic_return(
-            r.F, mu, lam, mats.par[mid, C_YIELD], mats.par[mid, C_HARDENING], ps.alpha[p],
+        pr = hencky_plastic_return_warm(
+            r.F, ps.q[p], mu, lam, mats.par[mid, C_YIELD], mats.par[mid, C_HARDENING], ps.alpha[p],
             mats.par[mid, C_VISCOSITY], mats.par[mid, C_CRUSH], mats.par[mid, C_DILATION], int(model == MODEL_FOAM),
             sp.dt_g2p,
         )
@@ -669,6 +670,7 @@ def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable,
         r.tau = pr.tau
         r.alpha = pr.alpha
         ps.alpha[p] = r.alpha
+        ps.q[p] = pr.q
     g2p_end(r, p, ps, sp, flags)
     return local_damping(r, p, mid, ps, mats)
 
@@ -949,12 +951,12 @@ def k_field_contact(gs: GridStep, cond: GridConditions, body: wp.array3d(dtype=w
 # ============================================================================================ boundary points
 @wp.kernel
 def k_bc_scatter(gi: GridInfo, pts: DirichletPointSet, bc: DirichletGrid, flags: wp.array(dtype=wp.int32),
-                 substep: int):
+                 gs: GridStep):
     """Project constrained points (target velocity, optional slip normal) onto the nodes of their stencils: the
     node accumulates w P v_target and w P (P = n n^T for a slip point, I for a sticky one), see
     :func:`dirichlet_velocity`."""
     p = wp.tid()
-    s = point_stencil(pts.x[p], gi, flags, substep, p)
+    s = point_stencil(pts.x[p], gi, flags, gs.substep, p)
     b = s.base
     vt = pts.v[p]
     nt = pts.n[p]
@@ -974,7 +976,7 @@ def k_bc_scatter(gi: GridInfo, pts: DirichletPointSet, bc: DirichletGrid, flags:
 
 
 @wp.kernel
-def k_bc_reaction(gi: GridInfo, pts: DirichletPointSet, dt: float, bc: DirichletGrid,
+def k_bc_reaction(gi: GridInfo, pts: DirichletPointSet, gs: GridStep, bc: DirichletGrid,
                   finger_impulse: wp.array(dtype=wp.vec3)):
     """finger_impulse[k] += dt * sum over the finger's points and stencil nodes of w * reaction/W."""
     p = wp.tid()
@@ -988,11 +990,11 @@ def k_bc_reaction(gi: GridInfo, pts: DirichletPointSet, dt: float, bc: Dirichlet
                 if w > pts.min_w:
                     r = bc.reaction[b[0] + i, b[1] + j, b[2] + k]
                     acc = acc + w * wp.vec3(r[0], r[1], r[2])
-    wp.atomic_add(finger_impulse, int(pts.finger[p]), dt * acc)
+    wp.atomic_add(finger_impulse, int(pts.finger[p]), gs.dt * acc)
 
 
 @wp.kernel
-def k_bc_clear_advance(gi: GridInfo, pts: DirichletPointSet, dt: float, bc: DirichletGrid):
+def k_bc_clear_advance(gi: GridInfo, pts: DirichletPointSet, gs: GridStep, bc: DirichletGrid):
     """Clear the boundary arrays at the stencil nodes, then move the points by dt * target velocity."""
     p = wp.tid()
     b = base_index(clamped_grid_coord(pts.x[p], gi))
@@ -1003,7 +1005,7 @@ def k_bc_clear_advance(gi: GridInfo, pts: DirichletPointSet, dt: float, bc: Diri
                 bc.proj[b[0] + i, b[1] + j, b[2] + k] = wp.mat33(0.0)
                 bc.reaction[b[0] + i, b[1] + j, b[2] + k] = wp.vec4(0.0)
     if pts.advect != 0:
-        pts.x[p] = pts.x[p] + dt * pts.v[p]
+        pts.x[p] = pts.x[p] + gs.dt * pts.v[p]
 
 
 @wp.kernel
@@ -1093,16 +1095,17 @@ def k_collider_advance(col: Colliders, dt: float):
 
 # ============================================================================================ tracers
 @wp.kernel
-def k_tracer_g2p(gi: GridInfo, grid: wp.array3d(dtype=wp.vec4), dt: float, tx: wp.array(dtype=wp.vec3),
-                 tF: wp.array(dtype=wp.mat33), flags: wp.array(dtype=wp.int32), substep: int):
+def k_tracer_g2p(gi: GridInfo, grid: wp.array3d(dtype=wp.vec4), gs: GridStep, tx: wp.array(dtype=wp.vec3),
+                 tF: wp.array(dtype=wp.mat33), flags: wp.array(dtype=wp.int32)):
     """Massless tracers (surface Gaussians): advect with the grid velocity, F <- (I + dt grad v) F.
 
     Interpolation is normalised over the stencil nodes that carry mass, so a tracer slightly outside the
     particle cloud follows the nearest material instead of being slowed by empty nodes.
     """
     p = wp.tid()
-    s = point_stencil(tx[p], gi, flags, substep, p)
+    s = point_stencil(tx[p], gi, flags, gs.substep, p)
     b = s.base
+    dt = gs.dt
     # separable sums over the massive nodes, lanes (v, 1): acc = sum w (v_i, 1), s_c = sum w o_c (v_i, 1) with o the
     # node offset (0, 1, 2) along axis c (as in :func:`gather_apic`)
     acc = wp.vec4(0.0)

@@ -532,7 +532,7 @@ class MPMSolver:
         self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33, device=d)
         self.has_corotated = FIXED_COROTATED in codes_present
         self.has_plastic = any(m.code in PLASTIC_MODELS for m in self.materials)  # also one assigned mid-run
-        qn = n if self.has_corotated else 1
+        qn = n if self.has_corotated or self.has_plastic else 1  # rotation / eigenbasis warm starts
         self.q = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (qn, 1)), dtype=wp.quat, device=d)
         self.alpha = wp.zeros(n if self.has_plastic else 1, dtype=float, device=d)
         self.vol = wp.array(vol, dtype=float, device=d)
@@ -933,9 +933,11 @@ class MPMSolver:
         return gc
 
     def _recorded(self) -> dict:
-        """Recorded launches of the two per-substep kernels (one per grid-buffer parity): replaying them avoids
-        re-packing the arguments per launch (Python overhead dominates small scenes).  A replay updates only the
-        per-launch struct of each kernel: ``sp`` (:class:`K.StepParams`) and ``gs`` (:class:`K.GridStep`)."""
+        """Recorded launches of the per-substep kernels (fused G2P/P2G, grid update, tracers; one set per grid-buffer
+        parity): replaying them avoids re-packing the arguments per launch (a ``wp.launch`` costs ~0.1-0.3 ms of
+        Python, which dominates small scenes).  A replay updates only the per-launch struct of each kernel: ``sp``
+        (:class:`K.StepParams`) and ``gs`` (:class:`K.GridStep`).  The boundary points' launches are recorded per
+        frame (:meth:`_record_bc`)."""
         if self._cmds is not None:
             return self._cmds
         d = self.device
@@ -950,13 +952,15 @@ class MPMSolver:
                 self.bbox, self.col])
             grid = wp.launch(K.k_grid_update, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
                 cmds["gs"], conditions, cur, other, self.bc_grid, self.gstats, self.boundary_work])
+            tracers = wp.launch(K.k_tracer_g2p, dim=max(self.n_tracers, 1), device=d, record_cmd=True, inputs=[
+                self.gi, cur, cmds["gs"], self.tx, self.tF, self.flags])
             fields = None
             if self.two_fields:
                 fields = (wp.launch(K.k_grid_update, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
                     cmds["gs2"], conditions, cur2, other2, self.bc_grid, self.gstats, self.boundary_work]),
                     wp.launch(K.k_field_contact, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
                         cmds["gs"], conditions, cur, cur2]))
-            cmds[id(cur)] = (fused, grid, fields)
+            cmds[id(cur)] = (fused, grid, tracers, fields)
         cmds["col_version"] = {id(self.grid_a): self._col_version, id(self.grid_b): self._col_version}
         self._cmds = cmds
         return cmds
@@ -968,30 +972,51 @@ class MPMSolver:
         else:
             wp.copy(self.bbox, self.bbox_init)
 
-    def _launch_grid(self, cur, box_lo: np.ndarray, box_hi: np.ndarray, dt: float, has_bc: int) -> float:
-        """Grid update over the node box [box_lo, box_hi] (with two velocity fields: both fields' updates, then
-        their contact, :func:`tasks.physics.mpm.kernels.k_field_contact`); returns the max grid speed (m/s)."""
+    def _record_bc(self, bcs: list[dict]) -> None:
+        """Record the launches of each boundary point set (projection, reaction, clear + advance) into its dict under
+        ``cmds``, after the frame's uploads (which may re-allocate the finger and boundary arrays)."""
+        gs = self._recorded()["gs"]
+        for bc in bcs:
+            common = dict(dim=bc["count"], device=self.device, record_cmd=True)
+            bc["cmds"] = (
+                wp.launch(K.k_bc_scatter, **common, inputs=[self.gi, bc["pts"], self.bc_grid, self.flags, gs]),
+                wp.launch(K.k_bc_reaction, **common, inputs=[self.gi, bc["pts"], gs, self.bc_grid, self.finger_react]),
+                wp.launch(K.k_bc_clear_advance, **common, inputs=[self.gi, bc["pts"], gs, self.bc_grid]))
+
+    def _substep_params(self, dt: float, has_bc: int) -> K.GridStep:
+        """The per-launch struct ``gs`` of this substep (dt in s, Dirichlet nodes on or off, substep counter)."""
+        gs = self._recorded()["gs"]
+        gs.dt = float(dt)
+        gs.has_bc = int(has_bc)
+        gs.substep = int(self.substep)
+        return gs
+
+    @staticmethod
+    def _replay(cmd, gs: K.GridStep) -> None:
+        """Launch a recorded command with this substep's ``gs``."""
+        cmd.set_param_by_name("gs", gs)
+        cmd.launch()
+
+    def _launch_grid(self, cur, box_lo: np.ndarray, box_hi: np.ndarray, gs: K.GridStep) -> float:
+        """Grid update over the node box [box_lo, box_hi] with the substep's ``gs`` (with two velocity fields: both
+        fields' updates, then their contact, :func:`tasks.physics.mpm.kernels.k_field_contact`); returns the max
+        grid speed (m/s)."""
         cmds = self._recorded()
-        grid, fields = cmds[id(cur)][1], cmds[id(cur)][2]
+        grid, fields = cmds[id(cur)][1], cmds[id(cur)][3]
         if self._cpu:
             self._gstats_np[0] = 0.0
         else:
             self.gstats.zero_()
-        gs = cmds["gs"]
         gs.origin = wp.vec3i(int(box_lo[0]), int(box_lo[1]), int(box_lo[2]))
-        gs.dt = float(dt)
-        gs.has_bc = int(has_bc)
         dims = tuple(int(a) for a in box_hi - box_lo + 1)
         grid.set_dim(dims)
-        grid.set_param_by_name("gs", gs)
-        grid.launch()
+        self._replay(grid, gs)
         if fields is not None:
             gs2 = cmds["gs2"]
-            gs2.origin, gs2.dt, gs2.has_bc = gs.origin, gs.dt, 0
+            gs2.origin, gs2.dt, gs2.has_bc, gs2.substep = gs.origin, gs.dt, 0, gs.substep
             for launch, params in zip(fields, (gs2, gs)):
                 launch.set_dim(dims)
-                launch.set_param_by_name("gs", params)
-                launch.launch()
+                self._replay(launch, params)
         return float(self._gstats_np[0]) if self._cpu else float(self.gstats.numpy()[0])
 
     def _launch_fused(self, cur, dt: float, dt_next: float) -> None:
@@ -1036,6 +1061,7 @@ class MPMSolver:
         fps = self._upload_forces(forces(0.0, None) if f_fn else forces)
         n_col = self._upload_colliders(colliders)
         col_speed = self._collider_speed  # m/s: a moving collider bounds the step like a Dirichlet target's speed
+        self._record_bc(bcs)
         self.finger_react.zero_()
         self.finger_applied.zero_()
         self.boundary_work.zero_()
@@ -1066,6 +1092,8 @@ class MPMSolver:
                 bc_speed = max([b["speed"] for b in bcs], default=0.0)
             if nsub > 0 and f_fn is not None:
                 fps = self._upload_forces(f_fn(t, dt))
+            if nsub > 0 and (bc_fn is not None or f_fn is not None):  # new points, or re-allocated finger arrays
+                self._record_bc(bcs)
             for fp in fps:
                 fp["w"].zero_()
                 wp.launch(K.k_force_weights, dim=fp["count"], device=d, inputs=[
@@ -1075,19 +1103,15 @@ class MPMSolver:
             for fp in fps:  # the work, once every patch has pushed (k_force_work)
                 wp.launch(K.k_force_work, dim=fp["count"], device=d, inputs=[
                     self.gi, fp["x"], fp["f"], fp["F"], fp["w"], dt, cur, self.boundary_work])
+            gs = self._substep_params(dt, has_bc)
             for bc in bcs:
-                wp.launch(K.k_bc_scatter, dim=bc["count"], device=d, inputs=[
-                    self.gi, bc["pts"], self.bc_grid, self.flags, self.substep])
-            vmax = self._launch_grid(cur, np.minimum(box_cur[0], box_prev[0]), np.maximum(box_cur[1], box_prev[1]),
-                                     dt, has_bc)
+                self._replay(bc["cmds"][0], gs)  # k_bc_scatter
+            vmax = self._launch_grid(cur, np.minimum(box_cur[0], box_prev[0]), np.maximum(box_cur[1], box_prev[1]), gs)
             for bc in bcs:
-                wp.launch(K.k_bc_reaction, dim=bc["count"], device=d, inputs=[
-                    self.gi, bc["pts"], dt, self.bc_grid, self.finger_react])
-                wp.launch(K.k_bc_clear_advance, dim=bc["count"], device=d, inputs=[
-                    self.gi, bc["pts"], dt, self.bc_grid])
+                self._replay(bc["cmds"][1], gs)  # k_bc_reaction
+                self._replay(bc["cmds"][2], gs)  # k_bc_clear_advance
             if self.n_tracers:
-                wp.launch(K.k_tracer_g2p, dim=self.n_tracers, device=d, inputs=[
-                    self.gi, cur, dt, self.tx, self.tF, self.flags, self.substep])
+                self._replay(self._recorded()[id(cur)][2], gs)  # k_tracer_g2p
             t += dt
             nsub += 1
             dts.append(dt)
