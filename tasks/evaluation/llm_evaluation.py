@@ -9,6 +9,7 @@ import numpy as np
 from conf.hand import FINGERS
 from tasks.core.step import artifact_step
 from tasks.evaluation.llm_judge import JudgeConfig, judge_video
+from tasks.generation.final_video import final_video
 
 
 def controls_image(time_s: np.ndarray, flexion: np.ndarray, force_coefficients: np.ndarray) -> np.ndarray:
@@ -38,7 +39,7 @@ def llm_evaluation_step(inputs, params):
     if not judge["url"]:
         return {}, {"scores": None, "reason": "not computed: no vision LLM endpoint configured (llm_judge.url)"}
     effect, g = inputs["effect"], inputs["gbuffer"]
-    final = effect["frames"][0] if "frames" in effect else g["rgb"][0]
+    final = final_video(effect, g)[0]
     frames = inputs["signal_smoothing"]
     image = controls_image(frames["time"] - frames["time"][0], frames["flexion"],
                            inputs["force_coefficients"]["force_coefficients"])

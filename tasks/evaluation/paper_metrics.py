@@ -25,6 +25,7 @@ from tasks.evaluation.musiq import load_musiq, musiq_frame_scores
 from tasks.evaluation.paper_weights import PAPER_WEIGHTS, absent_reason, present_weights
 from tasks.evaluation.video_quality import to_srgb_uint8, vfi_smoothness
 from tasks.evaluation.videophy import load_videophy
+from tasks.generation.final_video import final_video
 from tasks.render.device import torch_device
 
 # AMT-S's 4-level correlation pyramid at 1/8 resolution needs >= 2 cells per side at its coarsest level (frames padded
@@ -116,7 +117,7 @@ def paper_metrics_step(inputs, params):
     why they were not computed."""
     torch_device(params["render.device"])  # thread count
     g, effect = inputs["gbuffer"], inputs["effect"]
-    final = effect["frames"] if "frames" in effect else g["rgb"]
+    final = final_video(effect, g)
     values, reasons, frame_scores, seconds = paper_metrics(final, dict(params["paper_metrics"]))
     arrays = {}
     if frame_scores is not None:

@@ -33,6 +33,7 @@ from tasks.evaluation.video_quality import (
     multiview_consistency,
     temporal_flicker,
 )
+from tasks.generation.final_video import final_video
 from tasks.render.device import torch_device
 
 VIDEO_METRICS = ("temporal_flicker", "motion_smoothness", "imaging_quality_brisque", "outside_mask_psnr_db",
@@ -110,7 +111,7 @@ def video_metrics_step(inputs, params):
     torch_device(params["render.device"])  # thread count for the RIFE interpolator
     g, cond, effect, refined = (inputs[k] for k in ("gbuffer", "conditions", "effect", "appearance_refinement"))
     has_effect = "frames" in effect
-    final = effect["frames"] if has_effect else g["rgb"]
+    final = final_video(effect, g)
     forces = inputs["force_coefficients"]["force_coefficients"][g["frame_index"]]
     values, reasons, per_frame, interpolator = video_metrics(
         final, g["rgb"], cond["refined_mask"], has_effect, refined["rgb"] if "rgb" in refined else None,

@@ -22,6 +22,7 @@ import numpy as np
 
 from conf.hand import FINGERS
 from tasks.core.artifacts import ArtifactError, read_artifact
+from tasks.generation.final_video import final_video
 from tasks.reporting.media_cache import MediaCache
 from tasks.reporting.video import contact_sheet, encode_video, encoder_available, side_by_side
 
@@ -79,7 +80,7 @@ def _scene_frames(pair: Mapping[str, Any], refs: Mapping[str, Any]) -> dict[str,
     refined = _load(refs.get("appearance_refinement"), ["rgb"])
     columns = {"simulated render I": g["rgb"], "conditions: Norm(D), M~": conditions_image(
         cond["normalised_depth"], cond["refined_mask"]),
-        "final composite": effect["frames"] if effect is not None and "frames" in effect else g["rgb"]}
+        "final composite": final_video(effect, g)}
     if refined is not None and "rgb" in refined:
         columns["refined 4D Gaussians (eq. 7)"] = refined["rgb"]
     return columns
@@ -163,7 +164,7 @@ def _contact_sheet(first: Mapping[str, Any], path: Path) -> Path | None:
     rollout = _load(first.get("mpm_rollout"), ["squeeze_strain"])
     backend_refs = next(iter(first.get("backends", {}).values()), {})
     effect = _load(backend_refs.get("effect"), ["frames"])
-    final = effect["frames"] if effect is not None and "frames" in effect else g["rgb"]
+    final = final_video(effect, g)
     picks = moments(rollout["squeeze_strain"], rollout.attrs.get("threshold_event") or {}, g["frame_index"])
     sheet = contact_sheet(final[:, list(picks.values())], [f"view {v}" for v in range(final.shape[0])],
                           list(picks))
