@@ -31,13 +31,14 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any, Callable
 
+import dask
 from omegaconf import DictConfig, OmegaConf
 from prefect import flow, task
 from prefect.cache_policies import NO_CACHE
 from prefect.logging import get_logger
 
 from flows.lifecycle import temporary_server
-from flows.preflight import preflight
+from flows.preflight import particle_bound, preflight
 from flows.runtime import RunTable, make_task_runner, profile_table, result_storage_settings, runner_workers
 from flows.selection import selected_backends, selected_objects, selected_seeds, selected_variants
 from tasks.control.contact_patches import contact_patches_step
@@ -264,11 +265,18 @@ def virsqueezer_flow(config: dict, flow_label: str = "evaluate", report_dir: str
     cfg = OmegaConf.create(config)
     t0 = time.perf_counter()
     futures, media = {}, []
-    for obj in selected_objects(cfg):
+    # Largest object first (a Dask cluster runs its ready steps by priority, higher first; other runners ignore it):
+    # the longest simulations start at once instead of last, and the report media wait for a free worker.
+    objects = selected_objects(cfg)
+    by_work = sorted(objects, key=lambda o: particle_bound(cfg, o), reverse=True)
+    for rank, obj in enumerate(by_work):
         for seed in selected_seeds(cfg):
             scope = seed_scope(obj.name, seed)
-            futures[scope] = submit_object(with_seed(cfg, seed), obj, selected_variants(cfg), scope=scope)
-            media += submit_scene_media(cfg, scope, futures[scope])  # queued behind this object's steps
+            with dask.annotate(priority=len(by_work) - rank):
+                futures[scope] = submit_object(with_seed(cfg, seed), obj, selected_variants(cfg), scope=scope)
+            with dask.annotate(priority=0):
+                media += submit_scene_media(cfg, scope, futures[scope])
+    futures = {seed_scope(o.name, s): futures[seed_scope(o.name, s)] for o in objects for s in selected_seeds(cfg)}
     table = RunTable(total=sum(len(f) for f in futures.values()))
     refs = {name: nest({(step, chain): table.add_future(name, step, fut, root=cfg.paths.artifacts, variant=chain)
                         for (step, chain), fut in steps.items()}) for name, steps in futures.items()}

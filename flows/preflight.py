@@ -54,6 +54,12 @@ class WorkEstimate:
     largest: str  # which artifact of which object
 
 
+def particle_bound(cfg: DictConfig, obj: DictConfig) -> int:
+    """Particles an object can hold at most: its box over the particle spacing cubed (the object's share of a run's
+    simulation work, known from the config alone)."""
+    return int(math.prod(obj.geometry.size) / cfg.sampling.particle_spacing ** 3)
+
+
 def estimate_work(cfg: DictConfig, span: float) -> WorkEstimate:
     """The work of a run whose squeeze lasts ``span`` seconds (``signal.duration`` or the recording's span)."""
     frames = int(span * cfg.control.smoothing.frame_rate) + 1
@@ -65,7 +71,7 @@ def estimate_work(cfg: DictConfig, span: float) -> WorkEstimate:
     gbuffer = math.ceil(frames / r.frame_stride) * r.views * r.width * r.height * _GBUFFER_BYTES_PER_PIXEL
     steps, largest, particles_max = 0.0, (0.0, ""), 0
     for key, obj in object_entries(cfg):
-        particles = int(math.prod(obj.geometry.size) / cfg.sampling.particle_spacing ** 3)
+        particles = particle_bound(cfg, obj)
         particles_max = max(particles_max, particles)
         steps += n_variants * particles * substeps * frames
         rollout = frames * (particles * _ROLLOUT_BYTES_PER_PARTICLE + points * _ROLLOUT_BYTES_PER_POINT)

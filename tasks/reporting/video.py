@@ -33,8 +33,9 @@ except ImportError:  # PyAV absent: animated WebP remains
     av = None
 
 _ENCODERS = {".mp4": "libx264", ".webm": "libvpx-vp9"}
-_ENCODER_OPTIONS = {"libx264": {"crf": "18", "preset": "medium"},
-                    "libvpx-vp9": {"crf": "30", "b": "0", "row-mt": "1", "deadline": "good", "cpu-used": "4"}}
+# One encoder thread: the report media are made on the task runner's workers, one core each, beside simulations.
+_ENCODER_OPTIONS = {"libx264": {"crf": "18", "preset": "medium", "threads": "1"},
+                    "libvpx-vp9": {"crf": "30", "b": "0", "deadline": "good", "cpu-used": "4", "threads": "1"}}
 # Colour tags (libavutil/pixfmt.h).  The samples are sRGB-encoded, so primaries BT.709 (= sRGB's) and transfer
 # IEC 61966-2-1; the matrix is BT.601 (SMPTE 170M): Debian's Chromium 156 (software compositing) shows BT.601 within
 # 2 levels of the source on saturated primaries, BT.709 off by up to 12.
