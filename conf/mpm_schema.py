@@ -75,9 +75,8 @@ class MPMConfig:
             (the fingers load the object; its first two frames, the start-up sag under the weight before any contact
             and the frames after a rupture are not checked), exceeds ``quasi_static_ke_ie_max`` (0.1: explicit FE
             practice asks KE below 5-10 % of IE over most of the process; see
-            :class:`tasks.physics.mpm.solver.MPMSolver`).  The project's default (``conf/mpm/default.yaml``) is ``global`` (README, known
-            limits: why not ``selective`` yet); this schema's default ``off`` serves unit tests and closed-form
-            checks.
+            :class:`tasks.physics.mpm.solver.MPMSolver`).  The project's default (``conf/mpm/default.yaml``) is ``selective`` (with
+            ``multi_field``); this schema's default ``off`` serves unit tests and closed-form checks.
         multi_field: under ``mass_scaling=selective``, released material and fluids (``Material.is_mass_scaled``
             False: physical inertia) get their own velocity field on the grid (multi-field MPM, Bardenhagen et al.
             2000) whenever they share the scene with the body: their nodal velocity is no longer the (heavier,

@@ -55,8 +55,8 @@ def _edit(root: Path, rel: str) -> None:
     ("tasks/control/recording.py", {"squeeze_signals", "signal_smoothing"}),
     # shared by the rollout (threshold) and the metrics (Table 2)
     ("tasks/physics/regions.py", {"mpm_rollout", "deformation_metrics"}),
-    # the glove: every step that counts fingers
-    ("conf/hand.py", {"squeeze_signals", "signal_smoothing", "force_coefficients", "mpm_rollout",
+    # the glove: every step that counts fingers or sizes their pads
+    ("conf/hand.py", {"squeeze_signals", "signal_smoothing", "force_coefficients", "contact_patches", "mpm_rollout",
                       "deformation_metrics", "video_metrics"}),
     # the framework: every step
     ("tasks/core/artifacts.py", set(STEP_MODULES)),
