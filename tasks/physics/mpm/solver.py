@@ -942,7 +942,7 @@ class MPMSolver:
             return self._cmds
         d = self.device
         cmds: dict = {"sp": self._step_params(0.0, 0.0), "gs": K.GridStep()}
-        fused_kernel = K.k_g2p_p2g_fc if self.all_corotated else K.k_g2p_p2g
+        fused_kernel = K.FUSED[self.all_corotated, self.two_fields]
         conditions = self._grid_conditions()
         cmds["gs2"] = K.GridStep()  # the released field's grid update: no Dirichlet nodes
         for cur, other in ((self.grid_a, self.grid_b), (self.grid_b, self.grid_a)):
@@ -972,9 +972,10 @@ class MPMSolver:
         else:
             wp.copy(self.bbox, self.bbox_init)
 
-    def _record_bc(self, bcs: list[dict]) -> None:
+    def _record_bc(self, bcs: list[dict], fps: list[dict]) -> None:
         """Record the launches of each boundary point set (projection, reaction, clear + advance) into its dict under
-        ``cmds``, after the frame's uploads (which may re-allocate the finger and boundary arrays)."""
+        ``cmds``, and those of each force patch (weights, push, work; one set per grid-buffer parity, keyed by the
+        buffer's id), after the frame's uploads (which may re-allocate the finger and boundary arrays)."""
         gs = self._recorded()["gs"]
         for bc in bcs:
             common = dict(dim=bc["count"], device=self.device, record_cmd=True)
@@ -982,6 +983,15 @@ class MPMSolver:
                 wp.launch(K.k_bc_scatter, **common, inputs=[self.gi, bc["pts"], self.bc_grid, self.flags, gs]),
                 wp.launch(K.k_bc_reaction, **common, inputs=[self.gi, bc["pts"], gs, self.bc_grid, self.finger_react]),
                 wp.launch(K.k_bc_clear_advance, **common, inputs=[self.gi, bc["pts"], gs, self.bc_grid]))
+        for fp in fps:
+            common = dict(dim=fp["count"], device=self.device, record_cmd=True)
+            fp["cmds"] = {id(g): (
+                wp.launch(K.k_force_weights, **common, inputs=[self.gi, fp["x"], fp["f"], g, fp["w"], self.flags, gs]),
+                wp.launch(K.k_force_apply, **common, inputs=[
+                    self.gi, fp["x"], fp["f"], fp["F"], fp["w"], gs, g, self.finger_applied]),
+                wp.launch(K.k_force_work, **common, inputs=[
+                    self.gi, fp["x"], fp["f"], fp["F"], fp["w"], gs, g, self.boundary_work]))
+                for g in (self.grid_a, self.grid_b)}
 
     def _substep_params(self, dt: float, has_bc: int) -> K.GridStep:
         """The per-launch struct ``gs`` of this substep (dt in s, Dirichlet nodes on or off, substep counter)."""
@@ -1061,7 +1071,9 @@ class MPMSolver:
         fps = self._upload_forces(forces(0.0, None) if f_fn else forces)
         n_col = self._upload_colliders(colliders)
         col_speed = self._collider_speed  # m/s: a moving collider bounds the step like a Dirichlet target's speed
-        self._record_bc(bcs)
+        self._record_bc(bcs, fps)
+        col_advance = wp.launch(K.k_collider_advance, dim=n_col, device=d, record_cmd=True,
+                                inputs=[self.col, self._recorded()["gs"]]) if n_col else None
         self.finger_react.zero_()
         self.finger_applied.zero_()
         self.boundary_work.zero_()
@@ -1093,17 +1105,14 @@ class MPMSolver:
             if nsub > 0 and f_fn is not None:
                 fps = self._upload_forces(f_fn(t, dt))
             if nsub > 0 and (bc_fn is not None or f_fn is not None):  # new points, or re-allocated finger arrays
-                self._record_bc(bcs)
+                self._record_bc(bcs, fps)
+            gs = self._substep_params(dt, has_bc)
             for fp in fps:
                 fp["w"].zero_()
-                wp.launch(K.k_force_weights, dim=fp["count"], device=d, inputs=[
-                    self.gi, fp["x"], fp["f"], cur, fp["w"], self.flags, self.substep])
-                wp.launch(K.k_force_apply, dim=fp["count"], device=d, inputs=[
-                    self.gi, fp["x"], fp["f"], fp["F"], fp["w"], dt, cur, self.finger_applied])
-            for fp in fps:  # the work, once every patch has pushed (k_force_work)
-                wp.launch(K.k_force_work, dim=fp["count"], device=d, inputs=[
-                    self.gi, fp["x"], fp["f"], fp["F"], fp["w"], dt, cur, self.boundary_work])
-            gs = self._substep_params(dt, has_bc)
+                self._replay(fp["cmds"][id(cur)][0], gs)  # k_force_weights
+                self._replay(fp["cmds"][id(cur)][1], gs)  # k_force_apply
+            for fp in fps:  # the work, once every patch has pushed
+                self._replay(fp["cmds"][id(cur)][2], gs)  # k_force_work
             for bc in bcs:
                 self._replay(bc["cmds"][0], gs)  # k_bc_scatter
             vmax = self._launch_grid(cur, np.minimum(box_cur[0], box_prev[0]), np.maximum(box_cur[1], box_prev[1]), gs)
@@ -1131,8 +1140,8 @@ class MPMSolver:
                 self._vmax = vmax
                 self._check_flags(force_nonfinite=True)
             dt_next = self._next_dt(remaining, max(vmax, bc_speed, col_speed))
-            if n_col:  # the next P2G sees the colliders where they are at its time
-                wp.launch(K.k_collider_advance, dim=n_col, device=d, inputs=[self.col, dt])
+            if col_advance is not None:  # the next P2G sees the colliders where they are at its time
+                self._replay(col_advance, gs)
             self._reset_bbox()
             self._launch_fused(cur, dt, dt_next)
             box_prev, box_cur = box_cur, self._read_box()
