@@ -47,22 +47,20 @@ def main(argv: list[str] | None = None) -> None:
             print(summary_line(r, "hertz"), flush=True)
             lines.append(f"| {mode} | {n} | {1e3 * r['dx']:.3g} | {pct(r['force_error'])} | {pct(r['radius_error'])} "
                          f"| {r['particles']} | {r['seconds']:.0f} |")
-    lines += ["", "## Rigid sphere indenting a block (surface contact)", "",
-              "| a/dx at 4 mm | dx (mm) | force err 2/3/4 mm | particles | seconds |", "|---|---|---|---|---|"]
-    for c in args.indent_cells:
-        r = indentation_case(c)
-        print(f"indent   surface a/dx={c:g} dx={1e3 * r['dx']:.3g} mm force err at 2, 3, 4 mm: "
-              f"{pct(r['force_error'])}; {r['particles']} particles, {r['seconds']:.1f} s", flush=True)
-        lines.append(f"| {c:g} | {1e3 * r['dx']:.3g} | {pct(r['force_error'])} | {r['particles']} "
-                     f"| {r['seconds']:.0f} |")
-    lines += ["", "## Collider finger driven by the eq. 3 field into a block (Hertz, R = fingertip pad 10 mm)", "",
-              "| a/dx at 2 mm | dx (mm) | force err 1/1.5/2 mm | particles | seconds |", "|---|---|---|---|---|"]
-    for c in args.finger_cells:
-        r = fingertip_case(c)
-        print(f"finger   surface a/dx={c:g} dx={1e3 * r['dx']:.3g} mm force err at 1, 1.5, 2 mm: "
-              f"{pct(r['force_error'])}; {r['particles']} particles, {r['seconds']:.1f} s", flush=True)
-        lines.append(f"| {c:g} | {1e3 * r['dx']:.3g} | {pct(r['force_error'])} | {r['particles']} "
-                     f"| {r['seconds']:.0f} |")
+    surface_sections = [
+        ("indent", "Rigid sphere indenting a block (surface contact)", "a/dx at 4 mm", "2, 3, 4", "2/3/4",
+         indentation_case, args.indent_cells),
+        ("finger", "Collider finger driven by the eq. 3 field into a block (Hertz, R = fingertip pad 10 mm)",
+         "a/dx at 2 mm", "1, 1.5, 2", "1/1.5/2", fingertip_case, args.finger_cells)]
+    for label, title, column, depths, depth_cols, case, cells in surface_sections:
+        lines += ["", f"## {title}", "", f"| {column} | dx (mm) | force err {depth_cols} mm | particles | seconds |",
+                  "|---|---|---|---|---|"]
+        for c in cells:
+            r = case(c)
+            print(f"{label:<8} surface a/dx={c:g} dx={1e3 * r['dx']:.3g} mm force err at {depths} mm: "
+                  f"{pct(r['force_error'])}; {r['particles']} particles, {r['seconds']:.1f} s", flush=True)
+            lines.append(f"| {c:g} | {1e3 * r['dx']:.3g} | {pct(r['force_error'])} | {r['particles']} "
+                         f"| {r['seconds']:.0f} |")
     lines += ["", "## Uniaxial compression", "", "| contact | L/dx | nu | force err | particles | seconds |",
               "|---|---|---|---|---|---|"]
     for n in args.uniaxial_cells:
