@@ -1026,6 +1026,17 @@ def k_force_weights(gi: GridInfo, px: wp.array(dtype=wp.vec3), pfinger: wp.array
     wp.atomic_add(finger_w, int(pfinger[p]), acc)
 
 
+@wp.func
+def patch_impulse_per_weight(finger_force: wp.array(dtype=wp.vec3), finger_w: wp.array(dtype=float), kf: int,
+                             dt: float) -> wp.vec3:
+    """dt F_k / W_k (N s / kg): finger k's impulse per unit of its patch weight W_k = sum w m; zero for a finger
+    whose patch touches no mass (W_k = 0)."""
+    W = finger_w[kf]
+    if W <= 0.0:
+        return wp.vec3(0.0)
+    return finger_force[kf] * (dt / W)
+
+
 @wp.kernel
 def k_force_apply(gi: GridInfo, px: wp.array(dtype=wp.vec3), pfinger: wp.array(dtype=wp.int32),
                   finger_force: wp.array(dtype=wp.vec3), finger_w: wp.array(dtype=float), dt: float,
@@ -1036,10 +1047,9 @@ def k_force_apply(gi: GridInfo, px: wp.array(dtype=wp.vec3), pfinger: wp.array(d
     counted by :func:`k_force_work` once every point has pushed."""
     p = wp.tid()
     kf = int(pfinger[p])
-    W = finger_w[kf]
-    if W <= 0.0:
+    Fk = patch_impulse_per_weight(finger_force, finger_w, kf, dt)
+    if wp.length_sq(Fk) == 0.0:
         return
-    Fk = finger_force[kf] * (dt / W)
     s = stencil_at(clamped_grid_coord(px[p], gi))
     b = s.base
     acc = float(0.0)
@@ -1066,10 +1076,9 @@ def k_force_work(gi: GridInfo, px: wp.array(dtype=wp.vec3), pfinger: wp.array(dt
     and stopped on the energy guard.)"""
     p = wp.tid()
     kf = int(pfinger[p])
-    W = finger_w[kf]
-    if W <= 0.0:
+    Fk = patch_impulse_per_weight(finger_force, finger_w, kf, dt)
+    if wp.length_sq(Fk) == 0.0:
         return
-    Fk = finger_force[kf] * (dt / W)
     s = stencil_at(clamped_grid_coord(px[p], gi))
     b = s.base
     power = float(0.0)
