@@ -1173,6 +1173,25 @@ def test_mass_scaling_modes_and_per_material_scales():
         assert s.mass_scale == pytest.approx(mass_scale_for([stiff], DX, 1 / 30, s.cfg))
 
 
+def test_embedded_tracers_reproduce_an_affine_motion_exactly_and_ignore_non_anchor_particles():
+    """Tracers are embedded in their nearest anchor particles: after the particles are moved by x = A X + b with
+    F = A (set directly, no stepping), every tracer sits at A X_t + b and carries F = A (to float32 precision),
+    including tracers dx/4 outside the cube; a second cube that is not an anchor moves elsewhere and pulls none."""
+    X, vol = cube(0.02)
+    other = X + [0.05, 0.0, 0.0]
+    rng = np.random.default_rng(3)
+    tr = X[rng.choice(len(X), 40, replace=False)] + 0.25 * DX * rng.standard_normal((40, 3))
+    s = MPMSolver(np.r_[X, other], vol, JELLY, config=dict(device="cpu", dx=DX, floor=False, gravity=[0, 0, 0]),
+                  tracers=tr, tracer_anchors=np.r_[np.ones(len(X), bool), np.zeros(len(other), bool)])
+    A = np.array([[1.1, 0.2, 0.0], [-0.1, 0.9, 0.05], [0.0, 0.1, 1.2]])
+    b = np.array([0.003, -0.002, 0.004])
+    moved_other = other + [0.0, 0.0, 0.01]
+    s.set_positions(np.r_[X @ A.T + b, moved_other])
+    s.set_deformation_gradients(np.r_[np.tile(A, (len(X), 1, 1)), np.tile(np.eye(3), (len(other), 1, 1))])
+    np.testing.assert_allclose(s.tracer_positions(), tr @ A.T + b, atol=1e-6)
+    np.testing.assert_allclose(s.tracer_F(), np.tile(A, (len(tr), 1, 1)), atol=1e-6)
+
+
 def test_surface_tracers_move_with_a_translating_body_at_any_mass_scale():
     """Tracers on the faces of a cube (dx/4 outside its outermost particles, as surface Gaussians lie) and at its
     corners, the cube translating at 0.2 m/s through gravity (no floor): every tracer's displacement equals the

@@ -3,7 +3,7 @@
 Per output frame the displacement field of eq. 3 is imposed as Dirichlet boundary conditions: every surface
 point constrained at the end of the frame is driven towards its target ``x0 + dx(x0)`` with the velocity
 ``(target - current) / frame_dt``, projected onto the grid nodes of its B-spline stencil (the tracked surface
-points are the 3D Gaussians, advected as massless tracers).  The contact is unilateral: a point is driven only
+points are the 3D Gaussians, tracers embedded in the body).  The contact is unilateral: a point is driven only
 while the finger pushes or holds it: (target - current) . d_k >= -dx/4 while the target advances or holds (d_k the
 inward patch normal; the tolerance stops contact chatter) and >= 0 while it retreats, so material that lies
 deeper than a retreating finger is left free, so on release the object rebounds or keeps its dent as its
@@ -325,9 +325,10 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
                      f"{mats.interior.bulk_modulus:.3g} Pa")
         mat_list[slot[INTERIOR]] = replace(mat_list[slot[INTERIOR]], bulk_modulus=k_fluid)
 
-    # 4. the solver, with the surface points (3D Gaussians) as massless tracers
+    # 4. the solver, with the surface points (3D Gaussians) as tracers embedded in the body (not in the interior a
+    #    rupture releases)
     solver = MPMSolver(x0, vol, mat_list, material_ids=slot[mid], config=cfg, tracers=obj["surface_points"],
-                       label=str(obj_attrs.get("name", "")), load=load)
+                       tracer_anchors=mid != INTERIOR, label=str(obj_attrs.get("name", "")), load=load)
     return Scene(oracle=mats, solver=solver, materials=mat_list, slot=slot, labels=mid, with_interior=with_interior,
                  dx=dx, config=cfg, frame_dt=frame_dt, surface0=obj["surface_points"].astype(np.float64),
                  regions=regions, notes=notes, bbox_min=np.asarray(obj_attrs["bbox_min"], float),

@@ -8,7 +8,7 @@ config from the base config, and the report.  :mod:`flows.convergence` wires the
 Error measures (all dimensionless):
 
 * ``position_error``: RMS over all frames and all tracked surface Gaussians of ``|x - x_ref|``, divided by the
-  object's bounding-box diagonal.  The Gaussians are massless tracers advected by the grid, so the same points
+  object's bounding-box diagonal.  The Gaussians are tracers embedded in the nearest particles, so the same points
   are compared across settings as long as the surface sampling (``sampling.surface_points``, ``sampling.seed``)
   is unchanged; the volume particle spacing does not move them.
 * ``final_position_error``: the same at the last frame only (the residual dent or rebound after release).

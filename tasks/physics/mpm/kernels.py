@@ -33,7 +33,7 @@ access; an offending coordinate (including NaN) is clamped into the band and an 
 writes outside the grid, in release or debug mode.
 
 Flag layout (int32 array of length ``N_FLAGS``): for each code c in (OUT_OF_GRID, NONFINITE, EXTREME_J,
-TRACER_OUT): ``flags[c]`` = number of offences, ``flags[4 + c]`` = first substep index (atomic min),
+POINT_OUT): ``flags[c]`` = number of offences, ``flags[4 + c]`` = first substep index (atomic min),
 ``flags[8 + c]`` = an offending index (atomic max).
 """
 from __future__ import annotations
@@ -65,7 +65,7 @@ wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 OUT_OF_GRID = wp.constant(0)
 NONFINITE = wp.constant(1)
 EXTREME_J = wp.constant(2)
-TRACER_OUT = wp.constant(3)
+POINT_OUT = wp.constant(3)
 N_FLAGS = 12
 NO_SUBSTEP = 2**31 - 1
 
@@ -320,8 +320,8 @@ def stencil_weight(s: Stencil, i: int, j: int, k: int) -> float:
 
 @wp.func
 def point_stencil(xp: wp.vec3, gi: GridInfo, flags: wp.array(dtype=wp.int32), substep: int, idx: int) -> Stencil:
-    """Stencil of a boundary point or tracer at xp (m); a point outside the safe band raises TRACER_OUT."""
-    return stencil_at(checked_grid_coord(xp, gi, flags, TRACER_OUT, substep, idx))
+    """Stencil of a boundary or force point at xp (m); a point outside the safe band raises POINT_OUT."""
+    return stencil_at(checked_grid_coord(xp, gi, flags, POINT_OUT, substep, idx))
 
 
 @wp.func
@@ -1034,6 +1034,17 @@ def k_force_weights(gi: GridInfo, px: wp.array(dtype=wp.vec3), pfinger: wp.array
     wp.atomic_add(finger_w, int(pfinger[p]), acc)
 
 
+@wp.func
+def patch_impulse_per_weight(finger_force: wp.array(dtype=wp.vec3), finger_w: wp.array(dtype=float), kf: int,
+                             dt: float) -> wp.vec3:
+    """dt F_k / W_k (N s / kg): finger k's impulse per unit of its patch weight W_k = sum w m; zero for a finger
+    whose patch touches no mass (W_k = 0)."""
+    W = finger_w[kf]
+    if W <= 0.0:
+        return wp.vec3(0.0)
+    return finger_force[kf] * (dt / W)
+
+
 @wp.kernel
 def k_force_apply(gi: GridInfo, px: wp.array(dtype=wp.vec3), pfinger: wp.array(dtype=wp.int32),
                   finger_force: wp.array(dtype=wp.vec3), finger_w: wp.array(dtype=float), gs: GridStep,
@@ -1044,10 +1055,9 @@ def k_force_apply(gi: GridInfo, px: wp.array(dtype=wp.vec3), pfinger: wp.array(d
     counted by :func:`k_force_work` once every point has pushed."""
     p = wp.tid()
     kf = int(pfinger[p])
-    W = finger_w[kf]
-    if W <= 0.0:
+    Fk = patch_impulse_per_weight(finger_force, finger_w, kf, gs.dt)
+    if wp.length_sq(Fk) == 0.0:
         return
-    Fk = finger_force[kf] * (gs.dt / W)
     s = stencil_at(clamped_grid_coord(px[p], gi))
     b = s.base
     acc = float(0.0)
@@ -1074,10 +1084,9 @@ def k_force_work(gi: GridInfo, px: wp.array(dtype=wp.vec3), pfinger: wp.array(dt
     and stopped on the energy guard.)"""
     p = wp.tid()
     kf = int(pfinger[p])
-    W = finger_w[kf]
-    if W <= 0.0:
+    Fk = patch_impulse_per_weight(finger_force, finger_w, kf, gs.dt)
+    if wp.length_sq(Fk) == 0.0:
         return
-    Fk = finger_force[kf] * (gs.dt / W)
     s = stencil_at(clamped_grid_coord(px[p], gi))
     b = s.base
     power = float(0.0)
@@ -1103,46 +1112,20 @@ def k_collider_advance(col: Colliders, gs: GridStep):
 
 # ============================================================================================ tracers
 @wp.kernel
-def k_tracer_g2p(gi: GridInfo, grid: wp.array3d(dtype=wp.vec4), gs: GridStep, tx: wp.array(dtype=wp.vec3),
-                 tF: wp.array(dtype=wp.mat33), flags: wp.array(dtype=wp.int32)):
-    """Massless tracers (surface Gaussians): advect with the grid velocity, F <- (I + dt grad v) F.
-
-    Interpolation is normalised over the stencil nodes that carry mass, so a tracer slightly outside the
-    particle cloud follows the nearest material instead of being slowed by empty nodes.
-    """
-    p = wp.tid()
-    s = point_stencil(tx[p], gi, flags, gs.substep, p)
-    b = s.base
-    dt = gs.dt
-    # separable sums over the massive nodes, lanes (v, 1): acc = sum w (v_i, 1), s_c = sum w o_c (v_i, 1) with o the
-    # node offset (0, 1, 2) along axis c (as in :func:`gather_apic`)
-    acc = wp.vec4(0.0)
-    s0 = wp.vec4(0.0)
-    s1 = wp.vec4(0.0)
-    s2 = wp.vec4(0.0)
-    for i in range(3):
-        for j in range(3):
-            wij = s.wx[i] * s.wy[j]
-            row = wp.vec4(0.0)
-            for k in range(3):
-                n = grid[b[0] + i, b[1] + j, b[2] + k]
-                if n[3] > 0.0:
-                    wn = (wij * s.wz[k]) * wp.vec4(n[0], n[1], n[2], 1.0)
-                    row = row + wn
-                    s2 = s2 + float(k) * wn
-            acc = acc + row
-            s0 = s0 + float(i) * row
-            s1 = s1 + float(j) * row
-    wsum = acc[3]
-    if wsum > 1.0e-6:
-        v = wp.vec3(acc[0], acc[1], acc[2]) / wsum
-        # normalised MLS velocity gradient 4/dx sum w (v_i - v) d^T / W, d = o - f the node offset from the point:
-        # column c is 4/dx (s_c.xyz - v s_c.w) / W (the f terms cancel; = 4/dx sum w v_i d^T for a full stencil)
-        c = 4.0 * gi.inv_dx / wsum
-        Cm = wp.mat33(
-            c * (s0[0] - v[0] * s0[3]), c * (s1[0] - v[0] * s1[3]), c * (s2[0] - v[0] * s2[3]),
-            c * (s0[1] - v[1] * s0[3]), c * (s1[1] - v[1] * s1[3]), c * (s2[1] - v[1] * s2[3]),
-            c * (s0[2] - v[2] * s0[3]), c * (s1[2] - v[2] * s1[3]), c * (s2[2] - v[2] * s2[3]),
-        )
-        tx[p] = tx[p] + dt * v
-        tF[p] = (wp.identity(n=3, dtype=float) + dt * Cm) @ tF[p]
+def k_tracer_embed(x: wp.array(dtype=wp.vec3), F: wp.array(dtype=wp.mat33), anchor: wp.array2d(dtype=wp.int32),
+                   weight: wp.array2d(dtype=float), offset: wp.array2d(dtype=wp.vec3), tx: wp.array(dtype=wp.vec3),
+                   tF: wp.array(dtype=wp.mat33)):
+    """Tracers (surface Gaussians) embedded in the material: tracer t, bound at rest to particles k with weights
+    w_tk (sum 1) and rest offsets r_tk = X_t - X_k (m), sits at x_t = sum_k w_tk (x_k + F_k r_tk) with
+    F_t = sum_k w_tk F_k.  Exact for any affine motion of its anchors (x = A X + b, F = A), and never farther from
+    the material than its anchors' deformed offsets: no drift, unlike a massless point advected by the grid."""
+    t = wp.tid()
+    xt = wp.vec3(0.0)
+    Ft = wp.mat33(0.0)
+    for j in range(anchor.shape[1]):
+        k = anchor[t, j]
+        w = weight[t, j]
+        xt = xt + w * (x[k] + F[k] @ offset[t, j])
+        Ft = Ft + w * F[k]
+    tx[t] = xt
+    tF[t] = Ft

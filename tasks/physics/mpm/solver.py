@@ -21,9 +21,10 @@ Boundary conditions (generic; the finger field is connected by the caller)
       particles whose surface touches them (:func:`tasks.physics.mpm.kernels.contact_velocity`); their impulses
       join the per-finger reactions.  ``mpm.contact = surface`` makes the floor such a plane.
     * floor plane and domain walls (config).
-Tracers (surface 3D Gaussians) are massless points advected by the grid velocity with their own F
-(``tracer_F``): deform covariances with :func:`deform_covariances` (F Sigma F^T) and rotate with
-:func:`polar_rotation`.
+Tracers (surface 3D Gaussians) are embedded in the material: each is bound at rest to its nearest particles
+(:meth:`MPMSolver._bind_tracers`) and placed from their positions and deformation gradients when read
+(``tracer_positions``, ``tracer_F``), so it cannot drift off the material; deform covariances with
+:func:`deform_covariances` (F Sigma F^T) and rotate with :func:`polar_rotation`.
 """
 from __future__ import annotations
 
@@ -57,6 +58,9 @@ FIXED_COROTATED = MODEL_CODES["fixed_corotated"]
 # default 30 frames/s; second frame of the gentle tomato poke at 20 frames/s: 0.12; then below 0.03).  Mass scaling
 # ties the scaled dynamics to the frame (s ~ frame_dt^2), so the transient spans about the same frames at any rate.
 QUASI_STATIC_ONSET_FRAMES = 2
+# Particles each tracer (surface Gaussian) is embedded in (:meth:`MPMSolver._bind_tracers`): the 4 nearest span a
+# volume around a surface point (3 could be collinear on a one-particle shell's lattice) and stay within ~1 spacing.
+TRACER_ANCHORS = 4
 
 wp.config.quiet = True
 
@@ -360,7 +364,10 @@ class MPMSolver:
         materials: one :class:`Material` or a list; ``material_ids`` (N,) index into it (default all 0).
         velocities: (N, 3) initial velocities, m/s (default 0).
         config: :class:`conf.mpm_schema.MPMConfig`, a mapping or an OmegaConf node (default settings if None).
-        tracers: (T, 3) massless tracer positions (surface Gaussians), advected with their own F.
+        tracers: (T, 3) tracer positions (surface Gaussians), embedded in the particles nearest to them at rest
+            (:meth:`_bind_tracers`).
+        tracer_anchors: (N,) bool, the particles tracers may be bound to (default all): a surface Gaussian belongs
+            to the skin, not to the interior that a rupture releases.
         device: overrides ``config.device``.
         n_fingers: size of the per-finger reaction/force arrays (grows automatically with the finger ids seen).
         label: name of the simulated object, quoted by the energy guard's message.
@@ -425,6 +432,7 @@ class MPMSolver:
         velocities: Optional[np.ndarray] = None,
         config: Any = None,
         tracers: Optional[np.ndarray] = None,
+        tracer_anchors: Optional[np.ndarray] = None,
         device: Optional[str] = None,
         n_fingers: int = 5,
         label: str = "",
@@ -559,6 +567,7 @@ class MPMSolver:
         self.tx = wp.array(tr if self.n_tracers else np.zeros((1, 3), np.float32), dtype=wp.vec3, device=d)
         self.tF = wp.array(np.tile(np.eye(3, dtype=np.float32), (max(self.n_tracers, 1), 1, 1)), dtype=wp.mat33,
                            device=d)
+        self._bind_tracers(x, vol, tr, tracer_anchors)
 
         # ---------------- small buffers
         self.flags = wp.zeros(K.N_FLAGS, dtype=wp.int32, device=d)
@@ -933,7 +942,7 @@ class MPMSolver:
         return gc
 
     def _recorded(self) -> dict:
-        """Recorded launches of the per-substep kernels (fused G2P/P2G, grid update, tracers; one set per grid-buffer
+        """Recorded launches of the per-substep kernels (fused G2P/P2G, grid update, field contact; one set per grid-buffer
         parity): replaying them avoids re-packing the arguments per launch (a ``wp.launch`` costs ~0.1-0.3 ms of
         Python, which dominates small scenes).  A replay updates only the per-launch struct of each kernel: ``sp``
         (:class:`K.StepParams`) and ``gs`` (:class:`K.GridStep`).  The boundary points' launches are recorded per
@@ -952,15 +961,13 @@ class MPMSolver:
                 self.bbox, self.col])
             grid = wp.launch(K.k_grid_update, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
                 cmds["gs"], conditions, cur, other, self.bc_grid, self.gstats, self.boundary_work])
-            tracers = wp.launch(K.k_tracer_g2p, dim=max(self.n_tracers, 1), device=d, record_cmd=True, inputs=[
-                self.gi, cur, cmds["gs"], self.tx, self.tF, self.flags])
             fields = None
             if self.two_fields:
                 fields = (wp.launch(K.k_grid_update, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
                     cmds["gs2"], conditions, cur2, other2, self.bc_grid, self.gstats, self.boundary_work]),
                     wp.launch(K.k_field_contact, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
                         cmds["gs"], conditions, cur, cur2]))
-            cmds[id(cur)] = (fused, grid, tracers, fields)
+            cmds[id(cur)] = (fused, grid, fields)
         cmds["col_version"] = {id(self.grid_a): self._col_version, id(self.grid_b): self._col_version}
         self._cmds = cmds
         return cmds
@@ -1012,7 +1019,7 @@ class MPMSolver:
         fields' updates, then their contact, :func:`tasks.physics.mpm.kernels.k_field_contact`); returns the max
         grid speed (m/s)."""
         cmds = self._recorded()
-        grid, fields = cmds[id(cur)][1], cmds[id(cur)][3]
+        grid, fields = cmds[id(cur)][1], cmds[id(cur)][2]
         if self._cpu:
             self._gstats_np[0] = 0.0
         else:
@@ -1119,8 +1126,6 @@ class MPMSolver:
             for bc in bcs:
                 self._replay(bc["cmds"][1], gs)  # k_bc_reaction
                 self._replay(bc["cmds"][2], gs)  # k_bc_clear_advance
-            if self.n_tracers:
-                self._replay(self._recorded()[id(cur)][2], gs)  # k_tracer_g2p
             t += dt
             nsub += 1
             dts.append(dt)
@@ -1367,10 +1372,9 @@ class MPMSolver:
             sub = int(f[7])
             p = int(f[11])
             raise SimulationError(
-                f"a tracer / boundary point left the simulation grid (entered the padding layer) at substep {sub} "
-                f"(t={self._substep_time(sub):.6g} s, frame {self.frame}); point #{p}. Likely cause: surface "
-                "Gaussians or constrained/force points lie outside the domain box, or targets move them out; enlarge "
-                "the domain")
+                f"a boundary / force point left the simulation grid (entered the padding layer) at substep {sub} "
+                f"(t={self._substep_time(sub):.6g} s, frame {self.frame}); point #{p}. Likely cause: constrained or "
+                "force points lie outside the domain box, or targets move them out; enlarge the domain")
 
     def _check_state(self, st: FrameStats) -> None:
         """Per-frame cheap checks: finite energies/momentum and the J range."""
@@ -1414,10 +1418,45 @@ class MPMSolver:
     def material_ids(self) -> np.ndarray:
         return self._mid_host.copy()
 
+    def _bind_tracers(self, x: np.ndarray, vol: np.ndarray, tr: Optional[np.ndarray],
+                      anchors: Optional[np.ndarray]) -> None:
+        """Bind every tracer to its ``TRACER_ANCHORS`` nearest anchor particles at rest (see :func:`K.k_tracer_embed`):
+        weights w_k proportional to 1 / (d_k + h / 2) (d_k its distance to particle k, h the mean particle spacing,
+        m; sum 1) and the rest offsets X_t - X_k.  Several anchors average out a single particle's rotation noise;
+        all of them lie within about a particle spacing of a surface Gaussian."""
+        if not self.n_tracers:
+            self._anchor = None
+            return
+        from scipy.spatial import cKDTree
+
+        mask = np.ones(len(x), bool) if anchors is None else np.asarray(anchors, bool).reshape(len(x))
+        if not mask.any():
+            raise ValueError("tracer_anchors selects no particle: tracers need particles to be embedded in")
+        idx = np.flatnonzero(mask)
+        k = min(TRACER_ANCHORS, len(idx))
+        dist, near = cKDTree(x[idx].astype(np.float64)).query(tr.astype(np.float64), k=k)
+        dist, near = dist.reshape(len(tr), k), idx[near.reshape(len(tr), k)]
+        h = float(np.cbrt(vol.astype(np.float64)).mean())
+        w = 1.0 / (dist + 0.5 * h)
+        w /= w.sum(axis=1, keepdims=True)
+        d = self.device
+        self._anchor = (wp.array(near.astype(np.int32), dtype=wp.int32, device=d),
+                        wp.array(w.astype(np.float32), dtype=float, device=d),
+                        wp.array((tr[:, None, :] - x[near]).astype(np.float32), dtype=wp.vec3, device=d))
+
+    def _place_tracers(self) -> None:
+        if self.n_tracers:
+            wp.launch(K.k_tracer_embed, dim=self.n_tracers, device=self.device,
+                      inputs=[self.x, self.F, *self._anchor, self.tx, self.tF])
+
     def tracer_positions(self) -> np.ndarray:
+        """(T, 3) m, the tracers placed from their anchors' current state."""
+        self._place_tracers()
         return self.tx.numpy()[: self.n_tracers].copy()
 
     def tracer_F(self) -> np.ndarray:
+        """(T, 3, 3), each tracer's deformation gradient: the weighted mean of its anchors'."""
+        self._place_tracers()
         return self.tF.numpy()[: self.n_tracers].copy()
 
     def grid_mass(self) -> float:
