@@ -160,23 +160,23 @@ def _composite_kernels(n_channels: int):
             f = vec(features[wp.where(per_camera != 0, k, n)])
             step = decay[g]
             gauss, ratio = _span_start(geo, x0, py)
-            for x in range(x0, x1):
-                gauss_x = wp.float64(gauss)
+            p, end = row + x0, row + x1
+            while p < end:   # a while loop: leaner machine code than range() in Warp's CPU kernels
+                gauss_x = gauss
                 gauss = gauss * ratio
                 ratio = ratio * step
-                t = transmittance[row + x]
-                if t < 0.0:
-                    continue   # a stopped pixel
+                t = transmittance[p]
                 alpha = wp.min(_ALPHA_MAX, geo[5] * float(gauss_x))
-                if gauss_x > _GAUSS_MAX or alpha < _ALPHA_MIN:   # sigma < 0 or too faint
-                    continue
-                next_t = t * (1.0 - alpha)
-                if next_t < _T_MIN:
-                    transmittance[row + x] = -t   # the pixel stops at g, which is left out; the sign marks it
-                    stop[row + x] = g
-                    continue
-                out_features[row + x] = out_features[row + x] + (alpha * t) * f
-                transmittance[row + x] = next_t
+                # t < 0: a stopped pixel; gauss_x > _GAUSS_MAX: sigma < 0; alpha < _ALPHA_MIN: too faint
+                if t >= 0.0 and gauss_x <= _GAUSS_MAX and alpha >= _ALPHA_MIN:
+                    next_t = t * (1.0 - alpha)
+                    if next_t < _T_MIN:
+                        transmittance[p] = -t   # the pixel stops at g, which is left out; the sign marks it
+                        stop[p] = g
+                    else:
+                        out_features[p] = out_features[p] + (alpha * t) * f
+                        transmittance[p] = next_t
+                p += 1
         # the finished pixels (``finish_pixels``): alpha, expected depth, background
         camera = r // height
         for x in range(width):
@@ -196,13 +196,13 @@ def _composite_kernels(n_channels: int):
                  per_camera: int, decay: wp.array(dtype=wp.float64), row_offsets: wp.array(dtype=int),
                  spans: wp.array(dtype=wp.vec3i), width: int, height: int, backgrounds: wp.array2d(dtype=float),
                  n_background: int, expected_depth: int, out_features: wp.array(dtype=vec),
-                 stop: wp.array(dtype=int), grad_finished: wp.array(dtype=vec), grad_finished_alphas: wp.array(dtype=float),
-                 grad_out_features: wp.array(dtype=vec), grad_out_alphas: wp.array(dtype=float),
-                 transmittance: wp.array(dtype=float), behind: wp.array(dtype=float),
-                 grad_means2d: wp.array(dtype=wp.vec2), grad_conics: wp.array(dtype=wp.vec3),
+                 stop: wp.array(dtype=int), transmittance: wp.array(dtype=float), grad_finished: wp.array(dtype=vec),
+                 grad_finished_alphas: wp.array(dtype=float), grad_out_features: wp.array(dtype=vec),
+                 state: wp.array(dtype=wp.vec3), grad_means2d: wp.array(dtype=wp.vec2), grad_conics: wp.array(dtype=wp.vec3),
                  grad_opacities: wp.array(dtype=float), grad_features: wp.array(dtype=vec)):
-        # transmittance starts as the final one and is divided back to T_i; behind (starts 0) holds what the
-        # Gaussians behind the current one add to grad . features + grad_alpha_image * alpha, per unit T in front
+        # per pixel, state = (T, behind, dL/dalpha of the composited alpha): T starts as the final transmittance and
+        # is divided back to T_i; behind (starts 0) holds what the Gaussians behind the current one add to
+        # grad . features + grad_alpha_image * alpha, per unit T in front (one array: one address per pixel)
         r = wp.tid()
         py = float(r % height) + 0.5
         row = r * width
@@ -219,7 +219,7 @@ def _composite_kernels(n_channels: int):
                     grad_a -= grad_v[n_channels - 1] * out_features[row + x][n_channels - 1] / a
                 grad_v[n_channels - 1] = grad_v[n_channels - 1] / wp.max(a, _ALPHA_FLOOR)
             grad_out_features[row + x] = grad_v
-            grad_out_alphas[row + x] = grad_a
+            state[row + x] = wp.vec3(transmittance[row + x], 0.0, grad_a)
         j = row_offsets[r + 1] - 1
         while j >= row_offsets[r]:
             g, x0, x1 = spans[j][0], spans[j][1], spans[j][2]
@@ -237,31 +237,31 @@ def _composite_kernels(n_channels: int):
             # dL/dsigma moments over the span (dy is the row's): sum g_s, sum g_s dx, sum g_s dx^2; sum G dL/dalpha
             m0, m1, m2, grad_opacity = float(0.0), float(0.0), float(0.0), float(0.0)
             gauss64, ratio = _span_start(geo, x0, py)
-            for x in range(x0, x1):
-                gauss_x = wp.float64(gauss64)
+            x = x0
+            while x < x1:
+                gauss_x = gauss64
                 gauss64 = gauss64 * ratio
                 ratio = ratio * step
                 p = row + x
-                if g >= stop[p]:
-                    continue   # at or behind the pixel's stop
                 gauss = float(gauss_x)
                 alpha = wp.min(_ALPHA_MAX, geo[5] * gauss)
-                if gauss_x > _GAUSS_MAX or alpha < _ALPHA_MIN:
-                    continue
-                t = transmittance[p] / (1.0 - alpha)   # T_i, in front of Gaussian i
-                transmittance[p] = t
-                grad_pixel = grad_out_features[p]
-                grad_here = wp.dot(grad_pixel, f) + grad_out_alphas[p]
-                grad_f += (alpha * t) * grad_pixel
-                grad_alpha = t * (grad_here - behind[p])
-                behind[p] = alpha * grad_here + (1.0 - alpha) * behind[p]
-                if geo[5] * gauss <= _ALPHA_MAX:   # a clamped alpha passes no gradient to its geometry and opacity
-                    grad_sigma = -alpha * grad_alpha
-                    dx = float(x) + 0.5 - geo[0]
-                    m0 += grad_sigma
-                    m1 += grad_sigma * dx
-                    m2 += grad_sigma * dx * dx
-                    grad_opacity += gauss * grad_alpha
+                # skipped: at or behind the pixel's stop, sigma < 0, too faint
+                if g < stop[p] and gauss_x <= _GAUSS_MAX and alpha >= _ALPHA_MIN:
+                    s = state[p]
+                    t = s[0] / (1.0 - alpha)   # T_i, in front of Gaussian i
+                    grad_pixel = grad_out_features[p]
+                    grad_here = wp.dot(grad_pixel, f) + s[2]
+                    grad_f += (alpha * t) * grad_pixel
+                    grad_alpha = t * (grad_here - s[1])
+                    state[p] = wp.vec3(t, alpha * grad_here + (1.0 - alpha) * s[1], s[2])
+                    if geo[5] * gauss <= _ALPHA_MAX:   # a clamped alpha passes no gradient to geometry and opacity
+                        grad_sigma = -alpha * grad_alpha
+                        dx = float(x) + 0.5 - geo[0]
+                        m0 += grad_sigma
+                        m1 += grad_sigma * dx
+                        m2 += grad_sigma * dx * dx
+                        grad_opacity += gauss * grad_alpha
+                x += 1
             wp.atomic_add(grad_means2d, k, wp.vec2(-(geo[2] * m1 + geo[3] * dy * m0), -(geo[3] * m1 + geo[4] * dy * m0)))
             wp.atomic_add(grad_conics, k, wp.vec3(0.5 * m2, dy * m1, 0.5 * dy * dy * m0))
             wp.atomic_add(grad_opacities, n, grad_opacity)
@@ -330,13 +330,13 @@ class _Composite(torch.autograd.Function):
          _) = ctx.saved_tensors
         _, backward_kernel, vec = _composite_kernels(features.shape[1])
         grads = [torch.zeros_like(t) for t in (means2d, conics, opacities, features)]
-        scratch = [torch.empty_like(out_features), torch.empty_like(final_t), final_t.clone(),
-                   torch.zeros_like(final_t)]   # gradients of the sums and alpha, T, behind
+        grad_sums = torch.empty_like(out_features)                          # gradients of the composited sums
+        state = torch.empty(len(final_t), 3, dtype=torch.float32, device=final_t.device)   # T, behind, grad alpha
         launch(backward_kernel, len(row_offsets) - 1, _span_arrays(
             means2d, conics, opacities, features, drawn, ctx.per_camera, decay, row_offsets, spans, vec) + ctx.finish
-            + [warp_view(out_features, vec), warp_view(stop), warp_view(grad_features_image.contiguous(), vec),
-               warp_view(grad_alphas_image.contiguous()), warp_view(scratch[0], vec)]
-            + [warp_view(t) for t in scratch[1:]] + [
+            + [warp_view(out_features, vec), warp_view(stop), warp_view(final_t),
+               warp_view(grad_features_image.contiguous(), vec), warp_view(grad_alphas_image.contiguous()),
+               warp_view(grad_sums, vec), warp_view(state, wp.vec3)] + [
             warp_view(grads[0], wp.vec2), warp_view(grads[1], wp.vec3), warp_view(grads[2]),
             warp_view(grads[3], vec)], means2d.device)
         return (*grads, None, None, None, None, None, None, None, None, None)
