@@ -63,6 +63,12 @@ def _pixel_gauss(geometry: _vec6, x: int, y: int):
 
 
 @wp.func
+def _threshold(opacity: float):
+    """The largest sigma at which the Gaussian reaches alpha >= ALPHA_MIN, ln(opacity / ALPHA_MIN), + _SPAN_MARGIN."""
+    return wp.log(wp.max(opacity, 1e-12) / _ALPHA_MIN) + _SPAN_MARGIN
+
+
+@wp.func
 def _row_span(geometry: _vec6, threshold: float, box: wp.vec4i, y: int):
     """[x_begin, x_end) of row y inside the box where sigma <= threshold (may be empty)."""
     a, b, c = geometry[2], geometry[3], geometry[4]
@@ -78,18 +84,23 @@ def _row_span(geometry: _vec6, threshold: float, box: wp.vec4i, y: int):
 
 @wp.kernel
 def _bin(drawn: wp.array(dtype=int), n_gaussians: int, means2d: wp.array(dtype=wp.vec2),
-         conics: wp.array(dtype=wp.vec3), radii: wp.array(dtype=int), width: int, height: int,
-         boxes: wp.array(dtype=wp.vec4i), decay: wp.array(dtype=wp.float64), marks: wp.array(dtype=int)):
-    """Per instance i: its pixel box (``splat_projection.pixel_boxes``; no rows when empty), exp(-a) and +1 / -1 in
-    the difference array of per-row span counts at its first / past-last row."""
+         conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float), radii: wp.array(dtype=int), width: int,
+         height: int, boxes: wp.array(dtype=wp.vec4i), decay: wp.array(dtype=wp.float64), marks: wp.array(dtype=int)):
+    """Per instance i: its pixel box (``splat_projection.pixel_boxes``) with its rows cut to those its span ellipse
+    sigma <= threshold reaches (|dy| <= sqrt(2 a threshold / det), plus a row of slack; no rows when empty),
+    exp(-a) and +1 / -1 in the difference array of per-row span counts at its first / past-last row."""
     i = wp.tid()
     k = drawn[i]
-    m, r = means2d[k], float(radii[k])
+    m, r, q = means2d[k], float(radii[k]), conics[k]
     x0 = int(wp.clamp(wp.ceil(m[0] - r - 0.5), 0.0, float(width)))
     x1 = int(wp.clamp(wp.floor(m[0] + r - 0.5) + 1.0, 0.0, float(width)))
-    y0 = int(wp.clamp(wp.ceil(m[1] - r - 0.5), 0.0, float(height)))
-    y1 = int(wp.clamp(wp.floor(m[1] + r - 0.5) + 1.0, 0.0, float(height)))
-    if x1 <= x0:
+    threshold, det = _threshold(opacities[k % n_gaussians]), q[0] * q[2] - q[1] * q[1]
+    reach = r
+    if det > 0.0:
+        reach = wp.min(r, wp.sqrt(2.0 * q[0] * wp.max(threshold, 0.0) / det) + 1.0)
+    y0 = int(wp.clamp(wp.ceil(m[1] - reach - 0.5), 0.0, float(height)))
+    y1 = int(wp.clamp(wp.floor(m[1] + reach - 0.5) + 1.0, 0.0, float(height)))
+    if x1 <= x0 or threshold < 0.0 or y1 < y0:
         y1 = y0
     boxes[i] = wp.vec4i(x0, x1, y0, y1)
     decay[i] = wp.exp(-wp.float64(conics[k][0]))
@@ -111,7 +122,7 @@ def _fill_rows(drawn: wp.array(dtype=int), n_gaussians: int, means2d: wp.array(d
     i = wp.tid()
     k = drawn[i]
     geo = _geometry(means2d, conics, opacities, k, k % n_gaussians)
-    threshold = wp.log(wp.max(geo[5], 1e-12) / _ALPHA_MIN) + _SPAN_MARGIN
+    threshold = _threshold(geo[5])
     box = boxes[i]
     first = (k // n_gaussians) * height
     decay_x, decay_xy, decay_y = decay[i], wp.exp(-wp.float64(geo[3])), wp.exp(-wp.float64(geo[4]))
@@ -169,19 +180,23 @@ def _composite_kernels(n_channels: int):
     Instance i is camera-Gaussian k = drawn[i] (flat camera * N + Gaussian), Gaussian n = k % N; its features are
     row k of ``features`` when per_camera, else row n."""
     vec = wp.types.vector(length=n_channels, dtype=float)
+    vec_t = wp.types.vector(length=n_channels + 1, dtype=float)   # the channels and the transmittance
 
     @wp.kernel(module="unique", enable_backward=False)
     def forward(drawn: wp.array(dtype=int), n_gaussians: int, means2d: wp.array(dtype=wp.vec2),
                 conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float), features: wp.array(dtype=vec),
                 per_camera: int, decay: wp.array(dtype=wp.float64), row_offsets: wp.array(dtype=int),
                 spans: wp.array(dtype=wp.vec3i), starts: wp.array(dtype=wp.vec2d), width: int, height: int,
-                backgrounds: wp.array2d(dtype=float), n_background: int, expected_depth: int, out_features: wp.array(dtype=vec),
-                out_alphas: wp.array(dtype=float), transmittance: wp.array(dtype=float), stop: wp.array(dtype=int)):
+                backgrounds: wp.array2d(dtype=float), n_background: int, expected_depth: int,
+                out_features: wp.array(dtype=vec), out_alphas: wp.array(dtype=float),
+                transmittance: wp.array(dtype=float), stop: wp.array(dtype=int), sums: wp.array(dtype=vec_t)):
+        # sums: per pixel the composited channels and, last, the transmittance (one address per pair)
         r = wp.tid()
         row = r * width
+        empty = vec_t()
+        empty[n_channels] = 1.0
         for x in range(width):
-            out_features[row + x] = vec()
-            transmittance[row + x] = 1.0
+            sums[row + x] = empty
             stop[row + x] = _NO_STOP
         for j in range(row_offsets[r], row_offsets[r + 1]):
             g, x0, x1 = spans[j][0], spans[j][1], spans[j][2]
@@ -191,6 +206,9 @@ def _composite_kernels(n_channels: int):
             n = k % n_gaussians
             geo = _geometry(means2d, conics, opacities, k, n)
             f = vec(features[wp.where(per_camera != 0, k, n)])
+            f_t = vec_t()
+            for c in range(n_channels):
+                f_t[c] = f[c]
             step = decay[g]
             start = starts[j]
             gauss, ratio = start[0], start[1]
@@ -199,25 +217,30 @@ def _composite_kernels(n_channels: int):
                 gauss_x = gauss
                 gauss = gauss * ratio
                 ratio = ratio * step
-                t = transmittance[p]
+                s = sums[p]
+                t = s[n_channels]
                 alpha = wp.min(_ALPHA_MAX, geo[5] * float(gauss_x))
                 # t < 0: a stopped pixel; gauss_x > _GAUSS_MAX: sigma < 0; alpha < _ALPHA_MIN: too faint
                 if t >= 0.0 and gauss_x <= _GAUSS_MAX and alpha >= _ALPHA_MIN:
                     next_t = t * (1.0 - alpha)
                     if next_t < _T_MIN:
-                        transmittance[p] = -t   # the pixel stops at g, which is left out; the sign marks it
+                        s[n_channels] = -t   # the pixel stops at g, which is left out; the sign marks it
                         stop[p] = g
                     else:
-                        out_features[p] = out_features[p] + (alpha * t) * f
-                        transmittance[p] = next_t
+                        s = s + (alpha * t) * f_t
+                        s[n_channels] = next_t
+                    sums[p] = s
                 p += 1
         # the finished pixels (``finish_pixels``): alpha, expected depth, background
         camera = r // height
         for x in range(width):
-            t = wp.abs(transmittance[row + x])
+            s = sums[row + x]
+            t = wp.abs(s[n_channels])
             transmittance[row + x] = t
             out_alphas[row + x] = 1.0 - t
-            v = out_features[row + x]
+            v = vec()
+            for c in range(n_channels):
+                v[c] = s[c]
             if expected_depth != 0:
                 v[n_channels - 1] = v[n_channels - 1] / wp.max(1.0 - t, _ALPHA_FLOOR)
             for c in range(n_background):
@@ -228,8 +251,8 @@ def _composite_kernels(n_channels: int):
     def backward(drawn: wp.array(dtype=int), n_gaussians: int, means2d: wp.array(dtype=wp.vec2),
                  conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float), features: wp.array(dtype=vec),
                  per_camera: int, decay: wp.array(dtype=wp.float64), row_offsets: wp.array(dtype=int),
-                 spans: wp.array(dtype=wp.vec3i), starts: wp.array(dtype=wp.vec2d), width: int, height: int, backgrounds: wp.array2d(dtype=float),
-                 n_background: int, expected_depth: int, out_features: wp.array(dtype=vec),
+                 spans: wp.array(dtype=wp.vec3i), starts: wp.array(dtype=wp.vec2d), width: int, height: int,
+                 backgrounds: wp.array2d(dtype=float), n_background: int, expected_depth: int, out_features: wp.array(dtype=vec),
                  stop: wp.array(dtype=int), transmittance: wp.array(dtype=float), grad_finished: wp.array(dtype=vec),
                  grad_finished_alphas: wp.array(dtype=float), grad_out_features: wp.array(dtype=vec),
                  state: wp.array(dtype=wp.vec3), grad_means2d: wp.array(dtype=wp.vec2), grad_conics: wp.array(dtype=wp.vec3),
@@ -302,7 +325,7 @@ def _composite_kernels(n_channels: int):
             wp.atomic_add(grad_opacities, n, grad_opacity)
             wp.atomic_add(grad_features, row_f, grad_f)
 
-    return forward, backward, vec
+    return forward, backward, vec, vec_t
 
 
 def row_spans(drawn: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor, radii: torch.Tensor,
@@ -323,7 +346,8 @@ def row_spans(drawn: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor, 
     boxes = torch.empty(len(drawn), 4, dtype=torch.int32, device=device)
     decay = torch.empty(len(drawn), dtype=torch.float64, device=device)
     marks = torch.zeros(n_rows + 1, dtype=torch.int32, device=device)
-    views = [warp_view(drawn), n_gaussians, warp_view(means2d, wp.vec2), warp_view(conics, wp.vec3)]
+    views = [warp_view(drawn), n_gaussians, warp_view(means2d, wp.vec2), warp_view(conics, wp.vec3),
+             warp_view(opacities)]
     launch(_bin, len(drawn), views + [warp_view(radii), width, height, warp_view(boxes, wp.vec4i),
                                       warp_view(decay, wp.float64), warp_view(marks)], device)
     offsets = torch.zeros(n_rows + 1, dtype=torch.int32, device=device)
@@ -331,7 +355,7 @@ def row_spans(drawn: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor, 
     # 3. the spans, 4. each row sorted front to back
     spans = torch.empty(int(offsets[-1]), 3, dtype=torch.int32, device=device)
     starts = torch.empty(len(spans), 2, dtype=torch.float64, device=device)
-    launch(_fill_rows, len(drawn), views + [warp_view(opacities), warp_view(boxes, wp.vec4i), height,
+    launch(_fill_rows, len(drawn), views + [warp_view(boxes, wp.vec4i), height,
                                             warp_view(decay, wp.float64), warp_view(offsets),
                                             warp_view(torch.zeros_like(marks)), warp_view(spans, wp.vec3i),
                                             warp_view(starts, wp.vec2d)], device)
@@ -348,17 +372,20 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, features, drawn, per_camera: int, decay, row_offsets, spans,
                 starts, width: int, height: int, backgrounds, expected_depth: int):
-        forward_kernel, _, vec = _composite_kernels(features.shape[1])
+        forward_kernel, _, vec, vec_t = _composite_kernels(features.shape[1])
         n_rows = len(row_offsets) - 1
         device, n_pixels = means2d.device, n_rows * width
         out_features = torch.empty(n_pixels, features.shape[1], dtype=torch.float32, device=device)
         out_alphas, final_t = (torch.empty(n_pixels, dtype=torch.float32, device=device) for _ in range(2))
         stop = torch.empty(n_pixels, dtype=torch.int32, device=device)
+        sums = torch.empty(n_pixels, features.shape[1] + 1, dtype=torch.float32, device=device)
         ctx.finish = [width, height, warp_view(backgrounds), backgrounds.shape[1] * int(backgrounds.shape[0] > 0),
                       expected_depth]
-        launch(forward_kernel, n_rows, _span_arrays(means2d, conics, opacities, features, drawn, per_camera, decay,
-                                                    row_offsets, spans, starts, vec) + ctx.finish + [
-            warp_view(out_features, vec), warp_view(out_alphas), warp_view(final_t), warp_view(stop)], device)
+        ctx.span_arrays = _span_arrays(means2d, conics, opacities, features, drawn, per_camera, decay, row_offsets,
+                                       spans, starts, vec)   # the backward's too (its tensors are saved below)
+        launch(forward_kernel, n_rows, ctx.span_arrays + ctx.finish + [
+            warp_view(out_features, vec), warp_view(out_alphas), warp_view(final_t), warp_view(stop),
+            warp_view(sums, vec_t)], device)
         ctx.save_for_backward(means2d, conics, opacities, features, drawn, decay, row_offsets, spans, starts,
                               final_t, stop, out_features, backgrounds)
         ctx.per_camera = per_camera
@@ -368,13 +395,11 @@ class _Composite(torch.autograd.Function):
     def backward(ctx, grad_features_image, grad_alphas_image):
         (means2d, conics, opacities, features, drawn, decay, row_offsets, spans, starts, final_t, stop, out_features,
          _) = ctx.saved_tensors
-        _, backward_kernel, vec = _composite_kernels(features.shape[1])
+        _, backward_kernel, vec, _ = _composite_kernels(features.shape[1])
         grads = [torch.zeros_like(t) for t in (means2d, conics, opacities, features)]
         grad_sums = torch.empty_like(out_features)                          # gradients of the composited sums
         state = torch.empty(len(final_t), 3, dtype=torch.float32, device=final_t.device)   # T, behind, grad alpha
-        launch(backward_kernel, len(row_offsets) - 1, _span_arrays(
-            means2d, conics, opacities, features, drawn, ctx.per_camera, decay, row_offsets, spans, starts, vec)
-            + ctx.finish
+        launch(backward_kernel, len(row_offsets) - 1, ctx.span_arrays + ctx.finish
             + [warp_view(out_features, vec), warp_view(stop), warp_view(final_t),
                warp_view(grad_features_image.contiguous(), vec), warp_view(grad_alphas_image.contiguous()),
                warp_view(grad_sums, vec), warp_view(state, wp.vec3)] + [
