@@ -42,10 +42,10 @@ def free_flying(positions: np.ndarray, released: np.ndarray, box_min: np.ndarray
     if domain_min is None or domain_max is None or not rel.any():
         return free
     dlo, dhi = np.asarray(domain_min, np.float64) + margin, np.asarray(domain_max, np.float64) - margin
-    idx = np.flatnonzero(rel)
     for f in range(len(x)):
         if not free[f].any():
             continue
+        idx = np.flatnonzero(rel if linked else free[f])  # not linked: only the candidates' own distances count
         xr = x[f, idx]
         held = (xr[:, 2] <= floor + margin) | np.any((xr <= dlo) | (xr >= dhi), axis=1)
         if (~rel).any():
