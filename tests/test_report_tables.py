@@ -183,8 +183,8 @@ def test_flight_figure_shows_the_recorded_heights_and_states_the_measured_accele
                          attrs={"released_free_fall": fall})
     path = flight_figure("tomato", {"mpm_rollout": ref}, tmp_path / "flight.png")
     assert path is not None and path.read_bytes()[:4] == b"\x89PNG"
-    assert flight_caption(fall) == ("released material: a = -9.50 m/s^2 (-3.2 % of g), median of 12 particles "
-                                    "(10-90 %: -12.5 to -3.9),\nlongest free flight 40 ms")
+    assert flight_caption(fall) == ("released material: a = -9.50 m/s^2 (-3.2 % of g), median of 12 particles\n"
+                                    "(10-90 %: -12.5 to -3.9), longest free flight 40 ms")
     assert flight_caption(None) == "released material: none flew free for 3 recorder samples (a = none)"
     bare = write_artifact(tmp_path / "b.zarr", {"time": arrays["time"]}, step="mpm_rollout", scope="ball",
                           config_digest="-")

@@ -170,12 +170,15 @@ def flight_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pat
     if len(flying) >= 2:  # the first stretch of consecutive samples with material in free flight
         end = flying[0] + int(np.argmax(np.r_[np.diff(flying) > 1, True]))
         s = slice(flying[0], end + 1)
-        ts = np.linspace(t[s][0], t[s][-1] + 0.5 * (t[s][-1] - t[s][0]), 50)
+        ts = np.linspace(t[s][0], t[s][-1], 50)
         tf = t[s] - t[s][0]
         z0, v0 = np.linalg.lstsq(np.stack([np.ones_like(tf), tf], 1), z[s] + 0.5 * 9.81 * tf ** 2, rcond=None)[0]
         axes[0].plot(ts, 1e3 * (z0 + v0 * (ts - t[s][0]) - 0.5 * 9.81 * (ts - t[s][0]) ** 2), color="C0", lw=1,
                      label="free fall at g")
     axes[0].set_xlim(t[0] - 0.02, t[-1] + 0.02)
+    if np.isfinite(z).any():  # the data's range: the parabola may leave it where the free set changes
+        pad = 0.1 * max(float(np.nanmax(z) - np.nanmin(z)), 1e-3)
+        axes[0].set_ylim(1e3 * (np.nanmin(z) - pad), 1e3 * (np.nanmax(z) + pad))
     axes[0].set_ylabel("mean height of the\nfree material (mm)")
     axes[0].legend(fontsize=7)
     axes[1].plot(t, n, color="tab:orange")
@@ -192,7 +195,7 @@ def flight_caption(fall: Optional[Mapping[str, Any]]) -> str:
     a = fall["acceleration"]
     lo, hi = fall["p10_p90"]
     return (f"released material: a = {a:.2f} m/s^2 ({100 * (a / -9.81 - 1):+.1f} % of g), median of "
-            f"{fall['particles']} particles (10-90 %: {lo:.1f} to {hi:.1f}),\nlongest free flight "
+            f"{fall['particles']} particles\n(10-90 %: {lo:.1f} to {hi:.1f}), longest free flight "
             f"{1e3 * fall['longest_flight']:.0f} ms")
 
 
