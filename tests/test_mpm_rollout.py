@@ -12,10 +12,12 @@ from omegaconf import OmegaConf
 from conf.schema import Config, SimulationConfig
 from tasks.core.artifacts import read_artifact
 from tasks.physics.attachment import detached_summary, distance_from_body
-from tasks.physics.free_flight import free_flying, released_flight
+from tasks.physics.free_flight import flight_acceleration, free_flying, released_flight
 from tasks.physics.labels import CORE, INTERIOR, RUPTURED, SHELL
 from tasks.physics.material_oracle import material_oracle
 from tasks.physics.mpm_rollout import (
+    FLIGHT_FRAMES,
+    FLIGHT_SAMPLE_SUBSTEPS,
     _quasi_static_summary,
     cauchy_free_measures,
     interior_plan,
@@ -202,6 +204,45 @@ def test_released_flight_of_a_parabola_recovers_g_and_the_mean_height():
     assert np.isnan(released_flight(x[:2], free[:2], frame_dt)[1])  # fewer than 3 frames: no acceleration
 
 
+def test_flight_acceleration_fits_each_free_run_of_a_sampled_parabola():
+    """Known answer: two particles sampled at irregular times follow z = z0 + v t - g t^2 / 2; the first is free in
+    two runs (9 and 5 samples), the second in one run of only 2 samples (too short: not fitted), a third is never
+    free.  The fit gives -9.81 from the first particle alone, and NaN without any run of 3 samples."""
+    g = 9.81
+    t = np.cumsum(np.r_[0.0, np.random.default_rng(0).uniform(5e-4, 2e-3, 19)])
+    z = np.stack([0.05 + 0.8 * t - 0.5 * g * t ** 2, 0.04 - 0.5 * g * t ** 2, np.full_like(t, 0.02)], axis=1)
+    free = np.zeros((len(t), 3), bool)
+    free[1:10, 0] = free[13:18, 0] = True
+    free[4:6, 1] = True
+    accel, each = flight_acceleration(t, z, free)
+    assert accel == pytest.approx(-g, rel=1e-6) and len(each) == 1
+    assert np.isnan(flight_acceleration(t, z, free & (np.arange(3) == 1))[0])
+
+
+def test_flight_recorder_probes_a_falling_blob_within_one_frame_and_recovers_g():
+    """The solver's sub-frame probe: a 1 cm fluid blob (physical inertia) falls from rest for one 1/30 s frame, far
+    from the floor and the walls.  The probe is called every 2 substeps with the time since the frame start, the
+    particles then at that time; from these ~25 samples inside a single frame (the per-frame record has 2) the
+    fitted free-fall acceleration is g within 1 %."""
+    from tasks.physics.mpm.materials import Material
+    from tasks.physics.mpm.solver import MPMSolver
+
+    h = 0.0025
+    axis = (np.arange(4) + 0.5) * h
+    x = np.stack(np.meshgrid(axis, axis, axis + 0.05, indexing="ij"), -1).reshape(-1, 3)
+    blob = Material(name="juice", model="fluid", youngs_modulus=2e4, poisson_ratio=0.3, density=1000.0,
+                    viscosity=0.01, mass_scaled=False)
+    s = MPMSolver(x, h ** 3, [blob], config=dict(device="cpu", dx=2 * h, floor=False, margin_cells=4,
+                                                  target_substeps_per_frame=50, gravity=[0.0, 0.0, -9.81]))
+    times, z = [0.0], [s.positions()[:, 2]]
+    st = s.step_frame(1 / 30, probe_every=2, probe=lambda t: (times.append(t), z.append(s.positions()[:, 2])))
+    times.append(1 / 30)
+    z.append(s.positions()[:, 2])
+    assert len(times) == 2 + (st.substeps - 1) // 2 and np.all(np.diff(times) > 0)
+    accel, each = flight_acceleration(np.array(times), np.array(z), np.ones((len(times), len(x)), bool))
+    assert len(each) == len(x) and accel == pytest.approx(-9.81, rel=0.01)
+
+
 def test_free_flight_excludes_released_material_held_by_the_table_a_wall_or_the_body():
     """With the domain given, released clusters linked (within the margin) to the table, a domain wall or the body
     are held, not flying: a two-particle pile on the table (its top particle is above the table margin), a particle
@@ -215,8 +256,12 @@ def test_free_flight_excludes_released_material_held_by_the_table_a_wall_or_the_
     box = (np.array([-0.03, -0.03, 0.0]), np.array([0.03, 0.03, 0.06]))
     old = free_flying(x, released, *box, 0.0, margin)
     np.testing.assert_array_equal(old[0], [False, True, True, True, False, True])
-    new = free_flying(x, released, *box, 0.0, margin, np.array([-0.1, -0.1, 0.0]), np.array([0.1, 0.1, 0.2]))
+    domain = (np.array([-0.1, -0.1, 0.0]), np.array([0.1, 0.1, 0.2]))
+    new = free_flying(x, released, *box, 0.0, margin, *domain)
     np.testing.assert_array_equal(new[0], [False, False, False, False, False, True])
+    # not linked: only each particle's own distance counts (the pile's top particle is 7 mm above the table)
+    own = free_flying(x, released, *box, 0.0, margin, *domain, linked=False)
+    np.testing.assert_array_equal(own[0], [False, True, False, False, False, True])
 
 
 # ------------------------------------------------------------------------------------------ real rollouts
@@ -350,6 +395,15 @@ def _check_release(art, min_outward: float) -> dict:
     outside = _outside_rest_surface(art, x[-1, rel])
     assert (outside > 0.002).sum() >= 0.1 * rel.sum(), np.percentile(outside, [50, 90])
     assert r["j_min"][1:].min() > 0.05 and r["j_max"].max() < 20.0  # the guards' range (they raise outside it)
+    # the flight recorder samples from the release for FLIGHT_FRAMES frames, every FLIGHT_SAMPLE_SUBSTEPS substeps
+    t, sampled = r["released_flight_time"], r["substeps"][f + 1:f + 1 + FLIGHT_FRAMES]
+    assert t[0] == pytest.approx(ev["time"]) and np.all(np.diff(t) > 0)
+    assert t[-1] == pytest.approx(r["time"][f + len(sampled)])
+    assert len(t) == 1 + sum((n - 1) // FLIGHT_SAMPLE_SUBSTEPS + 1 for n in sampled)  # + the end of each frame
+    fall = r.attrs["released_free_fall"]
+    assert fall["max_free_at_once"] == r["released_flight_count"].max()
+    assert (fall["acceleration"] is None) == (fall["particles"] == 0) == (r.attrs["released_free_fall_acceleration"]
+                                                                          is None)
     # how much skin ends off the object is measured (tasks.physics.attachment) and stays within the domain
     attached = r.attrs["skin_attachment"]
     assert 0.0 <= attached["ruptured_detached"] <= 1.0 and attached["max_distance"] < 0.5, attached

@@ -61,7 +61,7 @@ from conf.mpm_schema import MPMConfig, mpm_config_from
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
 from tasks.physics.attachment import detached_summary
-from tasks.physics.free_flight import free_flying, released_flight
+from tasks.physics.free_flight import flight_acceleration, free_flying, free_runs, released_flight
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
 from tasks.physics.mpm.materials import Material, material_from_dict
 from tasks.physics.mpm.solver import (
@@ -79,6 +79,12 @@ from tasks.physics.oracle.convert import materials_from_dict, mpm_material_kwarg
 from tasks.physics.oracle.schema import ObjectMaterials
 from tasks.physics.regions import finger_regions, region_weights, squeeze_strain
 
+# The sub-frame flight recorder (FlightRecord): the released material reaches the table within 2-4 frames of the
+# release in the default scenes, too few frame samples for a fitted acceleration; it samples the interior's heights
+# every FLIGHT_SAMPLE_SUBSTEPS substeps (~20 samples per frame at 100 substeps) for FLIGHT_FRAMES frames (1/3 s at
+# 30 fps: a fall of 0.5 m) after the release.
+FLIGHT_FRAMES = 10
+FLIGHT_SAMPLE_SUBSTEPS = 5
 STATS_KEYS = ("substeps", "dt_min", "courant", "max_speed", "j_min", "j_max", "kinetic_energy", "internal_energy",
               "ke_ie_ratio", "ke_ie_contact", "energy_growth")  # per-frame ``MPMSolver.step_frame`` statistics
 STATS_UNITS = {"dt_min": "s", "courant": "1", "max_speed": "m/s", "j_min": "1", "j_max": "1", "kinetic_energy": "J",
@@ -175,6 +181,28 @@ class FrameRecord:
     labels: np.ndarray
     released: Optional[np.ndarray]
     event: dict[str, Any]
+    flight: Optional[FlightRecord] = None
+
+
+@dataclass
+class FlightRecord:
+    """The sub-frame flight recorder of the released material (module constants FLIGHT_*): at every sample the time
+    ``times`` (s), the interior particles' heights ``z`` (interior,) m and which of them fly free ``free``
+    (interior,) bool (:func:`free_set`, not linked: each particle itself clear of the table, the walls and the
+    body; the released juice leaves as one jet whose foot is on the table), from the release to FLIGHT_FRAMES
+    frames after it."""
+
+    interior: np.ndarray  # (particle,) bool: the particles sampled (label INTERIOR after the release)
+    times: list[float]
+    z: list[np.ndarray]
+    free: list[np.ndarray]
+
+    def sample(self, scene: Scene, t: float) -> None:
+        """Record the solver's particles at time ``t`` (s)."""
+        x = scene.solver.positions()
+        self.times.append(float(t))
+        self.z.append(x[self.interior, 2].copy())
+        self.free.append(free_set(scene, x[None], self.interior, linked=False)[0, self.interior])
 
 
 def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], field: Mapping[str, np.ndarray],
@@ -510,8 +538,13 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
             push = force_patch(scene, field, forces, patches, f, torn, sim)
         # 2. one output frame of the solver (KE/IE per frame: summarised in the attrs)
         # (after the rupture the motion is dynamic by design: no quasi-static check)
+        flying = rec.flight is not None and f <= rec.event["frame"] + FLIGHT_FRAMES
+        start = float(times[f - 1])
         st = solver.step_frame(scene.frame_dt, dirichlet=bc, forces=push, quasi_static=not rec.event["crossed"],
-                               colliders=tips)
+                               colliders=tips, probe_every=FLIGHT_SAMPLE_SUBSTEPS,
+                               probe=(lambda t: rec.flight.sample(scene, start + t)) if flying else None)
+        if flying:
+            rec.flight.sample(scene, float(times[f]))
         if f == 1:
             scene.notes.append("stable substep per material (s): " + ", ".join(
                 f"{k} {v:.3g} ({math.ceil(scene.frame_dt / v)} substeps per frame)"
@@ -541,6 +574,8 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
                 torn |= reg.region[f, k] | (np.linalg.norm(tx - centers[k], axis=1) <= opening)
             mid = rec.event.pop("labels")
             mu_phys = np.array([m.mu for m in scene.materials])[slot[mid]]
+            rec.flight = FlightRecord(mid == INTERIOR, [], [], [])
+            rec.flight.sample(scene, float(times[f]))
     rec.labels = mid
     return rec
 
@@ -610,13 +645,12 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
         arrays["plastic_strain"] = Array(rec.plastic_strain, ("frame", "particle"), "1", "equivalent plastic strain")
     if rec.released is not None:
         arrays["released"] = Array(rec.released, ("particle",), "1", "released at the threshold crossing")
-        pad = scene.config.padding * solver.dx  # the domain walls: the node layers within ``padding`` of the faces
-        free = free_flying(rec.particle_positions, mid == INTERIOR, scene.bbox_min, scene.bbox_max,
-                           float(solver.floor_height if solver.floor_height is not None else -np.inf), 2.0 * scene.dx,
-                           solver.lo + pad, solver.lo + (np.asarray(solver.dims) - 1) * solver.dx - pad)
-        height, free_fall = released_flight(rec.particle_positions, free, scene.frame_dt)
+        height, _ = released_flight(rec.particle_positions, free_set(scene, rec.particle_positions, mid == INTERIOR),
+                                    scene.frame_dt)
         arrays["released_height"] = Array(height.astype(np.float32), ("frame",), "m",
                                           "mean z of the released particles flying free (NaN: none)")
+        arrays.update(_flight_arrays(rec.flight))
+        free_fall = _flight_summary(rec.flight)
     attrs = {
         "boundary": boundary, "materials": [m.name for m in scene.materials], "n_particles": int(len(mid)),
         "n_interior": int((mid == INTERIOR).sum()),
@@ -625,7 +659,8 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
         "substeps_total": int(rec.stats["substeps"].sum()),
         "threshold_event": rec.event, "notes": scene.notes,
         "material_mass_scales": {m.name: float(k) for m, k in zip(scene.materials, solver.material_mass_scale)},
-        "released_free_fall_acceleration": free_fall if rec.released is not None else None,
+        "released_free_fall_acceleration": free_fall["acceleration"] if free_fall else None,
+        "released_free_fall": free_fall,
         "feedback_rule": rule, "fingers": fingers,
         "bytes_per_particle": float(solver.bytes_per_particle()),
         "quasi_static": {**_quasi_static_summary(rec.stats["ke_ie_contact"], contact, solver.mass_scale,
@@ -637,6 +672,50 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
                                             {"shell": SHELL, "ruptured": RUPTURED}, scene.dx),
     }
     return arrays, attrs
+
+
+def free_set(scene: Scene, positions: np.ndarray, interior: np.ndarray, linked: bool = True) -> np.ndarray:
+    """(frame, particle) bool: the ``interior`` particles flying free in ``positions`` (frame, particle, xyz) m
+    (:func:`free_flying` with a margin of 2 dx, the table and the domain walls: the node layers within ``padding``
+    of the domain's faces; ``linked``: a cluster touching any of them or the body is held)."""
+    solver = scene.solver
+    pad = scene.config.padding * solver.dx
+    return free_flying(positions, interior, scene.bbox_min, scene.bbox_max,
+                       float(solver.floor_height if solver.floor_height is not None else -np.inf), 2.0 * scene.dx,
+                       solver.lo + pad, solver.lo + (np.asarray(solver.dims) - 1) * solver.dx - pad, linked)
+
+
+def _flight_arrays(flight: Optional[FlightRecord]) -> dict[str, Array]:
+    """The flight recorder's samples in the artifact (no release: none): time, the free particles' mean height
+    and their count per sample."""
+    if flight is None or not flight.times:
+        return {}
+    z, free = np.array(flight.z, np.float64), np.array(flight.free, bool)
+    count = free.sum(axis=1)
+    height = np.where(count > 0, (z * free).sum(axis=1) / np.maximum(count, 1), np.nan)
+    return {"released_flight_time": Array(np.array(flight.times), ("sample",), "s",
+                                          f"flight recorder: every {FLIGHT_SAMPLE_SUBSTEPS} substeps for "
+                                          f"{FLIGHT_FRAMES} frames after the release"),
+            "released_flight_height": Array(height.astype(np.float32), ("sample",), "m",
+                                            "mean z of the released particles flying free (NaN: none)"),
+            "released_flight_count": Array(count.astype(np.int32), ("sample",), "1",
+                                           "released particles flying free")}
+
+
+def _flight_summary(flight: Optional[FlightRecord]) -> Optional[dict[str, Any]]:
+    """The released material's measured free fall (:func:`flight_acceleration` on the flight recorder's samples):
+    acceleration m/s^2 (None: nothing flew free for 3 samples), the particles it is the median over, the 10th and
+    90th percentiles of their accelerations (m/s^2: the pressure inside a jet spreads them), the most particles
+    free at once and the longest time any particle flew free (s).  None without a release."""
+    if flight is None or not flight.times:
+        return None
+    t, z, free = np.array(flight.times), np.array(flight.z, np.float64), np.array(flight.free, bool)
+    accel, each = flight_acceleration(t, z, free)
+    longest = max([t[b - 1] - t[a] for p in np.flatnonzero(free.any(axis=0)) for a, b in free_runs(free[:, p])],
+                  default=0.0)
+    return {"acceleration": accel if math.isfinite(accel) else None, "particles": len(each),
+            "p10_p90": np.percentile(each, [10, 90]).tolist() if len(each) else None,
+            "max_free_at_once": int(free.sum(axis=1).max()), "longest_flight": float(longest)}
 
 
 def _quasi_static_summary(ke_ie_contact: np.ndarray, contact: np.ndarray, mass_scale: float, limit: float) -> dict:
@@ -754,7 +833,7 @@ ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_
                    "predicted_squeeze_strain", "substeps", "dt_min", "courant", "max_speed", "j_min", "j_max",
                    "kinetic_energy", "internal_energy", "ke_ie_ratio", "ke_ie_contact", "energy_growth",
                    "plastic_strain?", "released?",
-                   "released_height?")
+                   "released_height?", "released_flight_time?", "released_flight_height?", "released_flight_count?")
 
 
 @artifact_step("mpm_rollout",

@@ -149,8 +149,58 @@ def snapshot_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: P
     return path
 
 
+def flight_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Path) -> Optional[Path]:
+    """The released material's flight (sec. 3.2: released particles under gravity): the mean height of the released
+    particles flying free per sample of the rollout's sub-frame flight recorder and per output frame, against the
+    free-fall parabola z0 + v0 t - g t^2 / 2 (g = 9.81 m/s^2, z0 and v0 fitted to the recorder's first stretch of
+    free flight), and how many fly free; the title states the acceleration measured from the trajectories.  None
+    without a release."""
+    try:
+        r = read_artifact(refs["mpm_rollout"], names=[
+            "time", "released_height", "released_flight_time", "released_flight_height", "released_flight_count"])
+    except (KeyError, TypeError, ArtifactError, AttributeError):
+        return None
+    if "released_flight_time" not in r:
+        return None
+    t, z, n = r["released_flight_time"], r["released_flight_height"].astype(np.float64), r["released_flight_count"]
+    fig, axes = plt.subplots(2, 1, figsize=(5.5, 6.0), sharex=True, height_ratios=(2, 1))
+    axes[0].plot(t, 1e3 * z, ".", ms=3, color="tab:orange", label="flight recorder (every few substeps)")
+    axes[0].plot(r["time"], 1e3 * r["released_height"], "o", mfc="none", color="k", label="output frames")
+    flying = np.flatnonzero(n > 0)
+    if len(flying) >= 2:  # the first stretch of consecutive samples with material in free flight
+        end = flying[0] + int(np.argmax(np.r_[np.diff(flying) > 1, True]))
+        s = slice(flying[0], end + 1)
+        ts = np.linspace(t[s][0], t[s][-1], 50)
+        tf = t[s] - t[s][0]
+        z0, v0 = np.linalg.lstsq(np.stack([np.ones_like(tf), tf], 1), z[s] + 0.5 * 9.81 * tf ** 2, rcond=None)[0]
+        axes[0].plot(ts, 1e3 * (z0 + v0 * (ts - t[s][0]) - 0.5 * 9.81 * (ts - t[s][0]) ** 2), color="C0", lw=1,
+                     label="free fall at g")
+    axes[0].set_xlim(t[0] - 0.02, t[-1] + 0.02)
+    if np.isfinite(z).any():  # the data's range: the parabola may leave it where the free set changes
+        pad = 0.1 * max(float(np.nanmax(z) - np.nanmin(z)), 1e-3)
+        axes[0].set_ylim(1e3 * (np.nanmin(z) - pad), 1e3 * (np.nanmax(z) + pad))
+    axes[0].set_ylabel("mean height of the\nfree material (mm)")
+    axes[0].legend(fontsize=7)
+    axes[1].plot(t, n, color="tab:orange")
+    axes[1].set_ylabel("particles\nflying free")
+    axes[1].set_xlabel("time (s)")
+    axes[0].set_title(f"{obj}\n" + flight_caption(r.attrs.get("released_free_fall")), fontsize=8)
+    return _save(fig, axes, path)
+
+
+def flight_caption(fall: Optional[Mapping[str, Any]]) -> str:
+    """One line on the released material's measured free fall (the rollout's ``released_free_fall`` attrs)."""
+    if not fall or fall.get("acceleration") is None:
+        return "released material: none flew free for 3 recorder samples (a = none)"
+    a = fall["acceleration"]
+    lo, hi = fall["p10_p90"]
+    return (f"released material: a = {a:.2f} m/s^2 ({100 * (a / -9.81 - 1):+.1f} % of g), median of "
+            f"{fall['particles']} particles\n(10-90 %: {lo:.1f} to {hi:.1f}), longest free flight "
+            f"{1e3 * fall['longest_flight']:.0f} ms")
+
+
 FIGURE_INPUTS = {"control": ("signal_smoothing", "force_coefficients", "contact_patches"), "metric_bars": (),
-                 "rollout": ("mpm_rollout",), "snapshot": ("mpm_rollout",)}  # the artifacts each figure draws
+                 "rollout": ("mpm_rollout",), "snapshot": ("mpm_rollout",), "flight": ("mpm_rollout",)}  # the artifacts each figure draws
 
 
 def _variant_refs(refs: Mapping[str, Mapping[str, Any]]):
@@ -294,11 +344,14 @@ def _figure(cache: MediaCache, kind: str, draw, title: str, inputs: Mapping[str,
 
 
 def scene_figures(cache: MediaCache, obj: str, variant: str, pair: Mapping[str, Any], out_dir: Path) -> list[Path]:
-    """The rollout and particle-snapshot figures of one object and variant (``pair``: its refs), in ``out_dir``."""
+    """The rollout and particle-snapshot figures of one object and variant (``pair``: its refs), in ``out_dir``, and
+    beside the snapshots the released material's flight (with a release)."""
     return [p for p in [
         _figure(cache, "rollout", rollout_figure, f"{obj} [{variant}]", pair, out_dir / f"{obj}_{variant}_rollout.png"),
         _figure(cache, "snapshot", snapshot_figure, f"{obj} [{variant}]", pair,
-                out_dir / f"{obj}_{variant}_snapshots.png")] if p]
+                out_dir / f"{obj}_{variant}_snapshots.png"),
+        _figure(cache, "flight", flight_figure, f"{obj} [{variant}]", pair, out_dir / f"{obj}_{variant}_flight.png")]
+        if p]
 
 
 # The steps whose artifacts the media of one scene show (videos, contact sheet, signal and scene figures)

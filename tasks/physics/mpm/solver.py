@@ -1052,7 +1052,8 @@ class MPMSolver:
     def step_frame(self, frame_dt: float, dirichlet: BoundarySpec = None,
                    forces: Optional[Union[ForcePatch, Sequence[ForcePatch]]] = None,
                    quasi_static: bool = True,
-                   colliders: Optional[Union[Collider, Sequence[Collider]]] = None) -> FrameStats:
+                   colliders: Optional[Union[Collider, Sequence[Collider]]] = None,
+                   probe: Optional[Callable[[float], None]] = None, probe_every: int = 1) -> FrameStats:
         """Advance by ``frame_dt`` seconds with CFL-adaptive substeps; returns the frame statistics.
 
         ``dirichlet``: DirichletPoints / DirichletNodes (or a list), constant targets over the frame (points are
@@ -1062,7 +1063,9 @@ class MPMSolver:
         constant over the frame.  ``quasi_static``: whether the motion of this frame is meant to be quasi-static
         (False: dynamic by design, e.g. after a rupture; the quasi-static check skips it).  ``colliders``: rigid
         :class:`Collider` s (surface contact) at their positions at the frame start, moved with their velocities
-        every substep; their reactions join ``FrameStats.reaction`` under their finger ids.  Raises
+        every substep; their reactions join ``FrameStats.reaction`` under their finger ids.  ``probe``: called
+        with the time since the frame start (s) after every ``probe_every``-th substep's particle update inside the
+        frame (the particles, e.g. :meth:`positions`, are then at that time; the frame's end is not probed).  Raises
         :class:`SimulationError` when a guard trips.
         """
         if not frame_dt > 0:
@@ -1155,6 +1158,8 @@ class MPMSolver:
             self.substep += 1
             self._times.append((self.substep, self.time + t))
             self._vmax = vmax
+            if probe is not None and nsub % probe_every == 0:
+                probe(t)
             if nsub % check_every == 0:
                 self._check_flags()
             if nsub >= cfg.max_substeps_per_frame:
