@@ -794,8 +794,11 @@ def test_quasi_static_bound_closed_form():
     assert mass_scale_for([stiff, JELLY], DX, 1 / 30, cfg, slow) == pytest.approx(s_cfl, rel=1e-12)
     sel = mpm_config_from({"mass_scaling": "selective", "target_substeps_per_frame": 20, "quasi_static_margin": k})
     scales = material_mass_scales([stiff, JELLY, water], [stiff, JELLY, water], DX, 1 / 30, sel, load)
-    # each scaled material: its own CFL factor (stiff 3.2e4, jelly 83) capped by the body's bound; water: 1
-    np.testing.assert_allclose(scales, [s_qs, s_qs, 1.0], rtol=1e-12)
+    # each scaled material: its own CFL factor (stiff 3.2e4, jelly 83) capped by its own bound (stiff: 2000x the
+    # jelly's shear modulus, so 2000x its bound); water: 1; every material's scaled shear speed >= 4 H k / t_load
+    np.testing.assert_allclose(scales, [2000 * s_qs, s_qs, 1.0], rtol=1e-12)
+    speeds = [math.sqrt(m.mu / (m.density * x)) for m, x in zip([stiff, JELLY], scales)]
+    assert min(speeds) == pytest.approx(4 * H * k / t_load, rel=1e-12)
     with pytest.raises(MPMConfigError, match=r"mpm.quasi_static_margin: must be a finite number >= 0 \(0 = off; "
                                              r"got -1.0\)"):
         mpm_config_from({"quasi_static_margin": -1.0})
