@@ -395,8 +395,8 @@ class MPMSolver:
     the mass-scaled ones declared quasi-static; ``FrameStats.ke_ie_ratio`` per frame), judged as Abaqus/Explicit
     judges a quasi-static analysis: "the kinetic energy of the deforming material should not exceed a small
     fraction (typically 5 % to 10 %) of its internal energy throughout the majority of the process" (Getting
-    Started with Abaqus, "Quasi-static analysis with Abaqus/Explicit", energy balance; the limit is ``config.quasi_static_ke_ie_max``).  Exclusions,
-    each for a physical reason: released material and fluids keep their physical mass (their motion is real
+    Started with Abaqus, "Quasi-static analysis with Abaqus/Explicit", energy balance; the limit is
+    ``config.quasi_static_ke_ie_max``).  Exclusions, each for a physical reason: released material and fluids keep their physical mass (their motion is real
     dynamics, not a mass-scaling artefact); frames without boundary load (the start-up sag of a body under its
     suddenly applied weight, KE/IE ~ 1, and free flight are dynamic in any case, and nothing distorts a
     deformation that no finger imposes); the first ``QUASI_STATIC_ONSET_FRAMES`` loaded frames of every contact
