@@ -70,11 +70,12 @@ class MPMConfig:
             gravity impulse is dt g sum_p w_ip m_phys,p), so weights and quasi-static states under gravity are
             unchanged and a scaled solid feels g / s while unscaled material falls at g.  The stable time step
             takes every material's own (un)scaled wave speed.  With scaling on, the quasi-static check warns
-            (once, naming object, frame and these knobs) when the kinetic/internal energy ratio of the scaled
-            materials declared quasi-static (not released material or fluids), summed over the frames of a contact
-            (the fingers load the object; its first two frames, the start-up sag under the weight before any contact
-            and the frames after a rupture are not checked), exceeds ``quasi_static_ke_ie_max`` (0.1: explicit FE
-            practice asks KE below 5-10 % of IE over most of the process; see
+            (once, naming object, frames and these knobs) when the kinetic/internal energy ratio of the scaled
+            materials declared quasi-static (not released material or fluids), sum KE / sum IE over the frames of a
+            contact, judged when the contact ends (the fingers load the object; its first two frames, the start-up
+            sag under the weight before any contact and the frames after a rupture are not checked), exceeds
+            ``quasi_static_ke_ie_max`` (0.1: explicit FE practice asks KE below 5-10 % of IE over most of the
+            process; see
             :class:`tasks.physics.mpm.solver.MPMSolver`).  The project's default (``conf/mpm/default.yaml``) is ``selective`` (with
             ``multi_field``); this schema's default ``off`` serves unit tests and closed-form checks.
         multi_field: under ``mass_scaling=selective``, released material and fluids (``Material.is_mass_scaled``
@@ -92,10 +93,13 @@ class MPMConfig:
             scaling: the scaled body's slowest mode (period T1(s) = sqrt(s) 4 H / c_s, H its height in m, c_s the
             slowest physical shear-wave speed of its scaled solids in m/s) must be k times shorter than the rise time
             t_load (s) of the fingers' load, so s <= (t_load / (k T1(1)))^2 (the rollout takes t_load from the
-            force coefficients); it costs sqrt(s_cfl / s) times the substeps where it binds (see
-            :func:`tasks.physics.mpm.solver.mass_scale_for`).  Hollow bodies ring slower than T1 (shell bending): the
-            force-driven rubber duck needed k = 4, the ball still rings then; off in the project's defaults (cost and
-            measurements: README, known limits).
+            force coefficients of a force-driven squeeze, ``variant.boundary=force``: Dirichlet fingers hold the
+            body, whose free slowest mode then does not exist); under ``selective`` each scaled material is bounded
+            by its own T1, which bounds the composite body's (see
+            :func:`tasks.physics.mpm.solver.material_mass_scales`); it costs sqrt(s_cfl / s) times the substeps
+            where it binds (see :func:`tasks.physics.mpm.solver.mass_scale_for`).  Hollow bodies rock slower than T1
+            (the force-driven ball needs k = 2.5 to stay quasi-static, the duck 1.5); 2.5 in the project's defaults
+            (sweep and cost per scene: ``conf/mpm/default.yaml``, README known limits).
         quasi_static_damping: local damping coefficient a in [0, 1) (0 = off): dynamic relaxation of the materials the
             quasi-static check measures (mass-scaled solids, not released material or fluids), in the frames before
             a rupture: the net force on a particle becomes F - a |F| sign(v) (Cundall's local damping, as FLAC and

@@ -286,22 +286,25 @@ def test_physical_figures_known_values():
     reaction[1, 1] = [3.0, 4.0, 0.0]
     feedback = np.zeros((T, 5))
     feedback[2, 1] = 2.5
-    ke_ie_contact = np.array([np.nan, 0.2, 0.05, np.nan])  # the check's measure; NaN: frame not checked
+    contact_ke_ie = np.array([0.2, 0.05])  # the check's measure, one value per judged contact
     s, per, ratio = physical_figures(J, [1.0, 1.0, 2.0], strain, reaction, np.zeros_like(reaction), feedback,
-                                     ke_ie_contact, 0.25, {"crossed": False, "threshold": 0.3})
+                                     contact_ke_ie, 0.25, {"crossed": False, "threshold": 0.3})
     np.testing.assert_allclose(ratio, [1.0, 1.0, 0.75, 1.0])
     assert s["max_volume_change"] == pytest.approx(0.25)
     assert s["max_squeeze_strain"] == pytest.approx(0.2)
     assert s["rebound_ratio"] == pytest.approx(1 - 0.05 / 0.2)
     assert s["max_ke_ie_in_contact"] == pytest.approx(0.2) and s["quasi_static_warned"] == 0.0  # 0.2 <= 0.25
-    s, _, _ = physical_figures(J, [1.0, 1.0, 2.0], strain, reaction, reaction, feedback, ke_ie_contact, 0.1, None)
+    s, _, _ = physical_figures(J, [1.0, 1.0, 2.0], strain, reaction, reaction, feedback, contact_ke_ie, 0.1, None)
     assert s["max_ke_ie_in_contact"] == pytest.approx(0.2) and s["quasi_static_warned"] == 1.0  # 0.2 > 0.1: warned
     assert math.isnan(s["threshold_time"])
     assert per["peak_reaction_force"][1] == pytest.approx(5.0) and per["peak_feedback_force"][1] == 2.5
-    s, _, _ = physical_figures(J, [1.0, 1.0, 2.0], 0 * strain, reaction, reaction, feedback, np.full(T, np.nan), 0.25,
+    s, _, _ = physical_figures(J, [1.0, 1.0, 2.0], 0 * strain, reaction, reaction, feedback, np.zeros(0), 0.25,
                                {"crossed": True, "time": 0.4})
     assert math.isnan(s["rebound_ratio"]) and s["threshold_time"] == 0.4
-    assert math.isnan(s["max_ke_ie_in_contact"]) and math.isnan(s["quasi_static_warned"])  # no frame checked
+    assert math.isnan(s["max_ke_ie_in_contact"]) and math.isnan(s["quasi_static_warned"])  # no contact judged
+    s, _, _ = physical_figures(J, [1.0, 1.0, 2.0], strain, reaction, reaction, feedback, np.array([0.01, np.nan]),
+                               0.25, None)  # NaN: a contact with kinetic but no internal energy
+    assert math.isnan(s["max_ke_ie_in_contact"]) and s["quasi_static_warned"] == 1.0
 
 
 # ------------------------------------------------------------------------------------------ errors and config
@@ -374,9 +377,10 @@ def synthetic_artifacts(contact: bool) -> dict[str, dict]:
         "internal_energy": np.zeros(T), "ke_ie_ratio": 0.01 * coeff[:, 1], "released": np.zeros(P_shell + P_int, bool),
         "ke_ie_contact": np.where(active[:, 1], 0.01 * coeff[:, 1], np.nan),
     }
+    contacts = [{"first_frame": 2, "last_frame": 10, "ke_ie": 0.01 * float(coeff[2:11, 1].max())}] if contact else []
     return {
         "rollout": rollout,
-        "rollout_attrs": {"boundary": "dirichlet", "n_interior": P_int, "quasi_static": {"limit": 0.1},
+        "rollout_attrs": {"boundary": "dirichlet", "n_interior": P_int, "quasi_static": {"limit": 0.1, "contacts": contacts},
                           "threshold_event": {"crossed": True, "time": float(time[6]), "threshold": 0.1}},
         "field": {"displacement": disp, "weight": weight[None].repeat(T, 0) * constrained, "constrained": constrained,
                   "finger": np.where(constrained, 1, -1), "surface_points": surface},
@@ -405,7 +409,7 @@ def test_deformation_metrics_on_a_synthetic_session():
     c = art["forces"]["force_coefficients"][:, 1]
     np.testing.assert_allclose(arrays["volume_ratio"].data, 1 - 0.01 * c * 4e-6 / 6e-6)
     assert m["max_volume_change"] == pytest.approx(0.01 * c.max() * 2 / 3)
-    # the quasi-static check's measure over the frames it checked (the contact frames), below its limit 0.1
+    # the quasi-static check's measure over the contact it judged, below its limit 0.1
     assert m["max_ke_ie_in_contact"] == pytest.approx(0.01 * c[2:11].max()) and m["quasi_static_warned"] == 0.0
     # per-frame series: defined exactly where their frames are
     assert np.isfinite(arrays["bdc_s_iou"].data[2:11]).all() and np.isnan(arrays["bdc_s_iou"].data[[0, 1, 11]]).all()

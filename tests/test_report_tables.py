@@ -127,7 +127,7 @@ def test_report_of_a_seed_grid_shows_mean_std_the_spread_note_and_per_seed_rows(
 
 
 def test_report_shows_the_quasi_static_check_as_the_solver_applied_it(tmp_path):
-    """The rollout table gives the check's measure over the frames it checked, its limit and whether it warned;
+    """The rollout table gives the check's measure over the contacts it judged, its limit and whether it warned;
     the physical figures table and the definitions give the same measure (not the per-frame KE/IE of old)."""
     from flows.runtime import RunTable
     from tasks.core.artifacts import Array, write_artifact
@@ -138,17 +138,17 @@ def test_report_shows_the_quasi_static_check_as_the_solver_applied_it(tmp_path):
     frame_arrays = {"squeeze_strain": Array(np.full((T, 5), 0.1), ("frame", "finger"), "1"),
                     "feedback_force": Array(np.full((T, 5), 2.0), ("frame", "finger"), "N"),
                     **{k: Array(np.zeros(T), ("frame",), "1") for k in ("dirichlet_tracking_error", "ke_ie_ratio")}}
-    qs = {"mass_scale": 4.0, "limit": 0.1, "max_ke_ie_in_contact": 0.3, "median_ke_ie_in_contact": 0.05,
-          "frames_over_limit": 2, "frames_checked": 5, "frames_in_contact": 6}
+    qs = {"mass_scale": 4.0, "limit": 0.1, "max_ke_ie_in_contact": 0.3, "contacts_over_limit": 1,
+          "contacts_checked": 2, "frames_checked": 5, "frames_in_contact": 6}
     rollout = write_artifact(tmp_path / "r.zarr", frame_arrays, step="mpm_rollout", scope="can", config_digest="-",
                              attrs={"threshold_event": {"threshold": 0.3, "crossed": False}, "boundary": "force",
                                     "n_particles": 10, "substeps_total": 60, "mass_scale": 4.0, "quasi_static": qs})
     summary = rollout_summary({"can": {"variants": {"no_dirichlet": {"mpm_rollout": rollout}}}})
     assert "| quasi-static check: max KE/IE / limit |" in summary.splitlines()[0]
-    assert "| x4 | 0.3 / 0.1: WARNED in 2 frame(s) (5 frames checked) |" in summary
-    assert quasi_static_cell({**qs, "frames_over_limit": 0, "max_ke_ie_in_contact": 0.02}) == \
-        "0.02 / 0.1: ok (5 frames checked)"
-    assert quasi_static_cell({**qs, "frames_checked": 0, "max_ke_ie_in_contact": 0.0}) == \
+    assert "| x4 | 0.3 / 0.1: WARNED in 1 of 2 contact(s) (5 frames checked) |" in summary
+    assert quasi_static_cell({**qs, "contacts_over_limit": 0, "max_ke_ie_in_contact": 0.02}) == \
+        "0.02 / 0.1: ok in 2 contact(s) (5 frames checked)"
+    assert quasi_static_cell({**qs, "contacts_checked": 0, "max_ke_ie_in_contact": None}) == \
         "not checked (no mass scaling or no loaded frame)"
     metrics = write_artifact(tmp_path / "m.zarr", {"x": Array(np.zeros(1), ("i",), "1")}, step="deformation_metrics",
                              scope="can", config_digest="-",
@@ -160,7 +160,7 @@ def test_report_shows_the_quasi_static_check_as_the_solver_applied_it(tmp_path):
     assert "| object | seed | variant | max_ke_ie_in_contact | quasi_static_warned |" in physical
     assert "| can | 0 | no_dirichlet | 0.3 | 1 |" in physical
     assert f"- **max_ke_ie_in_contact**: {DEFINITIONS['max_ke_ie_in_contact']}" in md
-    assert "over the frames it checks" in DEFINITIONS["max_ke_ie_in_contact"]
+    assert "over the contacts it judges" in DEFINITIONS["max_ke_ie_in_contact"]
     assert f"- **quasi_static_warned**: {DEFINITIONS['quasi_static_warned']}" in md
 
 

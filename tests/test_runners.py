@@ -11,7 +11,8 @@ from tasks.core.artifacts import read_group_attrs
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL = ["sampling.surface_points=600", "sampling.particle_spacing=0.004", "signal.duration=1.5",
-         "control.smoothing.frame_rate=15", "mpm.target_substeps_per_frame=10", "render.views=2", "render.width=32",
+         "control.smoothing.frame_rate=15", "mpm.target_substeps_per_frame=10", "mpm.quasi_static_margin=0",
+         "render.views=2", "render.width=32",
          "render.height=32", "render.frame_stride=5", "refinement.iterations=2", "video_metrics.interpolator=dis",
          "video_metrics.brisque_max_frames=2"]
 

@@ -90,13 +90,12 @@ DEFINITIONS: dict[str, str] = {
     "peak_feedback_force": "peak_feedback_force (N, per finger) = max_t feedback_force[t, k] (glove resistance).",
     "max_ke_ie_in_contact": (
         "max_ke_ie_in_contact (1) = the largest value of the quasi-static check's measure (mass scaling, "
-        "tasks/physics/mpm/solver.py) over the frames it checks: sum KE / sum IE of the mass-scaled material over "
-        "the checked frames of the current contact so far (ke_ie_contact), a frame being checked when a finger "
-        "loads the object, past the contact's first frames and before a rupture; NaN when no frame is checked "
-        "(no mass scaling, no contact)."),
+        "tasks/physics/mpm/solver.py) over the contacts it judges: sum KE / sum IE of the mass-scaled material over "
+        "the checked frames of one contact, a frame being checked when a finger loads the object, past the "
+        "contact's first frames and before a rupture; NaN when no contact is judged (no mass scaling, no contact)."),
     "quasi_static_warned": (
-        "quasi_static_warned = 1 when the check warned (ke_ie_contact > mpm.quasi_static_ke_ie_max in a checked "
-        "frame: the squeeze was dynamic in the scaled time), 0 when it passed, NaN when no frame is checked."),
+        "quasi_static_warned = 1 when the check warned (a contact's KE/IE > mpm.quasi_static_ke_ie_max: the "
+        "squeeze was dynamic in the scaled time), 0 when it passed, NaN when no contact is judged."),
     "threshold_time": "threshold_time (s): time of the squeeze-threshold crossing (rupture); NaN when not crossed.",
 }
 
@@ -349,18 +348,19 @@ def trajectory_metrics(sensed: np.ndarray, reconstructed: np.ndarray, contact: n
 
 # ----------------------------------------------------------------------------------------------- physics
 def physical_figures(particle_J: np.ndarray, volumes: np.ndarray, strain: np.ndarray, reaction: np.ndarray,
-                     applied: np.ndarray, feedback: np.ndarray, ke_ie_contact: np.ndarray, ke_ie_limit: float,
+                     applied: np.ndarray, feedback: np.ndarray, contact_ke_ie: np.ndarray, ke_ie_limit: float,
                      threshold_event: Mapping[str, Any] | None) -> tuple[dict[str, float], dict[str, np.ndarray],
                                                                          np.ndarray]:
     """Physical figures of one rollout: (scalars, per-finger arrays, volume_ratio (frame,)).
 
     volume_ratio[t] = sum v0 J[t] / sum v0; max_volume_change = max |volume_ratio - 1|; max_squeeze_strain =
     max strain; rebound_ratio = 1 - m[-1] / max m with m = max_k strain[:, k] (NaN if max m < 1e-6);
-    max_ke_ie_in_contact = max of the quasi-static check's measure ``ke_ie_contact`` over the frames it checked
-    (not NaN) and quasi_static_warned = 1 if it exceeded ``ke_ie_limit`` there, else 0 (both NaN when no frame was
-    checked); threshold_time (s) = threshold_event["time"] if crossed else NaN.  Per finger (N): peak |reaction|,
-    peak |applied| and peak feedback force.  Shapes: particle_J (frame, particle), volumes (particle,) m^3, strain
-    and feedback (frame, finger), reaction and applied (frame, finger, xyz) N, ke_ie_contact (frame,).
+    max_ke_ie_in_contact = max of the quasi-static check's measure over the contacts it judged, ``contact_ke_ie``
+    (contact,), and quasi_static_warned = 1 if one exceeded ``ke_ie_limit``, else 0 (both NaN when no contact was
+    judged; a NaN ratio, kinetic energy without internal energy, exceeds it); threshold_time (s) =
+    threshold_event["time"] if crossed else NaN.  Per finger (N): peak |reaction|, peak |applied| and peak feedback
+    force.  Shapes: particle_J (frame, particle), volumes (particle,) m^3, strain and feedback (frame, finger),
+    reaction and applied (frame, finger, xyz) N.
     """
     J = _checked("particle_J", particle_J, (None, None))
     T = J.shape[0]
@@ -369,8 +369,7 @@ def physical_figures(particle_J: np.ndarray, volumes: np.ndarray, strain: np.nda
     rf = _checked("reaction_force", reaction, (T, N_FINGERS, 3))
     af = _checked("applied_force", applied, (T, N_FINGERS, 3))
     fb = _checked("feedback_force", feedback, (T, N_FINGERS))
-    measure = _checked("ke_ie_contact", ke_ie_contact, (T,))
-    measure = measure[~np.isnan(measure)]  # the checked frames
+    measure = np.nan_to_num(_checked("contact KE/IE", contact_ke_ie, (None,)), nan=np.inf)  # NaN: KE without IE
     if T == 0 or v0.sum() <= 0:
         raise ValueError(f"particle_J needs >= 1 frame and the particle volumes a positive sum, got {J.shape}, "
                          f"{v0.sum()} m^3")
@@ -382,7 +381,7 @@ def physical_figures(particle_J: np.ndarray, volumes: np.ndarray, strain: np.nda
         "max_volume_change": float(np.abs(volume_ratio - 1.0).max()),
         "max_squeeze_strain": float(eps.max()),
         "rebound_ratio": 1.0 - float(m[-1]) / peak if peak >= 1e-6 else math.nan,
-        "max_ke_ie_in_contact": float(measure.max()) if measure.size else math.nan,
+        "max_ke_ie_in_contact": float(measure.max()) if measure.size and np.isfinite(measure.max()) else math.nan,
         "quasi_static_warned": float((measure > ke_ie_limit).any()) if measure.size else math.nan,
         "threshold_time": float(event["time"]) if event.get("crossed") else math.nan,
     }
@@ -458,7 +457,8 @@ def deformation_metrics(rollout: Mapping[str, np.ndarray], rollout_attrs: Mappin
                          f"{shell.size + interior.size} (shell + interior) from the object")
     phys, phys_finger, volume_ratio = physical_figures(
         J, v0, observed, rollout["reaction_force"], rollout["applied_force"], rollout["feedback_force"],
-        rollout["ke_ie_contact"], float(rollout_attrs["quasi_static"]["limit"]), rollout_attrs.get("threshold_event"))
+        np.array([math.nan if c["ke_ie"] is None else c["ke_ie"] for c in rollout_attrs["quasi_static"]["contacts"]],
+                 float), float(rollout_attrs["quasi_static"]["limit"]), rollout_attrs.get("threshold_event"))
 
     metrics = {"bdc_t": score_t, "bdc_s": score_s, "sdc": score_c, "miou": score_m,
                **{k: traj[k] for k in ("ate", "mte", "tce", "cosine_similarity")}, **phys}

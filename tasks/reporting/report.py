@@ -247,14 +247,16 @@ def rollout_summary(refs: Mapping[str, Mapping[str, Any]]) -> Optional[str]:
 
 def quasi_static_cell(qs: Mapping[str, Any]) -> str:
     """The rollout's quasi-static check (its ``quasi_static`` attrs) as the solver applied it: the largest value of
-    its measure (sum KE / sum IE of the mass-scaled material over a contact) in the frames it checked, its limit
-    ``mpm.quasi_static_ke_ie_max``, whether it warned, and how many frames it checked."""
-    n = int(qs.get("frames_checked", 0))
+    its measure (sum KE / sum IE of the mass-scaled material over a contact) over the contacts it judged, its limit
+    ``mpm.quasi_static_ke_ie_max``, whether it warned, and how many contacts and frames it checked."""
+    n = int(qs.get("contacts_checked", 0))
     if not n:
         return "not checked (no mass scaling or no loaded frame)"
-    over = int(qs.get("frames_over_limit", 0))
-    verdict = f"WARNED in {over} frame(s)" if over else "ok"
-    return f"{qs['max_ke_ie_in_contact']:.3g} / {qs['limit']:g}: {verdict} ({n} frames checked)"
+    over = int(qs.get("contacts_over_limit", 0))
+    verdict = f"WARNED in {over} of {n} contact(s)" if over else f"ok in {n} contact(s)"
+    peak = qs["max_ke_ie_in_contact"]  # None: kinetic energy without internal energy
+    return f"{'inf' if peak is None else format(peak, '.3g')} / {qs['limit']:g}: {verdict} " \
+           f"({qs.get('frames_checked', 0)} frames checked)"
 
 
 def effect_notes(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:

@@ -488,7 +488,7 @@ def write_convergence_report(report_dir: str | Path, df: pd.DataFrame, *, orders
         md += [noise, ""]
     md += [("Deformation metrics (tasks/evaluation/deformation_metrics.py): absolute difference to the reference's score; "
            "`ke_ie_max` the quasi-static check's measure (mass scaling): the largest sum KE / sum IE of the "
-           "mass-scaled material over the frames the solver checks (a finger loads the object, past the contact's "
+           "mass-scaled material over a contact's checked frames (a finger loads the object, past the contact's "
            "first frames), whose limit is mpm.quasi_static_ke_ie_max (empty: no frame checked); "
            "`tracer_drift_m` how far the surface Gaussians left the material by the last frame (m, see "
            "`tracer_drift`)."), "",

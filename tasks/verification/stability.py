@@ -41,8 +41,8 @@ Measures (SI)
                     boundary after the release, so a conservative system: < 0 is numerical dissipation, > 0 is
                     energy created by the integrator);
     ke_ie_max       DRIVEN phases: a compression case's loading/hold, the largest kinetic/internal energy ratio; a
-                    rollout, the quasi-static check's measure (sum KE / sum IE over the contact) at its largest in
-                    the frames the solver checks (NaN: none checked);
+                    rollout, the quasi-static check's measure (sum KE / sum IE over a contact) at its largest over
+                    the contacts the solver judges (NaN: none checked);
     courant         largest c_p dt / dx over the frames (c_p after scaling);
     accuracy_error  compression: F_top / (E A eps_mid) - 1 over the second half of the loading (E the REAL modulus,
                     eps_mid the mean compressive strain F_zz - 1 of the middle third of the column, A = W^2): the
@@ -895,8 +895,8 @@ def write_report(rows: Sequence[Row], out_dir: str | Path, config: Mapping[str, 
            ("- energy_drift: compression cases only, free phase (no gravity, no boundary, conservative): "
            "(KE+IE)(end)/(KE+IE)(release) - 1.  Negative = numerical dissipation of the MPM transfers."),
            ("- ke_ie_max: driven phases: plate loading/hold, the largest kinetic / internal energy ratio; a rollout, "
-           "the largest value of the solver's quasi-static check (sum KE / sum IE over the contact) in the frames it "
-           "checks (mass scaling assumes it small; its limit is mpm.quasi_static_ke_ie_max)."),
+           "the largest value of the solver's quasi-static check (sum KE / sum IE over a contact) over the contacts "
+           "it judges (mass scaling assumes it small; its limit is mpm.quasi_static_ke_ie_max)."),
            ("- accuracy_error: compression: F_top / (E A eps_mid) - 1 over the second half of the loading, E the real "
            "modulus (uniaxial stress between frictionless plates; shows inertia from mass scaling and the force factor "
            "of stiffness scaling); squeeze: observed / prescribed peak squeeze strain - 1."),
