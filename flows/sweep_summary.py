@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import pandas as pd
 import yaml
 from hydra.experimental.callback import Callback
 
-from tasks.reporting.report_tables import TABLE2, markdown_table
+if TYPE_CHECKING:
+    import pandas as pd
 
 
 def _override_columns(job_dir: Path) -> dict[str, str]:
@@ -34,6 +34,12 @@ def _override_columns(job_dir: Path) -> dict[str, str]:
 def summarize_sweep(sweep_dir: str | Path) -> pd.DataFrame:
     """Concatenate the jobs' metric rows; columns: ``job``, the overrides that differ between jobs, then the
     metric rows' own columns.  Writes the summary files into ``sweep_dir`` and returns the table."""
+    # imported here, not at the top: Hydra imports this callback at every start of flows.evaluate, before the
+    # pre-flight checks, and pandas with the report tables is most of that start-up (~2 s of CPU per start)
+    import pandas as pd
+
+    from tasks.reporting.report_tables import TABLE2, markdown_table
+
     sweep_dir = Path(sweep_dir)
     frames, overrides = [], {}
     for job_dir in sorted((p for p in sweep_dir.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name)):

@@ -2,9 +2,24 @@
 overview and the synced control plot are in the page (a real flow run on the real engine, tiny sizes)."""
 from __future__ import annotations
 
+import shutil
 from pathlib import Path
 
+import pytest
 from test_pipeline_cache import SMALL
+
+
+@pytest.fixture(scope="module")
+def tomato_artifacts(tmp_path_factory) -> Path:
+    """The tomato's whole chain (full variant) computed once for the report builds below; each test works on its
+    own copy (the builds write their media cache into it), where the chain is then reused from disk."""
+    from flows.pipeline import run_object_local
+    from tests.conftest import compose
+
+    root = tmp_path_factory.mktemp("tomato") / "artifacts"
+    cfg = compose("evaluate", [f"paths.artifacts={root}", "object=tomato", "variant=full", *SMALL])
+    run_object_local(cfg, cfg.object, cfg.variant, root)
+    return root
 
 
 def test_each_report_video_decodes_to_the_expected_frames_and_size(prefect_server, tmp_path, compose_cfg):
@@ -31,7 +46,8 @@ def test_each_report_video_decodes_to_the_expected_frames_and_size(prefect_serve
     assert page.count("<video") >= 2 and 'class="plot"' in page and "timeupdate" in page
 
 
-def test_a_second_report_build_encodes_nothing_and_gives_the_same_page(tmp_path, compose_cfg, monkeypatch):
+def test_a_second_report_build_encodes_nothing_and_gives_the_same_page(tmp_path, compose_cfg, monkeypatch,
+                                                                       tomato_artifacts):
     """Report media are cached by content under <artifacts>/.media: the second build of the same artifacts
     reuses every video and figure (no encoder call, cache files untouched) and writes a byte-identical page."""
     import tasks.reporting.watch as watch
@@ -41,7 +57,9 @@ def test_a_second_report_build_encodes_nothing_and_gives_the_same_page(tmp_path,
 
     cfg = compose_cfg("evaluate", [f"paths.artifacts={tmp_path / 'artifacts'}", "object=tomato", "variant=full",
                                    *SMALL])
+    shutil.copytree(tomato_artifacts, tmp_path / "artifacts")
     flat = run_object_local(cfg, cfg.object, cfg.variant, tmp_path / "artifacts")
+    assert all(ref.reused for ref in flat.values())
     pick = lambda steps: {s.name: flat[s.name] for s in steps if s.name in flat}  # noqa: E731
     refs = {"tomato": {**pick(PER_OBJECT), "variants": {"full": {**pick(PER_VARIANT),
                                                                   "backends": {"physics": pick(PER_BACKEND)}}}}}
@@ -64,7 +82,7 @@ def test_a_second_report_build_encodes_nothing_and_gives_the_same_page(tmp_path,
     assert {p.name: p.stat().st_mtime_ns for p in cache.iterdir()} == entries  # nothing redrawn
 
 
-def test_scene_media_made_on_a_worker_are_the_report_s_own(tmp_path, compose_cfg, monkeypatch):
+def test_scene_media_made_on_a_worker_are_the_report_s_own(tmp_path, compose_cfg, monkeypatch, tomato_artifacts):
     """The media of a scene made ahead (as the flow does on its task runner while other scenes still simulate)
     are exactly those a report build makes: same cache entries, and the report build then encodes no video and
     draws only the metric bars (which need every variant's metrics)."""
@@ -75,7 +93,9 @@ def test_scene_media_made_on_a_worker_are_the_report_s_own(tmp_path, compose_cfg
 
     root = tmp_path / "artifacts"
     cfg = compose_cfg("evaluate", [f"paths.artifacts={root}", "object=tomato", "variant=full", *SMALL])
+    shutil.copytree(tomato_artifacts, root)
     flat = run_object_local(cfg, cfg.object, cfg.variant, root)
+    assert all(ref.reused for ref in flat.values())
     pick = lambda steps: {s.name: flat[s.name] for s in steps if s.name in flat}  # noqa: E731
     refs = {"tomato": {**pick(PER_OBJECT), "variants": {"full": {**pick(PER_VARIANT),
                                                                   "backends": {"physics": pick(PER_BACKEND)}}}}}
@@ -86,8 +106,6 @@ def test_scene_media_made_on_a_worker_are_the_report_s_own(tmp_path, compose_cfg
 
     build("reference")  # every medium made by the report build itself
     made_by_report = {p.name for p in (root / ".media").iterdir()}
-    import shutil
-
     shutil.rmtree(root / ".media")
     # a second variant's task makes its scene's media alone (the object's own go with the first variant)
     assert cache_scene_media("tomato", refs["tomato"], "full", str(root), first=False) == 5
