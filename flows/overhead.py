@@ -83,7 +83,7 @@ def _timed(root: str, chains: range, fan: int, mb: float, nonce: str) -> dict[st
 
 def benchmark_flow(root: str, chains: int, fan: int, mb: float, workers: int) -> dict:
     nonce = uuid.uuid4().hex[:8]
-    _timed(root, range(-workers, 0), fan, 0.0, nonce)  # warm-up: every worker imports the steps' modules
+    _timed(root, range(chains, chains + workers), fan, 0.0, nonce)  # warm-up: each worker imports the steps
     cold = _timed(root, range(chains), fan, mb, nonce)
     warm = _timed(root, range(chains), fan, mb, nonce)
     return {"cold": cold, "cached": warm}
