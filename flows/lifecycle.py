@@ -22,6 +22,10 @@
    ``<PREFECT_HOME>/servers/``; the next :func:`begin_run` ends any recorded server whose flow process is
    gone, and any temporary Prefect server of this ``PREFECT_HOME`` that was orphaned (adopted by pid 1),
    with one line each.
+4. **Cheap tasks.**  On its temporary server a run's tasks skip what costs CPU on every task and serves no one:
+   log lines shipped to the API, a CA bundle parsed for a plain-HTTP client, the server's event table and
+   automations (:func:`loopback_client_settings`, :data:`LOOPBACK_SERVER_ENV`), and on any server the settings
+   revalidated by each Dask task (:func:`settings_shipped_whole`).  ``python -m flows.overhead`` measures it.
 """
 from __future__ import annotations
 
@@ -210,6 +214,12 @@ def _end_process(pid: int, grace: float = SERVER_GRACE_S) -> None:
 
 # ------------------------------------------------------------------------------------------- temporary server
 _SERVER: dict[str, Path] = {}  # the record file of the server this process started ("record")
+# The temporary server's services that only feed what nobody uses in a run's private server: the event table
+# (the UI's event feed; task runs are still recorded from the events) and automations (triggers and actions,
+# which evaluate every event).  Less CPU on the two cores the run shares with the server; the user's own values win.
+LOOPBACK_SERVER_ENV = {"PREFECT_SERVER_SERVICES_EVENT_PERSISTER_ENABLED": "false",
+                       "PREFECT_SERVER_SERVICES_TRIGGERS_ENABLED": "false",
+                       "PREFECT_SERVER_EVENTS_STREAM_OUT_ENABLED": "false"}
 
 
 def _die_with_parent() -> Callable[[], None] | None:
@@ -236,9 +246,10 @@ def _server_class():
     """Prefect's temporary server, started in its own session and dying with the flow process.
 
     Prefect builds the server's command and environment inline in ``SubprocessASGIServer._run_uvicorn_command``
-    and gives no way to pass options to its ``subprocess.Popen``; this subclass passes them by giving that
-    module a ``subprocess`` whose ``Popen`` has them, for the duration of that one call.  Pinned by
-    ``tests/test_lifecycle.py`` (the server's session, and its end when the flow process is SIGKILLed)."""
+    and gives no way to pass options to its ``subprocess.Popen``; this subclass passes them (and
+    :data:`LOOPBACK_SERVER_ENV`) by giving that module a ``subprocess`` whose ``Popen`` has them, for the duration
+    of that one call.  Pinned by ``tests/test_lifecycle.py`` (the server's session, and its end when the flow
+    process is SIGKILLed)."""
     import subprocess
     import types
 
@@ -252,7 +263,8 @@ def _server_class():
             if preexec is not None:
                 options["preexec_fn"] = preexec
             shim = types.SimpleNamespace(**vars(subprocess))
-            shim.Popen = functools.partial(subprocess.Popen, **options)
+            shim.Popen = lambda *args, env, **kw: subprocess.Popen(*args, env={**LOOPBACK_SERVER_ENV, **env}, **kw,
+                                                                    **options)
             prefect_server.subprocess = shim
             try:
                 process = super()._run_uvicorn_command()
@@ -274,7 +286,8 @@ def temporary_server() -> Iterator[str | None]:
     from prefect.settings import PREFECT_API_URL, PREFECT_HOME, PREFECT_UI_URL, temporary_settings
 
     if PREFECT_API_URL.value():
-        yield PREFECT_API_URL.value()
+        with settings_shipped_whole():
+            yield PREFECT_API_URL.value()
         return
     Path(PREFECT_HOME.value()).mkdir(parents=True, exist_ok=True)
     server = _server_class()()
@@ -287,13 +300,82 @@ def temporary_server() -> Iterator[str | None]:
     os.environ["PREFECT_API_URL"] = server.api_url
     try:
         # no UI URL: the temporary server serves no UI (Prefect would print a dead "View at" link)
-        with temporary_settings(updates={PREFECT_API_URL: server.api_url, PREFECT_UI_URL: ""}):
+        with temporary_settings(updates={PREFECT_API_URL: server.api_url, PREFECT_UI_URL: "",
+                                         **loopback_client_settings(Path(PREFECT_HOME.value()))}), \
+                settings_shipped_whole():
             yield server.api_url
     finally:
         if previous is None:
             os.environ.pop("PREFECT_API_URL", None)
         else:
             os.environ["PREFECT_API_URL"] = previous
+
+
+@functools.cache
+def _shipped_settings_context():
+    """A Prefect ``SettingsContext`` that a task runner ships to its workers as the settings object itself.
+
+    Prefect sends each task to a Dask worker with the flow's settings as a plain dict (paths as strings), and
+    the worker validates that dict into a new ``Settings`` with every task: ~50 nested pydantic-settings models,
+    each re-reading the environment and the settings files, ~80 ms CPU per task on the 2-core machine.  Prefect
+    never changes a ``Settings`` object (``temporary_settings`` makes a new one), it pickles as it is, and
+    validated from an instance it is taken as it is (~0.2 ms).  Pinned by
+    ``tests/test_lifecycle.py`` (what a worker receives).  The workers run on this machine, or on a cluster
+    (``runner.address``) with the same installation: the paths in the settings mean the same there."""
+    from prefect.context import SettingsContext
+
+    class ShippedSettingsContext(SettingsContext):
+        def serialize(self, include_secrets: bool = True) -> dict[str, Any]:
+            if not include_secrets:  # for display: Prefect's own (masked) dump
+                return super().serialize(include_secrets=False)
+            return {"profile": self.profile, "settings": self.settings}
+
+    return ShippedSettingsContext
+
+
+@contextlib.contextmanager
+def settings_shipped_whole() -> Iterator[None]:
+    """Within: the current Prefect settings, shipped whole to the task runner's workers
+    (:func:`_shipped_settings_context`)."""
+    from prefect.context import SettingsContext
+
+    current = SettingsContext.get()
+    with _shipped_settings_context()(profile=current.profile, settings=current.settings):
+        yield
+
+
+def loopback_client_settings(home: Path) -> dict:
+    """Prefect client settings for a run on its temporary server (plain HTTP on 127.0.0.1, no UI); the tasks on
+    the Dask workers receive them with each task's settings context.  Each spares CPU time on every task:
+
+    * ``PREFECT_LOGGING_TO_API_ENABLED`` off: log lines go to the console only (the run's record is its console
+      output, report and artifacts; nobody reads the temporary server's log table), not also one API call per
+      batch and one database row per line;
+    * ``PREFECT_API_SSL_CERT_FILE`` a file of one CA certificate: no certificate is ever checked on plain HTTP,
+      yet Prefect builds an SSL context for each client it makes (two per task on a Dask worker), parsing the whole
+      CA bundle each time (~30 ms CPU); one certificate takes ~1 ms.  The user's own ``PREFECT_API_SSL_CERT_FILE``
+      is kept."""
+    import re
+
+    import certifi  # Prefect's own CA bundle (its default)
+    from prefect.settings import PREFECT_API_SSL_CERT_FILE, PREFECT_LOGGING_TO_API_ENABLED
+
+    updates: dict[Any, Any] = {PREFECT_LOGGING_TO_API_ENABLED: False}
+    bundle = PREFECT_API_SSL_CERT_FILE.value() or certifi.where()
+    if "PREFECT_API_SSL_CERT_FILE" not in os.environ:
+        try:
+            first = re.search(r"-----BEGIN CERTIFICATE-----.+?-----END CERTIFICATE-----\n?", Path(bundle).read_text(),
+                              re.S)
+        except OSError:
+            first = None
+        if first is not None:
+            one = home / "loopback-ca.pem"
+            if not one.is_file() or one.read_text() != first.group(0):
+                tmp = one.with_name(f".{one.name}.{os.getpid()}")
+                tmp.write_text(first.group(0))
+                tmp.replace(one)
+            updates[PREFECT_API_SSL_CERT_FILE] = str(one)
+    return updates
 
 
 # ------------------------------------------------------------------------------------------- server records

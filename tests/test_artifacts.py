@@ -315,3 +315,36 @@ def test_a_temporary_whose_pid_was_reused_is_removed(tmp_path):
         (d / "x" / "0").write_bytes(b"1" * 1000)
     assert remove_stale_temporaries(tmp_path) == (1, 1000)
     assert sorted(p.name for p in step.iterdir()) == sorted([mine.name, unstamped.name])  # its pid is alive
+
+
+def test_a_file_hashed_once_is_not_hashed_again_until_it_changes(tmp_path, monkeypatch):
+    import os
+    import time
+
+    import tasks.core.artifacts as artifacts
+
+    hashed = []
+    sha256 = artifacts._file_sha256
+    monkeypatch.setattr(artifacts, "_file_sha256", lambda path: hashed.append(Path(path).name) or sha256(path))
+    ref = write_artifact(tmp_path / "a.zarr", _arrays(), step="s", scope="o", config_digest="c")
+    files = len(verify_artifact(ref.path)["manifest"])
+    hashed.clear()
+    verify_artifact(ref.path)
+    assert len(hashed) == files  # written just now: a change within the same clock tick would not show, so no memo
+    monkeypatch.setattr(artifacts, "RACY_SECONDS", 0.0)  # as if written long ago
+    verify_artifact(ref.path)
+    hashed.clear()
+    verify_artifact(ref.path)
+    read_artifact(ref)
+    assert hashed == []  # unchanged since this process hashed it
+    time.sleep(0.05)  # past the file-system clock's tick
+    chunk = Path(ref.path) / "time" / "c" / "0"
+    before = chunk.stat()
+    data = bytearray(chunk.read_bytes())
+    data[0] ^= 0x01
+    chunk.write_bytes(bytes(data))
+    os.utime(chunk, ns=(before.st_atime_ns, before.st_mtime_ns))  # same size, mtime set back: the ctime moved
+    with pytest.raises(ArtifactDamaged) as found:
+        verify_artifact(ref.path)
+    assert found.value.problem == "checksum mismatch of time/c/0"
+    assert hashed == ["0"]

@@ -180,3 +180,38 @@ def test_server_dies_with_a_killed_run_and_the_next_start_ends_orphans(tmp_path)
     assert f"server pid {orphans[1].pid}" in ended[1] and "its flow process is gone" in ended[1]
     assert lines[-1].startswith("config error: signal.duration"), next_run.stderr[-3000:]
     assert _servers_of(home) == [] and not record.exists()
+
+
+def test_tasks_receive_the_flows_settings_whole_and_the_same():
+    """What a Dask worker receives with each task: the settings object itself (not a dict it must validate into new
+    settings, ~80 ms per task), equal to the flow's, its temporary updates included."""
+    import cloudpickle
+    from prefect.context import SettingsContext, serialize_context
+    from prefect.settings import PREFECT_API_URL, Settings, temporary_settings
+
+    from flows.lifecycle import settings_shipped_whole
+
+    with temporary_settings(updates={PREFECT_API_URL: "http://127.0.0.1:1/api"}), settings_shipped_whole():
+        shipped = serialize_context()["settings_context"]
+        flow_settings = SettingsContext.get().settings
+    assert isinstance(shipped["settings"], Settings)
+    hydrated = SettingsContext(**cloudpickle.loads(cloudpickle.dumps(shipped)))  # as the worker's engine does
+    assert hydrated.settings == flow_settings and hydrated.settings.api.url == "http://127.0.0.1:1/api"
+    assert isinstance(SettingsContext.get().serialize(include_secrets=False)["settings"], dict)
+
+
+def test_clients_of_the_temporary_server_load_one_ca_certificate_and_ship_no_logs(tmp_path, monkeypatch):
+    import ssl
+
+    from prefect.settings import PREFECT_API_SSL_CERT_FILE, PREFECT_LOGGING_TO_API_ENABLED
+
+    from flows.lifecycle import loopback_client_settings
+
+    monkeypatch.delenv("PREFECT_API_SSL_CERT_FILE", raising=False)
+    updates = loopback_client_settings(tmp_path)
+    assert updates[PREFECT_LOGGING_TO_API_ENABLED] is False
+    one = Path(updates[PREFECT_API_SSL_CERT_FILE])
+    assert one.parent == tmp_path and one.read_text().count("BEGIN CERTIFICATE") == 1
+    ssl.create_default_context(cafile=str(one))  # a valid CA file for Prefect's client
+    monkeypatch.setenv("PREFECT_API_SSL_CERT_FILE", str(tmp_path / "users.pem"))  # the user's own is kept
+    assert PREFECT_API_SSL_CERT_FILE not in loopback_client_settings(tmp_path)

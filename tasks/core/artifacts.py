@@ -35,6 +35,7 @@ import os
 import re
 import shutil
 import socket
+import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
@@ -220,12 +221,10 @@ def write_artifact(
                 chunks=chunk_shape(data.shape, data.dtype.itemsize),
                 dimension_names=list(a.dims),
                 fill_value=0,
+                attributes={"units": a.units, "description": a.description, "config_digest": config_digest},
             )
             if data.size:
                 arr[...] = data
-            arr.attrs.update(
-                {"units": a.units, "description": a.description, "config_digest": config_digest}
-            )
             nbytes += int(data.nbytes)
         group.attrs.update(
             {
@@ -288,6 +287,45 @@ def _file_sha256(path: Path) -> str:
         while block := f.read(1 << 20):
             h.update(block)
     return h.hexdigest()
+
+
+# ----------------------------------------------------------------------------------------- checksum memo
+# One process checks the same files many times: a Dask worker reads an input artifact for each of its consumer
+# steps (object_model for eight), the report media and the report read them again, a warm run checks every
+# artifact and then reads it.  The sha256 of a file is therefore remembered per process, keyed by what the file
+# system says of that version of the file, and reused while the file is provably unchanged.
+RACY_SECONDS = 2.0  # a file changed this recently may change again within one tick of the file-system clock
+_CHECKED: dict[tuple[int, int], tuple[int, int, int, str]] = {}  # (st_dev, st_ino) -> (size, mtime_ns, ctime_ns, sha)
+
+
+def _stamp(st: os.stat_result) -> tuple[int, int, int]:
+    return st.st_size, st.st_mtime_ns, st.st_ctime_ns
+
+
+def checked_sha256(path: Path, st: os.stat_result) -> str:
+    """sha256 of the file at ``path`` whose ``os.stat`` (taken just before) is ``st``; computed once per process
+    for each version of the file.
+
+    The memo is keyed by the file's identity (device, inode) and holds its size, mtime and ctime (ns) when it was
+    hashed; it is used only while all three are unchanged.  Any write through the file system changes them: a
+    truncated or rewritten chunk, a flipped bit (also when the writer sets the mtime back: the ctime cannot be
+    set back), a deleted and re-created or replaced file (another inode, or a new ctime).  So damage done after a
+    check is still caught by the next one, in this process as in any other (a new process starts with an empty
+    memo: every run hashes each file it checks at least once).  Not remembered: a file whose mtime or ctime is
+    within :data:`RACY_SECONDS` of the hash (a change in the same tick of the file-system clock would leave the
+    stamps as they were), or which changed while it was hashed."""
+    key, stamp = (st.st_dev, st.st_ino), _stamp(st)
+    known = _CHECKED.get(key)
+    if known is not None and known[:3] == stamp:
+        return known[3]
+    sha = _file_sha256(path)
+    after = os.stat(path)
+    settled = time.time_ns() - int(RACY_SECONDS * 1e9)
+    if _stamp(after) == stamp and (after.st_dev, after.st_ino) == key and max(stamp[1:]) < settled:
+        _CHECKED[key] = (*stamp, sha)
+    else:
+        _CHECKED.pop(key, None)
+    return sha
 
 
 def _seal(attrs: Mapping[str, Any]) -> str:
@@ -375,7 +413,8 @@ def read_group_attrs(path: str | Path) -> dict[str, Any]:
 
 def verify_artifact(path: str | Path, *, checksums: bool = True, arrays: Sequence[str] | None = None) -> dict[str, Any]:
     """:func:`read_group_attrs` after checking the group's files against its manifest: none missing, none extra,
-    every size as written and (``checksums``) every sha256 as written.  ``arrays`` limits the check to the
+    every size as written and (``checksums``) every sha256 as written (a file this process already hashed and
+    that has not changed since is not read again, :func:`checked_sha256`).  ``arrays`` limits the check to the
     files of those arrays (a reader that loads only some).  Raises :class:`ArtifactDamaged` naming the first
     file that differs."""
     p = Path(path)
@@ -393,12 +432,12 @@ def verify_artifact(path: str | Path, *, checksums: bool = True, arrays: Sequenc
     for name, (size, sha) in sorted(manifest.items()):
         f = p / name
         try:
-            actual = os.path.getsize(f)
+            st = os.stat(f)
         except OSError:
             raise ArtifactDamaged(p, f"missing file {name}") from None
-        if actual != size:
-            raise ArtifactDamaged(p, f"size mismatch of {name}: {actual} bytes, written {size}")
-        if checksums and _file_sha256(f) != sha:
+        if st.st_size != size:
+            raise ArtifactDamaged(p, f"size mismatch of {name}: {st.st_size} bytes, written {size}")
+        if checksums and checked_sha256(f, st) != sha:
             raise ArtifactDamaged(p, f"checksum mismatch of {name}")
     return attrs
 
