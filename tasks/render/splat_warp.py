@@ -25,7 +25,7 @@ import torch
 import warp as wp
 
 from .splat_torch import ALPHA_FLOOR, ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
-from .warp_interop import launch, warp_view
+from .warp_interop import launch, scratch, warp_view
 
 wp.set_module_options({"enable_backward": False})   # the backward pass is hand-written
 
@@ -343,9 +343,9 @@ def row_spans(drawn: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor, 
     """
     device, n_rows, n_gaussians = drawn.device, n_images * height, len(opacities)
     # 1. boxes and the difference array of per-row counts, 2. its scan
-    boxes = torch.empty(len(drawn), 4, dtype=torch.int32, device=device)
+    boxes = scratch("boxes", (len(drawn), 4), torch.int32, device)
     decay = torch.empty(len(drawn), dtype=torch.float64, device=device)
-    marks = torch.zeros(n_rows + 1, dtype=torch.int32, device=device)
+    marks = scratch("marks", (n_rows + 1,), torch.int32, device).zero_()
     views = [warp_view(drawn), n_gaussians, warp_view(means2d, wp.vec2), warp_view(conics, wp.vec3),
              warp_view(opacities)]
     launch(_bin, len(drawn), views + [warp_view(radii), width, height, warp_view(boxes, wp.vec4i),
@@ -357,7 +357,7 @@ def row_spans(drawn: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor, 
     starts = torch.empty(len(spans), 2, dtype=torch.float64, device=device)
     launch(_fill_rows, len(drawn), views + [warp_view(boxes, wp.vec4i), height,
                                             warp_view(decay, wp.float64), warp_view(offsets),
-                                            warp_view(torch.zeros_like(marks)), warp_view(spans, wp.vec3i),
+                                            warp_view(scratch("cursors", (n_rows + 1,), torch.int32, device).zero_()), warp_view(spans, wp.vec3i),
                                             warp_view(starts, wp.vec2d)], device)
     if device.type != "cpu":   # a CPU launch runs its threads in order: the buckets are filled sorted
         launch(_sort_rows, n_rows, [warp_view(offsets), warp_view(spans, wp.vec3i), warp_view(starts, wp.vec2d)],
@@ -378,7 +378,7 @@ class _Composite(torch.autograd.Function):
         out_features = torch.empty(n_pixels, features.shape[1], dtype=torch.float32, device=device)
         out_alphas, final_t = (torch.empty(n_pixels, dtype=torch.float32, device=device) for _ in range(2))
         stop = torch.empty(n_pixels, dtype=torch.int32, device=device)
-        sums = torch.empty(n_pixels, features.shape[1] + 1, dtype=torch.float32, device=device)
+        sums = scratch("sums", (n_pixels, features.shape[1] + 1), torch.float32, device)
         ctx.finish = [width, height, warp_view(backgrounds), backgrounds.shape[1] * int(backgrounds.shape[0] > 0),
                       expected_depth]
         ctx.span_arrays = _span_arrays(means2d, conics, opacities, features, drawn, per_camera, decay, row_offsets,
@@ -397,11 +397,12 @@ class _Composite(torch.autograd.Function):
          _) = ctx.saved_tensors
         _, backward_kernel, vec, _ = _composite_kernels(features.shape[1])
         grads = [torch.zeros_like(t) for t in (means2d, conics, opacities, features)]
-        grad_sums = torch.empty_like(out_features)                          # gradients of the composited sums
-        state = torch.empty(len(final_t), 3, dtype=torch.float32, device=final_t.device)   # T, behind, grad alpha
+        grad_features_image, grad_alphas_image = grad_features_image.contiguous(), grad_alphas_image.contiguous()
+        grad_sums = scratch("grad_sums", tuple(out_features.shape), torch.float32, final_t.device)   # of the sums
+        state = scratch("state", (len(final_t), 3), torch.float32, final_t.device)   # T, behind, grad alpha
         launch(backward_kernel, len(row_offsets) - 1, ctx.span_arrays + ctx.finish
             + [warp_view(out_features, vec), warp_view(stop), warp_view(final_t),
-               warp_view(grad_features_image.contiguous(), vec), warp_view(grad_alphas_image.contiguous()),
+               warp_view(grad_features_image, vec), warp_view(grad_alphas_image),
                warp_view(grad_sums, vec), warp_view(state, wp.vec3)] + [
             warp_view(grads[0], wp.vec2), warp_view(grads[1], wp.vec3), warp_view(grads[2]),
             warp_view(grads[3], vec)], means2d.device)

@@ -8,7 +8,7 @@ import torch
 import warp as wp
 
 from .splat_projection import FOV_CLAMP, RADIUS_SIGMAS, Projection
-from .warp_interop import launch, warp_view
+from .warp_interop import launch, scratch, warp_view
 
 _mat23 = wp.types.matrix(shape=(2, 3), dtype=float)
 _sym6 = wp.types.vector(length=6, dtype=float)   # xx, xy, xz, yy, yz, zz
@@ -79,11 +79,11 @@ class _QuatScaleToCovar(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_covars):
         quats, scales = ctx.saved_tensors
-        grad_quats, grad_scales = torch.zeros_like(quats), torch.zeros_like(scales)
+        grad_quats, grad_scales, grad_covars = torch.zeros_like(quats), torch.zeros_like(scales), grad_covars.contiguous()
         launch(_quat_scale_to_covar, len(quats), [warp_view(quats, wp.vec4), warp_view(scales, wp.vec3)], quats.device,
-               outputs=[warp_view(torch.empty_like(grad_covars), _sym6)],
+               outputs=[warp_view(scratch("covars", (len(quats), 6), torch.float32, quats.device), _sym6)],
                adj_inputs=[warp_view(grad_quats, wp.vec4), warp_view(grad_scales, wp.vec3)],
-               adj_outputs=[warp_view(grad_covars.contiguous(), _sym6)])
+               adj_outputs=[warp_view(grad_covars, _sym6)])
         return grad_quats, grad_scales
 
 
@@ -106,14 +106,16 @@ class _Project(torch.autograd.Function):
     def backward(ctx, grad_means2d, grad_depths, grad_conics, _):
         means, covars, viewmats, Ks = ctx.saved_tensors
         grad_means, grad_covars = torch.zeros_like(means), torch.zeros_like(covars)
-        scratch = [torch.empty_like(grad_means2d), torch.empty_like(grad_depths), torch.empty_like(grad_conics),
-                   torch.empty(grad_depths.shape, dtype=torch.int32, device=means.device)]
+        grad_means2d, grad_depths, grad_conics = (t.contiguous() for t in (grad_means2d, grad_depths, grad_conics))
+        shape, f32, device = tuple(grad_depths.shape), torch.float32, means.device
+        outputs = [scratch("means2d", shape + (2,), f32, device), scratch("depths", shape, f32, device),
+                   scratch("conics", shape + (3,), f32, device), scratch("radii", shape, torch.int32, device)]
         launch(_project, (len(viewmats), len(means)), _project_arrays(means, covars, viewmats, Ks) + ctx.scalars,
-               means.device, outputs=_outputs(scratch),
+               device, outputs=_outputs(outputs),
                adj_inputs=[warp_view(grad_means, wp.vec3), warp_view(grad_covars, _sym6), None, None, 0, 0, 0.0, 0.0,
                            0.0],
-               adj_outputs=[warp_view(grad_means2d.contiguous(), wp.vec2), warp_view(grad_depths.contiguous()),
-                            warp_view(grad_conics.contiguous(), wp.vec3), None])
+               adj_outputs=[warp_view(grad_means2d, wp.vec2), warp_view(grad_depths), warp_view(grad_conics, wp.vec3),
+                            None])
         return grad_means, grad_covars, None, None, None, None, None, None, None
 
 

@@ -2,6 +2,8 @@
 per-call Python: array descriptors are cached by what they describe and CPU launches are replayed from recorded
 commands (a renderer frame makes ~8 launches with ~80 array arguments; packing them anew cost ~1-2 ms a frame)."""
 
+import threading
+
 import torch
 import warp as wp
 
@@ -10,12 +12,15 @@ wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)   # no init banne
 _VIEWS: dict = {}          # (address, shape, strides, torch dtype, device, warp dtype) -> array descriptor
 _VIEWS_MAX = 4096          # cleared when full: the renderer's working set is ~100 descriptors
 _COMMANDS: dict = {}       # (kernel, adjoint, torch device) -> recorded wp.Launch (CPU)
+_SCRATCH: dict = {}        # (name, shape, dtype, device, thread) -> work buffer
+_SCRATCH_MAX = 64          # cleared when full: the renderer uses ~10 per image size
 
 
 def warp_view(tensor: torch.Tensor, dtype=None):
     """A kernel argument sharing the memory of a contiguous tensor (detached: Warp never sees torch's autograd);
     the light ctype form of ``wp.from_torch``, valid for ``launch`` only.  A descriptor is only the address, shape,
-    strides and type of the memory, so one is reused for any tensor with the same ones."""
+    strides and type of the memory, so one is reused for any tensor with the same ones.  It does not keep the tensor
+    alive: the caller must hold the tensor until the launch has run (no ``warp_view(t.contiguous())``)."""
     key = (tensor.data_ptr(), tensor.shape, tensor.stride(), tensor.dtype, tensor.device, dtype)
     view = _VIEWS.get(key)
     if view is None:
@@ -23,7 +28,21 @@ def warp_view(tensor: torch.Tensor, dtype=None):
             _VIEWS.clear()
         wp.init()   # no-op once Warp is up
         view = _VIEWS[key] = wp.from_torch(tensor.detach(), dtype=dtype, return_ctype=True)
+        view._ref = view._gradref = None   # the cache holds no tensor alive: the caller keeps its tensors
     return view
+
+
+def scratch(name: str, shape: tuple, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """An uninitialised work buffer for memory that kernels write and read inside one call and no caller sees (not
+    a returned or saved tensor): the same memory (and ``warp_view``) for every call of the same name and shape on
+    the calling thread."""
+    key = (name, shape, dtype, device, threading.get_ident())
+    buffer = _SCRATCH.get(key)
+    if buffer is None:
+        if len(_SCRATCH) >= _SCRATCH_MAX:
+            _SCRATCH.clear()
+        buffer = _SCRATCH[key] = torch.empty(shape, dtype=dtype, device=device)
+    return buffer
 
 
 def launch(kernel, dim, inputs: list, device: torch.device, outputs: list | None = None,
