@@ -355,9 +355,10 @@ def row_spans(drawn: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor, 
     # 3. the spans, 4. each row sorted front to back
     spans = torch.empty(int(offsets[-1]), 3, dtype=torch.int32, device=device)
     starts = torch.empty(len(spans), 2, dtype=torch.float64, device=device)
+    cursors = scratch("cursors", (n_rows + 1,), torch.int32, device).zero_()
     launch(_fill_rows, len(drawn), views + [warp_view(boxes, wp.vec4i), height,
                                             warp_view(decay, wp.float64), warp_view(offsets),
-                                            warp_view(scratch("cursors", (n_rows + 1,), torch.int32, device).zero_()), warp_view(spans, wp.vec3i),
+                                            warp_view(cursors), warp_view(spans, wp.vec3i),
                                             warp_view(starts, wp.vec2d)], device)
     if device.type != "cpu":   # a CPU launch runs its threads in order: the buckets are filled sorted
         launch(_sort_rows, n_rows, [warp_view(offsets), warp_view(spans, wp.vec3i), warp_view(starts, wp.vec2d)],

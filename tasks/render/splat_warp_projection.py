@@ -79,7 +79,8 @@ class _QuatScaleToCovar(torch.autograd.Function):
     @staticmethod
     def backward(ctx, grad_covars):
         quats, scales = ctx.saved_tensors
-        grad_quats, grad_scales, grad_covars = torch.zeros_like(quats), torch.zeros_like(scales), grad_covars.contiguous()
+        grad_quats, grad_scales = torch.zeros_like(quats), torch.zeros_like(scales)
+        grad_covars = grad_covars.contiguous()
         launch(_quat_scale_to_covar, len(quats), [warp_view(quats, wp.vec4), warp_view(scales, wp.vec3)], quats.device,
                outputs=[warp_view(scratch("covars", (len(quats), 6), torch.float32, quats.device), _sym6)],
                adj_inputs=[warp_view(grad_quats, wp.vec4), warp_view(grad_scales, wp.vec3)],

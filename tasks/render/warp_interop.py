@@ -1,6 +1,6 @@
 """Zero-copy hand-over of torch tensors to NVIDIA Warp kernels on the tensors' device (CPU or CUDA), with little
 per-call Python: array descriptors are cached by what they describe and CPU launches are replayed from recorded
-commands (a renderer frame makes ~8 launches with ~80 array arguments; packing them anew cost ~1-2 ms a frame)."""
+commands (a renderer frame makes ~8 launches with ~80 array arguments; packing them anew cost ~1-2 ms a frame under load)."""
 
 import threading
 
@@ -11,7 +11,7 @@ wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)   # no init banne
 
 _VIEWS: dict = {}          # (address, shape, strides, torch dtype, device, warp dtype) -> array descriptor
 _VIEWS_MAX = 4096          # cleared when full: the renderer's working set is ~100 descriptors
-_COMMANDS: dict = {}       # (kernel, adjoint, torch device) -> recorded wp.Launch (CPU)
+_COMMANDS: dict = {}       # (kernel, adjoint, torch device, thread) -> (recorded wp.Launch, its dim) (CPU)
 _SCRATCH: dict = {}        # (name, shape, dtype, device, thread) -> work buffer
 _SCRATCH_MAX = 64          # cleared when full: the renderer uses ~10 per image size
 
@@ -59,21 +59,20 @@ def launch(kernel, dim, inputs: list, device: torch.device, outputs: list | None
                   adj_outputs=adj_outputs or [], adjoint=adjoint, device=wp.device_from_torch(device),
                   stream=wp.stream_from_torch(device))
         return
-    key = (kernel, adjoint, device)
-    command = _COMMANDS.get(key)
+    key = (kernel, adjoint, device, threading.get_ident())   # per thread: a command holds its arguments
+    command, last_dim = _COMMANDS.get(key, (None, None))
     if command is None:
-        command = _COMMANDS[key] = wp.launch(
-            kernel, dim=dim, inputs=inputs, outputs=outputs or [], adj_inputs=adj_inputs or [],
-            adj_outputs=adj_outputs or [], adjoint=adjoint, device=wp.device_from_torch(device), record_cmd=True)
-        command.last_dim = dim
+        command = wp.launch(kernel, dim=dim, inputs=inputs, outputs=outputs or [], adj_inputs=adj_inputs or [],
+                            adj_outputs=adj_outputs or [], adjoint=adjoint, device=wp.device_from_torch(device),
+                            record_cmd=True)
     else:
-        if command.last_dim != dim:
+        if last_dim != dim:
             command.set_dim(dim)
-            command.last_dim = dim
         for adjoint_part, values in ((False, args), (True, adj_args)):
             for i, value in enumerate(values):
                 if value is None:   # a null array (or a scalar's adjoint)
                     command.set_param_at_index(i, value, adjoint_part)
                 else:
                     command.set_param_at_index_from_ctype(i, value, adjoint_part)
+    _COMMANDS[key] = command, dim
     command.launch()
