@@ -28,7 +28,7 @@ Example (this 2-core AMD EPYC, AVX2, shared with ~14 other jobs, 1 thread): 192 
 0.41 M kept pairs of 0.89 M box pairs; floor 0.60-0.68 / 1.43-1.57 ms forward / forward+backward (exp-free
 0.22-0.24 / 0.69-0.76; the rates measured vary with the load); warp 4.5-4.9 / 11.0-12.2 ms at best under load
 (7.5-8.7x the floor in the runs of the README's "Renderer speed", medians 8.6-10.0x; the measured rates move with
-the load; ~18-30x the exp-free floor), torch
+the load; ~16-22x the exp-free floor), torch
 0.17-0.22 / 0.22-0.26 s.
 """
 
