@@ -107,9 +107,12 @@ def test_scene_media_made_on_a_worker_are_the_report_s_own(tmp_path, compose_cfg
     build("reference")  # every medium made by the report build itself
     made_by_report = {p.name for p in (root / ".media").iterdir()}
     shutil.rmtree(root / ".media")
-    # a second variant's task makes its scene's media alone (the object's own go with the first variant)
-    assert cache_scene_media("tomato", refs["tomato"], "full", str(root), first=False) == 5
-    assert cache_scene_media("tomato", refs["tomato"], "full", str(root), first=True) == len(made_by_report) - 6
+    # a second variant's task makes its scene's media alone (the object's own go with the first variant): stages
+    # and final videos, rollout, snapshots, the released material's flight and the refinement figure
+    assert cache_scene_media("tomato", refs["tomato"], "full", str(root), first=False) == 6
+    # the first variant's task adds the object's own (signals, control, contact sheet): all but the scene's 6 and the
+    # metric bars
+    assert cache_scene_media("tomato", refs["tomato"], "full", str(root), first=True) == len(made_by_report) - 7
     ahead = {p.name for p in (root / ".media").iterdir()}
     encoded = []
     real_encode = watch.encode_video
