@@ -272,6 +272,14 @@ def test_free_flight_excludes_released_material_held_by_the_table_a_wall_or_the_
     # not linked: only each particle's own distance counts (the pile's top particle is 7 mm above the table)
     own = free_flying(x, released, *box, 0.0, margin, *domain, linked=False)
     np.testing.assert_array_equal(own[0], [False, True, False, False, False, True])
+    # the body's grid reach (dx = 4 mm: stencils of two particles share nodes closer than 12 mm on every axis): a
+    # drop 11 mm beside a body particle is beyond the 5 mm margin but still coupled to it through the grid
+    x2 = np.array([[[0.045, 0.0, 0.03], [0.034, 0.0, 0.03], [0.06, 0.05, 0.05]]])
+    rel2 = np.array([True, False, True])
+    np.testing.assert_array_equal(free_flying(x2, rel2, *box, 0.0, margin, *domain, linked=False)[0],
+                                  [True, False, True])
+    np.testing.assert_array_equal(free_flying(x2, rel2, *box, 0.0, margin, *domain, linked=False,
+                                              body_reach=0.012)[0], [False, False, True])
 
 
 # ------------------------------------------------------------------------------------------ real rollouts

@@ -11,7 +11,8 @@ from scipy.spatial import cKDTree
 
 def free_flying(positions: np.ndarray, released: np.ndarray, box_min: np.ndarray, box_max: np.ndarray,
                 floor: float, margin: float, domain_min: np.ndarray | None = None,
-                domain_max: np.ndarray | None = None, linked: bool = True) -> np.ndarray:
+                domain_max: np.ndarray | None = None, linked: bool = True,
+                body_reach: float | None = None) -> np.ndarray:
     """Which released particles fly free in each frame.
 
     A particle flies free when it is released, lies outside the object's rest box grown by ``margin`` (m) on every
@@ -24,7 +25,10 @@ def free_flying(positions: np.ndarray, released: np.ndarray, box_min: np.ndarray
     ``linked`` False only the particle's own distance counts: a particle of a continuous jet that is itself more
     than ``margin`` from the table, the walls and the body flies free although the jet's foot is on the table (the
     juice of the default scenes leaves the opening as one jet that reaches the table before it leaves the object's
-    box: linked, none of it ever flies free).
+    box: linked, none of it ever flies free).  ``body_reach`` (m, with ``linked`` False): a particle is held by the
+    body when a body particle lies within that distance of it on every axis (Chebyshev distance) instead of within
+    ``margin``: with quadratic B-splines two particles share grid nodes, so the grid couples them, when they are less
+    than 3 dx apart on every axis (their stencils reach 1.5 dx each way), further than a 2 dx sphere reaches.
 
     Args:
         positions: (frame, particle, xyz) m.
@@ -49,7 +53,10 @@ def free_flying(positions: np.ndarray, released: np.ndarray, box_min: np.ndarray
         xr = x[f, idx]
         held = (xr[:, 2] <= floor + margin) | np.any((xr <= dlo) | (xr >= dhi), axis=1)
         if (~rel).any():
-            held |= cKDTree(x[f, ~rel]).query(xr, distance_upper_bound=margin)[0] <= margin
+            if linked or body_reach is None:
+                held |= cKDTree(x[f, ~rel]).query(xr, distance_upper_bound=margin)[0] <= margin
+            else:
+                held |= cKDTree(x[f, ~rel]).query(xr, p=np.inf, distance_upper_bound=body_reach)[0] < body_reach
         if not linked:
             free[f, idx[held]] = False
             continue

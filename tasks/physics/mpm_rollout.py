@@ -683,12 +683,14 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
 def free_set(scene: Scene, positions: np.ndarray, interior: np.ndarray, linked: bool = True) -> np.ndarray:
     """(frame, particle) bool: the ``interior`` particles flying free in ``positions`` (frame, particle, xyz) m
     (:func:`free_flying` with a margin of 2 dx, the table and the domain walls: the node layers within ``padding``
-    of the domain's faces; ``linked``: a cluster touching any of them or the body is held)."""
+    of the domain's faces; ``linked``: a cluster touching any of them or the body is held; not linked, a particle
+    sharing a grid node with the body, closer than 3 dx to it on every axis, is held)."""
     solver = scene.solver
     pad = scene.config.padding * solver.dx
     return free_flying(positions, interior, scene.bbox_min, scene.bbox_max,
                        float(solver.floor_height if solver.floor_height is not None else -np.inf), 2.0 * scene.dx,
-                       solver.lo + pad, solver.lo + (np.asarray(solver.dims) - 1) * solver.dx - pad, linked)
+                       solver.lo + pad, solver.lo + (np.asarray(solver.dims) - 1) * solver.dx - pad, linked,
+                       body_reach=3.0 * scene.dx)
 
 
 def _flight_arrays(flight: Optional[FlightRecord]) -> dict[str, Array]:
