@@ -67,6 +67,15 @@ def free_flying(positions: np.ndarray, released: np.ndarray, box_min: np.ndarray
     return free
 
 
+def mean_free_height(z: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """(sample,) m: the mean height of the particles flying free at each sample (NaN when none); ``z`` (sample,
+    particle) m, ``free`` (sample, particle) bool."""
+    count = free.sum(axis=1)
+    height = np.full(len(z), np.nan)
+    height[count > 0] = (z * free).sum(axis=1)[count > 0] / count[count > 0]
+    return height
+
+
 def released_flight(positions: np.ndarray, free: np.ndarray, frame_dt: float) -> tuple[np.ndarray, float]:
     """Mean height of the free-flying particles per frame and their fitted vertical acceleration.
 
@@ -81,9 +90,7 @@ def released_flight(positions: np.ndarray, free: np.ndarray, frame_dt: float) ->
         no particle flies free for three consecutive frames); g = -9.81 for material in free fall.
     """
     z = np.asarray(positions, np.float64)[..., 2]
-    count = free.sum(axis=1)
-    height = np.full(len(z), np.nan)
-    height[count > 0] = (z * free).sum(axis=1)[count > 0] / count[count > 0]
+    height = mean_free_height(z, free)
     if len(z) < 3:
         return height, float("nan")
     accel = (z[2:] - 2.0 * z[1:-1] + z[:-2]) / frame_dt ** 2  # (frame - 2, particle)

@@ -61,7 +61,7 @@ from conf.mpm_schema import MPMConfig, mpm_config_from
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
 from tasks.physics.attachment import detached_summary
-from tasks.physics.free_flight import flight_acceleration, free_flying, free_runs, released_flight
+from tasks.physics.free_flight import flight_acceleration, free_flying, free_runs, mean_free_height, released_flight
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
 from tasks.physics.mpm.materials import Material, material_from_dict
 from tasks.physics.mpm.solver import (
@@ -203,6 +203,10 @@ class FlightRecord:
         self.times.append(float(t))
         self.z.append(x[self.interior, 2].copy())
         self.free.append(free_set(scene, x[None], self.interior, linked=False)[0, self.interior])
+
+    def as_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(times (sample,) s, z (sample, interior) m, free (sample, interior) bool)."""
+        return np.array(self.times), np.array(self.z, np.float64), np.array(self.free, bool)
 
 
 def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], field: Mapping[str, np.ndarray],
@@ -655,8 +659,9 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
                                     scene.frame_dt)
         arrays["released_height"] = Array(height.astype(np.float32), ("frame",), "m",
                                           "mean z of the released particles flying free (NaN: none)")
-        arrays.update(_flight_arrays(rec.flight))
-        free_fall = _flight_summary(rec.flight)
+        samples = rec.flight.as_arrays() if rec.flight is not None and rec.flight.times else None
+        arrays.update(_flight_arrays(samples))
+        free_fall = _flight_summary(samples)
     attrs = {
         "boundary": boundary, "materials": [m.name for m in scene.materials], "n_particles": int(len(mid)),
         "n_interior": int((mid == INTERIOR).sum()),
@@ -693,15 +698,15 @@ def free_set(scene: Scene, positions: np.ndarray, interior: np.ndarray, linked: 
                        body_reach=3.0 * scene.dx)
 
 
-def _flight_arrays(flight: Optional[FlightRecord]) -> dict[str, Array]:
-    """The flight recorder's samples in the artifact (no release: none): time, the free particles' mean height
-    and their count per sample."""
-    if flight is None or not flight.times:
+def _flight_arrays(samples: Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> dict[str, Array]:
+    """The flight recorder's ``samples`` (:meth:`FlightRecord.as_arrays`; None: no release, no arrays) in the
+    artifact: time, the free particles' mean height and their count per sample."""
+    if samples is None:
         return {}
-    z, free = np.array(flight.z, np.float64), np.array(flight.free, bool)
+    t, z, free = samples
     count = free.sum(axis=1)
-    height = np.where(count > 0, (z * free).sum(axis=1) / np.maximum(count, 1), np.nan)
-    return {"released_flight_time": Array(np.array(flight.times), ("sample",), "s",
+    height = mean_free_height(z, free)
+    return {"released_flight_time": Array(t, ("sample",), "s",
                                           f"flight recorder: every {FLIGHT_SAMPLE_SUBSTEPS} substeps for "
                                           f"{FLIGHT_FRAMES} frames after the release"),
             "released_flight_height": Array(height.astype(np.float32), ("sample",), "m",
@@ -710,14 +715,14 @@ def _flight_arrays(flight: Optional[FlightRecord]) -> dict[str, Array]:
                                            "released particles flying free")}
 
 
-def _flight_summary(flight: Optional[FlightRecord]) -> Optional[dict[str, Any]]:
-    """The released material's measured free fall (:func:`flight_acceleration` on the flight recorder's samples):
+def _flight_summary(samples: Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> Optional[dict[str, Any]]:
+    """The released material's measured free fall (:func:`flight_acceleration` on the flight recorder's ``samples``):
     acceleration m/s^2 (None: nothing flew free for 3 samples), the particles it is the median over, the 10th and
     90th percentiles of their accelerations (m/s^2: the pressure inside a jet spreads them), the most particles
     free at once and the longest time any particle flew free (s).  None without a release."""
-    if flight is None or not flight.times:
+    if samples is None:
         return None
-    t, z, free = np.array(flight.times), np.array(flight.z, np.float64), np.array(flight.free, bool)
+    t, z, free = samples
     accel, each = flight_acceleration(t, z, free)
     longest = max([t[b - 1] - t[a] for p in np.flatnonzero(free.any(axis=0)) for a, b in free_runs(free[:, p])],
                   default=0.0)
