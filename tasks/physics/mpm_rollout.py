@@ -400,7 +400,8 @@ def record_frame(rec: FrameRecord, f: int, scene: Scene, mu_phys: np.ndarray, co
     rec.particle_J[f], rec.particle_von_mises[f] = cauchy_free_measures(F, mu_phys)
     if rec.plastic_strain is not None:
         rec.plastic_strain[f] = solver.plastic_strain()
-    tx, tF = solver.tracer_positions(), solver.tracer_F().astype(np.float64)
+    tx, tF = solver.tracer_state()
+    tF = tF.astype(np.float64)
     rec.gaussian_positions[f] = tx
     rec.gaussian_covariances[f] = _sym6(deform_covariances(tF, cov0))
     rec.gaussian_rotations[f] = rotate_quaternions(polar_rotation(tF), q0)
@@ -570,7 +571,7 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
         # 4. the threshold release (once)
         if (scene.with_interior and not rec.event["crossed"] and threshold is not None
                 and rec.strain[f].max() >= threshold):
-            tx = solver.tracer_positions()
+            tx = rec.gaussian_positions[f]  # placed by record_frame at the end of this frame
             centers = np.array([tx[reg.region[f, k]].mean(axis=0) if reg.region[f, k].any()
                                 else patches["patch_centers"][f, k] for k in range(N_FINGERS)])
             rec.event = _release(solver, f, times[f], rec.strain[f], threshold, patches, centers, rec.reaction[f],

@@ -23,7 +23,7 @@ Boundary conditions (generic; the finger field is connected by the caller)
     * floor plane and domain walls (config).
 Tracers (surface 3D Gaussians) are embedded in the material: each is bound at rest to its nearest particles
 (:meth:`MPMSolver._bind_tracers`) and placed from their positions and deformation gradients when read
-(``tracer_positions``, ``tracer_F``), so it cannot drift off the material; deform covariances with
+(``tracer_positions``, ``tracer_state``), so it cannot drift off the material; deform covariances with
 :func:`deform_covariances` (F Sigma F^T) and rotate with :func:`polar_rotation`.
 """
 from __future__ import annotations
@@ -1498,10 +1498,11 @@ class MPMSolver:
         self._place_tracers()
         return self.tx.numpy()[: self.n_tracers].copy()
 
-    def tracer_F(self) -> np.ndarray:
-        """(T, 3, 3), each tracer's deformation gradient: the weighted mean of its anchors'."""
+    def tracer_state(self) -> tuple[np.ndarray, np.ndarray]:
+        """The tracers placed once from their anchors' current state: positions (T, 3) m and deformation
+        gradients (T, 3, 3), each the weighted mean of its anchors' F."""
         self._place_tracers()
-        return self.tF.numpy()[: self.n_tracers].copy()
+        return self.tx.numpy()[: self.n_tracers].copy(), self.tF.numpy()[: self.n_tracers].copy()
 
     def grid_mass(self) -> float:
         """Total mass (kg) on the grid from the last P2G (float64 sum of the nodal masses of both velocity
