@@ -109,15 +109,17 @@ def work_counts(scene: list[torch.Tensor], viewmats: torch.Tensor, Ks: torch.Ten
 
 def machine_rates() -> dict:
     """This core's fp32 matmul rate (flop/s), vectorised exp rate (1/s: the faster of torch and numpy on 16k
-    cache-resident floats, 64 calls a run) and copy bandwidth (bytes/s), best of 3."""
-    a, b = torch.rand(1024, 1024), torch.rand(1024, 1024)
+    cache-resident floats, 64 calls a run) and copy bandwidth (bytes/s, 64 MB), best of 3; every output is
+    preallocated (a fresh 64 MB copy's page faults halved the bandwidth read and made it swing with the load)."""
+    a, b, c = torch.rand(1024, 1024), torch.rand(1024, 1024), torch.empty(1024, 1024)
     x, y = torch.rand(1 << 14), torch.empty(1 << 14)
     xn, yn = x.numpy(), y.numpy()
     big = np.random.default_rng(0).random(1 << 24, dtype=np.float32)
-    flops = 2 * 1024**3 / _best_cpu_time(lambda: torch.mm(a, b), 3)
+    copy = np.empty_like(big)
+    flops = 2 * 1024**3 / _best_cpu_time(lambda: torch.mm(a, b, out=c), 3)
     exp_calls = (lambda: [torch.exp(x, out=y) for _ in range(64)], lambda: [np.exp(xn, out=yn) for _ in range(64)])
     exps = max(64 * len(x) / _best_cpu_time(call, 3) for call in exp_calls)
-    bandwidth = 2 * big.nbytes / _best_cpu_time(big.copy, 3)
+    bandwidth = 2 * big.nbytes / _best_cpu_time(lambda: np.copyto(copy, big), 3)
     return {"flops": flops, "exps": exps, "bandwidth": bandwidth}
 
 
@@ -159,13 +161,15 @@ def time_against_floor(scene: list[torch.Tensor], viewmats: torch.Tensor, Ks: to
     """Per repeat: the floor's rates (``machine_rates``), then the best of FRAMES_PER_REPEAT forward and of as many
     forward+backward frames (thread CPU time, s; the median wall time beside it) and the floors from those rates.  The machine's speed drifts (on a shared VM whole
     seconds run ~1.3-1.5x slower, for every workload alike: the renderer, torch's exp and matmul, plain Python), so
-    the floor is measured beside every frame, not once per run; a slow spell then moves both.  Returns lists."""
+    the floor is measured beside every frame, not once per run; a slow spell then moves both.  Returns lists (s;
+    exp_rate: the measured exps/s, whose spread shows the machine's drift)."""
     frames = [frame_function(scene, viewmats, Ks, resolution, backend, backward) for backward in (False, True)]
     out = {key: [] for key in ("forward_s", "forward_backward_s", "forward_wall_s", "forward_backward_wall_s",
                                "floor_forward_s", "floor_forward_backward_s", "exp_free_floor_forward_s",
-                               "exp_free_floor_forward_backward_s")}
+                               "exp_free_floor_forward_backward_s", "exp_rate")}
     for _ in range(repeats):
         rates = machine_rates()
+        out["exp_rate"].append(rates["exps"])
         for key, value in zip(("floor_forward_s", "floor_forward_backward_s", "exp_free_floor_forward_s",
                                "exp_free_floor_forward_backward_s"),
                               floor_seconds(counts, rates) + floor_seconds(counts, rates, exp_free=True)):
@@ -202,10 +206,11 @@ def main(resolutions: tuple[int, ...] = (RenderConfig.width,),
     print(f"machine (1 thread, at the start): {rates['flops'] / 1e9:.0f} GFLOP/s fp32 matmul, "
           f"{rates['exps'] / 1e9:.2f} G exp/s vectorised, {rates['bandwidth'] / 1e9:.1f} GB/s copy; rates and floors "
           f"re-measured before every repeat; times: thread CPU, best of the repeats (median); ratios to the floor "
-          f"of the same repeat: best-median-worst; floors (medians): 3DGS (an exp per pair), exp-free (docstring)")
+          f"of the same repeat: best-median-worst; floors (medians): 3DGS (an exp per pair), exp-free (docstring); "
+          f"x exp-free: medians; G exp/s: the range measured over the repeats")
     print(f"{'res':>4} {'N':>6} {'kept/box pairs':>16} {'contrib':>8} {'floor fwd / f+b':>16} {'exp-free':>12} "
           f"{'backend':>7} {'reps':>4} {'forward ms':>14} {'fwd+bwd ms':>14} {'x floor fwd':>15} "
-          f"{'x floor f+b':>15} {'<10x':>7} {'x exp-free':>11} {'extra MB':>8}")
+          f"{'x floor f+b':>15} {'<10x':>7} {'x exp-free':>11} {'G exp/s':>9} {'extra MB':>8}")
     rows = []
     for resolution in resolutions:
         viewmats, Ks = sphere_camera(resolution)
@@ -221,7 +226,8 @@ def main(resolutions: tuple[int, ...] = (RenderConfig.width,),
                 free = {name: t[f"{name}_s"] / t[f"exp_free_floor_{name}_s"] for name in ratios}
                 row = {"resolution": resolution, "backend": backend, **counts, "repeats": repeats,
                        **{key: float(np.median(v)) for key, v in t.items() if "floor" in key},
-                       **{key: float(v.min()) for key, v in t.items() if "floor" not in key and "wall" not in key},
+                       **{key: float(t[key].min()) for key in ("forward_s", "forward_backward_s")},
+                       "exp_rates": t["exp_rate"].tolist(),
                        **{key: float(np.median(v)) for key, v in t.items() if "wall" in key},
                        **{f"ratio_{name}": v.tolist() for name, v in ratios.items()},
                        **{f"exp_free_ratio_{name}": v.tolist() for name, v in free.items()},
@@ -237,6 +243,7 @@ def main(resolutions: tuple[int, ...] = (RenderConfig.width,),
                       f"{row['exp_free_floor_forward_backward_s'] * 1e3:.2f} {backend:>7} {repeats:>4}{times}{spread} "
                       f"{under:>3}/{repeats:<3} {np.median(free['forward']):>5.1f}/"
                       f"{np.median(free['forward_backward']):<5.1f} "
+                      f"{t['exp_rate'].min() / 1e9:>4.2f}-{t['exp_rate'].max() / 1e9:<4.2f} "
                       f"{'n/a' if memory is None else f'{memory / 2**20:.0f}':>8}", flush=True)
     return rows
 
