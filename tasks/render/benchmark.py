@@ -26,14 +26,15 @@ It is the floor of the 3DGS formulation (one exp per pair).  An exp per pair is 
 exp of a quadratic along an image row, so the compositor evaluates it by a recurrence (2 multiplies per pair,
 2 exps per row span, ``splat_warp``); the exp-free floor charges that instead (RECURRENCE_FLOP per kept pair,
 2 exps per box row) and is printed beside the first: the stricter bound.  The exp rate is that of this machine's
-vectorised libraries (torch / numpy): ~0.8 G exp/s on one AVX2 core (AMD EPYC), 2.3-4.0 G exp/s on one AVX-512
-core (Intel Xeon, torch) - the 3DGS floor is ~3x lower on the second; the exp-free floor moves less.
+vectorised libraries (torch / numpy): ~0.8 G exp/s on one AVX2 core (AMD EPYC), 2.0-4.0 G exp/s on one AVX-512
+core (Intel Xeon, torch): the 3DGS floor is ~3x lower on the second.
 
-Example (2-core Intel Xeon, AVX-512, 1 thread, under load: load average 3-4 from other jobs): 192 x 192 px, N =
-3,000 (3,400): 0.41 M kept pairs of 0.89 M box pairs; floor (median) 0.18-0.23 / 0.46-0.60 ms forward /
-forward+backward (exp-free 0.12-0.15 / 0.37-0.45); warp 4.3-4.6 / 10.4-10.9 ms at best, 17-41x the 3DGS floor
-(16.5-19.3x at best, 23-29x median), ~28-41x the exp-free floor; torch 0.15-0.21 / 0.21-0.24 s.  On the AVX2 EPYC
-the same code read 4.2-4.9 / 10.3-12.5 ms, 5.6-8.5x its floor of 0.6-0.86 ms (README).
+Example (2-core Intel Xeon, AVX-512, 1 thread, heavily loaded: load average 5-7 from other jobs; three runs):
+192 x 192 px, N = 3,000 (3,400): 0.41 M kept pairs of 0.89 M box pairs; floor (medians) 0.18-0.25 / 0.47-0.63 ms
+forward / forward+backward (exp-free 0.08-0.11 / 0.30-0.39); warp 4.7-5.8 / 10.8-13.0 ms at best, 20-27x / 19-23x
+the floor at best, medians 28-34x / 25-30x, no repeat below 10x (exp-free: 61-74x / 39-48x); torch 0.17-0.20 /
+0.24-0.27 s.  On an AVX2 AMD EPYC (exp ~0.8 G/s, floor 0.6-0.86 ms) the same code read 4.2-4.9 / 10.3-12.5 ms,
+5.6-8.5x its floor, outside slow spells (README, "Renderer speed").
 """
 
 import ctypes
