@@ -7,8 +7,13 @@ field of view (the sphere spans ~70 % of the frame width; the rig's ``render.fil
 conf/render_schema.py) and the object sizes of the evaluation grid: ``sampling.surface_points`` surface Gaussians
 alone, and with RELEASED_MAX more (the most released particles any grid object draws: the plush toy's ~370).
 Times are per frame and view (one camera) on one thread: the CPU time of the calling thread (torch and Warp's CPU
-kernels run on it with torch.set_num_threads(1)), the best of a few runs, less sensitive than wall time to other
-jobs sharing the machine; the wall time is printed beside it.
+kernels run on it with torch.set_num_threads(1)); the wall time is printed beside it.  The machine's speed is not
+constant: on the shared VMs this runs on, spells of seconds run every workload ~1.3-1.5x slower in thread CPU time -
+the renderer, torch's exp and matmul and plain Python alike, timed side by side in one process; not steal time (the
+kernel leaves it out of thread time), page faults or threads (README, "Renderer speed").  So the floor's rates are
+measured again before each of REPEATS repeats, a repeat times the best of FRAMES_PER_REPEAT consecutive frames, and
+each ratio to the floor is taken within its repeat; the best, median and worst ratio are printed, with how many
+repeats are below 10x on both passes.
 
 Floor model, per frame: every kept (Gaussian, pixel) pair (alpha >= 1/255) costs KEPT_PAIR_FLOP flop + 1 exp
 to be tested; every contributing pair (in front of its pixel's stop) CONTRIBUTING_FLOP_FORWARD (+ 2 per channel)
@@ -21,15 +26,15 @@ It is the floor of the 3DGS formulation (one exp per pair).  An exp per pair is 
 exp of a quadratic along an image row, so the compositor evaluates it by a recurrence (2 multiplies per pair,
 2 exps per row span, ``splat_warp``); the exp-free floor charges that instead (RECURRENCE_FLOP per kept pair,
 2 exps per box row) and is printed beside the first: the stricter bound.  The exp rate is that of this machine's
-vectorised libraries (torch / numpy, ~0.8 G exp/s on one AVX2 core here); a hand-tuned SIMD exp could be ~3x faster,
-which would lower the 3DGS floor by up to ~2x (not the exp-free one).
+vectorised libraries (torch / numpy): ~0.8 G exp/s on one AVX2 core (AMD EPYC), 2.0-4.0 G exp/s on one AVX-512
+core (Intel Xeon, torch): the 3DGS floor is ~3x lower on the second.
 
-Example (this 2-core AMD EPYC, AVX2, shared with ~14 other jobs, 1 thread): 192 x 192 px, N = 3,000 (3,400):
-0.41 M kept pairs of 0.89 M box pairs; floor 0.60-0.68 / 1.43-1.57 ms forward / forward+backward (exp-free
-0.22-0.24 / 0.69-0.76; the rates measured vary with the load); warp 4.5-4.9 / 11.0-12.2 ms at best under load
-(7.5-8.7x the floor in the runs of the README's "Renderer speed", medians 8.6-10.0x; the measured rates move with
-the load; ~16-22x the exp-free floor), torch
-0.17-0.22 / 0.22-0.26 s.
+Example (2-core Intel Xeon, AVX-512, 1 thread, heavily loaded: load average 5-7 from other jobs; three runs):
+192 x 192 px, N = 3,000 (3,400): 0.41 M kept pairs of 0.89 M box pairs; floor (medians) 0.18-0.25 / 0.47-0.63 ms
+forward / forward+backward (exp-free 0.08-0.11 / 0.30-0.39); warp 4.7-5.8 / 10.8-13.0 ms at best, 20-27x / 19-23x
+the floor at best, medians 28-34x / 25-30x, no repeat below 10x (exp-free: 61-74x / 39-48x); torch 0.17-0.20 /
+0.24-0.27 s.  On an AVX2 AMD EPYC (exp ~0.8 G/s, floor 0.6-0.86 ms) the same code read 4.2-4.9 / 10.3-12.5 ms,
+5.6-8.5x its floor, outside slow spells (README, "Renderer speed").
 """
 
 import ctypes
@@ -54,6 +59,8 @@ PROJECTION_FLOP = 250          # R S S^T R^T, W cov W^T, J cov J^T, conic, radiu
 RECURRENCE_FLOP = 5            # exp-free floor, per kept pair: two multiplies (the recurrence), alpha, two tests
 N_COLORS = 4                   # RGB + mask
 FOV_DEG, DISTANCE_M = 40.0, 4.0
+REPEATS = 20                  # repeats of the Warp backend (each: rates, then frames); torch: 3
+FRAMES_PER_REPEAT = 3         # consecutive frames after each measurement of the rates (the copy leaves caches cold)
 RELEASED_MAX = 400             # released-particle Gaussians on top of the surface's (grid maximum: plush toy 368)
 
 
@@ -103,15 +110,17 @@ def work_counts(scene: list[torch.Tensor], viewmats: torch.Tensor, Ks: torch.Ten
 
 def machine_rates() -> dict:
     """This core's fp32 matmul rate (flop/s), vectorised exp rate (1/s: the faster of torch and numpy on 16k
-    cache-resident floats, 64 calls a run) and copy bandwidth (bytes/s), best of 3."""
-    a, b = torch.rand(1024, 1024), torch.rand(1024, 1024)
+    cache-resident floats, 64 calls a run) and copy bandwidth (bytes/s, 64 MB), best of 3; every output is
+    preallocated (a fresh 64 MB copy's page faults halved the bandwidth read and made it swing with the load)."""
+    a, b, c = torch.rand(1024, 1024), torch.rand(1024, 1024), torch.empty(1024, 1024)
     x, y = torch.rand(1 << 14), torch.empty(1 << 14)
     xn, yn = x.numpy(), y.numpy()
     big = np.random.default_rng(0).random(1 << 24, dtype=np.float32)
-    flops = 2 * 1024**3 / _best_cpu_time(lambda: torch.mm(a, b), 3)
+    copy = np.empty_like(big)
+    flops = 2 * 1024**3 / _best_cpu_time(lambda: torch.mm(a, b, out=c), 3)
     exp_calls = (lambda: [torch.exp(x, out=y) for _ in range(64)], lambda: [np.exp(xn, out=yn) for _ in range(64)])
     exps = max(64 * len(x) / _best_cpu_time(call, 3) for call in exp_calls)
-    bandwidth = 2 * big.nbytes / _best_cpu_time(big.copy, 3)
+    bandwidth = 2 * big.nbytes / _best_cpu_time(lambda: np.copyto(copy, big), 3)
     return {"flops": flops, "exps": exps, "bandwidth": bandwidth}
 
 
@@ -133,9 +142,10 @@ def floor_seconds(counts: dict, rates: dict, exp_free: bool = False) -> tuple[fl
     return forward, forward + backward
 
 
-def time_frame(scene: list[torch.Tensor], viewmats: torch.Tensor, Ks: torch.Tensor, resolution: int, backend: str,
-               backward: bool, repeats: int) -> tuple[float, float]:
-    """Best CPU time and median wall time (s) of one frame, forward or forward+backward w.r.t. every parameter."""
+def frame_function(scene: list[torch.Tensor], viewmats: torch.Tensor, Ks: torch.Tensor, resolution: int,
+                   backend: str, backward: bool):
+    """One frame, forward or forward+backward w.r.t. every parameter, as a call; run once (warm-up: Warp compiles
+    or loads its kernels)."""
     leaves = [t.clone().requires_grad_(backward) for t in scene]
 
     def frame():
@@ -143,10 +153,33 @@ def time_frame(scene: list[torch.Tensor], viewmats: torch.Tensor, Ks: torch.Tens
         if backward:
             (image.sum() + alphas.sum()).backward()
 
-    frame()   # warm-up: Warp compiles or loads its kernels
-    walls = []
-    cpu = _best_cpu_time(frame, repeats, walls)
-    return cpu, float(np.median(walls))
+    frame()
+    return frame
+
+
+def time_against_floor(scene: list[torch.Tensor], viewmats: torch.Tensor, Ks: torch.Tensor, resolution: int,
+                       backend: str, counts: dict, repeats: int) -> dict:
+    """Per repeat: the floor's rates (``machine_rates``), then the best of FRAMES_PER_REPEAT forward and of as many
+    forward+backward frames (thread CPU time, s; the median wall time beside it) and the floors from those rates.  The machine's speed drifts (on a shared VM whole
+    seconds run ~1.3-1.5x slower, for every workload alike: the renderer, torch's exp and matmul, plain Python), so
+    the floor is measured beside every frame, not once per run; a slow spell then moves both.  Returns lists (s;
+    exp_rate: the measured exps/s, whose spread shows the machine's drift)."""
+    frames = [frame_function(scene, viewmats, Ks, resolution, backend, backward) for backward in (False, True)]
+    out = {key: [] for key in ("forward_s", "forward_backward_s", "forward_wall_s", "forward_backward_wall_s",
+                               "floor_forward_s", "floor_forward_backward_s", "exp_free_floor_forward_s",
+                               "exp_free_floor_forward_backward_s", "exp_rate")}
+    for _ in range(repeats):
+        rates = machine_rates()
+        out["exp_rate"].append(rates["exps"])
+        for key, value in zip(("floor_forward_s", "floor_forward_backward_s", "exp_free_floor_forward_s",
+                               "exp_free_floor_forward_backward_s"),
+                              floor_seconds(counts, rates) + floor_seconds(counts, rates, exp_free=True)):
+            out[key].append(value)
+        for name, frame in zip(("forward", "forward_backward"), frames):
+            walls = []
+            out[f"{name}_s"].append(_best_cpu_time(frame, FRAMES_PER_REPEAT, walls))
+            out[f"{name}_wall_s"].append(float(np.median(walls)))
+    return out
 
 
 def peak_extra_memory(scene: list[torch.Tensor], viewmats: torch.Tensor, Ks: torch.Tensor, resolution: int,
@@ -158,7 +191,7 @@ def peak_extra_memory(scene: list[torch.Tensor], viewmats: torch.Tensor, Ks: tor
         with open("/proc/self/clear_refs", "w") as f:
             f.write("5")
         before = _status_bytes("VmRSS")
-        time_frame(scene, viewmats, Ks, resolution, backend, True, 1)
+        frame_function(scene, viewmats, Ks, resolution, backend, True)
         return _status_bytes("VmHWM") - before
     except (OSError, AttributeError):
         return None
@@ -171,36 +204,48 @@ def main(resolutions: tuple[int, ...] = (RenderConfig.width,),
     work counts, the floors and the ratios to them (defaults: the default render resolution, the grid's sizes)."""
     torch.set_num_threads(int(os.environ.get("VIRSQUEEZER_TORCH_THREADS", "1")))
     rates = machine_rates()
-    print(f"machine (1 thread): {rates['flops'] / 1e9:.0f} GFLOP/s fp32 matmul, {rates['exps'] / 1e9:.2f} G exp/s "
-          f"vectorised, {rates['bandwidth'] / 1e9:.1f} GB/s copy; times = best thread CPU time (median wall); "
-          f"floors: 3DGS (an exp per pair) and exp-free (module docstring)")
+    print(f"machine (1 thread, at the start): {rates['flops'] / 1e9:.0f} GFLOP/s fp32 matmul, "
+          f"{rates['exps'] / 1e9:.2f} G exp/s vectorised, {rates['bandwidth'] / 1e9:.1f} GB/s copy; rates and floors "
+          f"re-measured before every repeat; times: thread CPU, best of the repeats (median); ratios to the floor "
+          f"of the same repeat: best-median-worst; floors (medians): 3DGS (an exp per pair), exp-free (docstring); "
+          f"x exp-free: medians; G exp/s: the range measured over the repeats")
     print(f"{'res':>4} {'N':>6} {'kept/box pairs':>16} {'contrib':>8} {'floor fwd / f+b':>16} {'exp-free':>12} "
-          f"{'backend':>7} {'forward s':>18} {'fwd+bwd s':>18} {'x floor':>11} {'x exp-free':>11} {'extra MB':>8}")
+          f"{'backend':>7} {'reps':>4} {'forward ms':>14} {'fwd+bwd ms':>14} {'x floor fwd':>15} "
+          f"{'x floor f+b':>15} {'<10x':>7} {'x exp-free':>11} {'G exp/s':>9} {'extra MB':>8}")
     rows = []
     for resolution in resolutions:
         viewmats, Ks = sphere_camera(resolution)
         for n in sizes:
             scene = sphere_scene(n)
             counts = work_counts(scene, viewmats, Ks, resolution)
-            floor_f, floor_fb = floor_seconds(counts, rates)
-            free_f, free_fb = floor_seconds(counts, rates, exp_free=True)
             for backend in backends:
-                repeats = 3 if backend == "torch" else 7
-                forward = time_frame(scene, viewmats, Ks, resolution, backend, False, repeats)
-                both = time_frame(scene, viewmats, Ks, resolution, backend, True, repeats)
+                repeats = 3 if backend == "torch" else REPEATS
+                t = {key: np.array(v) for key, v in
+                     time_against_floor(scene, viewmats, Ks, resolution, backend, counts, repeats).items()}
                 memory = peak_extra_memory(scene, viewmats, Ks, resolution, backend)
-                row = {"resolution": resolution, "backend": backend, **counts, "floor_forward_s": floor_f,
-                       "floor_forward_backward_s": floor_fb, "exp_free_floor_forward_s": free_f,
-                       "exp_free_floor_forward_backward_s": free_fb, "forward_s": forward[0],
-                       "forward_wall_s": forward[1], "forward_backward_s": both[0],
-                       "forward_backward_wall_s": both[1], "peak_extra_bytes": memory}
+                ratios = {name: t[f"{name}_s"] / t[f"floor_{name}_s"] for name in ("forward", "forward_backward")}
+                free = {name: t[f"{name}_s"] / t[f"exp_free_floor_{name}_s"] for name in ratios}
+                row = {"resolution": resolution, "backend": backend, **counts, "repeats": repeats,
+                       **{key: float(np.median(v)) for key, v in t.items() if "floor" in key},
+                       **{key: float(t[key].min()) for key in ("forward_s", "forward_backward_s")},
+                       "exp_rates": t["exp_rate"].tolist(),
+                       **{key: float(np.median(v)) for key, v in t.items() if "wall" in key},
+                       **{f"ratio_{name}": v.tolist() for name, v in ratios.items()},
+                       **{f"exp_free_ratio_{name}": v.tolist() for name, v in free.items()},
+                       "peak_extra_bytes": memory}
                 rows.append(row)
+                under = sum(int(v.max() < 10) for v in np.stack(list(ratios.values()), 1))
+                times = "".join(f" {t[f'{name}_s'].min() * 1e3:>6.2f} ({np.median(t[f'{name}_s']) * 1e3:.2f})"
+                                for name in ratios)
+                spread = "".join(f" {v.min():>4.1f}-{np.median(v):.1f}-{v.max():<4.1f}" for v in ratios.values())
                 print(f"{resolution:>4} {n:>6} {counts['kept_pairs'] / 1e6:>6.2f}M/{counts['box_pairs'] / 1e6:.2f}M "
-                      f"{counts['contributing_pairs'] / 1e6:>7.2f}M {floor_f * 1e3:>6.2f}/{floor_fb * 1e3:.2f} ms "
-                      f"{free_f * 1e3:>5.2f}/{free_fb * 1e3:.2f} {backend:>7} {forward[0]:>7.4f} ({forward[1]:.4f}) "
-                      f"{both[0]:>7.4f} ({both[1]:.4f}) {forward[0] / floor_f:>5.1f}/{both[0] / floor_fb:<5.1f} "
-                      f"{forward[0] / free_f:>5.1f}/{both[0] / free_fb:<5.1f} "
-                      f"{'n/a' if memory is None else f'{memory / 2**20:.0f}':>8}")
+                      f"{counts['contributing_pairs'] / 1e6:>7.2f}M {row['floor_forward_s'] * 1e3:>6.2f}/"
+                      f"{row['floor_forward_backward_s'] * 1e3:.2f} ms {row['exp_free_floor_forward_s'] * 1e3:>5.2f}/"
+                      f"{row['exp_free_floor_forward_backward_s'] * 1e3:.2f} {backend:>7} {repeats:>4}{times}{spread} "
+                      f"{under:>3}/{repeats:<3} {np.median(free['forward']):>5.1f}/"
+                      f"{np.median(free['forward_backward']):<5.1f} "
+                      f"{t['exp_rate'].min() / 1e9:>4.2f}-{t['exp_rate'].max() / 1e9:<4.2f} "
+                      f"{'n/a' if memory is None else f'{memory / 2**20:.0f}':>8}", flush=True)
     return rows
 
 
