@@ -242,14 +242,16 @@ def kinetic_energy_split(x: np.ndarray, v: np.ndarray, m: np.ndarray,
     centre of mass vertically (a uniform squash of a block on a sticky floor: 3/4 of its kinetic energy), one that
     sways, rocks or is pushed over on its base moves it horizontally and rotates."""
     x, v, m = (np.asarray(a, np.float64) for a in (x, v, m))
-    total = 0.5 * float(m @ np.einsum("ij,ij->i", v, v))
+    total = 0.5 * float(m @ (v * v).sum(axis=1))
     mass = float(m.sum())
     if not mass > 0.0:
         return 0.0, 0.0, 0.0, 0.0
     v_c = m @ v / mass
-    r, u = x - m @ x / mass, v - v_c
-    ang = m @ np.cross(r, u)
-    inertia = float(m @ np.einsum("ij,ij->i", r, r)) * np.eye(3) - np.einsum("i,ij,ik->jk", m, r, r)
+    r = x - m @ x / mass
+    mr = m[:, None] * r
+    moments = mr.T @ r  # sum m r r^T
+    ang = np.cross(mr, v).sum(axis=0)  # about the centre of mass (sum m r = 0: the drift adds nothing)
+    inertia = np.trace(moments) * np.eye(3) - moments
     omega = np.linalg.lstsq(inertia, ang, rcond=1e-12)[0]  # a collinear body has no rotation about its axis
     vertical = 0.5 * mass * float(v_c @ np.asarray(up, np.float64)) ** 2
     translation, rotation = 0.5 * mass * float(v_c @ v_c), 0.5 * float(omega @ ang)
