@@ -81,8 +81,8 @@ from tasks.physics.regions import finger_regions, region_weights, squeeze_strain
 
 # The sub-frame flight recorder (FlightRecord): the released material reaches the table within 2-4 frames of the
 # release in the default scenes, too few frame samples for a fitted acceleration; it samples the loose particles'
-# positions every FLIGHT_SAMPLE_SUBSTEPS substeps (~20 samples per frame at 100 substeps) for FLIGHT_FRAMES frames (1/3 s at
-# 30 fps: a fall of 0.5 m) after the release.
+# positions every FLIGHT_SAMPLE_SUBSTEPS substeps (~20 samples per frame at 100 substeps) for FLIGHT_FRAMES frames
+# (1/3 s at 30 fps: a fall of 0.5 m) after the release.
 FLIGHT_FRAMES = 10
 FLIGHT_SAMPLE_SUBSTEPS = 5
 STATS_KEYS = ("substeps", "dt_min", "courant", "max_speed", "j_min", "j_max", "kinetic_energy", "internal_energy",
@@ -200,6 +200,7 @@ class FlightRecord:
 
     @classmethod
     def start(cls, solver: MPMSolver, labels: np.ndarray) -> "FlightRecord":
+        """An empty record of the loose particles of ``labels`` (particle,), the labels after the release."""
         loose = (labels == INTERIOR) | (labels == RUPTURED)
         return cls(loose, solver.masses()[loose], solver.physical_masses()[loose], [], [], [])
 
