@@ -221,6 +221,33 @@ def test_flight_recorder_probes_a_falling_blob_within_one_frame_and_its_centre_o
     assert np.abs(each / -9.81 - 1).max() > 0.03
 
 
+def test_flight_recorder_holds_a_blob_while_it_touches_the_body_then_measures_its_free_flight_at_g():
+    """The rollout's recorder on a real solver (two fields): a fluid blob (label INTERIOR, physical inertia) starts
+    against a stiff, mass-scaled wall (label SHELL) standing on the table and is thrown off it at (0.6, 0, 0.5)
+    m/s; sampled every 2 substeps for 4 frames of 1/60 s.  Known answers: at first every blob particle is held
+    (it shares grid nodes with the wall); the blob's one flight starts once all of it has left the wall's stencils
+    (> 2.5 cells), runs to the end (it stays clear of the table and the domain walls) and falls at g within 1 %."""
+    from tasks.physics.mpm_rollout import FlightRecord
+    from tests.test_mpm_multifield import DX, FRAME_DT, wall_and_blob
+
+    s, ids = wall_and_blob([0.0205, 0.015, 0.035], [0.0305, 0.025, 0.045], velocity=(0.6, 0.0, 0.5))
+    rec = FlightRecord.start(s, np.where(ids == 1, INTERIOR, SHELL))
+    assert rec.loose.sum() == (ids == 1).sum() and np.all(rec.mass == rec.physical_mass)
+    rec.sample(s, 0.0)
+    for f in range(4):
+        s.step_frame(FRAME_DT, probe_every=2, probe=lambda t, f=f: rec.sample(s, f * FRAME_DT + t))
+        rec.sample(s, (f + 1) * FRAME_DT)
+    t, x, held = rec.as_arrays()
+    assert held[0].all() and not held[-1].any()
+    flights = blob_flights(t, x, held, s.lo, s.dx, rec.mass, rec.physical_mass)
+    assert len(flights) == 1 and len(flights[0].members) == rec.loose.sum()
+    (flight,) = flights
+    assert flight.start == np.flatnonzero(held.any(axis=1))[-1] + 1 and flight.stop == len(t)
+    gap = x[flight.start, :, 0].min() - s.positions()[ids == 0, 0].max()  # the blob's trailing edge off the wall
+    assert gap > 2.0 * DX
+    assert flight.acceleration == pytest.approx(-9.81, rel=0.01)
+
+
 # ------------------------------------------------------------------------------------------ real rollouts
 
 

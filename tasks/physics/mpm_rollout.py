@@ -204,16 +204,15 @@ class FlightRecord:
         loose = (labels == INTERIOR) | (labels == RUPTURED)
         return cls(loose, solver.masses()[loose], solver.physical_masses()[loose], [], [], [])
 
-    def sample(self, scene: Scene, t: float, points: Optional[np.ndarray] = None) -> None:
-        """Record the solver's particles at time ``t`` (s); ``points`` (n, xyz) m the boundary points acting
+    def sample(self, solver: MPMSolver, t: float, points: Optional[np.ndarray] = None) -> None:
+        """Record the ``solver``'s particles at time ``t`` (s); ``points`` (n, xyz) m the boundary points acting
         then."""
-        solver = scene.solver
         x = solver.positions()
         bases = stencil_bases(x[self.loose], solver.lo, solver.dx)
         holders = x[~self.loose] if points is None else np.concatenate([x[~self.loose], points])
         floor = solver.floor_g if solver.floor_height is not None else -np.inf
         held = shares_node(bases, stencil_bases(holders, solver.lo, solver.dx))
-        held |= held_by_boundary(bases, np.asarray(solver.dims), int(scene.config.padding), floor)
+        held |= held_by_boundary(bases, np.asarray(solver.dims), int(solver.cfg.padding), floor)
         self.times.append(float(t))
         self.x.append(x[self.loose].astype(np.float32))
         self.held.append(held)
@@ -572,10 +571,10 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
         start = float(times[f - 1])
         st = solver.step_frame(scene.frame_dt, dirichlet=bc, forces=push, quasi_static=not rec.event["crossed"],
                                colliders=tips, probe_every=FLIGHT_SAMPLE_SUBSTEPS,
-                               probe=(lambda t: rec.flight.sample(scene, start + t, boundary_points(bc, push, t)))
+                               probe=(lambda t: rec.flight.sample(solver, start + t, boundary_points(bc, push, t)))
                                if flying else None)
         if flying:
-            rec.flight.sample(scene, float(times[f]), boundary_points(bc, push, scene.frame_dt))
+            rec.flight.sample(solver, float(times[f]), boundary_points(bc, push, scene.frame_dt))
         if f == 1:
             scene.notes.append("stable substep per material (s): " + ", ".join(
                 f"{k} {v:.3g} ({math.ceil(scene.frame_dt / v)} substeps per frame)"
@@ -606,7 +605,7 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
             mid = rec.event.pop("labels")
             mu_phys = np.array([m.mu for m in scene.materials])[slot[mid]]
             rec.flight = FlightRecord.start(solver, mid)
-            rec.flight.sample(scene, float(times[f]), boundary_points(bc, push, scene.frame_dt))
+            rec.flight.sample(solver, float(times[f]), boundary_points(bc, push, scene.frame_dt))
     solver.close_quasi_static_contact()  # the run ends: a contact still loaded is judged too
     rec.labels = mid
     return rec
