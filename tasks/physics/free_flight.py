@@ -70,6 +70,20 @@ def coupled_components(bases: np.ndarray) -> np.ndarray:
     return connected_components(graph, directed=False)[1][np.ravel(inverse)]
 
 
+def prune_held(positions: np.ndarray, held: np.ndarray, origin: np.ndarray, dx: float) -> tuple[np.ndarray, np.ndarray]:
+    """A smaller record with the same flights (:func:`blob_flights`): the particles held at every sample are
+    dropped, and a kept particle counts as held where it shares a grid node with a held particle (a dropped one was
+    held there, so whatever it linked is held).  ``positions`` (sample, particle, xyz) m, ``held`` (sample,
+    particle) bool.  Returns (kept (particle,) bool, held (sample, kept particle) bool)."""
+    held = np.asarray(held, bool)
+    kept = ~held.all(axis=0)
+    near = np.zeros((len(held), int(kept.sum())), bool)
+    for s in range(len(held)):
+        b = stencil_bases(positions[s], origin, dx)
+        near[s] = (held[s] | shares_node(b, b[held[s]]))[kept]
+    return kept, near
+
+
 @dataclass
 class BlobFlight:
     """One free flight: the released particles ``members`` (indices into the recorded particles), free from sample

@@ -61,7 +61,14 @@ from conf.mpm_schema import MPMConfig, mpm_config_from
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
 from tasks.physics.attachment import detached_summary
-from tasks.physics.free_flight import blob_flights, flight_summary, held_by_boundary, shares_node, stencil_bases
+from tasks.physics.free_flight import (
+    flight_summary,
+    held_by_boundary,
+    prune_held,
+    rollout_flights,
+    shares_node,
+    stencil_bases,
+)
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
 from tasks.physics.mpm.materials import Material, material_from_dict
 from tasks.physics.mpm.solver import (
@@ -217,9 +224,16 @@ class FlightRecord:
         self.x.append(x[self.loose].astype(np.float32))
         self.held.append(held)
 
-    def as_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(times (sample,) s, x (sample, loose, xyz) m, held (sample, loose) bool)."""
-        return np.array(self.times), np.array(self.x, np.float32), np.array(self.held, bool)
+    def as_arrays(self, solver: MPMSolver) -> dict[str, np.ndarray]:
+        """The record as the artifact's ``released_flight_*`` arrays (:func:`tasks.physics.free_flight.
+        prune_held`: the loose particles held at every sample, e.g. a can's cola that stays in, are left out)."""
+        x, held = np.array(self.x, np.float32), np.array(self.held, bool)
+        kept, held = prune_held(x, held, solver.lo, solver.dx)
+        return {"released_flight_time": np.array(self.times), "released_flight_positions": x[:, kept],
+                "released_flight_held": held,
+                "released_flight_particle": np.flatnonzero(self.loose)[kept].astype(np.int32),
+                "released_flight_mass": self.mass[kept].astype(np.float64),
+                "released_flight_physical_mass": self.physical_mass[kept].astype(np.float64)}
 
 
 def boundary_points(bc: Optional[DirichletPoints], push: Optional[ForcePatch], t: float) -> Optional[np.ndarray]:
@@ -677,8 +691,9 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
     if rec.released is not None:
         arrays["released"] = Array(rec.released, ("particle",), "1", "released at the threshold crossing")
         if rec.flight is not None and rec.flight.times:
-            arrays.update(_flight_arrays(rec.flight))
-            free_fall = _flight_summary(rec.flight, solver)
+            flight = rec.flight.as_arrays(solver)
+            arrays.update(_flight_arrays(flight))
+            free_fall = _flight_summary(flight, solver)
     attrs = {
         "boundary": boundary, "materials": [m.name for m in scene.materials], "n_particles": int(len(mid)),
         "n_interior": int((mid == INTERIOR).sum()),
@@ -701,30 +716,30 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
     return arrays, attrs
 
 
-def _flight_arrays(flight: FlightRecord) -> dict[str, Array]:
-    """The flight recorder's samples in the artifact (enough to recompute the flights offline with
-    :func:`tasks.physics.free_flight.blob_flights` and the ``released_free_fall`` attrs' grid)."""
-    t, x, held = flight.as_arrays()
-    note = f"flight recorder: every {FLIGHT_SAMPLE_SUBSTEPS} substeps for {FLIGHT_FRAMES} frames after the release"
-    return {"released_flight_time": Array(t, ("sample",), "s", note),
-            "released_flight_positions": Array(x, ("sample", "loose", "xyz"), "m",
-                                               "the loose particles (released interior and torn skin)"),
-            "released_flight_held": Array(held, ("sample", "loose"), "1",
-                                          "stencil shares a grid node with the body, a boundary point, wall or table"),
-            "released_flight_particle": Array(np.flatnonzero(flight.loose).astype(np.int32), ("loose",), "1",
-                                              "index on the particle axis"),
-            "released_flight_mass": Array(flight.mass.astype(np.float64), ("loose",), "kg", "inertial (mass-scaled)"),
-            "released_flight_physical_mass": Array(flight.physical_mass.astype(np.float64), ("loose",), "kg")}
+FLIGHT_ARRAYS = {  # name: (axes, unit, description) of the flight recorder's arrays in the rollout artifact
+    "released_flight_time": (("sample",), "s", f"flight recorder: every {FLIGHT_SAMPLE_SUBSTEPS} substeps for "
+                             f"{FLIGHT_FRAMES} frames after the release"),
+    "released_flight_positions": (("sample", "loose", "xyz"), "m", "the loose particles (released interior and torn "
+                                  "skin) not held at every sample"),
+    "released_flight_held": (("sample", "loose"), "1", "stencil shares a grid node with the body, a boundary point, "
+                             "a wall, the table or a held loose particle"),
+    "released_flight_particle": (("loose",), "1", "index on the particle axis"),
+    "released_flight_mass": (("loose",), "kg", "inertial (mass-scaled)"),
+    "released_flight_physical_mass": (("loose",), "kg", "")}
 
 
-def _flight_summary(flight: FlightRecord, solver: MPMSolver) -> dict[str, Any]:
+def _flight_arrays(flight: dict[str, np.ndarray]) -> dict[str, Array]:
+    """The flight recorder's arrays (:meth:`FlightRecord.as_arrays`) in the artifact: enough to recompute the
+    flights offline (:func:`tasks.physics.free_flight.rollout_flights` with the ``released_free_fall`` attrs)."""
+    return {k: Array(flight[k], *FLIGHT_ARRAYS[k]) for k in FLIGHT_ARRAYS}
+
+
+def _flight_summary(flight: dict[str, np.ndarray], solver: MPMSolver) -> dict[str, Any]:
     """The released material's measured free fall (:func:`tasks.physics.free_flight.flight_summary` of its free
     blobs' flights), with the grid the flights are recomputed on (``grid_origin`` m, ``dx`` m, ``gravity`` m/s^2)."""
-    t, x, held = flight.as_arrays()
-    g = float(solver.cfg.gravity[2])
-    flights = blob_flights(t, x, held, solver.lo, solver.dx, flight.mass, flight.physical_mass, g)
-    return {**flight_summary(flights), "grid_origin": np.asarray(solver.lo, np.float64).tolist(),
-            "dx": float(solver.dx), "gravity": g}
+    grid = {"grid_origin": np.asarray(solver.lo, np.float64).tolist(), "dx": float(solver.dx),
+            "gravity": float(solver.cfg.gravity[2])}
+    return {**flight_summary(rollout_flights(flight, grid)), **grid}
 
 
 def _quasi_static_summary(contacts: list[dict], ke_ie_contact: np.ndarray, contact: np.ndarray, mass_scale: float,
@@ -845,8 +860,7 @@ ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_
                    "predicted_squeeze_strain", "substeps", "dt_min", "courant", "max_speed", "j_min", "j_max",
                    "kinetic_energy", "internal_energy", "ke_ie_ratio", "ke_ie_contact", "energy_growth",
                    "plastic_strain?", "released?",
-                   "released_flight_time?", "released_flight_positions?", "released_flight_held?",
-                   "released_flight_particle?", "released_flight_mass?", "released_flight_physical_mass?")
+                   *(f"{k}?" for k in FLIGHT_ARRAYS))
 
 
 @artifact_step("mpm_rollout",

@@ -159,9 +159,10 @@ def flight_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pat
     """The released material's flight (sec. 3.2: released particles under gravity, :mod:`tasks.physics.free_flight`):
     the centre-of-mass height of each of the longest free blobs' flights (a fixed set of particles touching
     nothing through the grid) per sample of the rollout's sub-frame flight recorder, each against its own free-fall
-    parabola z0 + v0 t + a_exp t^2 / 2 (a_exp = g for released material; z0, v0 fitted); below, the loose
-    material's height range (median, 10-90 %), the share of its particles held (sharing a grid node with the body,
-    a boundary point, a wall or the table) and the share in the measured free blobs.  The title states the acceleration measured.  None without a
+    parabola z0 + v0 t + a_exp t^2 / 2 (a_exp = g for released material; z0, v0 fitted); below, the recorded loose
+    material's height range (median, 10-90 %; what stays held throughout, e.g. cola in its can, is not recorded),
+    the share of its particles held (sharing a grid node with the body, a boundary point, a wall, the table or a
+    held particle) and the share in the measured free blobs.  The title states the acceleration measured.  None without a
     release."""
     try:
         r = read_artifact(refs["mpm_rollout"], names=list(FLIGHT_NAMES))
@@ -190,7 +191,7 @@ def flight_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pat
         axes[0].legend(fontsize=7)
         axes[0].set_ylabel("centre-of-mass height of\neach free blob (mm)")
     lo, mid, hi = np.percentile(z, [10, 50, 90], axis=1)
-    axes[1].fill_between(t, 1e3 * lo, 1e3 * hi, color="tab:orange", alpha=0.3, lw=0, label="loose material 10-90 %")
+    axes[1].fill_between(t, 1e3 * lo, 1e3 * hi, color="tab:orange", alpha=0.3, lw=0, label="recorded loose material 10-90 %")
     axes[1].plot(t, 1e3 * mid, color="tab:orange", lw=1, label="median")
     axes[1].set_ylabel("height (mm)")
     axes[1].set_xlabel("time (s)")
@@ -201,7 +202,7 @@ def flight_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pat
         flying[fl.start:fl.stop] += len(fl.members) / held.shape[1]
     share.plot(t, flying, color="C2", lw=1, ls=":", label="in free blobs (right)")
     share.set_ylim(0, 1.05)
-    share.set_ylabel("share of the loose particles")
+    share.set_ylabel("share of the recorded particles")
     axes[1].legend(fontsize=7, loc="lower left")
     share.legend(fontsize=7, loc="lower right")
     axes[1].set_xlim(t[0] - 0.005, t[-1] + 0.005)
