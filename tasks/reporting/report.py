@@ -183,8 +183,8 @@ def flight_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pat
                      label=f"{len(fl.members)} particles: a = {fl.acceleration:.2f} m/s^2")
         axes[0].plot(fl.times, 1e3 * (z0 + v0 * tf + 0.5 * fl.expected * tf ** 2), "-", lw=1, color=f"C{i}")
     if not flights:
-        axes[0].text(0.5, 0.5, "no free blob: the released material stays coupled\nthrough the grid to the body "
-                     "or the table", transform=axes[0].transAxes, ha="center", va="center", fontsize=8)
+        axes[0].text(0.5, 0.5, "no free blob: the released material stays coupled through\nthe grid to the body, "
+                     "the table or a wall", transform=axes[0].transAxes, ha="center", va="center", fontsize=8)
         axes[0].set_yticks([])
     else:
         axes[0].plot([], [], "-", color="k", lw=1, label="free fall, each flight's own z0, v0")
