@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from tasks.reporting.report_tables import TABLE2, TRAJECTORY, markdown_table, paper_layout, write_metric_files
 
@@ -164,28 +165,39 @@ def test_report_shows_the_quasi_static_check_as_the_solver_applied_it(tmp_path):
     assert f"- **quasi_static_warned**: {DEFINITIONS['quasi_static_warned']}" in md
 
 
-def test_flight_figure_shows_the_recorded_heights_and_states_the_measured_acceleration(tmp_path):
-    """A rollout with a flight record gets the flight figure (a PNG) and the caption states the measured
-    acceleration and its deviation from g; a rollout without a release gets none."""
+def test_flight_figure_draws_the_free_blobs_and_states_the_measured_acceleration(tmp_path):
+    """A rollout with a flight record gets the flight figure (a PNG, its free blob recomputed from the record) and
+    the caption states the measured acceleration and its deviation from the expected one; one with a record but no
+    free blob still gets the figure; a rollout without a release gets none."""
     from tasks.core.artifacts import Array, write_artifact
+    from tasks.physics.free_flight import blob_flights, flight_summary
     from tasks.reporting.report import flight_caption, flight_figure
 
     t = 1.0 + np.arange(40) / 600
     z = 0.03 - 0.5 * 9.81 * (t - 1.0) ** 2
-    fall = {"acceleration": -9.5, "particles": 12, "p10_p90": [-12.5, -3.9], "max_free_at_once": 12,
-            "longest_flight": 0.04}
+    x = np.stack(np.broadcast_arrays(0.0, 0.0, z[:, None] + np.array([0.0, 0.002])), -1).astype(np.float32)
+    grid = {"grid_origin": [-0.1, -0.1, -0.1], "dx": 0.008, "gravity": -9.81}
+    held = np.zeros((40, 2), bool)
+    fall = {**flight_summary(blob_flights(t, x, held, np.array(grid["grid_origin"]), 0.008, np.ones(2), np.ones(2))),
+            **grid}
+    assert fall["flights"] == 1 and fall["error"] == pytest.approx(0.0, abs=1e-4)
     arrays = {"time": Array(np.arange(45) / 30, ("frame",), "s"),
-              "released_height": Array(np.full(45, np.nan, np.float32), ("frame",), "m"),
               "released_flight_time": Array(t, ("sample",), "s"),
-              "released_flight_height": Array(z.astype(np.float32), ("sample",), "m"),
-              "released_flight_count": Array(np.full(40, 12, np.int32), ("sample",), "1")}
-    ref = write_artifact(tmp_path / "r.zarr", arrays, step="mpm_rollout", scope="tomato", config_digest="-",
-                         attrs={"released_free_fall": fall})
-    path = flight_figure("tomato", {"mpm_rollout": ref}, tmp_path / "flight.png")
-    assert path is not None and path.read_bytes()[:4] == b"\x89PNG"
-    assert flight_caption(fall) == ("released material: a = -9.50 m/s^2 (-3.2 % of g), median of 12 particles\n"
-                                    "(10-90 %: -12.5 to -3.9), longest free flight 40 ms")
-    assert flight_caption(None) == "released material: none flew free for 3 recorder samples (a = none)"
+              "released_flight_positions": Array(x, ("sample", "loose", "xyz"), "m"),
+              "released_flight_held": Array(held, ("sample", "loose"), "1"),
+              "released_flight_mass": Array(np.ones(2), ("loose",), "kg"),
+              "released_flight_physical_mass": Array(np.ones(2), ("loose",), "kg")}
+    for name, hold in [("r", held), ("h", ~held)]:
+        ref = write_artifact(tmp_path / f"{name}.zarr", {**arrays, "released_flight_held": Array(
+            hold, ("sample", "loose"), "1")}, step="mpm_rollout", scope="tomato", config_digest="-",
+            attrs={"released_free_fall": fall})
+        path = flight_figure("tomato", {"mpm_rollout": ref}, tmp_path / f"{name}.png")
+        assert path is not None and path.read_bytes()[:4] == b"\x89PNG"
+    fall = {**fall, "acceleration": -9.5, "error": -9.5 / -9.81 - 1, "flights": 3, "particles": 12,
+            "longest_flight": 0.04}
+    assert flight_caption(fall) == ("released material: a = -9.50 m/s^2 (-3.2 % of the expected -9.81), median of "
+                                    "3 free blobs'\nflights (12 particles), longest 40 ms")
+    assert flight_caption(None) == "released material: no free blob flew for 4 recorder samples (a = none)"
     bare = write_artifact(tmp_path / "b.zarr", {"time": arrays["time"]}, step="mpm_rollout", scope="ball",
                           config_digest="-")
     assert flight_figure("ball", {"mpm_rollout": bare}, tmp_path / "none.png") is None

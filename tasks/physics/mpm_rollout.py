@@ -61,7 +61,14 @@ from conf.mpm_schema import MPMConfig, mpm_config_from
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
 from tasks.physics.attachment import detached_summary
-from tasks.physics.free_flight import flight_acceleration, free_flying, free_runs, mean_free_height, released_flight
+from tasks.physics.free_flight import (
+    flight_summary,
+    held_by_boundary,
+    prune_held,
+    rollout_flights,
+    shares_node,
+    stencil_bases,
+)
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
 from tasks.physics.mpm.materials import Material, material_from_dict
 from tasks.physics.mpm.solver import (
@@ -80,9 +87,9 @@ from tasks.physics.oracle.schema import ObjectMaterials
 from tasks.physics.regions import finger_regions, region_weights, squeeze_strain
 
 # The sub-frame flight recorder (FlightRecord): the released material reaches the table within 2-4 frames of the
-# release in the default scenes, too few frame samples for a fitted acceleration; it samples the interior's heights
-# every FLIGHT_SAMPLE_SUBSTEPS substeps (~20 samples per frame at 100 substeps) for FLIGHT_FRAMES frames (1/3 s at
-# 30 fps: a fall of 0.5 m) after the release.
+# release in the default scenes, too few frame samples for a fitted acceleration; it samples the loose particles'
+# positions every FLIGHT_SAMPLE_SUBSTEPS substeps (~20 samples per frame at 100 substeps) for FLIGHT_FRAMES frames
+# (1/3 s at 30 fps: a fall of 0.5 m) after the release.
 FLIGHT_FRAMES = 10
 FLIGHT_SAMPLE_SUBSTEPS = 5
 STATS_KEYS = ("substeps", "dt_min", "courant", "max_speed", "j_min", "j_max", "kinetic_energy", "internal_energy",
@@ -140,8 +147,7 @@ class Scene:
 
     ``materials`` are the solver's materials (index ``slot[label]``), ``labels`` (particle,) the initial particle
     labels (SHELL, INTERIOR, RUPTURED, CORE), ``dx`` m the grid spacing, ``frame_dt`` s the output frame
-    interval, ``surface0`` (point, xyz) m the rest positions of the tracked surface points (the 3D Gaussians),
-    ``bbox_min``/``bbox_max`` m the object's rest box."""
+    interval, ``surface0`` (point, xyz) m the rest positions of the tracked surface points (the 3D Gaussians)."""
 
     oracle: ObjectMaterials
     solver: MPMSolver
@@ -155,8 +161,6 @@ class Scene:
     surface0: np.ndarray
     regions: SqueezeRegions
     notes: list[str]
-    bbox_min: np.ndarray
-    bbox_max: np.ndarray
 
 
 @dataclass
@@ -186,27 +190,58 @@ class FrameRecord:
 
 @dataclass
 class FlightRecord:
-    """The sub-frame flight recorder of the released material (module constants FLIGHT_*): at every sample the time
-    ``times`` (s), the interior particles' heights ``z`` (interior,) m and which of them fly free ``free``
-    (interior,) bool (:func:`free_set`, not linked: each particle itself clear of the table, the walls and the
-    body; the released juice leaves as one jet whose foot is on the table), from the release to FLIGHT_FRAMES
-    frames after it."""
+    """The sub-frame flight recorder of the released material (module constants FLIGHT_*), from the release to
+    FLIGHT_FRAMES frames after it: at every sample the time ``times`` (s), the positions ``x`` (loose, xyz) m of
+    the loose particles (labels INTERIOR and RUPTURED after the release: the released interior and the torn skin it
+    may carry off) and which of them are ``held`` (loose,) bool: their B-spline stencil shares a grid node with the
+    body (every other particle), a boundary point of the frame (Dirichlet or force point) or a wall or floor node
+    (:mod:`tasks.physics.free_flight`; collider fingers are not counted).  ``mass``/``physical_mass`` (loose,) kg
+    the inertial and physical masses after the release."""
 
-    interior: np.ndarray  # (particle,) bool: the particles sampled (label INTERIOR after the release)
+    loose: np.ndarray  # (particle,) bool: the particles sampled
+    mass: np.ndarray
+    physical_mass: np.ndarray
     times: list[float]
-    z: list[np.ndarray]
-    free: list[np.ndarray]
+    x: list[np.ndarray]
+    held: list[np.ndarray]
 
-    def sample(self, scene: Scene, t: float) -> None:
-        """Record the solver's particles at time ``t`` (s)."""
-        x = scene.solver.positions()
+    @classmethod
+    def start(cls, solver: MPMSolver, labels: np.ndarray) -> "FlightRecord":
+        """An empty record of the loose particles of ``labels`` (particle,), the labels after the release."""
+        loose = (labels == INTERIOR) | (labels == RUPTURED)
+        return cls(loose, solver.masses()[loose], solver.physical_masses()[loose], [], [], [])
+
+    def sample(self, solver: MPMSolver, t: float, points: Optional[np.ndarray] = None) -> None:
+        """Record the ``solver``'s particles at time ``t`` (s); ``points`` (n, xyz) m the boundary points acting
+        then."""
+        x = solver.positions()
+        bases = stencil_bases(x[self.loose], solver.lo, solver.dx)
+        holders = x[~self.loose] if points is None else np.concatenate([x[~self.loose], points])
+        floor = solver.floor_g if solver.floor_height is not None else -np.inf
+        held = shares_node(bases, stencil_bases(holders, solver.lo, solver.dx))
+        held |= held_by_boundary(bases, np.asarray(solver.dims), int(solver.cfg.padding), floor)
         self.times.append(float(t))
-        self.z.append(x[self.interior, 2].copy())
-        self.free.append(free_set(scene, x[None], self.interior, linked=False)[0, self.interior])
+        self.x.append(x[self.loose].astype(np.float32))
+        self.held.append(held)
 
-    def as_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(times (sample,) s, z (sample, interior) m, free (sample, interior) bool)."""
-        return np.array(self.times), np.array(self.z, np.float64), np.array(self.free, bool)
+    def as_arrays(self, solver: MPMSolver) -> dict[str, np.ndarray]:
+        """The record as the artifact's ``released_flight_*`` arrays (:func:`tasks.physics.free_flight.
+        prune_held`: the loose particles held at every sample, e.g. a can's cola that stays in, are left out)."""
+        x, held = np.array(self.x, np.float32), np.array(self.held, bool)
+        kept, held = prune_held(x, held, solver.lo, solver.dx)
+        return {"released_flight_time": np.array(self.times), "released_flight_positions": x[:, kept],
+                "released_flight_held": held,
+                "released_flight_particle": np.flatnonzero(self.loose)[kept].astype(np.int32),
+                "released_flight_mass": self.mass[kept].astype(np.float64),
+                "released_flight_physical_mass": self.physical_mass[kept].astype(np.float64)}
+
+
+def boundary_points(bc: Optional[DirichletPoints], push: Optional[ForcePatch], t: float) -> Optional[np.ndarray]:
+    """(n, xyz) m: where the frame's Dirichlet points (advected with their velocities) or force points are ``t`` s
+    after the frame start (None: neither)."""
+    if bc is not None:
+        return np.asarray(bc.positions) + (t * np.asarray(bc.velocities) if bc.advect else 0.0)
+    return None if push is None else np.asarray(push.positions)
 
 
 def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], field: Mapping[str, np.ndarray],
@@ -368,8 +403,7 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
                        tracer_anchors=mid != INTERIOR, label=str(obj_attrs.get("name", "")), load=load)
     return Scene(oracle=mats, solver=solver, materials=mat_list, slot=slot, labels=mid, with_interior=with_interior,
                  dx=dx, config=cfg, frame_dt=frame_dt, surface0=obj["surface_points"].astype(np.float64),
-                 regions=regions, notes=notes, bbox_min=np.asarray(obj_attrs["bbox_min"], float),
-                 bbox_max=np.asarray(obj_attrs["bbox_max"], float))
+                 regions=regions, notes=notes)
 
 
 # ----------------------------------------------------------------------------------------------- 2. the frames
@@ -552,9 +586,10 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
         start = float(times[f - 1])
         st = solver.step_frame(scene.frame_dt, dirichlet=bc, forces=push, quasi_static=not rec.event["crossed"],
                                colliders=tips, probe_every=FLIGHT_SAMPLE_SUBSTEPS,
-                               probe=(lambda t: rec.flight.sample(scene, start + t)) if flying else None)
+                               probe=(lambda t: rec.flight.sample(solver, start + t, boundary_points(bc, push, t)))
+                               if flying else None)
         if flying:
-            rec.flight.sample(scene, float(times[f]))
+            rec.flight.sample(solver, float(times[f]), boundary_points(bc, push, scene.frame_dt))
         if f == 1:
             scene.notes.append("stable substep per material (s): " + ", ".join(
                 f"{k} {v:.3g} ({math.ceil(scene.frame_dt / v)} substeps per frame)"
@@ -584,8 +619,8 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
                 torn |= reg.region[f, k] | (np.linalg.norm(tx - centers[k], axis=1) <= opening)
             mid = rec.event.pop("labels")
             mu_phys = np.array([m.mu for m in scene.materials])[slot[mid]]
-            rec.flight = FlightRecord(mid == INTERIOR, [], [], [])
-            rec.flight.sample(scene, float(times[f]))
+            rec.flight = FlightRecord.start(solver, mid)
+            rec.flight.sample(solver, float(times[f]), boundary_points(bc, push, scene.frame_dt))
     solver.close_quasi_static_contact()  # the run ends: a contact still loaded is judged too
     rec.labels = mid
     return rec
@@ -656,13 +691,10 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
         arrays["plastic_strain"] = Array(rec.plastic_strain, ("frame", "particle"), "1", "equivalent plastic strain")
     if rec.released is not None:
         arrays["released"] = Array(rec.released, ("particle",), "1", "released at the threshold crossing")
-        height, _ = released_flight(rec.particle_positions, free_set(scene, rec.particle_positions, mid == INTERIOR),
-                                    scene.frame_dt)
-        arrays["released_height"] = Array(height.astype(np.float32), ("frame",), "m",
-                                          "mean z of the released particles flying free (NaN: none)")
-        samples = rec.flight.as_arrays() if rec.flight is not None and rec.flight.times else None
-        arrays.update(_flight_arrays(samples))
-        free_fall = _flight_summary(samples)
+        if rec.flight is not None and rec.flight.times:
+            flight = rec.flight.as_arrays(solver)
+            arrays.update(_flight_arrays(flight))
+            free_fall = _flight_summary(flight, solver)
     attrs = {
         "boundary": boundary, "materials": [m.name for m in scene.materials], "n_particles": int(len(mid)),
         "n_interior": int((mid == INTERIOR).sum()),
@@ -671,7 +703,6 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
         "substeps_total": int(rec.stats["substeps"].sum()),
         "threshold_event": rec.event, "notes": scene.notes,
         "material_mass_scales": {m.name: float(k) for m, k in zip(scene.materials, solver.material_mass_scale)},
-        "released_free_fall_acceleration": free_fall["acceleration"] if free_fall else None,
         "released_free_fall": free_fall,
         "feedback_rule": rule, "fingers": fingers,
         "bytes_per_particle": float(solver.bytes_per_particle()),
@@ -686,50 +717,30 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
     return arrays, attrs
 
 
-def free_set(scene: Scene, positions: np.ndarray, interior: np.ndarray, linked: bool = True) -> np.ndarray:
-    """(frame, particle) bool: the ``interior`` particles flying free in ``positions`` (frame, particle, xyz) m
-    (:func:`free_flying` with a margin of 2 dx, the table and the domain walls: the node layers within ``padding``
-    of the domain's faces; ``linked``: a cluster touching any of them or the body is held; not linked, a particle
-    sharing a grid node with the body, closer than 3 dx to it on every axis, is held)."""
-    solver = scene.solver
-    pad = scene.config.padding * solver.dx
-    return free_flying(positions, interior, scene.bbox_min, scene.bbox_max,
-                       float(solver.floor_height if solver.floor_height is not None else -np.inf), 2.0 * scene.dx,
-                       solver.lo + pad, solver.lo + (np.asarray(solver.dims) - 1) * solver.dx - pad, linked,
-                       body_reach=3.0 * scene.dx)
+FLIGHT_ARRAYS = {  # name: (axes, unit, description) of the flight recorder's arrays in the rollout artifact
+    "released_flight_time": (("sample",), "s", f"flight recorder: every {FLIGHT_SAMPLE_SUBSTEPS} substeps for "
+                             f"{FLIGHT_FRAMES} frames after the release"),
+    "released_flight_positions": (("sample", "loose", "xyz"), "m", "the loose particles (released interior and torn "
+                                  "skin) not held at every sample"),
+    "released_flight_held": (("sample", "loose"), "1", "stencil shares a grid node with the body, a boundary point, "
+                             "a wall, the table or a held loose particle"),
+    "released_flight_particle": (("loose",), "1", "index on the particle axis"),
+    "released_flight_mass": (("loose",), "kg", "inertial (mass-scaled)"),
+    "released_flight_physical_mass": (("loose",), "kg", "")}
 
 
-def _flight_arrays(samples: Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> dict[str, Array]:
-    """The flight recorder's ``samples`` (:meth:`FlightRecord.as_arrays`; None: no release, no arrays) in the
-    artifact: time, the free particles' mean height and their count per sample."""
-    if samples is None:
-        return {}
-    t, z, free = samples
-    count = free.sum(axis=1)
-    height = mean_free_height(z, free)
-    return {"released_flight_time": Array(t, ("sample",), "s",
-                                          f"flight recorder: every {FLIGHT_SAMPLE_SUBSTEPS} substeps for "
-                                          f"{FLIGHT_FRAMES} frames after the release"),
-            "released_flight_height": Array(height.astype(np.float32), ("sample",), "m",
-                                            "mean z of the released particles flying free (NaN: none)"),
-            "released_flight_count": Array(count.astype(np.int32), ("sample",), "1",
-                                           "released particles flying free")}
+def _flight_arrays(flight: dict[str, np.ndarray]) -> dict[str, Array]:
+    """The flight recorder's arrays (:meth:`FlightRecord.as_arrays`) in the artifact: enough to recompute the
+    flights offline (:func:`tasks.physics.free_flight.rollout_flights` with the ``released_free_fall`` attrs)."""
+    return {k: Array(flight[k], *FLIGHT_ARRAYS[k]) for k in FLIGHT_ARRAYS}
 
 
-def _flight_summary(samples: Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> Optional[dict[str, Any]]:
-    """The released material's measured free fall (:func:`flight_acceleration` on the flight recorder's ``samples``):
-    acceleration m/s^2 (None: nothing flew free for 3 samples), the particles it is the median over, the 10th and
-    90th percentiles of their accelerations (m/s^2: the pressure inside a jet spreads them), the most particles
-    free at once and the longest time any particle flew free (s).  None without a release."""
-    if samples is None:
-        return None
-    t, z, free = samples
-    accel, each = flight_acceleration(t, z, free)
-    longest = max([t[b - 1] - t[a] for p in np.flatnonzero(free.any(axis=0)) for a, b in free_runs(free[:, p])],
-                  default=0.0)
-    return {"acceleration": accel if math.isfinite(accel) else None, "particles": len(each),
-            "p10_p90": np.percentile(each, [10, 90]).tolist() if len(each) else None,
-            "max_free_at_once": int(free.sum(axis=1).max()), "longest_flight": float(longest)}
+def _flight_summary(flight: dict[str, np.ndarray], solver: MPMSolver) -> dict[str, Any]:
+    """The released material's measured free fall (:func:`tasks.physics.free_flight.flight_summary` of its free
+    blobs' flights), with the grid the flights are recomputed on (``grid_origin`` m, ``dx`` m, ``gravity`` m/s^2)."""
+    grid = {"grid_origin": np.asarray(solver.lo, np.float64).tolist(), "dx": float(solver.dx),
+            "gravity": float(solver.cfg.gravity[2])}
+    return {**flight_summary(rollout_flights(flight, grid)), **grid}
 
 
 def _quasi_static_summary(contacts: list[dict], ke_ie_contact: np.ndarray, contact: np.ndarray, mass_scale: float,
@@ -850,7 +861,7 @@ ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_
                    "predicted_squeeze_strain", "substeps", "dt_min", "courant", "max_speed", "j_min", "j_max",
                    "kinetic_energy", "internal_energy", "ke_ie_ratio", "ke_ie_contact", "energy_growth",
                    "plastic_strain?", "released?",
-                   "released_height?", "released_flight_time?", "released_flight_height?", "released_flight_count?")
+                   *(f"{k}?" for k in FLIGHT_ARRAYS))
 
 
 @artifact_step("mpm_rollout",
