@@ -4,7 +4,7 @@
     python -m flows.contact_study --hertz-cells 8 --indent-cells 2 --uniaxial-cells 8 --nu 0.3   # quick
     python -m flows.contact_study --hertz-cells --indent-cells --uniaxial-cells --finger-cells 1 1.5 2   # fingers
 
-Wires :mod:`tasks.verification.contact` (Hertz: elastic half sphere on the floor and a rigid sphere indenting a
+Wires :mod:`tasks.verification.contact` (Hertz: elastic sphere between two flats and a rigid sphere indenting a
 block; uniaxial compression between frictionless plates; each with ``mpm.contact = grid`` and ``surface``): prints one line per case (force error,
 contact radius error, particles, wall seconds) and writes ``<out>/contact_study.md``.  No Prefect: short
 diagnostics run in this process, one after the other.
@@ -33,9 +33,9 @@ def main(argv: list[str] | None = None) -> None:
     from tasks.verification.contact import fingertip_case, hertz_case, indentation_case, summary_line, uniaxial_case
 
     lines = [f"# Contact study ({datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, Warp CPU)", "",
-             "Force error = simulated / closed form - 1.  Hertz: half sphere R = 35 mm, E = 2 MPa, nu = 0.45 on the "
-             "floor, equator driven down by d; radius = flattened patch against a = sqrt(R d).  Indentation: rigid "
-             "sphere collider R = 35 mm into a nu = 0.45 block (8 a wide, 5 a deep).  Uniaxial: "
+             "Force error = simulated / closed form - 1.  Hertz: sphere R = 35 mm, E = 2 MPa, nu = 0.45 between two "
+             "frictionless flats, each approaching its centre by d; radius = flattened patch against a = sqrt(R d).  "
+             "Indentation: rigid sphere collider R = 35 mm into a nu = 0.45 block (8 a wide, 5 a deep).  Uniaxial: "
              "cube L = 40 mm, E = 0.1 MPa, frictionless plates, lateral faces free, force at 1 % plate travel "
              "against E A eps.  Seconds: wall time of the run on this (shared) machine.", "",
              "## Hertz", "", "| contact | R/dx | dx (mm) | force err 1/2/3/4 mm | radius err 1/2/3/4 mm | particles "

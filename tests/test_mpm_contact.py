@@ -3,9 +3,9 @@
   * uniaxial compression of a cube between frictionless plates, lateral faces free: F = E A eps within 5 % at
     nu = 0.3, 0.45, 0.49 with 8 cells across (grid-node plates: +30 % and more), and the strain is uniform up
     to the plates (no held layer);
-  * Hertz, F = 4/3 E* sqrt(R) d^1.5, a = sqrt(R d): the issue's elastic sphere on the surface floor at R / dx = 8
-    (fast twin; radius within 15 %, force +25 %) and, ``-m slow``, a rigid sphere collider indenting a block
-    (force within 15 %); ``python -m flows.contact_study`` prints the errors against dx and the run times;
+  * Hertz, F = 4/3 E* sqrt(R) d^1.5, a = sqrt(R d): the issue's elastic sphere between two surface flats at
+    R / dx = 8 (fast twin; radius within 15 %, force within 20 %) and, ``-m slow``, a rigid sphere collider
+    indenting a block (force within 15 %); ``python -m flows.contact_study`` prints the errors against dx and the run times;
   * the floor as a plane collider: frictionless slip keeps a sliding block's speed, Coulomb friction decelerates
     it at mu g;
   * a capsule fingertip pressing a block on the floor: no particle enters it, its reaction balances the floor's;
@@ -52,16 +52,16 @@ def test_uniaxial_compression_grid_plates_are_too_stiff():
     assert r["error"] > 0.2, r["error"]
 
 
-def test_hertz_elastic_sphere_on_a_surface_floor_fast_twin():
-    """The issue's sphere (R = 35 mm, E = 2 MPa, nu = 0.45) on the surface floor at R / dx = 8: the flattened
-    patch's radius is within 15 % of a = sqrt(R d) at 1-4 mm and the force within 35 % of Hertz.  Measured: +26 to
-    +29 % (R / dx = 8), +22 to +25 % (12), +21 to +23 % (16), +5-9 % at nu = 0, while a rigid sphere indenting a
-    block (Hertz's half-space) comes within +6 % with 2.7 cells per contact radius: the excess is most likely the
-    finite sphere (a / R = 0.17-0.34), not the contact.  The grid floor reads +120 % to +420 %."""
+def test_hertz_elastic_sphere_between_surface_flats_fast_twin():
+    """The issue's sphere (R = 35 mm, E = 2 MPa, nu = 0.45) squeezed between two frictionless plane colliders at
+    R / dx = 8: the flattened patch's radius is within 15 % of a = sqrt(R d) at 1-4 mm and the force within 20 % of
+    Hertz.  Measured (under load): +15/+14/+14/+14 % (R / dx = 8), +10/+12/+14/+13 % (12), +8/+11/+13/+13 % (16),
+    radius within 3 %.  The half sphere with its equator driven by slip Dirichlet points read +27/+26/+29/+29 %:
+    the points' held layer halved the equator's Poisson expansion."""
     r = hertz_case("surface", 8)
     print("force error", r["force_error"].round(3), "radius error", r["radius_error"].round(3))
     assert np.all(np.abs(r["radius_error"]) < 0.15), r["radius_error"]
-    assert np.all(np.abs(r["force_error"]) < 0.35), r["force_error"]
+    assert np.all(np.abs(r["force_error"]) < 0.2), r["force_error"]
 
 
 @pytest.mark.slow
