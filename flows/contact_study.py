@@ -4,8 +4,9 @@
     python -m flows.contact_study --hertz-cells 8 --indent-cells 2 --uniaxial-cells 8 --nu 0.3   # quick
     python -m flows.contact_study --hertz-cells --indent-cells --uniaxial-cells --finger-cells 1 1.5 2   # fingers
 
-Wires :mod:`tasks.verification.contact` (Hertz: elastic half sphere on the floor and a rigid sphere indenting a
-block; uniaxial compression between frictionless plates; each with ``mpm.contact = grid`` and ``surface``): prints one line per case (force error,
+Wires :mod:`tasks.verification.contact` (Hertz: elastic sphere between two flats, also against a finite-sphere
+FE (:mod:`tasks.verification.sphere_fe`), and a rigid sphere indenting a block; uniaxial compression between
+frictionless plates; each with ``mpm.contact = grid`` and ``surface``): prints one line per case (force error,
 contact radius error, particles, wall seconds) and writes ``<out>/contact_study.md``.  No Prefect: short
 diagnostics run in this process, one after the other.
 """
@@ -30,23 +31,43 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", default="reports/contact", help="folder of contact_study.md")
     args = ap.parse_args(argv)
 
-    from tasks.verification.contact import fingertip_case, hertz_case, indentation_case, summary_line, uniaxial_case
+    from tasks.verification.contact import (
+        HERTZ_DEPTHS,
+        HERTZ_E,
+        HERTZ_NU,
+        HERTZ_R,
+        fingertip_case,
+        hertz_case,
+        hertz_force,
+        indentation_case,
+        summary_line,
+        uniaxial_case,
+    )
+    from tasks.verification.sphere_fe import sphere_between_flats
 
     lines = [f"# Contact study ({datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, Warp CPU)", "",
-             "Force error = simulated / closed form - 1.  Hertz: half sphere R = 35 mm, E = 2 MPa, nu = 0.45 on the "
-             "floor, equator driven down by d; radius = flattened patch against a = sqrt(R d).  Indentation: rigid "
-             "sphere collider R = 35 mm into a nu = 0.45 block (8 a wide, 5 a deep).  Uniaxial: "
+             "Force error = simulated / closed form - 1.  Hertz: sphere R = 35 mm, E = 2 MPa, nu = 0.45 between two "
+             "frictionless flats, each approaching its centre by d; radius = flattened patch against a = sqrt(R d).  "
+             "Indentation: rigid sphere collider R = 35 mm into a nu = 0.45 block (8 a wide, 5 a deep).  Uniaxial: "
              "cube L = 40 mm, E = 0.1 MPa, frictionless plates, lateral faces free, force at 1 % plate travel "
              "against E A eps.  Seconds: wall time of the run on this (shared) machine.", "",
-             "## Hertz", "", "| contact | R/dx | dx (mm) | force err 1/2/3/4 mm | radius err 1/2/3/4 mm | particles "
-             "| seconds |", "|---|---|---|---|---|---|---|"]
+             "## Hertz", ""]
     pct = lambda v: " / ".join(f"{100 * e:+.0f}%" for e in v)  # noqa: E731
+    if args.hertz_cells:
+        fe = sphere_between_flats(HERTZ_DEPTHS, HERTZ_R, HERTZ_E, HERTZ_NU, growth=0.1)
+        fe_err = fe["force"] / hertz_force(fe["at"]) - 1.0
+        print(f"hertz    finite-sphere FE (linear, {fe['nodes']} nodes) against Hertz: {pct(fe_err)}", flush=True)
+        lines += [f"The finite sphere itself (linear axisymmetric FE, `tasks.verification.sphere_fe`) reads "
+                  f"{pct(fe_err)} against Hertz at 1/2/3/4 mm; `vs FE` is the simulation against it.", "",
+                  "| contact | R/dx | dx (mm) | force err 1/2/3/4 mm | vs FE | radius err 1/2/3/4 mm | particles "
+                  "| seconds |", "|---|---|---|---|---|---|---|---|"]
     for n in args.hertz_cells:
         for mode in args.modes:
             r = hertz_case(mode, n)
-            print(summary_line(r, "hertz"), flush=True)
-            lines.append(f"| {mode} | {n} | {1e3 * r['dx']:.3g} | {pct(r['force_error'])} | {pct(r['radius_error'])} "
-                         f"| {r['particles']} | {r['seconds']:.0f} |")
+            vs_fe = r["force_at"] / fe["force"] - 1.0
+            print(summary_line(r, "hertz", f"against the FE sphere {pct(vs_fe)}"), flush=True)
+            lines.append(f"| {mode} | {n} | {1e3 * r['dx']:.3g} | {pct(r['force_error'])} | {pct(vs_fe)} "
+                         f"| {pct(r['radius_error'])} | {r['particles']} | {r['seconds']:.0f} |")
     surface_sections = [
         ("indent", "Rigid sphere indenting a block (surface contact)", "a/dx at 4 mm", "2, 3, 4", "2/3/4",
          indentation_case, args.indent_cells),
