@@ -193,6 +193,14 @@ def test_flight_figure_draws_the_free_blobs_and_states_the_measured_acceleration
             attrs={"released_free_fall": fall})
         path = flight_figure("tomato", {"mpm_rollout": ref}, tmp_path / f"{name}.png")
         assert path is not None and path.read_bytes()[:4] == b"\x89PNG"
+    # every released particle held throughout: the recorder keeps none of them, the figure still says so
+    empty = write_artifact(tmp_path / "e.zarr", {**arrays, **{k: Array(np.asarray(arrays[k].data)[..., :0, :] if
+                           k == "released_flight_positions" else np.asarray(arrays[k].data)[..., :0],
+                           arrays[k].dims, arrays[k].units) for k in ("released_flight_positions",
+                           "released_flight_held", "released_flight_mass", "released_flight_physical_mass")}},
+                           step="mpm_rollout", scope="plush_toy", config_digest="-", attrs={"released_free_fall": {}})
+    path = flight_figure("plush_toy", {"mpm_rollout": empty}, tmp_path / "e.png")
+    assert path is not None and path.read_bytes()[:4] == b"\x89PNG"
     fall = {**fall, "acceleration": -9.5, "error": -9.5 / -9.81 - 1, "flights": 3, "particles": 12,
             "longest_flight": 0.04}
     assert flight_caption(fall) == ("released material: a = -9.50 m/s^2 (-3.2 % of the expected -9.81), median of "

@@ -190,6 +190,11 @@ def flight_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pat
         axes[0].plot([], [], "-", color="k", lw=1, label="free fall, each flight's own z0, v0")
         axes[0].legend(fontsize=7)
         axes[0].set_ylabel("centre-of-mass height of\neach free blob (mm)")
+    if not z.shape[1]:  # every released particle stayed held throughout: the record keeps none (free_flight)
+        axes[1].text(0.5, 0.5, "every released particle stayed held throughout the recording", fontsize=8,
+                     transform=axes[1].transAxes, ha="center", va="center")
+        axes[0].set_title(f"{obj}\n" + flight_caption(fall), fontsize=8)
+        return _save(fig, axes, path)
     lo, mid, hi = np.percentile(z, [10, 50, 90], axis=1)
     axes[1].fill_between(t, 1e3 * lo, 1e3 * hi, color="tab:orange", alpha=0.3, lw=0, label="recorded loose material 10-90 %")
     axes[1].plot(t, 1e3 * mid, color="tab:orange", lw=1, label="median")
