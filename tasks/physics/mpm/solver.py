@@ -31,6 +31,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Callable, Optional, Sequence, Union
 
@@ -61,6 +62,7 @@ QUASI_STATIC_ONSET_FRAMES = 2
 # Particles each tracer (surface Gaussian) is embedded in (:meth:`MPMSolver._bind_tracers`): the 4 nearest span a
 # volume around a surface point (3 could be collinear on a one-particle shell's lattice) and stay within ~1 spacing.
 TRACER_ANCHORS = 4
+MIN_PARTICLES_PER_THREAD = 2048  # mpm.threads: a smaller share costs more in hand-over than it saves
 
 wp.config.quiet = True
 
@@ -614,6 +616,11 @@ class MPMSolver:
         self._col_version = 0  # bumped when self.col changes (the recorded launches re-read it)
         self._set_colliders([])
         self._alloc_finger_arrays(self.n_fingers)
+        # CPU threads of the fused G2P/P2G (mpm.threads): thread t > 0 runs its share of the particles into its own
+        # P2G grid, error flags, stencil box and collider impulses (``_shares``), summed after every launch
+        self.threads = self._thread_count()
+        self._shares: list[dict] = []
+        self._pool: Optional[ThreadPoolExecutor] = None
         self._energy_ref: Optional[EnergyBudget] = None  # energy guard reference (see _check_energy)
         self._energy_initial = True  # the reference is the initial state (F = I, C = 0: no internal energy)
 
@@ -719,11 +726,11 @@ class MPMSolver:
             self._bc_alloc = True
             self._cmds = None  # recorded grid launches reference the boundary arrays
 
-    def _reset_flags(self) -> None:
+    def _reset_flags(self, flags: Optional[wp.array] = None) -> None:
         f = np.zeros(K.N_FLAGS, np.int32)
         f[4:8] = K.NO_SUBSTEP
         f[8:12] = -1
-        self.flags.assign(f)
+        (self.flags if flags is None else flags).assign(f)
 
     # ------------------------------------------------------------------ public geometry helpers
     def node_position(self, idx: np.ndarray) -> np.ndarray:
@@ -976,11 +983,24 @@ class MPMSolver:
         fused_kernel = K.FUSED[self.all_corotated, self.two_fields]
         conditions = self._grid_conditions()
         cmds["gs2"] = K.GridStep()  # the released field's grid update: no Dirichlet nodes
+        shares = self._thread_shares()
+        # one StepParams per thread: a recorded launch holds its struct argument by reference
+        cmds["sp_threads"] = [cmds["sp"]] + [self._step_params(0.0, 0.0) for _ in shares]
+        for sp, (first, _) in zip(cmds["sp_threads"], self._ranges):
+            sp.first = first
         for cur, other in ((self.grid_a, self.grid_b), (self.grid_b, self.grid_a)):
             cur2, other2 = self._field2[id(cur)], self._field2[id(other)]
-            fused = wp.launch(fused_kernel, dim=self.n_particles, device=d, record_cmd=True, inputs=[
-                self.gi, cmds["sp"], self.particles, self.mat_table, cur, other, cur2, other2, self.flags,
-                self.bbox, self.col])
+            fused = [wp.launch(fused_kernel, dim=self.n_particles if not shares else self._ranges[0][1], device=d,
+                               record_cmd=True, inputs=[self.gi, cmds["sp"], self.particles, self.mat_table, cur,
+                                                        other, cur2, other2, self.flags, self.bbox, self.col])]
+            accumulate = []
+            for sh, sp, (_, count) in zip(shares, cmds["sp_threads"][1:], self._ranges[1:]):
+                fused.append(wp.launch(fused_kernel, dim=count, device=d, record_cmd=True, inputs=[
+                    self.gi, sp, self.particles, self.mat_table, cur, sh["grid"], cur2, sh["grid2"],
+                    sh["flags"], sh["bbox"], sh["col"]]))
+                accumulate.append([wp.launch(K.k_grid_accumulate, dim=(1, 1, 1), device=d, record_cmd=True,
+                                             inputs=[wp.vec3i(0, 0, 0), out, part])
+                                   for out, part in ((other, sh["grid"]), (other2, sh["grid2"]))[:1 + self.two_fields]])
             grid = wp.launch(K.k_grid_update, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
                 cmds["gs"], conditions, cur, other, self.bc_grid, self.gstats, self.boundary_work])
             fields = None
@@ -989,15 +1009,74 @@ class MPMSolver:
                     cmds["gs2"], conditions, cur2, other2, self.bc_grid, self.gstats, self.boundary_work]),
                     wp.launch(K.k_field_contact, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
                         cmds["gs"], conditions, cur, cur2]))
-            cmds[id(cur)] = (fused, grid, fields)
+            cmds[id(cur)] = (fused, grid, fields, accumulate)
         cmds["col_version"] = {id(self.grid_a): self._col_version, id(self.grid_b): self._col_version}
         self._cmds = cmds
         return cmds
 
+    def _thread_count(self) -> int:
+        """Threads of the fused kernel: ``mpm.threads`` on the CPU (1 on CUDA), at most one per
+        ``MIN_PARTICLES_PER_THREAD`` particles (below, a thread's hand-over costs more than its share saves)."""
+        if not self._cpu:
+            return 1
+        return max(1, min(int(self.cfg.threads), self.n_particles // MIN_PARTICLES_PER_THREAD))
+
+    def _thread_shares(self) -> list[dict]:
+        """The buffers of threads 1.. of the fused kernel (allocated once, the released field's grid when it first
+        appears) and their particle ranges ``_ranges`` [(first, count)] (contiguous, equal shares)."""
+        t = self.threads
+        bounds = np.linspace(0, self.n_particles, t + 1).round().astype(int)
+        self._ranges = [(int(a), int(b - a)) for a, b in zip(bounds[:-1], bounds[1:])]
+        d = self.device
+        while len(self._shares) < t - 1:
+            sh = dict(grid=wp.zeros(self.dims, dtype=wp.vec4, device=d), grid2=wp.zeros((1, 1, 1), dtype=wp.vec4,
+                                                                                         device=d),
+                      flags=wp.zeros(K.N_FLAGS, dtype=wp.int32, device=d), bbox=wp.clone(self.bbox_init),
+                      react=wp.zeros(self.n_fingers, dtype=wp.vec3, device=d),
+                      work=wp.zeros(1, dtype=wp.float64, device=d), col=K.Colliders())
+            self._reset_flags(sh["flags"])
+            sh["bbox_np"] = sh["bbox"].numpy()
+            self._shares.append(sh)
+        for sh in self._shares:
+            if self.two_fields and sh["grid2"].shape != self.grid_a.shape:
+                sh["grid2"] = wp.zeros(self.dims, dtype=wp.vec4, device=d)
+            self._share_colliders(sh)
+        if t > 1 and self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=t - 1, thread_name_prefix="mpm")
+        return self._shares
+
+    def _share_colliders(self, sh: dict) -> None:
+        """A thread's view of the colliders: the same ones, with its own impulse (N s per finger) and work (J)
+        accumulators (summed into the fingers' reactions and the boundary work at the frame's end)."""
+        if sh["react"].shape[0] != self.n_fingers:
+            sh["react"] = wp.zeros(self.n_fingers, dtype=wp.vec3, device=self.device)
+        for name in ("count", "kind", "a", "b", "radius", "vel", "mu", "finger"):
+            setattr(sh["col"], name, getattr(self.col, name))
+        sh["col"].impulse = sh["react"]
+        sh["col"].work = sh["work"]
+
+    def _gather_shares(self, accumulate: list) -> None:
+        """After the threads' fused launches: add each thread's P2G grid into the shared one over the node box its
+        particles touched (:func:`tasks.physics.mpm.kernels.k_grid_accumulate`) and merge its stencil box."""
+        box = self._bbox_np
+        for sh, launches in zip(self._shares, accumulate):
+            b = sh["bbox_np"]
+            if b[0] > b[3]:  # no particle
+                continue
+            lo, hi = self._clamp_box(b)
+            dims = tuple(int(a) for a in hi - lo + 1)
+            for launch in launches:
+                launch.set_param_at_index(0, wp.vec3i(int(lo[0]), int(lo[1]), int(lo[2])))
+                launch.set_dim(dims)
+                launch.launch()
+            box[:3] = np.minimum(box[:3], b[:3])
+            box[3:] = np.maximum(box[3:], b[3:])
+
     def _reset_bbox(self) -> None:
         if self._cpu:
-            self._bbox_np[:3] = 2**30
-            self._bbox_np[3:] = -(2**30)
+            for b in [self._bbox_np] + [sh["bbox_np"] for sh in self._shares]:
+                b[:3] = 2**30
+                b[3:] = -(2**30)
         else:
             wp.copy(self.bbox, self.bbox_init)
 
@@ -1060,16 +1139,28 @@ class MPMSolver:
 
     def _launch_fused(self, cur, dt: float, dt_next: float) -> None:
         cmds = self._recorded()
-        sp = cmds["sp"]
-        sp.dt_g2p = float(dt)
-        sp.dt_p2g = float(dt_next)
-        sp.substep = int(self.substep)
         fused = cmds[id(cur)][0]
-        fused.set_param_by_name("sp", sp)
-        if cmds["col_version"][id(cur)] != self._col_version:
-            fused.set_param_by_name("col", self.col)
+        new_col = cmds["col_version"][id(cur)] != self._col_version
+        if new_col:
+            for sh in self._shares:
+                self._share_colliders(sh)
             cmds["col_version"][id(cur)] = self._col_version
-        fused.launch()
+        for t, (launch, sp) in enumerate(zip(fused, cmds["sp_threads"])):
+            sp.dt_g2p = float(dt)
+            sp.dt_p2g = float(dt_next)
+            sp.substep = int(self.substep)
+            launch.set_param_by_name("sp", sp)
+            if new_col:
+                launch.set_param_by_name("col", self.col if t == 0 else self._shares[t - 1]["col"])
+        if len(fused) == 1:
+            fused[0].launch()
+            return
+        # Warp releases the GIL while a CPU kernel runs: the other threads' shares run beside this one
+        pending = [self._pool.submit(launch.launch) for launch in fused[1:]]
+        fused[0].launch()
+        for job in pending:
+            job.result()
+        self._gather_shares(cmds[id(cur)][3])
 
     def step_frame(self, frame_dt: float, dirichlet: BoundarySpec = None,
                    forces: Optional[Union[ForcePatch, Sequence[ForcePatch]]] = None,
@@ -1109,6 +1200,9 @@ class MPMSolver:
         self.finger_react.zero_()
         self.finger_applied.zero_()
         self.boundary_work.zero_()
+        for sh in self._shares:
+            sh["react"].zero_()
+            sh["work"].zero_()
         self._energy_baseline()
         has_bc = int(len(bcs) > 0)
         bc_speed = max([b["speed"] for b in bcs], default=0.0)
@@ -1190,6 +1284,9 @@ class MPMSolver:
                     f"(dt={dt:.3g} s, max speed {vmax:.4g} m/s at substep {self.substep}, "
                     f"t={self.time + t:.6g} s): the time step collapsed; likely cause: runaway velocities "
                     f"(unstable material or boundary velocities too large)")
+        for sh in self._shares:  # the threads' collider impulses (N s) and work (J)
+            self.finger_react.numpy()[:] += sh["react"].numpy()
+            self.boundary_work.numpy()[:] += sh["work"].numpy()
         # grid_a: last grid state (velocities + masses of the last P2G); grid_b: zeroed, the next frame's P2G target
         self.grid_a, self.grid_b = cur, other
         self.time += frame_dt
@@ -1215,7 +1312,11 @@ class MPMSolver:
 
     def _read_box(self) -> tuple[np.ndarray, np.ndarray]:
         """Node box [lo, hi] (inclusive) touched by the last P2G (stencil bases + 2), clamped to the grid."""
-        b = (self._bbox_np if self._cpu else self.bbox.numpy()).tolist()
+        return self._clamp_box(self._bbox_np if self._cpu else self.bbox.numpy())
+
+    def _clamp_box(self, bbox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Node box [lo, hi] (inclusive) of the stencil bases [bbox[:3], bbox[3:]] (+ 2), clamped to the grid."""
+        b = bbox.tolist()
         dims = self.dims
         lo = [min(max(b[i], 0), dims[i] - 1) for i in range(3)]
         hi = [max(min(b[3 + i] + 2, dims[i] - 1), lo[i]) for i in range(3)]
@@ -1366,6 +1467,13 @@ class MPMSolver:
 
     def _check_flags(self, force_nonfinite: bool = False) -> None:
         f = self.flags.numpy()
+        for sh in self._shares:  # merge the threads' flags (counts, first substep, an offending index)
+            g = sh["flags"].numpy()
+            if g[:4].any():
+                f[:4] += g[:4]
+                f[4:8] = np.minimum(f[4:8], g[4:8])
+                f[8:] = np.maximum(f[8:], g[8:])
+                self._reset_flags(sh["flags"])
         if not (f[0] or f[1] or f[2] or f[3]) and not force_nonfinite:
             return
         x = self.x.numpy()
