@@ -122,11 +122,12 @@ class MPMConfig:
             at 0.09 (force-driven orange) and 0.015 at most (the other 15 of the 8 objects x 2 variants).
         check_every: read the kernels' error flags every this many substeps (and at every frame end).
         debug: compile the kernels in Warp debug mode (bounds checks) and check flags every substep.
-        threads: CPU threads of the fused particle kernel (~95 % of a substep) for one scene: each runs its share
-            of the particles into its own P2G grid, summed after every substep (the same physics; sums in another
-            order, so positions differ at float32 round-off).  1 where the run already keeps every core busy with
-            one scene per core (``flows.evaluate``'s Dask workers); ``flows.squeeze`` and ``flows.benchmark`` use 2.
-            Ignored on CUDA; scenes under 2048 particles per thread use fewer.
+        threads: CPU threads of the fused particle kernel (~95 % of a substep) for one scene: the particles are
+            cut into 2 chunks per thread, each scattering into its own P2G grid, summed in chunk order after every
+            substep (the same physics, reproducible; sums in another order than on one thread, so positions differ
+            at float32 round-off).  1 where the run already keeps every core busy with one scene per core
+            (``flows.evaluate``'s Dask workers); ``flows.squeeze`` and ``flows.benchmark`` use 2.  Ignored on CUDA;
+            scenes under 2048 particles per thread use fewer.
     Solver details
         polar_method: per-substep rotation update of fixed-corotated particles, warm-started from the previous
             substep: ``newton`` (default; Newton step on SO(3), matches the SVD rotation to float precision) or

@@ -1,7 +1,7 @@
-"""``mpm.threads``: the fused G2P/P2G kernel split over CPU threads, each scattering its share of the particles into
-its own grid (summed after every substep).  Known answers: the same run as on one thread up to float32 round-off
+"""``mpm.threads``: the fused G2P/P2G kernel split over CPU threads, the particles cut into chunks that each scatter
+into their own grid (summed after every substep).  Known answers: the same run as on one thread up to float32 round-off
 (positions, velocities, the colliders' reactions and the boundary work), with a released velocity field and surface
-contact; a guard tripped in the second thread's share is raised at its substep."""
+contact; reproducible; a guard tripped in a chunk other than the first is raised at its substep."""
 from __future__ import annotations
 
 import re
@@ -50,13 +50,16 @@ def squeeze(threads: int, frames: int = 4):
 
 
 def test_two_threads_run_the_one_thread_squeeze_to_round_off():
-    """Same scene on 1 and 2 threads (the second share holds block and blob particles, so both fields and the
-    colliders go through its own grids and accumulators): positions agree to 1e-6 m (float32 round-off of the
-    reordered sums; dx = 5 mm), velocities to 1e-4 m/s, the fingertip's and the floor's reactions and the
-    boundary work to 1e-3 relative, and the fingertip does push (its reaction is not zero)."""
+    """Same scene on 1 and 2 threads (the chunks after the first hold block and blob particles, so both fields and
+    the colliders go through their own grids and accumulators): positions agree to 1e-6 m (float32 round-off of
+    the reordered sums; dx = 5 mm), velocities to 1e-4 m/s, the fingertip's and the floor's reactions and the
+    boundary work to 1e-3 relative, and the fingertip does push (its reaction is not zero).  A second run on 2
+    threads is bit for bit the first (whichever thread ran which chunk)."""
     one, r1 = squeeze(1)
     two, r2 = squeeze(2)
-    assert one.threads == 1 and two.threads == 2 and two.two_fields
+    again, r3 = squeeze(2)
+    assert np.array_equal(again.positions(), two.positions()) and np.array_equal(r3, r2)
+    assert one.threads == 1 and two.threads == 2 and two.two_fields and len(two._ranges) == 4
     ids = two.material_ids()
     assert ids[two._ranges[1][0]:].min() == 0 and ids[two._ranges[1][0]:].max() == 1
     assert np.abs(two.positions() - one.positions()).max() < 1e-6
@@ -65,10 +68,10 @@ def test_two_threads_run_the_one_thread_squeeze_to_round_off():
     assert np.allclose(r2, r1, rtol=1e-3, atol=1e-3 * np.abs(r1).max())
 
 
-def test_a_guard_in_the_second_share_is_raised_at_its_substep():
-    """The last particle (the second thread's share) stretched to det F = 24 > ``j_max`` 20 (flags read every
-    substep): the guard trips at substep 0, in the fused kernel's G2P of the second thread (the frame's last G2P,
-    on the first thread, would report a later substep), naming a particle of that share (the stretched one's
+def test_a_guard_in_a_later_chunk_is_raised_at_its_substep():
+    """The last particle (the last chunk) stretched to det F = 24 > ``j_max`` 20 (flags read every substep): the
+    guard trips at substep 0, in the fused kernel's G2P of that chunk (the frame's last G2P, one launch with the
+    main flags, would report a later substep), naming a particle beyond the first chunk (the stretched one's
     neighbours invert first)."""
     X = lattice([0.0, 0.0, 0.0], [0.04, 0.04, 0.04])
     s = MPMSolver(X, (DX / 2) ** 3, WALL, config=dict(device="cpu", dx=DX, threads=2, margin_cells=2,

@@ -63,6 +63,7 @@ QUASI_STATIC_ONSET_FRAMES = 2
 # volume around a surface point (3 could be collinear on a one-particle shell's lattice) and stay within ~1 spacing.
 TRACER_ANCHORS = 4
 MIN_PARTICLES_PER_THREAD = 2048  # mpm.threads: a smaller share costs more in hand-over than it saves
+CHUNKS_PER_THREAD = 2  # mpm.threads > 1: particle chunks per thread (each has its own P2G grid)
 
 wp.config.quiet = True
 
@@ -616,8 +617,9 @@ class MPMSolver:
         self._col_version = 0  # bumped when self.col changes (the recorded launches re-read it)
         self._set_colliders([])
         self._alloc_finger_arrays(self.n_fingers)
-        # CPU threads of the fused G2P/P2G (mpm.threads): thread t > 0 runs its share of the particles into its own
-        # P2G grid, error flags, stencil box and collider impulses (``_shares``), summed after every launch
+        # CPU threads of the fused G2P/P2G (mpm.threads): the particles are cut into CHUNKS_PER_THREAD x threads
+        # chunks; chunk c > 0 scatters into its own P2G grid, error flags, stencil box and collider impulses
+        # (``_shares``), summed in chunk order after every launch, whichever thread ran it
         self.threads = self._thread_count()
         self._shares: list[dict] = []
         self._pool: Optional[ThreadPoolExecutor] = None
@@ -984,7 +986,7 @@ class MPMSolver:
         conditions = self._grid_conditions()
         cmds["gs2"] = K.GridStep()  # the released field's grid update: no Dirichlet nodes
         shares = self._thread_shares()
-        # one StepParams per thread: a recorded launch holds its struct argument by reference
+        # one StepParams per chunk: a recorded launch holds its struct argument by reference
         cmds["sp_threads"] = [cmds["sp"]] + [self._step_params(0.0, 0.0) for _ in shares]
         for sp, (first, _) in zip(cmds["sp_threads"], self._ranges):
             sp.first = first
@@ -1022,9 +1024,12 @@ class MPMSolver:
         return max(1, min(int(self.cfg.threads), self.n_particles // MIN_PARTICLES_PER_THREAD))
 
     def _thread_shares(self) -> list[dict]:
-        """The buffers of threads 1.. of the fused kernel (allocated once, the released field's grid when it first
-        appears) and their particle ranges ``_ranges`` [(first, count)] (contiguous, equal shares)."""
-        t = self.threads
+        """The buffers of chunks 1.. of the fused kernel (allocated once, the released field's grid when it first
+        appears) and the chunks' particle ranges ``_ranges`` [(first, count)] (contiguous, equal).  More chunks than
+        threads: a thread that another process slows down leaves its next chunk to the others (each substep waits
+        for the last chunk), while every chunk keeps its own buffers, so the sums do not depend on which thread ran
+        which chunk (the run is reproducible)."""
+        t = self.threads * CHUNKS_PER_THREAD if self.threads > 1 else 1
         bounds = np.linspace(0, self.n_particles, t + 1).round().astype(int)
         self._ranges = [(int(a), int(b - a)) for a, b in zip(bounds[:-1], bounds[1:])]
         d = self.device
@@ -1042,7 +1047,7 @@ class MPMSolver:
                 sh["grid2"] = wp.zeros(self.dims, dtype=wp.vec4, device=d)
             self._share_colliders(sh)
         if t > 1 and self._pool is None:
-            self._pool = ThreadPoolExecutor(max_workers=t - 1, thread_name_prefix="mpm")
+            self._pool = ThreadPoolExecutor(max_workers=self.threads - 1, thread_name_prefix="mpm")
         return self._shares
 
     def _share_colliders(self, sh: dict) -> None:
@@ -1145,19 +1150,25 @@ class MPMSolver:
             for sh in self._shares:
                 self._share_colliders(sh)
             cmds["col_version"][id(cur)] = self._col_version
-        for t, (launch, sp) in enumerate(zip(fused, cmds["sp_threads"])):
+        for c, (launch, sp) in enumerate(zip(fused, cmds["sp_threads"])):
             sp.dt_g2p = float(dt)
             sp.dt_p2g = float(dt_next)
             sp.substep = int(self.substep)
             launch.set_param_by_name("sp", sp)
             if new_col:
-                launch.set_param_by_name("col", self.col if t == 0 else self._shares[t - 1]["col"])
+                launch.set_param_by_name("col", self.col if c == 0 else self._shares[c - 1]["col"])
         if len(fused) == 1:
             fused[0].launch()
             return
-        # Warp releases the GIL while a CPU kernel runs: the other threads' shares run beside this one
-        pending = [self._pool.submit(launch.launch) for launch in fused[1:]]
-        fused[0].launch()
+        # Warp releases the GIL while a CPU kernel runs: every thread takes the next chunk until none is left
+        chunks = iter(fused)
+
+        def work() -> None:
+            for launch in chunks:  # a shared iterator: each chunk is taken once (the GIL guards next())
+                launch.launch()
+
+        pending = [self._pool.submit(work) for _ in range(self.threads - 1)]
+        work()
         for job in pending:
             job.result()
         self._gather_shares(cmds[id(cur)][3])
@@ -1284,7 +1295,7 @@ class MPMSolver:
                     f"(dt={dt:.3g} s, max speed {vmax:.4g} m/s at substep {self.substep}, "
                     f"t={self.time + t:.6g} s): the time step collapsed; likely cause: runaway velocities "
                     f"(unstable material or boundary velocities too large)")
-        for sh in self._shares:  # the threads' collider impulses (N s) and work (J)
+        for sh in self._shares:  # the chunks' collider impulses (N s) and work (J)
             self.finger_react.numpy()[:] += sh["react"].numpy()
             self.boundary_work.numpy()[:] += sh["work"].numpy()
         # grid_a: last grid state (velocities + masses of the last P2G); grid_b: zeroed, the next frame's P2G target
@@ -1467,7 +1478,7 @@ class MPMSolver:
 
     def _check_flags(self, force_nonfinite: bool = False) -> None:
         f = self.flags.numpy()
-        for sh in self._shares:  # merge the threads' flags (counts, first substep, an offending index)
+        for sh in self._shares:  # merge the chunks' flags (counts, first substep, an offending index)
             g = sh["flags"].numpy()
             if g[:4].any():
                 f[:4] += g[:4]
