@@ -28,10 +28,12 @@ Tracers (surface 3D Gaussians) are embedded in the material: each is bound at re
 """
 from __future__ import annotations
 
+import gc
 import math
 import time
 import warnings
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Callable, Optional, Sequence, Union
 
@@ -221,6 +223,24 @@ class EnergyBudget:
         self.work_in += max(float(work), 0.0)
         self.scale = max(self.scale, self.work_in, abs(potential - self.potential))
         return float(np.sum(energy) - self.energy.sum()) - self.work_in
+
+
+@contextmanager
+def _young_objects_collected():
+    """Inside, Python's cyclic garbage collector scans only the objects made inside (``gc.freeze`` /
+    ``gc.unfreeze``): every substep's launches allocate a few Python objects, and the full collection they
+    trigger every few hundred substeps scans every object of the process (a pipeline worker holds ~0.5 M).
+    Measured on a 4913-particle cube in a process of 140 k objects: one full collection per 600 substeps, 134-212
+    ms each under load (~0.2-0.35 ms per 1.2 ms substep); none inside.  Left alone when the caller already froze
+    objects or disabled the collector."""
+    if gc.get_freeze_count() or not gc.isenabled():
+        yield
+        return
+    gc.freeze()
+    try:
+        yield
+    finally:
+        gc.unfreeze()
 
 
 def _num(x: float) -> str:
@@ -1194,6 +1214,14 @@ class MPMSolver:
         """
         if not frame_dt > 0:
             raise ValueError("frame_dt must be > 0")
+        with _young_objects_collected():
+            return self._advance_frame(frame_dt, dirichlet, forces, quasi_static, colliders, probe, probe_every)
+
+    def _advance_frame(self, frame_dt: float, dirichlet: BoundarySpec,
+                       forces: Optional[Union[ForcePatch, Sequence[ForcePatch]]], quasi_static: bool,
+                       colliders: Optional[Union[Collider, Sequence[Collider]]],
+                       probe: Optional[Callable[[float], None]], probe_every: int) -> FrameStats:
+        """The body of :meth:`step_frame`."""
         wall0 = time.perf_counter()
         self._resolve_auto_mass_scale(frame_dt)
         self._set_damping(quasi_static)
