@@ -1323,8 +1323,10 @@ class MPMSolver:
                     f"(dt={dt:.3g} s, max speed {vmax:.4g} m/s at substep {self.substep}, "
                     f"t={self.time + t:.6g} s): the time step collapsed; likely cause: runaway velocities "
                     f"(unstable material or boundary velocities too large)")
-        for sh in self._shares:  # the chunks' collider impulses (N s) and work (J)
-            self.finger_react.numpy()[:] += sh["react"].numpy()
+        for sh in self._shares:  # the chunks' collider impulses (N s; fingers added this frame: none yet) and work (J)
+            react, own = self.finger_react.numpy(), sh["react"].numpy()
+            k = min(len(react), len(own))
+            react[:k] += own[:k]
             self.boundary_work.numpy()[:] += sh["work"].numpy()
         # grid_a: last grid state (velocities + masses of the last P2G); grid_b: zeroed, the next frame's P2G target
         self.grid_a, self.grid_b = cur, other
