@@ -127,7 +127,7 @@ class MPMConfig:
             substep (the same physics, reproducible; sums in another order than on one thread, so positions differ
             at float32 round-off).  1 where the run already keeps every core busy with one scene per core
             (``flows.evaluate``'s Dask workers); ``flows.squeeze`` and ``flows.benchmark`` use 2.  Ignored on CUDA;
-            scenes under 2048 particles per thread use fewer.
+            scenes under 4096 particles per thread use fewer.
     Solver details
         polar_method: per-substep rotation update of fixed-corotated particles, warm-started from the previous
             substep: ``newton`` (default; Newton step on SO(3), matches the SVD rotation to float precision) or

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from tasks.physics.mpm import Collider, Material, MPMSolver
+from tasks.physics.mpm import solver as mpm_solver
 from tasks.physics.mpm.solver import SimulationError
 
 DX = 0.005  # m
@@ -47,6 +48,12 @@ def squeeze(threads: int, frames: int = 4):
             st = s.step_frame(1.0 / 60.0, colliders=tip)
             reactions.append(np.r_[st.reaction.ravel(), st.boundary_work])
     return s, np.array(reactions)
+
+
+@pytest.fixture(autouse=True)
+def small_shares(monkeypatch):
+    """Thread these small (fast) scenes too: the per-thread minimum is a speed threshold, not a limit."""
+    monkeypatch.setattr(mpm_solver, "MIN_PARTICLES_PER_THREAD", 1024)
 
 
 def test_two_threads_run_the_one_thread_squeeze_to_round_off():
