@@ -61,12 +61,14 @@ def test_two_threads_run_the_one_thread_squeeze_to_round_off():
     the colliders go through their own grids and accumulators): positions agree to 1e-6 m (float32 round-off of
     the reordered sums; dx = 5 mm), velocities to 1e-4 m/s, the fingertip's and the floor's reactions and the
     boundary work to 1e-3 relative, and the fingertip does push (its reaction is not zero).  A second run on 2
-    threads is bit for bit the first (whichever thread ran which chunk)."""
+    threads is bit for bit the first (whichever thread ran which chunk).  ``grid_nbytes`` counts the chunks' grids."""
     one, r1 = squeeze(1)
     two, r2 = squeeze(2)
     again, r3 = squeeze(2)
     assert np.array_equal(again.positions(), two.positions()) and np.array_equal(r3, r2)
     assert one.threads == 1 and two.threads == 2 and two.two_fields and len(two._ranges) == 4
+    # memory: chunks 1-3 each hold one vec4 P2G buffer per velocity field
+    assert two.grid_nbytes() == one.grid_nbytes() + 3 * 2 * 16 * int(np.prod(two.dims))
     ids = two.material_ids()
     assert ids[two._ranges[1][0]:].min() == 0 and ids[two._ranges[1][0]:].max() == 1
     assert np.abs(two.positions() - one.positions()).max() < 1e-6

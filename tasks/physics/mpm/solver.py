@@ -1724,7 +1724,9 @@ class MPMSolver:
 
     def grid_nbytes(self) -> int:
         """Bytes of the grid arrays: two vec4 buffers (four once a second velocity field was used), plus the
-        Dirichlet target, reaction (vec4) and projector (mat33) arrays once a constraint was used."""
+        Dirichlet target, reaction (vec4) and projector (mat33) arrays once a constraint was used, plus one vec4
+        P2G buffer per field for every particle chunk after the first (``mpm.threads`` > 1)."""
         nodes = int(np.prod(self.dims))
         fields = 2 if self._field2[id(self.grid_a)].shape == self.grid_a.shape else 1
-        return nodes * (2 * 16 * fields + ((16 + 16 + 36) if self._bc_alloc else 0))
+        chunks = sum(16 * nodes * (1 + (sh["grid2"].shape == self.grid_a.shape)) for sh in self._shares)
+        return nodes * (2 * 16 * fields + ((16 + 16 + 36) if self._bc_alloc else 0)) + chunks
