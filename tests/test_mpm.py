@@ -45,16 +45,9 @@ from tasks.physics.mpm.solver import (
     lowest_period,
     quasi_static_bound,
 )
+from tests.particles import lattice
 
 DX = 0.005  # m
-
-
-def lattice(lo, hi, h):
-    """Particle lattice with spacing h filling the box [lo, hi] (cell-centred)."""
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    n = np.maximum(np.round((hi - lo) / h).astype(int), 1)
-    axes = [lo[i] + (np.arange(n[i]) + 0.5) * (hi[i] - lo[i]) / n[i] for i in range(3)]
-    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
 
 
 def cube(side, h=DX / 2, z0=0.0):

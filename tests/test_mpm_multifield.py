@@ -14,6 +14,7 @@ import warp as wp
 from tasks.physics.mpm import kernels as K
 from tasks.physics.mpm.materials import Material
 from tasks.physics.mpm.solver import MPMSolver
+from tests.particles import lattice
 
 DX = 0.005  # m
 FRAME_DT = 1.0 / 60.0  # s
@@ -22,19 +23,11 @@ BLOB = Material(name="blob", model="fluid", youngs_modulus=2e4, poisson_ratio=0.
                 mass_scaled=False)
 
 
-def lattice(lo, hi, h=DX / 2):
-    """Cell-centred particle lattice of spacing h (m) filling the box [lo, hi]."""
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    n = np.maximum(np.round((hi - lo) / h).astype(int), 1)
-    axes = [lo[i] + (np.arange(n[i]) + 0.5) * (hi[i] - lo[i]) / n[i] for i in range(3)]
-    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-
-
 def wall_and_blob(blob_lo, blob_hi, multi_field=True, gravity=(0.0, 0.0, -9.81), floor=True, velocity=(0, 0, 0)):
     """A stiff wall (2 x 8 x 6 cm, mass-scaled under selective scaling: heavy) standing on the floor at x in
     [0, 0.02] m, and a fluid blob with physical inertia (field 1) in the box [blob_lo, blob_hi] with ``velocity``."""
-    Xw = lattice([0.0, 0.0, 0.0], [0.02, 0.08, 0.06])
-    Xb = lattice(blob_lo, blob_hi)
+    Xw = lattice([0.0, 0.0, 0.0], [0.02, 0.08, 0.06], DX / 2)
+    Xb = lattice(blob_lo, blob_hi, DX / 2)
     ids = np.repeat([0, 1], [len(Xw), len(Xb)])
     v = np.zeros((len(ids), 3), np.float32)
     v[ids == 1] = velocity
@@ -140,7 +133,7 @@ def test_field_contact_kernel_conserves_momentum_and_keeps_tangential_velocity()
 def test_second_field_is_used_only_while_both_fields_have_particles():
     """Before a release (body only) the solver runs one field and allocates no second grid; switching particles
     to the released material (``set_material_ids``) turns the second field on, and the grid mass counts both."""
-    Xw = lattice([0.0, 0.0, 0.0], [0.02, 0.02, 0.02])
+    Xw = lattice([0.0, 0.0, 0.0], [0.02, 0.02, 0.02], DX / 2)
     s = MPMSolver(Xw, (DX / 2) ** 3, [WALL, BLOB], config=dict(device="cpu", dx=DX, floor_height=0.0,
                                                                mass_scaling="selective", target_substeps_per_frame=10))
     nbytes = s.grid_nbytes()

@@ -13,6 +13,7 @@ import pytest
 from tasks.physics.mpm import Collider, Material, MPMSolver
 from tasks.physics.mpm import solver as mpm_solver
 from tasks.physics.mpm.solver import SimulationError
+from tests.particles import lattice
 
 DX = 0.005  # m
 WALL = Material(name="wall", model="fixed_corotated", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0)
@@ -20,19 +21,11 @@ BLOB = Material(name="blob", model="fluid", youngs_modulus=2e4, poisson_ratio=0.
                 mass_scaled=False)
 
 
-def lattice(lo, hi, h=DX / 2):
-    """Cell-centred particle lattice of spacing h (m) filling the box [lo, hi]."""
-    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
-    n = np.maximum(np.round((hi - lo) / h).astype(int), 1)
-    axes = [lo[i] + (np.arange(n[i]) + 0.5) * (hi[i] - lo[i]) / n[i] for i in range(3)]
-    return np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-
-
 def squeeze(threads: int, frames: int = 4):
     """A soft block (5 x 4 x 4 cm, mass-scaled) on a plane collider, pressed by a descending capsule fingertip,
     and a fluid blob (released field) thrown at its side.  Returns the solver and the per-frame reactions (N)."""
-    Xw = lattice([0.0, 0.0, 0.0], [0.05, 0.04, 0.04])
-    Xb = lattice([0.06, 0.015, 0.015], [0.07, 0.025, 0.025])
+    Xw = lattice([0.0, 0.0, 0.0], [0.05, 0.04, 0.04], DX / 2)
+    Xb = lattice([0.06, 0.015, 0.015], [0.07, 0.025, 0.025], DX / 2)
     ids = np.repeat([0, 1], [len(Xw), len(Xb)])
     v = np.zeros((len(ids), 3), np.float32)
     v[ids == 1] = (-1.0, 0.0, 0.0)
@@ -82,7 +75,7 @@ def test_a_guard_in_a_later_chunk_is_raised_at_its_substep():
     guard trips at substep 0, in the fused kernel's G2P of that chunk (the frame's last G2P, one launch with the
     main flags, would report a later substep), naming a particle beyond the first chunk (the stretched one's
     neighbours invert first)."""
-    X = lattice([0.0, 0.0, 0.0], [0.04, 0.04, 0.04])
+    X = lattice([0.0, 0.0, 0.0], [0.04, 0.04, 0.04], DX / 2)
     s = MPMSolver(X, (DX / 2) ** 3, WALL, config=dict(device="cpu", dx=DX, threads=2, margin_cells=2,
                                                       check_every=1))
     F = np.tile(np.eye(3), (len(X), 1, 1))
