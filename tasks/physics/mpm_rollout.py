@@ -737,10 +737,11 @@ def _flight_arrays(flight: dict[str, np.ndarray]) -> dict[str, Array]:
 
 def _flight_summary(flight: dict[str, np.ndarray], solver: MPMSolver) -> dict[str, Any]:
     """The released material's measured free fall (:func:`tasks.physics.free_flight.flight_summary` of its free
-    blobs' flights), with the grid the flights are recomputed on (``grid_origin`` m, ``dx`` m, ``gravity`` m/s^2)."""
+    blobs' flights), with the grid the flights are recomputed on (``grid_origin`` m, ``dx`` m, ``gravity`` m/s^2)
+    and the table's height ``floor_height`` (m, world z; None without a floor) that the flight figure measures from."""
     grid = {"grid_origin": np.asarray(solver.lo, np.float64).tolist(), "dx": float(solver.dx),
             "gravity": float(solver.cfg.gravity[2])}
-    return {**flight_summary(rollout_flights(flight, grid)), **grid}
+    return {**flight_summary(rollout_flights(flight, grid)), **grid, "floor_height": solver.floor_height}
 
 
 def _quasi_static_summary(contacts: list[dict], ke_ie_contact: np.ndarray, contact: np.ndarray, mass_scale: float,

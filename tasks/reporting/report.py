@@ -171,7 +171,10 @@ def flight_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pat
     if "released_flight_positions" not in r:
         return None
     fall = r.attrs.get("released_free_fall") or {}
-    t, z, held = r["released_flight_time"], r["released_flight_positions"][..., 2].astype(np.float64), \
+    # heights above the table where the rollout recorded its height (earlier rollouts: world z)
+    table = fall.get("floor_height")
+    above = "above the table " if table is not None else ""
+    t, z, held = r["released_flight_time"], r["released_flight_positions"][..., 2].astype(np.float64) - (table or 0.0), \
         r["released_flight_held"]
     flights = rollout_flights({k: r[k] for k in FLIGHT_NAMES}, fall) if "grid_origin" in fall else []
     fig, axes = plt.subplots(2, 1, figsize=(5.5, 6.0), sharex=True, height_ratios=(3, 2))
@@ -179,9 +182,10 @@ def flight_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pat
         tf = fl.times - fl.times[0]
         z0, v0 = np.linalg.lstsq(np.stack([np.ones_like(tf), tf], 1), fl.height - 0.5 * fl.expected * tf ** 2,
                                  rcond=None)[0]
-        axes[0].plot(fl.times, 1e3 * fl.height, ".", ms=3, color=f"C{i}",
+        axes[0].plot(fl.times, 1e3 * (fl.height - (table or 0.0)), ".", ms=3, color=f"C{i}",
                      label=f"{len(fl.members)} particles: a = {fl.acceleration:.2f} m/s^2")
-        axes[0].plot(fl.times, 1e3 * (z0 + v0 * tf + 0.5 * fl.expected * tf ** 2), "-", lw=1, color=f"C{i}")
+        axes[0].plot(fl.times, 1e3 * (z0 + v0 * tf + 0.5 * fl.expected * tf ** 2 - (table or 0.0)), "-", lw=1,
+                     color=f"C{i}")
     if not flights:
         axes[0].text(0.5, 0.5, "no free blob: the released material stays coupled through\nthe grid to the body, "
                      "the table or a wall", transform=axes[0].transAxes, ha="center", va="center", fontsize=8)
@@ -189,7 +193,7 @@ def flight_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pat
     else:
         axes[0].plot([], [], "-", color="k", lw=1, label="free fall, each flight's own z0, v0")
         axes[0].legend(fontsize=7)
-        axes[0].set_ylabel("centre-of-mass height of\neach free blob (mm)")
+        axes[0].set_ylabel(f"centre-of-mass height {above}of\neach free blob (mm)")
     if not z.shape[1]:  # every released particle stayed held throughout: the record keeps none (free_flight)
         axes[1].text(0.5, 0.5, "every released particle stayed held throughout the recording", fontsize=8,
                      transform=axes[1].transAxes, ha="center", va="center")
@@ -198,7 +202,7 @@ def flight_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pat
     lo, mid, hi = np.percentile(z, [10, 50, 90], axis=1)
     axes[1].fill_between(t, 1e3 * lo, 1e3 * hi, color="tab:orange", alpha=0.3, lw=0, label="recorded loose material 10-90 %")
     axes[1].plot(t, 1e3 * mid, color="tab:orange", lw=1, label="median")
-    axes[1].set_ylabel("height (mm)")
+    axes[1].set_ylabel(f"height {above}(mm)")
     axes[1].set_xlabel("time (s)")
     share = axes[1].twinx()
     share.plot(t, held.mean(axis=1), color="k", lw=1, ls="--", label="held (right)")
