@@ -173,8 +173,8 @@ def flight_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pat
     fall = r.attrs.get("released_free_fall") or {}
     # heights above the table where the rollout recorded its height (earlier rollouts: world z)
     table = fall.get("floor_height")
-    above = "above the table " if table is not None else ""
-    t, z, held = r["released_flight_time"], r["released_flight_positions"][..., 2].astype(np.float64) - (table or 0.0), \
+    base, above = (table, "above the table ") if table is not None else (0.0, "")
+    t, z, held = r["released_flight_time"], r["released_flight_positions"][..., 2].astype(np.float64) - base, \
         r["released_flight_held"]
     flights = rollout_flights({k: r[k] for k in FLIGHT_NAMES}, fall) if "grid_origin" in fall else []
     fig, axes = plt.subplots(2, 1, figsize=(5.5, 6.0), sharex=True, height_ratios=(3, 2))
@@ -182,10 +182,9 @@ def flight_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pat
         tf = fl.times - fl.times[0]
         z0, v0 = np.linalg.lstsq(np.stack([np.ones_like(tf), tf], 1), fl.height - 0.5 * fl.expected * tf ** 2,
                                  rcond=None)[0]
-        axes[0].plot(fl.times, 1e3 * (fl.height - (table or 0.0)), ".", ms=3, color=f"C{i}",
+        axes[0].plot(fl.times, 1e3 * (fl.height - base), ".", ms=3, color=f"C{i}",
                      label=f"{len(fl.members)} particles: a = {fl.acceleration:.2f} m/s^2")
-        axes[0].plot(fl.times, 1e3 * (z0 + v0 * tf + 0.5 * fl.expected * tf ** 2 - (table or 0.0)), "-", lw=1,
-                     color=f"C{i}")
+        axes[0].plot(fl.times, 1e3 * (z0 + v0 * tf + 0.5 * fl.expected * tf ** 2 - base), "-", lw=1, color=f"C{i}")
     if not flights:
         axes[0].text(0.5, 0.5, "no free blob: the released material stays coupled through\nthe grid to the body, "
                      "the table or a wall", transform=axes[0].transAxes, ha="center", va="center", fontsize=8)
@@ -197,24 +196,24 @@ def flight_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pat
     if not z.shape[1]:  # every released particle stayed held throughout: the record keeps none (free_flight)
         axes[1].text(0.5, 0.5, "every released particle stayed held throughout the recording", fontsize=8,
                      transform=axes[1].transAxes, ha="center", va="center")
-        axes[0].set_title(f"{obj}\n" + flight_caption(fall), fontsize=8)
-        return _save(fig, axes, path)
-    lo, mid, hi = np.percentile(z, [10, 50, 90], axis=1)
-    axes[1].fill_between(t, 1e3 * lo, 1e3 * hi, color="tab:orange", alpha=0.3, lw=0, label="recorded loose material 10-90 %")
-    axes[1].plot(t, 1e3 * mid, color="tab:orange", lw=1, label="median")
-    axes[1].set_ylabel(f"height {above}(mm)")
-    axes[1].set_xlabel("time (s)")
-    share = axes[1].twinx()
-    share.plot(t, held.mean(axis=1), color="k", lw=1, ls="--", label="held (right)")
-    flying = np.zeros(len(t))
-    for fl in flights:
-        flying[fl.start:fl.stop] += len(fl.members) / held.shape[1]
-    share.plot(t, flying, color="C2", lw=1, ls=":", label="in free blobs (right)")
-    share.set_ylim(0, 1.05)
-    share.set_ylabel("share of the recorded particles")
-    axes[1].legend(fontsize=7, loc="lower left")
-    share.legend(fontsize=7, loc="lower right")
-    axes[1].set_xlim(t[0] - 0.005, t[-1] + 0.005)
+    else:
+        lo, mid, hi = np.percentile(z, [10, 50, 90], axis=1)
+        axes[1].fill_between(t, 1e3 * lo, 1e3 * hi, color="tab:orange", alpha=0.3, lw=0,
+                             label="recorded loose material 10-90 %")
+        axes[1].plot(t, 1e3 * mid, color="tab:orange", lw=1, label="median")
+        axes[1].set_ylabel(f"height {above}(mm)")
+        axes[1].set_xlabel("time (s)")
+        share = axes[1].twinx()
+        share.plot(t, held.mean(axis=1), color="k", lw=1, ls="--", label="held (right)")
+        flying = np.zeros(len(t))
+        for fl in flights:
+            flying[fl.start:fl.stop] += len(fl.members) / held.shape[1]
+        share.plot(t, flying, color="C2", lw=1, ls=":", label="in free blobs (right)")
+        share.set_ylim(0, 1.05)
+        share.set_ylabel("share of the recorded particles")
+        axes[1].legend(fontsize=7, loc="lower left")
+        share.legend(fontsize=7, loc="lower right")
+        axes[1].set_xlim(t[0] - 0.005, t[-1] + 0.005)
     axes[0].set_title(f"{obj}\n" + flight_caption(fall), fontsize=8)
     return _save(fig, axes, path)
 
