@@ -403,9 +403,10 @@ def _check_release(art, min_outward: float) -> dict:
         assert fl.acceleration == pytest.approx(fl.expected, rel=0.05)
     # the table the figure measures heights from: no recorded particle sinks into it (by a 4 mm spacing at most)
     assert r["released_flight_positions"][..., 2].min() > fall["floor_height"] - 0.004
-    # how much skin ends off the object is measured (tasks.physics.attachment) and stays within the domain
+    # the torn skin opens locally and stays on the object (issue 10: none of it > 3 grid cells off the deformed
+    # body, tasks.physics.attachment); launched with the interior, a flake of the tomato's was carried off
     attached = r.attrs["skin_attachment"]
-    assert 0.0 <= attached["ruptured_detached"] <= 1.0 and attached["max_distance"] < 0.5, attached
+    assert attached["ruptured_detached"] == 0.0 and attached["shell_detached"] == 0.0, attached
     return {"outward": outward, "outside": outside}
 
 
