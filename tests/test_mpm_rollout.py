@@ -407,6 +407,13 @@ def _check_release(art, min_outward: float) -> dict:
     # body, tasks.physics.attachment); launched with the interior, a flake of the tomato's was carried off
     attached = r.attrs["skin_attachment"]
     assert attached["ruptured_detached"] == 0.0 and attached["shell_detached"] == 0.0, attached
+    # and the surface Gaussians drawing it are bound to the skin, not to flesh that burst into juice: all of them end
+    # within 2 cells of the body (bound to pulp too, the tomato's were dragged up to 5.5 cells off with the juice)
+    body = np.isin(mat, [SHELL, RUPTURED, CORE])
+    ends = np.concatenate([x[-1], r["gaussian_positions"][-1]])
+    off = distance_from_body(ends, np.concatenate([body, np.zeros(len(r["gaussian_positions"][-1]), bool)]),
+                             r.attrs["dx"])[len(body):]
+    assert off.max() <= 2 * r.attrs["dx"], off.max() / r.attrs["dx"]
     return {"outward": outward, "outside": outside}
 
 
