@@ -801,8 +801,7 @@ def _torn_skin(soft: Material, tear_strain: float) -> Material:
 
     Torn skin is pressed by the released interior against what stops it (the flesh behind a finger; before the
     skin peeled back (:func:`peel_velocities`), the table and the domain walls the spray carried flakes to).  There
-    a thin flake folds and crumples instead of being compressed
-    elastically: an elastic model (even neo-Hookean's ln J barrier) let det F_E of the soft flakes fall below
+    a thin flake folds and crumples instead of being compressed elastically: an elastic model (even neo-Hookean's ln J barrier) let det F_E of the soft flakes fall below
     ``mpm.j_min`` between the spray and a wall (flattened to singular values ~(5, 0.4, 0.03)).  Here compaction beyond
     the crush strain stays as permanent plastic volume change (elastic J >= exp(-crush_strain)) and shear beyond
     the yield strain as plastic flow.  Where the spray spreads, a lone flake embedded in it follows the juice's
@@ -825,7 +824,7 @@ def peel_velocities(x: np.ndarray, centre: np.ndarray, normal: np.ndarray, speed
     held in: the flaps slide into the intact, mass-scaled shell at the rim, which stops them, while the released
     interior pushes out through the hole.  Launching the torn skin outward with the interior (the former rule) tore
     the tomato's skin at the centre of its opening off as a flake that the juice carried 3.8 cm away (20 % of its
-    torn skin > 3 cells off the fruit; 0 % so; default release_radius 2.5 cells).  Limit: the grid averages a
+    torn skin > 3 cells off the fruit; peeled back, 0 %; default release_radius 2.5 cells).  Limit: the grid averages a
     velocity that diverges within a cell, so the middle of a wider torn patch stays a free disk that the interior
     pushes off (a pocket of juice under a torn 1 mm skin, dx 5 mm: no torn particle > 3 cells off at a 3.5-cell
     patch radius, 37 % at 4 cells, as many as launched)."""
