@@ -189,6 +189,11 @@ class SimulationConfig:
         keeps the sound speed constant under compression (water's gamma = 7 doubles it at J = 0.8, which an
         explicit step sized for the rest state does not survive in a squeezed, sealed can).
     force_per_coefficient: N per unit force coefficient c (force mode, the no_dirichlet variant).
+    force_balance: how the force mode's finger forces (N) are balanced: ``fingers`` (default) takes their net force
+        off the fingers in proportion to their magnitudes, so they sum to 0 N; ``none`` pushes each finger along
+        its inward patch normal unchanged.  A hand squeezing an object is a closed force loop (the table carries
+        only the object's weight); unbalanced, the fingers' net push (1.8 N at the force-driven plush toy's
+        contact, 4.7x its weight) swayed the toy on the table and made its squeeze dynamic.
     release_radius: m; interior particles this close to a finger's patch centre are released at the
         threshold crossing (for an object with a solid core: the core particles there, which become the interior
         material), and shell particles this close rupture (become ``ruptured_softening`` x softer).  Keep it
@@ -223,6 +228,7 @@ class SimulationConfig:
     fluid_mach: float = 0.3
     fluid_tait_exponent: float = 1.0
     force_per_coefficient: float = 8.0
+    force_balance: str = "fingers"
     release_radius: float = 0.02
     release_speed_per_pascal: float = 1.0e-4
     max_release_speed: float = 1.5
@@ -234,6 +240,7 @@ class SimulationConfig:
 
 # ----------------------------------------------------------------------------------------------- runner
 RUNNER_KINDS = ("sequential", "threads", "dask")
+FORCE_BALANCES = ("fingers", "none")  # simulation.force_balance
 
 
 @dataclass
@@ -368,6 +375,8 @@ def validate_simulation(cfg: Any, objects: list[tuple[str, Any]]) -> None:
          f"must be in (0, 1] (a fraction of the released material's sound speed), got {sim.release_mach_max}")
     need(0 < sim.ruptured_softening <= 1, "simulation.ruptured_softening",
          f"must be in (0, 1], got {sim.ruptured_softening}")
+    need(sim.force_balance in FORCE_BALANCES, "simulation.force_balance",
+         f"must be fingers (the fingers' forces sum to zero) or none, got {sim.force_balance!r}")
     need(sim.feedback_rule in ("auto", "reaction", "yield_area"), "simulation.feedback_rule",
          f"must be auto, reaction or yield_area, got {sim.feedback_rule!r}")
     _validate_inputs(cfg, objects, need)

@@ -20,6 +20,7 @@ from tasks.physics.mpm_rollout import (
     FLIGHT_FRAMES,
     FLIGHT_SAMPLE_SUBSTEPS,
     _quasi_static_summary,
+    balanced_push,
     cauchy_free_measures,
     interior_plan,
     load_rise_time,
@@ -443,17 +444,45 @@ def test_tomato_below_its_threshold_has_flesh_but_no_interior(tmp_path):
     assert eps.max() > 0.03 and eps[-1] < 0.3 * eps.max()  # dented by the poke, then springs back
 
 
-def test_force_mode_applies_the_total_force_per_finger(tmp_path):
+def test_force_mode_applies_the_balanced_force_per_finger(tmp_path):
+    """The solver applies each finger's force of :func:`balanced_push` (8 N per coefficient along the inward patch
+    normal, less its share of the net force): the fingers' applied forces sum to zero."""
     # (without the quasi-static bound of the mass scale: 3.7x the substeps, for a test of the applied force)
     art = _rollout(tmp_path, "rubber_ball", "variant.boundary=force", "signal.duration=1.0", "mpm.quasi_static_margin=0")
     r = art["rollout"]
     c, active = art["forces"]["force_coefficients"], art["patches"]["patch_active"]
-    applied = np.linalg.norm(r["applied_force"], axis=-1)
-    expected = 8.0 * c * active  # simulation.force_per_coefficient = 8 N
-    on = expected[1:] > 0.5
-    assert on.sum() > 20  # 1 s at 20 Hz: 48 finger-frames pushing over 0.5 N (up to 2.1 N)
-    np.testing.assert_allclose(applied[1:][on], expected[1:][on], rtol=0.02)
+    pushed = 8.0 * (c * active)[..., None] * -art["patches"]["patch_normals"]  # force_per_coefficient = 8 N
+    expected = np.stack([balanced_push(p, "fingers") for p in pushed])
+    on = np.linalg.norm(expected[1:], axis=-1) > 0.5
+    assert on.sum() > 20  # 1 s at 20 Hz: 45 finger-frames pushing over 0.5 N (up to 1.5 N)
+    np.testing.assert_allclose(r["applied_force"][1:][on], expected[1:][on], atol=0.02 * 1.5)
+    net = np.linalg.norm(r["applied_force"].sum(axis=1), axis=-1)
+    assert net.max() < 1e-3 * np.linalg.norm(pushed.sum(axis=1), axis=-1).max()
     assert np.all(r["reaction_force"] == 0)
+
+
+def test_balanced_push_sums_to_zero_and_keeps_each_fingers_share():
+    """``simulation.force_balance=fingers``: F_k' = F_k - |F_k| F_net / sum |F_j|.  Known answers: the forces sum to
+    zero; every finger's change per newton of its push is the same vector (the Lagrange condition of the least
+    weighted change); no finger pulls along its own direction; two opposed fingers of 2 N and 1 N both push
+    2 F1 F2 / (F1 + F2) = 4/3 N; a lone finger has nothing to push against (0 N); ``none`` changes nothing."""
+    rng = np.random.default_rng(3)
+    push = rng.normal(size=(5, 3)) + np.array([0.0, 0.0, -2.0])  # net force mostly down, like the eq. 3 pushes
+    push[3] = 0.0  # an inactive finger
+    out = balanced_push(push, "fingers")
+    size = np.linalg.norm(push, axis=1)
+    assert np.abs(out.sum(axis=0)).max() < 1e-12 * size.sum()
+    on = size > 0
+    per_newton = (out - push)[on] / size[on, None]
+    np.testing.assert_allclose(per_newton, np.broadcast_to(-push.sum(axis=0) / size.sum(), per_newton.shape),
+                               rtol=1e-12)
+    assert np.all(np.einsum("ij,ij->i", out[on], push[on]) >= 0) and np.all(out[3] == 0)
+    opposed = balanced_push(np.array([[0.0, 0.0, -2.0], [0.0, 0.0, 1.0]]), "fingers")
+    np.testing.assert_allclose(opposed, [[0.0, 0.0, -4 / 3], [0.0, 0.0, 4 / 3]], rtol=1e-12)
+    np.testing.assert_array_equal(balanced_push(np.array([[0.0, 0.0, 0.0], [0.3, 0.0, -1.0]]), "fingers"), 0.0)
+    assert balanced_push(push, "none") is push
+    with pytest.raises(ValueError, match="simulation.force_balance must be fingers or none"):
+        balanced_push(push, "palm")
 
 
 def test_force_push_keeps_the_finger_pressure_when_its_patch_tears():
@@ -476,7 +505,7 @@ def test_force_push_keeps_the_finger_pressure_when_its_patch_tears():
     scene = SimpleNamespace(solver=SimpleNamespace(tracer_positions=lambda: np.zeros((n, 3), np.float32)))
     torn = np.zeros(n, bool)
     torn[:2] = True  # half of finger 1's patch
-    push = force_patch(scene, field, forces, patches, 0, torn, {"force_per_coefficient": 4.0})
+    push = force_patch(scene, field, forces, patches, 0, torn, {"force_per_coefficient": 4.0, "force_balance": "none"})
     assert push.forces[1].tolist() == [0.0, 0.0, -1.0]  # 4 N/coefficient x 0.5 x 2/4 untorn, inward
     assert push.forces[2].tolist() == [0.0, 0.0, -2.0]  # untouched patch: the whole force
     assert push.forces[0].tolist() == [0.0, 0.0, 0.0] and len(push.positions) == 6

@@ -9,7 +9,8 @@ inward patch normal; the tolerance stops contact chatter) and >= 0 while it retr
 deeper than a retreating finger is left free, so on release the object rebounds or keeps its dent as its
 material dictates.  The ``force`` boundary mode (the
 no_dirichlet ablation) pushes with a total per-finger force ``force_per_coefficient * c_k,t`` along the
-inward patch normal instead.
+inward patch normal instead, less each finger's share of the fingers' net force (``simulation.force_balance``:
+the hand's grip is a closed force loop).
 
 Collider fingers (``mpm.fingers = collider``, meant with ``mpm.contact = surface``): instead of the Dirichlet points,
 each active finger is a rigid sphere ``Collider`` of the fingertip pad radius (``conf.hand.FINGERTIP_PAD_RADIUS``)
@@ -538,7 +539,8 @@ def force_patch(scene: Scene, field: Mapping[str, np.ndarray], forces: np.ndarra
     finger that punctured the skin no longer presses on the torn part, as in dirichlet mode).  The push keeps the
     finger's pressure, not its total force: a finger whose patch is partly torn presses with the untorn share of
     its force (the rest goes through the opening, where the released material offers no support).  Concentrating
-    the whole force on the few points left beside an opening crushed the loose stuffing there to det F = 3e-4."""
+    the whole force on the few points left beside an opening crushed the loose stuffing there to det F = 3e-4.
+    The fingers' forces are then balanced (``simulation.force_balance``, :func:`balanced_push`)."""
     finger_of = field["finger"]
     constrained = field["constrained"][f]
     idx = np.flatnonzero(constrained & ~torn)
@@ -551,7 +553,28 @@ def force_patch(scene: Scene, field: Mapping[str, np.ndarray], forces: np.ndarra
             share = untorn / int((constrained & (finger_of[f] == k)).sum())
             total[k] = float(sim["force_per_coefficient"]) * forces[f, k] * share * -patches["patch_normals"][f, k]
     return ForcePatch(positions=scene.solver.tracer_positions()[idx], finger_ids=finger_of[f, idx].astype(np.int32),
-                      forces=total)
+                      forces=balanced_push(total, str(sim["force_balance"])))
+
+
+def balanced_push(total: np.ndarray, balance: str) -> np.ndarray:
+    """The fingers' push (finger, xyz) N with its net force removed (``simulation.force_balance``).
+
+    ``fingers``: a hand squeezing an object is a closed force loop, so the push is made one: the net force F_net =
+    sum_k F_k is taken off the fingers in proportion to their force magnitudes, F_k' = F_k - (|F_k| / sum_j |F_j|)
+    F_net, the change of least sum_k |F_k' - F_k|^2 / |F_k| (each finger keeps its share of the squeeze) with
+    sum_k F_k' = 0.  Along its own direction d_k = F_k / |F_k| a finger still pushes, F_k' . d_k = |F_k| (1 - d_k .
+    F_net / sum_j |F_j|) >= 0 (|F_net| <= sum_j |F_j|), never pulls; the rest of the change is tangential to its
+    push (the grip's friction).  One active finger alone has nothing to squeeze against: its push is removed (0 N).
+    ``none``: the push as given (its net force, up to ~50 % of the fingers' sum along the eq. 3 directions, is
+    carried by nothing but the table)."""
+    if balance == "none":
+        return total
+    if balance != "fingers":
+        raise ValueError(f"simulation.force_balance must be fingers or none, got {balance!r}")
+    size = np.linalg.norm(total, axis=1)
+    if size.sum() <= 0.0:
+        return total
+    return total - (size / size.sum())[:, None] * total.sum(axis=0)
 
 
 def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, np.ndarray], forces: np.ndarray,
