@@ -165,7 +165,8 @@ class SamplingConfig:
 class VariantConfig:
     """A method variant (paper Table 2): ``full`` imposes the displacement field as Dirichlet boundary
     conditions; ``no_dirichlet`` ("VirSqueezer w/o Dirichlet Boundary Constraint", PhysGaussian-style) pushes
-    with a per-finger force estimated from the flexion instead."""
+    with a per-finger force estimated from the flexion instead (balanced so the fingers' forces sum to zero:
+    ``simulation.force_balance``)."""
 
     name: str = "full"
     label: str = ""  # how the report names the variant (Table 2's "Method" column); default: name

@@ -465,9 +465,11 @@ def test_balanced_push_sums_to_zero_and_keeps_each_fingers_share():
     """``simulation.force_balance=fingers``: F_k' = F_k - |F_k| F_net / sum |F_j|.  Known answers: the forces sum to
     zero; every finger's change per newton of its push is the same vector (the Lagrange condition of the least
     weighted change); no finger pulls along its own direction; two opposed fingers of 2 N and 1 N both push
-    2 F1 F2 / (F1 + F2) = 4/3 N; a lone finger has nothing to push against (0 N); ``none`` changes nothing."""
+    2 F1 F2 / (F1 + F2) = 4/3 N; a poke (one finger, or two side by side) is left as given; ``none`` changes
+    nothing."""
     rng = np.random.default_rng(3)
-    push = rng.normal(size=(5, 3)) + np.array([0.0, 0.0, -2.0])  # net force mostly down, like the eq. 3 pushes
+    # a grasp: the thumb against the fingers, every push also down, like the eq. 3 pushes (net force 59 % of the sum)
+    push = 0.3 * rng.normal(size=(5, 3)) + np.array([[2.0, 0, -1], [-1, 0, -1], [-1, 0, -1], [-1, 0, -1], [-1, 0, -1]])
     push[3] = 0.0  # an inactive finger
     out = balanced_push(push, "fingers")
     size = np.linalg.norm(push, axis=1)
@@ -479,7 +481,8 @@ def test_balanced_push_sums_to_zero_and_keeps_each_fingers_share():
     assert np.all(np.einsum("ij,ij->i", out[on], push[on]) >= 0) and np.all(out[3] == 0)
     opposed = balanced_push(np.array([[0.0, 0.0, -2.0], [0.0, 0.0, 1.0]]), "fingers")
     np.testing.assert_allclose(opposed, [[0.0, 0.0, -4 / 3], [0.0, 0.0, 4 / 3]], rtol=1e-12)
-    np.testing.assert_array_equal(balanced_push(np.array([[0.0, 0.0, 0.0], [0.3, 0.0, -1.0]]), "fingers"), 0.0)
+    for poke in ([[0.0, 0.0, 0.0], [0.3, 0.0, -1.0]], [[-2.0, 0.0, 0.0], [-0.5, 0.1, 0.0]]):
+        assert balanced_push(np.array(poke), "fingers").tolist() == poke
     assert balanced_push(push, "none") is push
     with pytest.raises(ValueError, match="simulation.force_balance must be fingers or none"):
         balanced_push(push, "palm")

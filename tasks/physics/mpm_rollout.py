@@ -365,10 +365,10 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     dx = cfg.dx or spacing * cfg.particles_per_cell ** (1.0 / 3.0)
     cfg = replace(cfg, dx=dx)  # the solver applies mpm.mass_scaling (per material; weights stay physical)
     # the quasi-static bound of the mass scale (mpm.quasi_static_margin) for a force-driven squeeze only: a force
-    # pushes the whole body, which leans and rocks on the table in its slowest mode (the default ball and duck:
-    # 85-99 % of their kinetic energy), while Dirichlet fingers hold the points they press, so that mode does not
-    # exist and the deformation under the fingers is local and faster (measured KE/IE of the default Dirichlet
-    # squeezes <= 0.034 at the unbounded scale)
+    # leaves the body free to lean and rock on the table in its slowest mode (under the former unbalanced push,
+    # simulation.force_balance=none, the ball and duck: 85-99 % of their kinetic energy), while Dirichlet fingers
+    # hold the points they press, so that mode does not exist and the deformation under the fingers is local and
+    # faster (measured KE/IE of the default Dirichlet squeezes <= 0.034 at the unbounded scale)
     rise = load_rise_time(forces, frame_dt) if boundary == "force" else None
     load = None if rise is None else QuasiStaticLoad(rise_time=rise, height=float(obj_attrs["bbox_max"][2]
                                                                                  - obj_attrs["bbox_min"][2]))
@@ -564,16 +564,20 @@ def balanced_push(total: np.ndarray, balance: str) -> np.ndarray:
     F_net, the change of least sum_k |F_k' - F_k|^2 / |F_k| (each finger keeps its share of the squeeze) with
     sum_k F_k' = 0.  Along its own direction d_k = F_k / |F_k| a finger still pushes, F_k' . d_k = |F_k| (1 - d_k .
     F_net / sum_j |F_j|) >= 0 (|F_net| <= sum_j |F_j|), never pulls; the rest of the change is tangential to its
-    push (the grip's friction).  One active finger alone has nothing to squeeze against: its push is removed (0 N).
+    push (the grip's friction).  The loop closes in the hand only if two fingers push against each other (F_j .
+    F_k < 0: a pinch or a grasp); a push without such a pair (one finger, or fingers side by side: the clay's poke)
+    is a poke, which nothing in the hand opposes: it is left as given, for the table to carry, as under Dirichlet
+    fingers.  (In the default sessions a grasp object's push lacks an opposing pair only in its first frames, at
+    <= 0.2 N in all; where an opposing finger first touches, the balance switches on at once.)
     ``none``: the push as given (its net force, up to ~50 % of the fingers' sum along the eq. 3 directions, is
     carried by nothing but the table)."""
     if balance == "none":
         return total
     if balance != "fingers":
         raise ValueError(f"simulation.force_balance must be fingers or none, got {balance!r}")
-    size = np.linalg.norm(total, axis=1)
-    if size.sum() <= 0.0:
+    if not (total @ total.T < 0.0).any():  # a poke: no two fingers push against each other
         return total
+    size = np.linalg.norm(total, axis=1)
     return total - (size / size.sum())[:, None] * total.sum(axis=0)
 
 
