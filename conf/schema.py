@@ -195,6 +195,9 @@ class SimulationConfig:
         its inward patch normal unchanged.  A hand squeezing an object is a closed force loop (the table carries
         only the object's weight); unbalanced, the fingers' net push (1.8 N at the force-driven plush toy's
         contact, 4.7x its weight) swayed the toy on the table and made its squeeze dynamic.
+    force_balance_friction: Coulomb coefficient (1) of the fingertips' grip under ``force_balance=fingers``: the net
+        force is removed only as far as no finger's tangential force exceeds this times its normal push (the rest
+        is left for the table).  1: a fingertip on rubber or fabric; the default grasps need <= 0.74.
     release_radius: m; interior particles this close to a finger's patch centre are released at the
         threshold crossing (for an object with a solid core: the core particles there, which become the interior
         material), and shell particles this close rupture (become ``ruptured_softening`` x softer).  Keep it
@@ -230,6 +233,7 @@ class SimulationConfig:
     fluid_tait_exponent: float = 1.0
     force_per_coefficient: float = 8.0
     force_balance: str = "fingers"
+    force_balance_friction: float = 1.0
     release_radius: float = 0.02
     release_speed_per_pascal: float = 1.0e-4
     max_release_speed: float = 1.5
@@ -378,6 +382,8 @@ def validate_simulation(cfg: Any, objects: list[tuple[str, Any]]) -> None:
          f"must be in (0, 1], got {sim.ruptured_softening}")
     need(sim.force_balance in FORCE_BALANCES, "simulation.force_balance",
          f"must be fingers (the fingers' forces sum to zero) or none, got {sim.force_balance!r}")
+    need(sim.force_balance_friction > 0, "simulation.force_balance_friction",
+         f"must be > 0 (a Coulomb coefficient, e.g. 1), got {sim.force_balance_friction}")
     need(sim.feedback_rule in ("auto", "reaction", "yield_area"), "simulation.feedback_rule",
          f"must be auto, reaction or yield_area, got {sim.feedback_rule!r}")
     _validate_inputs(cfg, objects, need)

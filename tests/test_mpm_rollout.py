@@ -446,13 +446,14 @@ def test_tomato_below_its_threshold_has_flesh_but_no_interior(tmp_path):
 
 def test_force_mode_applies_the_balanced_force_per_finger(tmp_path):
     """The solver applies each finger's force of :func:`balanced_push` (8 N per coefficient along the inward patch
-    normal, less its share of the net force): the fingers' applied forces sum to zero."""
+    normal, less its share of the net force): the fingers' applied forces sum to zero (the ball's grasp needs a
+    friction <= 0.64 < 1)."""
     # (without the quasi-static bound of the mass scale: 3.7x the substeps, for a test of the applied force)
     art = _rollout(tmp_path, "rubber_ball", "variant.boundary=force", "signal.duration=1.0", "mpm.quasi_static_margin=0")
     r = art["rollout"]
     c, active = art["forces"]["force_coefficients"], art["patches"]["patch_active"]
     pushed = 8.0 * (c * active)[..., None] * -art["patches"]["patch_normals"]  # force_per_coefficient = 8 N
-    expected = np.stack([balanced_push(p, "fingers") for p in pushed])
+    expected = np.stack([balanced_push(p, "fingers", 1.0) for p in pushed])
     on = np.linalg.norm(expected[1:], axis=-1) > 0.5
     assert on.sum() > 20  # 1 s at 20 Hz: 45 finger-frames pushing over 0.5 N (up to 1.5 N)
     np.testing.assert_allclose(r["applied_force"][1:][on], expected[1:][on], atol=0.02 * 1.5)
@@ -462,16 +463,16 @@ def test_force_mode_applies_the_balanced_force_per_finger(tmp_path):
 
 
 def test_balanced_push_sums_to_zero_and_keeps_each_fingers_share():
-    """``simulation.force_balance=fingers``: F_k' = F_k - |F_k| F_net / sum |F_j|.  Known answers: the forces sum to
-    zero; every finger's change per newton of its push is the same vector (the Lagrange condition of the least
-    weighted change); no finger pulls along its own direction; two opposed fingers of 2 N and 1 N both push
-    2 F1 F2 / (F1 + F2) = 4/3 N; a poke (one finger, or two side by side) is left as given; ``none`` changes
-    nothing."""
+    """``simulation.force_balance=fingers``: F_k' = F_k - a |F_k| F_net / sum |F_j|.  Known answers: with friction
+    enough (a = 1) the forces sum to zero; every finger's change per newton of its push is the same vector (the
+    Lagrange condition of the least weighted change); no finger pulls along its own direction; two opposed fingers
+    of 2 N and 1 N both push 2 F1 F2 / (F1 + F2) = 4/3 N; a poke (one finger, or two side by side) is left as given;
+    ``none`` changes nothing."""
     rng = np.random.default_rng(3)
     # a grasp: the thumb against the fingers, every push also down, like the eq. 3 pushes (net force 59 % of the sum)
     push = 0.3 * rng.normal(size=(5, 3)) + np.array([[2.0, 0, -1], [-1, 0, -1], [-1, 0, -1], [-1, 0, -1], [-1, 0, -1]])
     push[3] = 0.0  # an inactive finger
-    out = balanced_push(push, "fingers")
+    out = balanced_push(push, "fingers", 100.0)
     size = np.linalg.norm(push, axis=1)
     assert np.abs(out.sum(axis=0)).max() < 1e-12 * size.sum()
     on = size > 0
@@ -479,13 +480,31 @@ def test_balanced_push_sums_to_zero_and_keeps_each_fingers_share():
     np.testing.assert_allclose(per_newton, np.broadcast_to(-push.sum(axis=0) / size.sum(), per_newton.shape),
                                rtol=1e-12)
     assert np.all(np.einsum("ij,ij->i", out[on], push[on]) >= 0) and np.all(out[3] == 0)
-    opposed = balanced_push(np.array([[0.0, 0.0, -2.0], [0.0, 0.0, 1.0]]), "fingers")
+    opposed = balanced_push(np.array([[0.0, 0.0, -2.0], [0.0, 0.0, 1.0]]), "fingers", 0.01)
     np.testing.assert_allclose(opposed, [[0.0, 0.0, -4 / 3], [0.0, 0.0, 4 / 3]], rtol=1e-12)
     for poke in ([[0.0, 0.0, 0.0], [0.3, 0.0, -1.0]], [[-2.0, 0.0, 0.0], [-0.5, 0.1, 0.0]]):
-        assert balanced_push(np.array(poke), "fingers").tolist() == poke
-    assert balanced_push(push, "none") is push
+        assert balanced_push(np.array(poke), "fingers", 1.0).tolist() == poke
+    assert balanced_push(push, "none", 1.0) is push
     with pytest.raises(ValueError, match="simulation.force_balance must be fingers or none"):
-        balanced_push(push, "palm")
+        balanced_push(push, "palm", 1.0)
+
+
+def test_balanced_push_stops_at_the_friction_cone():
+    """Two 1 N fingers 120 degrees apart (a V pinch): balanced fully, each needs tangential / normal = tan 30 deg =
+    0.577.  With friction 1 the net force goes; with friction 0.5 the balance stops where both reach the cone,
+    a = mu W / (|F_net,perp| + mu d . F_net) = 1 / (sqrt(3)/2 + 1/4), and the table keeps (1 - a) F_net."""
+    push = np.array([[1.0, 0.0, 0.0], [-0.5, math.sqrt(3) / 2, 0.0]])
+    full = balanced_push(push, "fingers", 1.0)
+    assert np.abs(full.sum(axis=0)).max() < 1e-15
+    capped = balanced_push(push, "fingers", 0.5)
+    a = 1.0 / (math.sqrt(3) / 2 + 0.25)
+    np.testing.assert_allclose(capped.sum(axis=0), (1 - a) * push.sum(axis=0), rtol=1e-12)
+    for f, d in zip(capped, push):
+        normal = f @ d
+        np.testing.assert_allclose(np.linalg.norm(f - normal * d) / normal, 0.5, rtol=1e-12)
+    tangent = (full - np.einsum("ij,ij->i", full, push)[:, None] * push)
+    np.testing.assert_allclose(np.linalg.norm(tangent, axis=1) / np.einsum("ij,ij->i", full, push),
+                               math.tan(math.radians(30)), rtol=1e-12)
 
 
 def test_force_push_keeps_the_finger_pressure_when_its_patch_tears():
@@ -508,7 +527,8 @@ def test_force_push_keeps_the_finger_pressure_when_its_patch_tears():
     scene = SimpleNamespace(solver=SimpleNamespace(tracer_positions=lambda: np.zeros((n, 3), np.float32)))
     torn = np.zeros(n, bool)
     torn[:2] = True  # half of finger 1's patch
-    push = force_patch(scene, field, forces, patches, 0, torn, {"force_per_coefficient": 4.0, "force_balance": "none"})
+    push = force_patch(scene, field, forces, patches, 0, torn,
+                       {"force_per_coefficient": 4.0, "force_balance": "none", "force_balance_friction": 1.0})
     assert push.forces[1].tolist() == [0.0, 0.0, -1.0]  # 4 N/coefficient x 0.5 x 2/4 untorn, inward
     assert push.forces[2].tolist() == [0.0, 0.0, -2.0]  # untouched patch: the whole force
     assert push.forces[0].tolist() == [0.0, 0.0, 0.0] and len(push.positions) == 6

@@ -553,22 +553,26 @@ def force_patch(scene: Scene, field: Mapping[str, np.ndarray], forces: np.ndarra
             share = untorn / int((constrained & (finger_of[f] == k)).sum())
             total[k] = float(sim["force_per_coefficient"]) * forces[f, k] * share * -patches["patch_normals"][f, k]
     return ForcePatch(positions=scene.solver.tracer_positions()[idx], finger_ids=finger_of[f, idx].astype(np.int32),
-                      forces=balanced_push(total, str(sim["force_balance"])))
+                      forces=balanced_push(total, str(sim["force_balance"]),
+                                           float(sim["force_balance_friction"])))
 
 
-def balanced_push(total: np.ndarray, balance: str) -> np.ndarray:
-    """The fingers' push (finger, xyz) N with its net force removed (``simulation.force_balance``).
+def balanced_push(total: np.ndarray, balance: str, friction: float) -> np.ndarray:
+    """The fingers' push (finger, xyz) N with its net force removed as far as the grip can (``simulation.
+    force_balance``, ``simulation.force_balance_friction`` = mu).
 
     ``fingers``: a hand squeezing an object is a closed force loop, so the push is made one: the net force F_net =
-    sum_k F_k is taken off the fingers in proportion to their force magnitudes, F_k' = F_k - (|F_k| / sum_j |F_j|)
-    F_net, the change of least sum_k |F_k' - F_k|^2 / |F_k| (each finger keeps its share of the squeeze) with
-    sum_k F_k' = 0.  Along its own direction d_k = F_k / |F_k| a finger still pushes, F_k' . d_k = |F_k| (1 - d_k .
-    F_net / sum_j |F_j|) >= 0 (|F_net| <= sum_j |F_j|), never pulls; the rest of the change is tangential to its
-    push (the grip's friction).  The loop closes in the hand only if two fingers push against each other (F_j .
-    F_k < 0: a pinch or a grasp); a push without such a pair (one finger, or fingers side by side: the clay's poke)
-    is a poke, which nothing in the hand opposes: it is left as given, for the table to carry, as under Dirichlet
-    fingers.  (In the default sessions a grasp object's push lacks an opposing pair only in its first frames, at
-    <= 0.2 N in all; where an opposing finger first touches, the balance switches on at once.)
+    sum_k F_k is taken off the fingers in proportion to their force magnitudes, F_k' = F_k - a (|F_k| / W) F_net with
+    W = sum_j |F_j|; at a = 1 the change of least sum_k |F_k' - F_k|^2 / |F_k| (each finger keeps its share of the
+    squeeze) with sum_k F_k' = 0.  Along its own direction d_k = F_k / |F_k| a finger still pushes, F_k' . d_k =
+    |F_k| (1 - a d_k . F_net / W) >= 0 (|F_net| <= W), never pulls; the rest of its change, a |F_k| |F_net,perp k| /
+    W, is tangential: the grip's friction, which cannot exceed mu times the finger's push.  So a is the largest
+    value <= 1 at which every finger's tangential / normal force stays <= mu, a = min(1, min_k mu W / (|F_net,perp k|
+    + mu d_k . F_net)), and what remains of the net force (1 - a) F_net is the table's.  The default grasps need
+    <= 0.74 (a = 1 before any rupture); two fingers side by side (a push the hand does not close, e.g. after the
+    thumb's patch tore) would need an unbounded friction, and balanced fully they sheared the torn plush toy apart.
+    A push without two fingers against each other (F_j . F_k < 0: one finger, or fingers side by side, the clay's
+    poke) is left as given, for the table to carry as under Dirichlet fingers (balanced, a poke would vanish).
     ``none``: the push as given (its net force, up to ~50 % of the fingers' sum along the eq. 3 directions, is
     carried by nothing but the table)."""
     if balance == "none":
@@ -578,7 +582,13 @@ def balanced_push(total: np.ndarray, balance: str) -> np.ndarray:
     if not (total @ total.T < 0.0).any():  # a poke: no two fingers push against each other
         return total
     size = np.linalg.norm(total, axis=1)
-    return total - (size / size.sum())[:, None] * total.sum(axis=0)
+    net, on = total.sum(axis=0), size > 0
+    d = total[on] / size[on, None]
+    along = d @ net
+    across = np.linalg.norm(net - along[:, None] * d, axis=1)
+    limit = across + friction * along  # > 0 where removing the net force uses up that finger's friction
+    share = min([1.0, *(friction * size.sum() / limit[limit > 0])])
+    return total - share * (size / size.sum())[:, None] * net
 
 
 def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, np.ndarray], forces: np.ndarray,
