@@ -191,10 +191,12 @@ class SimulationConfig:
         explicit step sized for the rest state does not survive in a squeezed, sealed can).
     force_per_coefficient: N per unit force coefficient c (force mode, the no_dirichlet variant).
     force_balance: how the force mode's finger forces (N) are balanced: ``fingers`` (default) takes their net force
-        off the fingers in proportion to their magnitudes, so they sum to 0 N; ``none`` pushes each finger along
-        its inward patch normal unchanged.  A hand squeezing an object is a closed force loop (the table carries
-        only the object's weight); unbalanced, the fingers' net push (1.8 N at the force-driven plush toy's
-        contact, 4.7x its weight) swayed the toy on the table and made its squeeze dynamic.
+        off the fingers in proportion to their magnitudes, so they sum to 0 N (as far as the grip's friction allows;
+        a poke, no two fingers pushing against each other, is left to the table); ``none`` pushes each finger along
+        its inward patch normal unchanged (``tasks.physics.mpm_rollout.balanced_push``).  A hand squeezing an
+        object is a closed force loop (the table carries only the object's weight); unbalanced, the fingers' net
+        push (1.8 N at the force-driven plush toy's contact, 4.7x its weight) swayed the toy on the table, made its
+        squeeze dynamic (KE/IE 0.133 > 0.1: a quasi-static warning) and tipped it over.
     force_balance_friction: Coulomb coefficient (1) of the fingertips' grip under ``force_balance=fingers``: the net
         force is removed only as far as no finger's tangential force exceeds this times its normal push (the rest
         is left for the table).  1: a fingertip on rubber or fabric; the default grasps need <= 0.74.
