@@ -9,8 +9,8 @@ inward patch normal; the tolerance stops contact chatter) and >= 0 while it retr
 deeper than a retreating finger is left free, so on release the object rebounds or keeps its dent as its
 material dictates.  The ``force`` boundary mode (the
 no_dirichlet ablation) pushes with a total per-finger force ``force_per_coefficient * c_k,t`` along the
-inward patch normal instead, less each finger's share of the fingers' net force (``simulation.force_balance``:
-the hand's grip is a closed force loop).
+inward patch normal instead, less each finger's share of the fingers' net force until the shell ruptures
+(``simulation.force_balance``: the hand's grip is a closed force loop; :func:`balanced_push`).
 
 Collider fingers (``mpm.fingers = collider``, meant with ``mpm.contact = surface``): instead of the Dirichlet points,
 each active finger is a rigid sphere ``Collider`` of the fingertip pad radius (``conf.hand.FINGERTIP_PAD_RADIUS``)
