@@ -20,6 +20,7 @@ from tasks.physics.mpm_rollout import (
     FLIGHT_FRAMES,
     FLIGHT_SAMPLE_SUBSTEPS,
     _quasi_static_summary,
+    balanced_push,
     cauchy_free_measures,
     interior_plan,
     load_rise_time,
@@ -452,23 +453,76 @@ def test_tomato_below_its_threshold_has_flesh_but_no_interior(tmp_path):
     assert eps.max() > 0.03 and eps[-1] < 0.3 * eps.max()  # dented by the poke, then springs back
 
 
-def test_force_mode_applies_the_total_force_per_finger(tmp_path):
+def test_force_mode_applies_the_balanced_force_per_finger(tmp_path):
+    """The solver applies each finger's force of :func:`balanced_push` (8 N per coefficient along the inward patch
+    normal, less its share of the net force): the fingers' applied forces sum to zero where the grip's friction
+    suffices, to the friction cone's remainder elsewhere."""
     # (without the quasi-static bound of the mass scale: 3.7x the substeps, for a test of the applied force)
     art = _rollout(tmp_path, "rubber_ball", "variant.boundary=force", "signal.duration=1.0", "mpm.quasi_static_margin=0")
     r = art["rollout"]
     c, active = art["forces"]["force_coefficients"], art["patches"]["patch_active"]
-    applied = np.linalg.norm(r["applied_force"], axis=-1)
-    expected = 8.0 * c * active  # simulation.force_per_coefficient = 8 N
-    on = expected[1:] > 0.5
-    assert on.sum() > 20  # 1 s at 20 Hz: 48 finger-frames pushing over 0.5 N (up to 2.1 N)
-    np.testing.assert_allclose(applied[1:][on], expected[1:][on], rtol=0.02)
+    pushed = 8.0 * (c * active)[..., None] * -art["patches"]["patch_normals"]  # force_per_coefficient = 8 N
+    expected = np.stack([balanced_push(p, "fingers", 1.0) for p in pushed])
+    on = np.linalg.norm(expected[1:], axis=-1) > 0.5
+    assert on.sum() > 20  # 1 s at 20 Hz: 45 finger-frames pushing over 0.5 N (up to 1.5 N)
+    np.testing.assert_allclose(r["applied_force"][1:][on], expected[1:][on], atol=0.02 * 1.5)
+    net, balanced = (np.linalg.norm(f.sum(axis=1), axis=-1) for f in (r["applied_force"], expected))
+    closed = (balanced < 1e-9) & (np.linalg.norm(pushed.sum(axis=1), axis=-1) > 0.5)  # the grip balances all of it
+    assert closed.sum() >= 10 and net[closed].max() < 1e-3 * np.linalg.norm(pushed.sum(axis=1), axis=-1).max()
+    np.testing.assert_allclose(net, balanced, atol=0.03)  # elsewhere the friction cone leaves the table a share
     assert np.all(r["reaction_force"] == 0)
+
+
+def test_balanced_push_sums_to_zero_and_keeps_each_fingers_share():
+    """``simulation.force_balance=fingers``: F_k' = F_k - a |F_k| F_net / sum |F_j|.  Known answers: with friction
+    enough (a = 1) the forces sum to zero; every finger's change per newton of its push is the same vector (the
+    Lagrange condition of the least weighted change); no finger pulls along its own direction; two opposed fingers
+    of 2 N and 1 N both push 2 F1 F2 / (F1 + F2) = 4/3 N; a poke (one finger, or two side by side) is left as given;
+    ``none`` changes nothing."""
+    rng = np.random.default_rng(3)
+    # a grasp: the thumb against the fingers, every push also down, like the eq. 3 pushes (net force 59 % of the sum)
+    push = 0.3 * rng.normal(size=(5, 3)) + np.array([[2.0, 0, -1], [-1, 0, -1], [-1, 0, -1], [-1, 0, -1], [-1, 0, -1]])
+    push[3] = 0.0  # an inactive finger
+    out = balanced_push(push, "fingers", 100.0)
+    size = np.linalg.norm(push, axis=1)
+    assert np.abs(out.sum(axis=0)).max() < 1e-12 * size.sum()
+    on = size > 0
+    per_newton = (out - push)[on] / size[on, None]
+    np.testing.assert_allclose(per_newton, np.broadcast_to(-push.sum(axis=0) / size.sum(), per_newton.shape),
+                               rtol=1e-12)
+    assert np.all(np.einsum("ij,ij->i", out[on], push[on]) >= 0) and np.all(out[3] == 0)
+    opposed = balanced_push(np.array([[0.0, 0.0, -2.0], [0.0, 0.0, 1.0]]), "fingers", 0.01)
+    np.testing.assert_allclose(opposed, [[0.0, 0.0, -4 / 3], [0.0, 0.0, 4 / 3]], rtol=1e-12)
+    for poke in ([[0.0, 0.0, 0.0], [0.3, 0.0, -1.0]], [[-2.0, 0.0, 0.0], [-0.5, 0.1, 0.0]]):
+        assert balanced_push(np.array(poke), "fingers", 1.0).tolist() == poke
+    assert balanced_push(push, "none", 1.0) is push
+    with pytest.raises(ValueError, match="simulation.force_balance must be fingers or none"):
+        balanced_push(push, "palm", 1.0)
+
+
+def test_balanced_push_stops_at_the_friction_cone():
+    """Two 1 N fingers 120 degrees apart (a V pinch): balanced fully, each needs tangential / normal = tan 30 deg =
+    0.577.  With friction 1 the net force goes; with friction 0.5 the balance stops where both reach the cone,
+    a = mu W / (|F_net,perp| + mu d . F_net) = 1 / (sqrt(3)/2 + 1/4), and the table keeps (1 - a) F_net."""
+    push = np.array([[1.0, 0.0, 0.0], [-0.5, math.sqrt(3) / 2, 0.0]])
+    full = balanced_push(push, "fingers", 1.0)
+    assert np.abs(full.sum(axis=0)).max() < 1e-15
+    capped = balanced_push(push, "fingers", 0.5)
+    a = 1.0 / (math.sqrt(3) / 2 + 0.25)
+    np.testing.assert_allclose(capped.sum(axis=0), (1 - a) * push.sum(axis=0), rtol=1e-12)
+    for f, d in zip(capped, push):
+        normal = f @ d
+        np.testing.assert_allclose(np.linalg.norm(f - normal * d) / normal, 0.5, rtol=1e-12)
+    tangent = (full - np.einsum("ij,ij->i", full, push)[:, None] * push)
+    np.testing.assert_allclose(np.linalg.norm(tangent, axis=1) / np.einsum("ij,ij->i", full, push),
+                               math.tan(math.radians(30)), rtol=1e-12)
 
 
 def test_force_push_keeps_the_finger_pressure_when_its_patch_tears():
     """Force mode: a finger presses with c_k * force_per_coefficient N over its untorn patch; when half of its
     patch points are torn, it presses with half the force (same pressure), not the whole force on half the
-    points."""
+    points.  Two fingers pressing against each other (2 N and 1.5 N) are balanced while the shell is whole (12/7 N
+    each: 2 F1 F2 / (F1 + F2)), and push as given once it has torn."""
     from types import SimpleNamespace
 
     from conf.hand import N_FINGERS
@@ -480,14 +534,19 @@ def test_force_push_keeps_the_finger_pressure_when_its_patch_tears():
     field = {"finger": finger, "constrained": np.ones((1, n), bool)}
     normals = np.zeros((1, N_FINGERS, 3))
     normals[0, :, 2] = 1.0
+    normals[0, 2, 2] = -1.0  # finger 2 presses from below, against finger 1
     patches = {"patch_active": np.ones((1, N_FINGERS), bool), "patch_normals": normals}
     forces = np.full((1, N_FINGERS), 0.5)
+    forces[0, 2] = 0.375
     scene = SimpleNamespace(solver=SimpleNamespace(tracer_positions=lambda: np.zeros((n, 3), np.float32)))
+    sim = {"force_per_coefficient": 4.0, "force_balance": "fingers", "force_balance_friction": 1.0}
     torn = np.zeros(n, bool)
+    whole = force_patch(scene, field, forces, patches, 0, torn, sim)
+    np.testing.assert_allclose(whole.forces[1:3], [[0.0, 0.0, -12 / 7], [0.0, 0.0, 12 / 7]], rtol=1e-12)
     torn[:2] = True  # half of finger 1's patch
-    push = force_patch(scene, field, forces, patches, 0, torn, {"force_per_coefficient": 4.0})
+    push = force_patch(scene, field, forces, patches, 0, torn, sim)
     assert push.forces[1].tolist() == [0.0, 0.0, -1.0]  # 4 N/coefficient x 0.5 x 2/4 untorn, inward
-    assert push.forces[2].tolist() == [0.0, 0.0, -2.0]  # untouched patch: the whole force
+    assert push.forces[2].tolist() == [0.0, 0.0, 1.5]  # untouched patch: the whole force
     assert push.forces[0].tolist() == [0.0, 0.0, 0.0] and len(push.positions) == 6
 
 

@@ -9,7 +9,8 @@ inward patch normal; the tolerance stops contact chatter) and >= 0 while it retr
 deeper than a retreating finger is left free, so on release the object rebounds or keeps its dent as its
 material dictates.  The ``force`` boundary mode (the
 no_dirichlet ablation) pushes with a total per-finger force ``force_per_coefficient * c_k,t`` along the
-inward patch normal instead.
+inward patch normal instead, less each finger's share of the fingers' net force until the shell ruptures
+(``simulation.force_balance``: the hand's grip is a closed force loop; :func:`balanced_push`).
 
 Collider fingers (``mpm.fingers = collider``, meant with ``mpm.contact = surface``): instead of the Dirichlet points,
 each active finger is a rigid sphere ``Collider`` of the fingertip pad radius (``conf.hand.FINGERTIP_PAD_RADIUS``)
@@ -365,10 +366,10 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     dx = cfg.dx or spacing * cfg.particles_per_cell ** (1.0 / 3.0)
     cfg = replace(cfg, dx=dx)  # the solver applies mpm.mass_scaling (per material; weights stay physical)
     # the quasi-static bound of the mass scale (mpm.quasi_static_margin) for a force-driven squeeze only: a force
-    # pushes the whole body, which leans and rocks on the table in its slowest mode (the default ball and duck:
-    # 85-99 % of their kinetic energy), while Dirichlet fingers hold the points they press, so that mode does not
-    # exist and the deformation under the fingers is local and faster (measured KE/IE of the default Dirichlet
-    # squeezes <= 0.034 at the unbounded scale)
+    # leaves the body free to lean and rock on the table in its slowest mode (under the former unbalanced push,
+    # simulation.force_balance=none, the ball and duck: 85-99 % of their kinetic energy), while Dirichlet fingers
+    # hold the points they press, so that mode does not exist and the deformation under the fingers is local and
+    # faster (measured KE/IE of the default Dirichlet squeezes <= 0.034 at the unbounded scale)
     rise = load_rise_time(forces, frame_dt) if boundary == "force" else None
     load = None if rise is None else QuasiStaticLoad(rise_time=rise, height=float(obj_attrs["bbox_max"][2]
                                                                                  - obj_attrs["bbox_min"][2]))
@@ -540,7 +541,10 @@ def force_patch(scene: Scene, field: Mapping[str, np.ndarray], forces: np.ndarra
     finger that punctured the skin no longer presses on the torn part, as in dirichlet mode).  The push keeps the
     finger's pressure, not its total force: a finger whose patch is partly torn presses with the untorn share of
     its force (the rest goes through the opening, where the released material offers no support).  Concentrating
-    the whole force on the few points left beside an opening crushed the loose stuffing there to det F = 3e-4."""
+    the whole force on the few points left beside an opening crushed the loose stuffing there to det F = 3e-4.
+    The fingers' forces are then balanced (``simulation.force_balance``, :func:`balanced_push`) until the shell
+    ruptures; after it they push as given: balanced, the fingers left pressing beside the plush toy's openings drove
+    its torn body to 13 m/s and, in runs differing by one onset frame, diverged (dt 1e-9 s at frames 63-72)."""
     finger_of = field["finger"]
     constrained = field["constrained"][f]
     idx = np.flatnonzero(constrained & ~torn)
@@ -553,7 +557,42 @@ def force_patch(scene: Scene, field: Mapping[str, np.ndarray], forces: np.ndarra
             share = untorn / int((constrained & (finger_of[f] == k)).sum())
             total[k] = float(sim["force_per_coefficient"]) * forces[f, k] * share * -patches["patch_normals"][f, k]
     return ForcePatch(positions=scene.solver.tracer_positions()[idx], finger_ids=finger_of[f, idx].astype(np.int32),
-                      forces=total)
+                      forces=balanced_push(total, "none" if torn.any() else str(sim["force_balance"]),
+                                           float(sim["force_balance_friction"])))
+
+
+def balanced_push(total: np.ndarray, balance: str, friction: float) -> np.ndarray:
+    """The fingers' push (finger, xyz) N with its net force removed as far as the grip can (``simulation.
+    force_balance``, ``simulation.force_balance_friction`` = mu).
+
+    ``fingers``: a hand squeezing an object is a closed force loop, so the push is made one: the net force F_net =
+    sum_k F_k is taken off the fingers in proportion to their force magnitudes, F_k' = F_k - a (|F_k| / W) F_net with
+    W = sum_j |F_j|; at a = 1 the change of least sum_k |F_k' - F_k|^2 / |F_k| (each finger keeps its share of the
+    squeeze) with sum_k F_k' = 0.  Along its own direction d_k = F_k / |F_k| a finger still pushes, F_k' . d_k =
+    |F_k| (1 - a d_k . F_net / W) >= 0 (|F_net| <= W), never pulls; the rest of its change, a |F_k| |F_net,perp k| /
+    W, is tangential: the grip's friction, which cannot exceed mu times the finger's push.  So a is the largest
+    value <= 1 at which every finger's tangential / normal force stays <= mu, a = min(1, min_k mu W / (|F_net,perp k|
+    + mu d_k . F_net)), and what remains of the net force (1 - a) F_net is the table's.  The default grasps need
+    <= 0.74 (a = 1 before any rupture); two fingers side by side (a push the hand does not close, e.g. after the
+    thumb's patch tore) would need an unbounded friction, and balanced fully they sheared the torn plush toy apart.
+    A push without two fingers against each other (F_j . F_k < 0: one finger, or fingers side by side, the clay's
+    poke) is left as given, for the table to carry as under Dirichlet fingers (balanced, a poke would vanish).
+    ``none``: the push as given (its net force, up to ~50 % of the fingers' sum along the eq. 3 directions, is
+    carried by nothing but the table)."""
+    if balance == "none":
+        return total
+    if balance != "fingers":
+        raise ValueError(f"simulation.force_balance must be fingers or none, got {balance!r}")
+    if not (total @ total.T < 0.0).any():  # a poke: no two fingers push against each other
+        return total
+    size = np.linalg.norm(total, axis=1)
+    net, on = total.sum(axis=0), size > 0
+    d = total[on] / size[on, None]
+    along = d @ net
+    across = np.linalg.norm(net - along[:, None] * d, axis=1)
+    limit = across + friction * along  # > 0 where removing the net force uses up that finger's friction
+    share = min([1.0, *(friction * size.sum() / limit[limit > 0])])
+    return total - share * (size / size.sum())[:, None] * net
 
 
 def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, np.ndarray], forces: np.ndarray,

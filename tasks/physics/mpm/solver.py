@@ -474,8 +474,9 @@ class MPMSolver:
     (``FrameStats.quasi_static_ok`` False in the frame that closed it).  A body rocking on the table under a
     force-driven push (the default ball and duck: 85-99 % of their KE in the lowest, sway mode) is what the check is
     for: its lowest mode is slower than the load (see ``load``).  The force-driven plush toy's sway under its
-    fingers' net push (87 % of its KE) is real dynamics: the same contact reads KE/IE 0.18 unscaled (README, known
-    limits), so it warns at every mass scale > 1.
+    fingers' unbalanced net push (87 % of its KE; ``simulation.force_balance=none``) is real dynamics: the same
+    contact reads KE/IE 0.18 unscaled (README, known limits), so it warns at every mass scale > 1; the balanced
+    push (the default) reads 0.073.
 
     Quasi-static damping (``config.quasi_static_damping`` = a, 0 = off): mass scaling slows a scaled body's
     vibration modes by sqrt(s) to periods of a few output frames, so a body pushed by a force (or loaded next to a
