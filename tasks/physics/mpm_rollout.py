@@ -363,6 +363,8 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     spacing = float(obj_attrs["particle_spacing"])
     dx = cfg.dx or spacing * cfg.particles_per_cell ** (1.0 / 3.0)
     cfg = replace(cfg, dx=dx)  # the solver applies mpm.mass_scaling (per material; weights stay physical)
+    if with_interior:  # room for the spray to fly before a domain wall stops it (simulation.release_margin_cells)
+        cfg = replace(cfg, margin_cells=max(cfg.margin_cells, int(sim["release_margin_cells"])))
     # the quasi-static bound of the mass scale (mpm.quasi_static_margin) for a force-driven squeeze only: a force
     # pushes the whole body, which leans and rocks on the table in its slowest mode (the default ball and duck:
     # 85-99 % of their kinetic energy), while Dirichlet fingers hold the points they press, so that mode does not
@@ -811,6 +813,15 @@ def _torn_skin(soft: Material, tear_strain: float) -> Material:
                    viscosity=0.0, crush_strain=tear_strain, dilation_strain=tear_strain)
 
 
+def bernoulli_speed(pressure: float, density: float) -> float:
+    """The speed (m/s) at which a liquid at gauge ``pressure`` (Pa) leaves through an opening into still air,
+    sqrt(2 p / rho) (Bernoulli along a streamline from the pressed interior, at rest, to the jet at ambient
+    pressure); ``density`` kg/m^3.  0 for p <= 0 (nothing is pressed out)."""
+    if not density > 0:
+        raise ValueError(f"bernoulli_speed: density must be > 0 kg/m^3, got {density}")
+    return math.sqrt(2.0 * max(float(pressure), 0.0) / float(density))
+
+
 def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold: float,
              patches: Mapping[str, np.ndarray], centers: np.ndarray, reaction: np.ndarray, applied: np.ndarray,
              boundary: str, mid: np.ndarray, slot: np.ndarray, released: np.ndarray,
@@ -831,13 +842,13 @@ def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold:
     fingers = fingers or [int(np.argmax(strain))]
     interior = solver.materials[int(slot[INTERIOR])]
     c_released = interior.p_wave_speed(solver.stiffness_scale, float(solver.material_mass_scale[int(slot[INTERIOR])]))
-    speeds = []
+    speeds, pressures = [], []
     for k in fingers:
         c = centers[k]
         n_out = patches["patch_normals"][f, k]
         area = max(float(patches["patch_areas"][f, k]), 1e-8)
-        force = np.linalg.norm(reaction[k] if boundary == "dirichlet" else applied[k])
-        speed = float(min(float(sim["release_speed_per_pascal"]) * force / area, float(sim["max_release_speed"]),
+        pressure = float(np.linalg.norm(reaction[k] if boundary == "dirichlet" else applied[k])) / area  # Pa
+        speed = float(min(bernoulli_speed(pressure, interior.density), float(sim["max_release_speed"]),
                           float(sim["release_mach_max"]) * c_released))
         near = np.linalg.norm(x - c, axis=1) <= radius
         torn = near & (mid == SHELL)
@@ -849,11 +860,19 @@ def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold:
         v[out | torn] = n_out * speed
         released |= out
         speeds.append(speed)
+        pressures.append(pressure)
     solver.set_material_ids(slot[ids])
     solver.set_velocities(v.astype(np.float32))
+    # the interior's pressure is spent on the release speed (Bernoulli): what leaves starts at its rest volume and
+    # moves as one (F = I, C = 0); the squeezed pulp's compression left in it would burst it in every direction
+    F, C = solver.deformation_gradients(), solver.affine_velocities()
+    F[released], C[released] = np.eye(3, dtype=F.dtype), 0.0
+    solver.set_deformation_gradients(F)
+    solver.set_affine_velocities(C)
     return {"crossed": True, "frame": int(f), "time": float(t), "fingers": fingers,
             "strain": float(strain.max()), "threshold": threshold, "released_particles": int(released.sum()),
-            "release_speeds": speeds, "release_sound_speed": float(c_released), "labels": ids}
+            "release_speeds": speeds, "release_pressures": pressures,
+            "release_density": float(interior.density), "release_sound_speed": float(c_released), "labels": ids}
 
 
 ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_J", "particle_von_mises",
