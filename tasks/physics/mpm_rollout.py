@@ -31,8 +31,10 @@ first reaches the material oracle's threshold, the shell ruptures within ``relea
 contact (those shell particles become ``ruptured_softening`` times softer, and an elastic skin's torn flakes crumple
 and tear apart plastically beyond the strain they tore at (:func:`_torn_skin`); no finger constrains the surface
 within ``release_radius + 1.5 dx`` any more, so the opening is free) and the interior there is released opposite
-to the squeeze direction with speed ``release_speed_per_pascal * p_k`` (capped), p_k the finger's contact
-pressure = |reaction| / patch area.
+to the squeeze direction (along the outward patch normal) at the Bernoulli speed sqrt(2 p_k / rho) (capped,
+:func:`bernoulli_speed`), p_k the finger's contact pressure = |reaction| / patch area, rho the interior's density,
+from its rest volume (its pressure is that speed).  A scene with releasable material gets at least
+``simulation.release_margin_cells`` free cells around it.
 
 Interior and core: the oracle's ``core`` (fruit flesh, plush stuffing) fills the cavity and is part of the body:
 it is always simulated and holds the shell up.  The releasable ``interior`` (juice, loose stuffing) is made of
