@@ -62,6 +62,7 @@ def test_unknown_object_is_an_error(compose_cfg):
     ("mpm.particles_per_cell=0", "mpm.particles_per_cell"),
     ("simulation.force_balance=palm", "simulation.force_balance"),
     ("simulation.force_balance_friction=0", "simulation.force_balance_friction"),
+    ("simulation.release_margin_cells=-1", "simulation.release_margin_cells"),
     # the object's own material values (they win over the oracle) and geometry
     ("object.material.youngs_modulus=-2e6", "object.material.youngs_modulus"),
     ("object.material.poisson_ratio=0.5", "object.material.poisson_ratio"),

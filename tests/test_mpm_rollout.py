@@ -21,6 +21,7 @@ from tasks.physics.mpm_rollout import (
     FLIGHT_SAMPLE_SUBSTEPS,
     _quasi_static_summary,
     balanced_push,
+    bernoulli_speed,
     cauchy_free_measures,
     interior_plan,
     load_rise_time,
@@ -361,16 +362,18 @@ def _check_release(art, min_outward: float) -> dict:
     rel, mat = r["released"], r["particle_material"]
     assert rel.sum() > 0 and rel.sum() == ev["released_particles"] == r.attrs["n_interior"]
     assert (mat[rel] == INTERIOR).all() and (mat == RUPTURED).any()  # only the interior is released; torn shell
-    # released at the deformed contact of the finger past the threshold, with speed = gain x pressure, capped at
-    # max_release_speed and at release_mach_max x the released material's sound speed after mass scaling
+    # released at the deformed contact of the finger past the threshold, at the Bernoulli speed of the finger's
+    # pressure, capped at max_release_speed and at release_mach_max x the released material's sound speed after
+    # mass scaling
     f, k = ev["frame"], ev["fingers"][0]
     pressure = np.linalg.norm(r["reaction_force"][f, k]) / art["patches"]["patch_areas"][f, k]
+    assert ev["release_pressures"][0] == pytest.approx(pressure, rel=1e-4)
     c = ev["release_sound_speed"]
     fluid = [re.search(r"sound speed ([0-9.e+-]+) m/s", n) for n in r.attrs["notes"]]
     fluid = [m for m in fluid if m]
     if fluid:  # the weakly compressible interior's sound speed after mass scaling, as the rollout's note states
         assert c == pytest.approx(float(fluid[0].group(1)), rel=1e-2)
-    assert ev["release_speeds"][0] == pytest.approx(min(sim.release_speed_per_pascal * pressure,
+    assert ev["release_speeds"][0] == pytest.approx(min(bernoulli_speed(pressure, ev["release_density"]),
                                                         sim.max_release_speed, sim.release_mach_max * c), rel=1e-4)
     x = r["particle_positions"]
     assert np.linalg.norm(x[f, rel] - x[f, rel].mean(axis=0), axis=1).max() <= 2 * sim.release_radius + 1e-6
@@ -559,3 +562,64 @@ def test_torn_skin_peels_back_along_the_surface_away_from_the_opening():
     v = peel_velocities(x, centre, normal, speed=1.5, radius=0.02)
     np.testing.assert_allclose(v, [[0, 0, 0], [1.5, 0, 0], [0, -0.75, 0], [0.45, 0.6, 0]], atol=1e-12)
 
+def test_bernoulli_release_speed_of_a_pressed_liquid():
+    """sqrt(2 p / rho): juice (1000 kg/m^3) pressed at 20 kPa leaves at sqrt(40) m/s; nothing without pressure."""
+    assert bernoulli_speed(20e3, 1000.0) == pytest.approx(math.sqrt(40.0), rel=1e-12)
+    assert bernoulli_speed(4.5e3, 1000.0) == pytest.approx(3.0, rel=1e-12)
+    assert bernoulli_speed(0.0, 1000.0) == 0.0 and bernoulli_speed(-5.0, 1000.0) == 0.0
+    with pytest.raises(ValueError, match="density"):
+        bernoulli_speed(1e3, 0.0)
+
+
+def test_release_leaves_opposite_the_squeeze_at_the_bernoulli_speed_from_rest_volume():
+    """A squeezed block of pulp (core, J = 0.9) under a skin layer, pressed by finger 0 along -x at 20 kPa (2 N
+    on 1 cm^2): at the threshold the pulp within release_radius of the contact becomes juice moving along +x (the
+    outward patch normal, opposite to the squeeze) at sqrt(2 p / rho) = 6.32 m/s, as one (F = I: its pressure is
+    the speed, C = 0); the skin there tears and is carried along; everything else keeps its state."""
+    from conf.hand import N_FINGERS
+    from tasks.physics.mpm.materials import Material
+    from tasks.physics.mpm.solver import MPMSolver
+    from tasks.physics.mpm_rollout import _release
+    from tests.particles import lattice
+
+    h = 0.004
+    x = lattice([-0.02, -0.02, 0.0], [0.02, 0.02, 0.04], h)
+    mid = np.where(x[:, 0] > 0.016, SHELL, CORE).astype(np.int32)
+    skin = Material(name="shell", model="fixed_corotated", youngs_modulus=1e5, density=1000.0)
+    mats = [skin, Material(name="interior", model="fluid", youngs_modulus=1e4, bulk_modulus=1e6, density=1000.0,
+                           fluid_gamma=1.0, mass_scaled=False),
+            Material(name="ruptured_shell", model="fixed_corotated", youngs_modulus=1e3, density=1000.0),
+            Material(name="core", model="neo_hookean", youngs_modulus=1e5, density=1000.0)]
+    slot = np.array([SHELL, INTERIOR, RUPTURED, CORE], np.int32)  # labels are the solver's material ids here
+    s = MPMSolver(x, h ** 3, mats, material_ids=mid,
+                  config=dict(device="cpu", dx=2 * h, mass_scaling="off", floor=False, gravity=[0.0, 0.0, 0.0]))
+    F0 = np.broadcast_to(np.cbrt(0.9) * np.eye(3, dtype=np.float32), (len(x), 3, 3)).copy()
+    s.set_deformation_gradients(F0)
+    s.set_affine_velocities(np.full((len(x), 3, 3), 0.5, np.float32))
+    normals = np.zeros((1, N_FINGERS, 3))
+    normals[0, 0] = [1.0, 0.0, 0.0]  # outward: the finger pushes along -x
+    patches = {"patch_normals": normals, "patch_areas": np.full((1, N_FINGERS), 1e-4),
+               "patch_active": np.eye(1, N_FINGERS, dtype=bool)}
+    centre = np.zeros((N_FINGERS, 3))
+    centre[0] = [0.02, 0.0, 0.02]
+    reaction = np.zeros((N_FINGERS, 3))
+    reaction[0] = [2.0, 0.0, 0.0]  # N: 20 kPa over the patch
+    released = np.zeros(len(x), bool)
+    sim = {"release_radius": 0.012, "max_release_speed": 10.0, "release_mach_max": 1.0}
+    strain = np.eye(1, N_FINGERS)[0] * 0.3
+    ev = _release(s, 0, 0.5, strain, 0.2, patches, centre, reaction, reaction * 0, "dirichlet", mid, slot, released,
+                  sim)
+    near = np.linalg.norm(x - centre[0], axis=1) <= 0.012
+    np.testing.assert_array_equal(released, near & (mid == CORE))
+    np.testing.assert_array_equal(ev["labels"], np.where(near, np.where(mid == CORE, INTERIOR, RUPTURED), mid))
+    assert ev["release_speeds"] == [pytest.approx(math.sqrt(40.0), rel=1e-6)]
+    assert ev["release_pressures"] == [pytest.approx(20e3)]
+    v, F, C = s.velocities(), s.deformation_gradients(), s.affine_velocities()
+    np.testing.assert_allclose(v[released], np.tile([math.sqrt(40.0), 0.0, 0.0], (released.sum(), 1)), rtol=1e-6)
+    torn = near & (mid == SHELL)  # the torn skin peels back along the surface (peel_velocities): no normal component
+    np.testing.assert_allclose(v[torn, 0], 0.0, atol=1e-6)
+    assert np.abs(v[torn, 1:]).max() > 0.0
+    np.testing.assert_allclose(F[released], np.tile(np.eye(3), (released.sum(), 1, 1)), atol=1e-7)
+    assert np.all(C[released] == 0.0)
+    np.testing.assert_allclose(F[~released], F0[~released], rtol=1e-6)  # the torn skin and the rest keep theirs
+    assert np.all(v[~near] == 0.0) and np.all(C[~released] == np.float32(0.5))

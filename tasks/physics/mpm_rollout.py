@@ -32,9 +32,11 @@ first reaches the material oracle's threshold, the shell ruptures within ``relea
 contact (those shell particles become ``ruptured_softening`` times softer, and an elastic skin's torn flakes crumple
 and tear apart plastically beyond the strain they tore at (:func:`_torn_skin`); no finger constrains the surface
 within ``release_radius + 1.5 dx`` any more, so the opening is free) and the interior there is released opposite
-to the squeeze direction with speed ``release_speed_per_pascal * p_k`` (capped), p_k the finger's contact
-pressure = |reaction| / patch area, while the torn skin over it peels back along the surface, away from the
-opening (:func:`peel_velocities`), so it opens locally and stays on the object.
+to the squeeze direction (along the outward patch normal) at the Bernoulli speed sqrt(2 p_k / rho) (capped,
+:func:`bernoulli_speed`), p_k the finger's contact pressure = |reaction| / patch area, rho the interior's density,
+from its rest volume (its pressure is that speed), while the torn skin over it peels back along the surface, away
+from the opening (:func:`peel_velocities`), so it opens locally and stays on the object.  A scene with releasable
+material gets at least ``simulation.release_margin_cells`` free cells around it.
 
 Interior and core: the oracle's ``core`` (fruit flesh, plush stuffing) fills the cavity and is part of the body:
 it is always simulated and holds the shell up.  The releasable ``interior`` (juice, loose stuffing) is made of
@@ -365,6 +367,8 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     spacing = float(obj_attrs["particle_spacing"])
     dx = cfg.dx or spacing * cfg.particles_per_cell ** (1.0 / 3.0)
     cfg = replace(cfg, dx=dx)  # the solver applies mpm.mass_scaling (per material; weights stay physical)
+    if with_interior:  # room for the spray to fly before a domain wall stops it (simulation.release_margin_cells)
+        cfg = replace(cfg, margin_cells=max(cfg.margin_cells, int(sim["release_margin_cells"])))
     # the quasi-static bound of the mass scale (mpm.quasi_static_margin) for a force-driven squeeze only: a force
     # leaves the body free to lean and rock on the table in its slowest mode (under the former unbalanced push,
     # simulation.force_balance=none, the ball and duck: 85-99 % of their kinetic energy), while Dirichlet fingers
@@ -873,6 +877,15 @@ def peel_velocities(x: np.ndarray, centre: np.ndarray, normal: np.ndarray, speed
     return speed / radius * along
 
 
+def bernoulli_speed(pressure: float, density: float) -> float:
+    """The speed (m/s) at which a liquid at gauge ``pressure`` (Pa) leaves through an opening into still air,
+    sqrt(2 p / rho) (Bernoulli along a streamline from the pressed interior, at rest, to the jet at ambient
+    pressure); ``density`` kg/m^3.  0 for p <= 0 (nothing is pressed out)."""
+    if not density > 0:
+        raise ValueError(f"bernoulli_speed: density must be > 0 kg/m^3, got {density}")
+    return math.sqrt(2.0 * max(float(pressure), 0.0) / float(density))
+
+
 def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold: float,
              patches: Mapping[str, np.ndarray], centers: np.ndarray, reaction: np.ndarray, applied: np.ndarray,
              boundary: str, mid: np.ndarray, slot: np.ndarray, released: np.ndarray,
@@ -893,13 +906,13 @@ def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold:
     fingers = fingers or [int(np.argmax(strain))]
     interior = solver.materials[int(slot[INTERIOR])]
     c_released = interior.p_wave_speed(solver.stiffness_scale, float(solver.material_mass_scale[int(slot[INTERIOR])]))
-    speeds = []
+    speeds, pressures = [], []
     for k in fingers:
         c = centers[k]
         n_out = patches["patch_normals"][f, k]
         area = max(float(patches["patch_areas"][f, k]), 1e-8)
-        force = np.linalg.norm(reaction[k] if boundary == "dirichlet" else applied[k])
-        speed = float(min(float(sim["release_speed_per_pascal"]) * force / area, float(sim["max_release_speed"]),
+        pressure = float(np.linalg.norm(reaction[k] if boundary == "dirichlet" else applied[k])) / area  # Pa
+        speed = float(min(bernoulli_speed(pressure, interior.density), float(sim["max_release_speed"]),
                           float(sim["release_mach_max"]) * c_released))
         near = np.linalg.norm(x - c, axis=1) <= radius
         torn = near & (mid == SHELL)
@@ -911,11 +924,19 @@ def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold:
         v[torn] = peel_velocities(x[torn], c, n_out, speed, radius)
         released |= out
         speeds.append(speed)
+        pressures.append(pressure)
     solver.set_material_ids(slot[ids])
     solver.set_velocities(v.astype(np.float32))
+    # the interior's pressure is spent on the release speed (Bernoulli): what leaves starts at its rest volume and
+    # moves as one (F = I, C = 0); the squeezed pulp's compression left in it would burst it in every direction
+    F, C = solver.deformation_gradients(), solver.affine_velocities()
+    F[released], C[released] = np.eye(3, dtype=F.dtype), 0.0
+    solver.set_deformation_gradients(F)
+    solver.set_affine_velocities(C)
     return {"crossed": True, "frame": int(f), "time": float(t), "fingers": fingers,
             "strain": float(strain.max()), "threshold": threshold, "released_particles": int(released.sum()),
-            "release_speeds": speeds, "release_sound_speed": float(c_released), "labels": ids}
+            "release_speeds": speeds, "release_pressures": pressures,
+            "release_density": float(interior.density), "release_sound_speed": float(c_released), "labels": ids}
 
 
 ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_J", "particle_von_mises",
