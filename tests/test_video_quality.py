@@ -277,3 +277,17 @@ def test_control_coupling_is_nan_with_a_reason_for_constant_signals():
     assert math.isnan(idle.pearson) and idle.reason == "summed force coefficients are constant"
     with pytest.raises(ValueError, match="unknown"):
         control_coupling(np.arange(10.0), force, fingers=("palm",))
+
+
+def test_mean_over_views_skips_undefined_views_and_frames_without_a_warning():
+    import warnings
+
+    from tasks.evaluation.video_metrics import mean_over_views
+
+    per_view = np.array([[np.nan, 0.2, np.nan], [np.nan, 0.6, 0.5]])  # (view, frame): frame 0 undefined everywhere
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # np.nanmean would warn "Mean of empty slice" on frame 0
+        out = mean_over_views(per_view)
+        assert np.isnan(float(mean_over_views(np.array([np.nan, np.nan]))))
+    np.testing.assert_allclose(out, [np.nan, 0.4, 0.5])
+    assert float(mean_over_views(np.array([0.3, np.nan, 0.5]))) == 0.4

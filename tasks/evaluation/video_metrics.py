@@ -82,8 +82,8 @@ def video_metrics(final: np.ndarray, simulated: np.ndarray, refined_mask: np.nda
     values["outside_mask_psnr_db"], values["outside_mask_ssim"] = fid.psnr_db, fid.ssim
     iou = [effect_placement_iou(final[v], simulated[v], refined_mask[v], cfg["change_threshold"])
            for v in range(n_views)]
-    per_frame["effect_placement_iou"] = np.nanmean(np.stack([i.per_frame for i in iou]), axis=0)
-    values["effect_placement_iou"] = float(np.nanmean([i.mean for i in iou]))
+    per_frame["effect_placement_iou"] = mean_over_views(np.stack([i.per_frame for i in iou]))
+    values["effect_placement_iou"] = float(mean_over_views(np.array([i.mean for i in iou])))
     if refined_rgb is not None and held_out_views:
         mv = multiview_consistency(refined_rgb[held_out_views], final[held_out_views],
                                    refined_mask[held_out_views], cfg["multiview_dilation_px"])
@@ -100,6 +100,16 @@ def video_metrics(final: np.ndarray, simulated: np.ndarray, refined_mask: np.nda
         for key in ("control_coupling_pearson", "control_coupling_spearman", "control_coupling_lag_frames"):
             reasons[key] = cc.reason
     return values, reasons, per_frame, smooth[0].interpolator
+
+
+def mean_over_views(per_view: np.ndarray) -> np.ndarray:
+    """The mean over the views (axis 0) of the finite values, NaN where no view has one (e.g. the frames before the
+    effect appears, where every view's placement IoU is undefined); like ``np.nanmean`` without its warning."""
+    per_view = np.asarray(per_view, np.float64)
+    finite = np.isfinite(per_view)
+    count = finite.sum(axis=0)
+    total = np.where(finite, per_view, 0.0).sum(axis=0)
+    return np.divide(total, count, out=np.full(np.shape(count), np.nan), where=count > 0)
 
 
 @artifact_step("video_metrics",
