@@ -68,7 +68,7 @@ def video_metrics(final: np.ndarray, simulated: np.ndarray, refined_mask: np.nda
     values["motion_smoothness"] = float(np.mean([s.score for s in smooth]))
     per_view = max(1, cfg["brisque_max_frames"] // n_views)
     iq = [imaging_quality_brisque(final[v], per_view).proxy for v in range(n_views)]
-    values["imaging_quality_brisque"] = float(np.nanmean(iq)) if np.isfinite(iq).any() else math.nan
+    values["imaging_quality_brisque"] = float(mean_over_views(np.array(iq)))
     # 2. what the physics lets us measure exactly
     per_frame: dict[str, np.ndarray] = {"effect_area_px": refined_mask.sum(axis=(0, 2, 3)).astype(np.float64)}
     effect_keys = ("outside_mask_psnr_db", "outside_mask_ssim", "effect_placement_iou", "control_coupling_pearson",
