@@ -44,6 +44,7 @@ _ALPHA_FLOOR = wp.constant(ALPHA_FLOOR)
 _NO_STOP = wp.constant(2**31 - 1)   # stop marker of a pixel that never stops
 _GAUSS_MAX = wp.constant(wp.float64(1.0 + 1e-6))   # exp(-sigma) above it: sigma < 0 beyond the recurrence's rounding
 _SPAN_MARGIN = wp.constant(1e-3)   # added to the exponent threshold so the spans hold every pair the rule keeps
+_ROW_SLACK = wp.constant(1e-2)   # px added to an instance's row reach against rounding (a whole row: 9 % empty spans)
 _vec6 = wp.types.vector(length=6, dtype=float)   # an instance's geometry: mean x, y px; conic a, b, c; opacity
 # the compositing kernels' CPU flags: Warp's plus -ffp-contract=fast (Warp emits one statement per operation, so
 # without it the compiler never fuses a multiply and an add)
@@ -158,8 +159,8 @@ def _composite_kernels(n_colors: int, with_depth: bool):
                   boxes: wp.array(dtype=wp.vec4i), marks: wp.array(dtype=int)):
         """Per instance i, its packed records - geometry (mean x, y px, conic a, b, c 1/px^2, opacity), features,
         exp(-a) - gathered once for all its spans; its pixel box (``splat_projection.pixel_boxes``) with its rows cut
-        to those its span ellipse sigma <= threshold reaches (|dy| <= sqrt(2 a threshold / det), plus a row of
-        slack; no rows when empty); +1 / -1 in the difference array of per-row span counts at its first / past-last
+        to those its span ellipse sigma <= threshold reaches (|dy| <= sqrt(2 a threshold / det) + _ROW_SLACK; no
+        rows when empty); +1 / -1 in the difference array of per-row span counts at its first / past-last
         row."""
         i = wp.tid()
         k = drawn[i]
@@ -179,7 +180,7 @@ def _composite_kernels(n_colors: int, with_depth: bool):
         threshold, det = _threshold(opacities[n]), q[0] * q[2] - q[1] * q[1]
         reach = r
         if det > 0.0:
-            reach = wp.min(r, wp.sqrt(2.0 * q[0] * wp.max(threshold, 0.0) / det) + 1.0)
+            reach = wp.min(r, wp.sqrt(2.0 * q[0] * wp.max(threshold, 0.0) / det) + _ROW_SLACK)
         y0 = int(wp.clamp(wp.ceil(m[1] - reach - 0.5), 0.0, float(height)))
         y1 = int(wp.clamp(wp.floor(m[1] + reach - 0.5) + 1.0, 0.0, float(height)))
         if x1 <= x0 or threshold < 0.0 or y1 < y0:
