@@ -259,6 +259,21 @@ def test_covariance_input_culling_and_modes(backend):
     assert torch.allclose(depth[..., 0], (image[..., -1] * alphas[..., 0]).detach(), atol=1e-5)
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_frame_with_every_gaussian_culled_is_its_background(backend):
+    """Gaussians behind the camera and off screen draw nothing: the background everywhere, alpha 0, zero gradients."""
+    means = torch.tensor([[0.0, 0.0, -1.0], [50.0, 0.0, 2.0]], requires_grad=True)
+    quats, scales = _isotropic(2, 0.01)
+    viewmats, Ks = _camera()
+    image, alphas, meta = rasterization(means, quats, scales, torch.ones(2), torch.ones(2, 3), viewmats, Ks, WIDTH,
+                                        HEIGHT, backgrounds=torch.tensor([[0.2, 0.4, 0.6]]), render_mode="RGB",
+                                        backend=backend)
+    assert torch.equal(image[0], torch.tensor([0.2, 0.4, 0.6]).expand(HEIGHT, WIDTH, 3))
+    assert torch.all(alphas == 0) and len(meta["gaussian_ids"]) == 0
+    image.sum().backward()
+    assert torch.all(means.grad == 0)
+
+
 def test_bad_inputs_are_named():
     means, quats, scales, opacities, colors = _random_scene(5, seed=4)
     viewmats, Ks = _camera()
