@@ -410,8 +410,9 @@ class FrameSettings(NamedTuple):
 
 class _Frame(torch.autograd.Function):
     """A whole frame of float32 Gaussians as one differentiable step, with no torch autograd inside: projection
-    (``project_warp``), the instances front to back, their row spans (``row_spans``) and the compositing forward;
-    backward, the compositing backward and the projection's adjoint (``project_adjoint``)."""
+    (``project_warp``), the instances front to back, their records and row spans (``instance_spans``) and the
+    compositing forward; backward, the compositing backward, the scatter of the instances' gradients and the
+    projection's adjoint (``project_adjoint``)."""
 
     @staticmethod
     def forward(ctx, means, quats, scales, covars, opacities, colors, viewmats, Ks, backgrounds,
