@@ -208,6 +208,34 @@ def test_backends_agree_on_a_random_scene():
         assert torch.linalg.norm(grad - ref) < 1e-4 * torch.linalg.norm(ref), name
 
 
+@pytest.mark.parametrize("render_mode", ["RGB+ED", "ED"])
+def test_backends_agree_on_covariances_and_per_camera_colours(render_mode):
+    """The Warp frame's other inputs against the torch reference: covars (its covariance adjoint), colours per camera
+    (C, N, D) (its per-instance records and their scatter) and, with "ED", the depth alone (no colour channel):
+    images to 1e-5 (expected depth: 1e-4 m), gradients of a random linear loss to 1e-4 (relative norm)."""
+    means, quats, scales, opacities, colors = _random_scene(300, seed=6)
+    covars = quat_scale_to_covar(quats, scales)
+    viewmats, Ks = _camera(2)
+    viewmats[1, :3, 3] = torch.tensor([-0.1, 0.05, 0.1])
+    colors = torch.stack([colors, colors.flip(0)])   # (C, N, D)
+    outputs = {}
+    for backend in BACKENDS:
+        leaves = [t.clone().requires_grad_(True) for t in (means, covars, opacities, colors)]
+        image, alphas, _ = rasterization(leaves[0], None, None, leaves[2], leaves[3], viewmats, Ks, WIDTH, HEIGHT,
+                                         covars=leaves[1], render_mode=render_mode, backend=backend)
+        weights = torch.rand(image.shape, generator=torch.Generator().manual_seed(2))
+        ((image * weights).sum() + alphas.sum()).backward()
+        outputs[backend] = (image.detach(), alphas.detach(), [t.grad for t in leaves])
+    (ref_image, ref_alphas, ref_grads), (image, alphas, grads) = outputs["torch"], outputs["warp"]
+    assert image.shape[-1] == (1 if render_mode == "ED" else 5) and ref_alphas.max() > 0.99
+    assert render_mode == "ED" or torch.max(torch.abs(image[..., :-1] - ref_image[..., :-1])) < 1e-5
+    assert torch.max(torch.abs(image[..., -1] - ref_image[..., -1])[ref_alphas[..., 0] > 0.01]) < 1e-4
+    assert torch.max(torch.abs(alphas - ref_alphas)) < 1e-5
+    checked = zip(("means", "covars", "opacities", "colors"), grads, ref_grads)
+    for name, grad, ref in (list(checked)[:3] if render_mode == "ED" else checked):
+        assert torch.linalg.norm(grad - ref) < 1e-4 * torch.linalg.norm(ref), name
+
+
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_covariance_input_culling_and_modes(backend):
     """covars (N, 6) render exactly like quats + scales; a Gaussian behind the near plane is culled and gets a zero
@@ -229,6 +257,21 @@ def test_covariance_input_culling_and_modes(backend):
     depth, _, _ = rasterization(means, quats, scales, opacities, colors, viewmats, Ks, WIDTH, HEIGHT,
                                 render_mode="D", backend=backend)
     assert torch.allclose(depth[..., 0], (image[..., -1] * alphas[..., 0]).detach(), atol=1e-5)
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_frame_with_every_gaussian_culled_is_its_background(backend):
+    """Gaussians behind the camera and off screen draw nothing: the background everywhere, alpha 0, zero gradients."""
+    means = torch.tensor([[0.0, 0.0, -1.0], [50.0, 0.0, 2.0]], requires_grad=True)
+    quats, scales = _isotropic(2, 0.01)
+    viewmats, Ks = _camera()
+    image, alphas, meta = rasterization(means, quats, scales, torch.ones(2), torch.ones(2, 3), viewmats, Ks, WIDTH,
+                                        HEIGHT, backgrounds=torch.tensor([[0.2, 0.4, 0.6]]), render_mode="RGB",
+                                        backend=backend)
+    assert torch.equal(image[0], torch.tensor([0.2, 0.4, 0.6]).expand(HEIGHT, WIDTH, 3))
+    assert torch.all(alphas == 0) and len(meta["gaussian_ids"]) == 0
+    image.sum().backward()
+    assert torch.all(means.grad == 0)
 
 
 def test_bad_inputs_are_named():

@@ -29,12 +29,12 @@ exp of a quadratic along an image row, so the compositor evaluates it by a recur
 vectorised libraries (torch / numpy): ~0.8 G exp/s on one AVX2 core (AMD EPYC), 2.0-4.0 G exp/s on one AVX-512
 core (Intel Xeon, torch): the 3DGS floor is ~3x lower on the second.
 
-Example (2-core Intel Xeon, AVX-512, 1 thread, heavily loaded: load average 5-7 from other jobs; three runs):
-192 x 192 px, N = 3,000 (3,400): 0.41 M kept pairs of 0.89 M box pairs; floor (medians) 0.18-0.25 / 0.47-0.63 ms
-forward / forward+backward (exp-free 0.08-0.11 / 0.30-0.39); warp 4.7-5.8 / 10.8-13.0 ms at best, 20-27x / 19-23x
-the floor at best, medians 28-34x / 25-30x, no repeat below 10x (exp-free: 61-74x / 39-48x); torch 0.17-0.20 /
-0.24-0.27 s.  On an AVX2 AMD EPYC (exp ~0.8 G/s, floor 0.6-0.86 ms) the same code read 4.2-4.9 / 10.3-12.5 ms,
-5.6-8.5x its floor, outside slow spells (README, "Renderer speed").
+Example (2-core Intel Xeon, AVX-512, 1 thread, under load: load average 3-4; two runs, de6686a):
+192 x 192 px, N = 3,000 (3,400): 0.41 M kept pairs of 0.89 M box pairs; floor (medians) 0.18-0.23 / 0.46-0.58 ms
+forward / forward+backward (exp-free 0.08-0.10 / 0.29-0.35); warp 3.7-3.9 / 8.7-8.9 ms at best, 17-22x / 16-17x
+the floor at best, medians 21-25x / 18-23x, no repeat below 10x (exp-free: 49-57x / 31-37x); the code before
+(9ec32b7) in the same session 4.5-4.6 / 10.4-10.8 ms, medians 27-28x / 24x.  On an AVX2 AMD EPYC (exp ~0.8 G/s,
+floor 0.6-0.86 ms) the code before read 4.2-4.9 / 10.3-12.5 ms, 5.6-8.5x its floor (README, "Renderer speed").
 """
 
 import ctypes

@@ -3,25 +3,22 @@ G-buffer renderer of paper sec. 3.2 (RGB, depth and released-particle mask maps 
 differentiable renderer R(Theta_p; v, t) of eq. 7.
 
 Two backends implement the same maths: ``"torch"``, the pure-torch reference (``splat_projection``, ``splat_torch``:
-the test oracle), and ``"warp"``, Warp kernels (``splat_warp_projection`` with Warp's generated adjoint,
-``splat_warp`` with the hand-written 3DGS backward), the default because it is 13-30x faster
-(``tasks.render.benchmark``).  Both run on the device of the inputs (CPU or CUDA).
+the test oracle), and ``"warp"``, a whole frame of Warp kernels with hand-written backward passes (``splat_warp``,
+``splat_warp_projection``), the default because it is 13-30x faster (``tasks.render.benchmark``).  Both run on the
+device of the inputs (CPU or CUDA).
 """
 
 from typing import Literal
 
 import torch
 
-from .splat_projection import project_gaussians, quat_scale_to_covar
+from .splat_projection import Projection, project_gaussians, quat_scale_to_covar
 from .splat_torch import composite_instances
-from .splat_warp import composite_warp
-from .splat_warp_projection import project_gaussians_warp, quat_scale_to_covar_warp
+from .splat_warp import FrameSettings, render_warp
 
 Backend = Literal["torch", "warp"]
 RenderMode = Literal["RGB", "D", "ED", "RGB+D", "RGB+ED"]
-# per backend: (quats, scales -> covars), projection, compositing
-STAGES = {"torch": (quat_scale_to_covar, project_gaussians, composite_instances),
-          "warp": (quat_scale_to_covar_warp, project_gaussians_warp, composite_warp)}
+BACKENDS = ("torch", "warp")
 DEFAULT_BACKEND: Backend = "warp"
 
 
@@ -63,33 +60,22 @@ def rasterization(means: torch.Tensor, quats: torch.Tensor | None, scales: torch
     camera_ids / gaussian_ids (instances,) of the drawn (camera, Gaussian) pairs front to back, width, height,
     n_cameras, backend.
     """
-    # 1. arguments and the world covariances
     covars = _check_arguments(means, quats, scales, opacities, colors, viewmats, Ks, width, height, backgrounds,
                               render_mode, covars, backend)
-    to_covar, project, composite = STAGES[backend]
-    if covars is None:
-        covars = to_covar(quats, scales)
     n_cameras = len(viewmats)
-
-    # 2. projection to every camera
-    proj = project(means, covars, viewmats, Ks, width, height, eps2d, near_plane, far_plane)
-
-    # 3. instances: the drawn (camera, Gaussian) pairs, front to back (flat index camera * N + Gaussian)
-    with torch.no_grad():
-        drawn = torch.nonzero(proj.radii.flatten() > 0).squeeze(1)
-        drawn = drawn[torch.sort(proj.depths.flatten()[drawn], stable=True).indices]
-
-    # 4. features per Gaussian (N, D) or per camera and Gaussian (C, N, D): colour channels, then depth
-    depths = proj.depths[..., None]
-    features = {"RGB": colors, "D": depths, "ED": depths}.get(render_mode)
-    if features is None:
-        features = torch.cat([colors.expand(n_cameras, *colors.shape[-2:]), depths.to(colors.dtype)], dim=-1)
-
-    # 5. compositing into finished pixels: expected depth, background
     expected = render_mode in ("ED", "RGB+ED")
     shown_backgrounds = backgrounds if render_mode not in ("D", "ED") else None
-    flat_features, flat_alphas = composite(proj.means2d, proj.conics, proj.radii, opacities, features, drawn, width,
-                                           height, n_cameras, shown_backgrounds, expected)
+    if backend == "warp":
+        settings = FrameSettings(int(width), int(height), float(eps2d), float(near_plane), float(far_plane),
+                                 0 if render_mode in ("D", "ED") else colors.shape[-1], render_mode != "RGB",
+                                 expected)
+        flat_features, flat_alphas, proj, drawn = render_warp(
+            means, quats if covars is None else None, scales if covars is None else None, covars, opacities,
+            None if render_mode in ("D", "ED") else colors, viewmats, Ks, shown_backgrounds, settings)
+    else:
+        flat_features, flat_alphas, proj, drawn = _render_torch(means, quats, scales, opacities, colors, viewmats,
+                                                                Ks, width, height, near_plane, far_plane, eps2d,
+                                                                shown_backgrounds, render_mode, covars, expected)
     render_colors = flat_features.reshape(n_cameras, height, width, -1)
     render_alphas = flat_alphas.reshape(n_cameras, height, width, 1)
     meta = {"radii": proj.radii, "means2d": proj.means2d, "depths": proj.depths, "conics": proj.conics,
@@ -125,6 +111,29 @@ def _check_arguments(means, quats, scales, opacities, colors, viewmats, Ks, widt
                          f"got {tuple(backgrounds.shape)}")
     if render_mode not in ("RGB", "D", "ED", "RGB+D", "RGB+ED"):
         raise ValueError(f"render_mode must be RGB, D, ED, RGB+D or RGB+ED, got {render_mode!r}")
-    if backend not in STAGES:
-        raise ValueError(f"backend must be one of {sorted(STAGES)}, got {backend!r}")
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {sorted(BACKENDS)}, got {backend!r}")
     return covars
+
+
+def _render_torch(means, quats, scales, opacities, colors, viewmats, Ks, width, height, near_plane, far_plane, eps2d,
+                  backgrounds, render_mode, covars, expected) -> tuple[torch.Tensor, torch.Tensor, Projection,
+                                                                        torch.Tensor]:
+    """The reference backend in torch stages: covariances, projection, the instances front to back, compositing
+    (``render_warp``'s outputs: flat features and alphas, the projection, the drawn instances)."""
+    if covars is None:
+        covars = quat_scale_to_covar(quats, scales)
+    n_cameras = len(viewmats)
+    proj = project_gaussians(means, covars, viewmats, Ks, width, height, eps2d, near_plane, far_plane)
+    # the instances: the drawn (camera, Gaussian) pairs, front to back (flat index camera * N + Gaussian)
+    with torch.no_grad():
+        drawn = torch.nonzero(proj.radii.flatten() > 0).squeeze(1)
+        drawn = drawn[torch.sort(proj.depths.flatten()[drawn], stable=True).indices]
+    # features per Gaussian (N, D) or per camera and Gaussian (C, N, D): colour channels, then depth
+    depths = proj.depths[..., None]
+    features = {"RGB": colors, "D": depths, "ED": depths}.get(render_mode)
+    if features is None:
+        features = torch.cat([colors.expand(n_cameras, *colors.shape[-2:]), depths.to(colors.dtype)], dim=-1)
+    flat_features, flat_alphas = composite_instances(proj.means2d, proj.conics, proj.radii, opacities, features,
+                                                     drawn, width, height, n_cameras, backgrounds, expected)
+    return flat_features, flat_alphas, proj, drawn

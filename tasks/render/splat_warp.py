@@ -1,30 +1,38 @@
-"""Compiled compositor: NVIDIA Warp kernels (LLVM on CPU, CUDA on a GPU) for the front-to-back forward pass and the
-hand-written back-to-front backward pass of 3DGS (Kerbl et al. 2023, sec. 4 and its released rasteriser), wrapped in
-a ``torch.autograd.Function``; it follows the compositing rule of ``splat_torch`` exactly.
+"""The Warp backend's frame: NVIDIA Warp kernels (LLVM on CPU, CUDA on a GPU) from the Gaussians to finished pixels
+and back, as one ``torch.autograd.Function`` (``_Frame``) with no torch autograd inside: the projection
+(``splat_warp_projection``), the front-to-back forward pass and the hand-written back-to-front backward pass of
+3DGS (Kerbl et al. 2023, sec. 4 and its released rasteriser); it follows the compositing rule of ``splat_torch``
+exactly.
 
-Design (chosen by measurement, ``tasks.render.benchmark``): one thread per image row.  (1) Every instance (a drawn
-(camera, Gaussian) pair) walks the rows of its box and solves the quadratic sigma(x) <= ln(opacity / ALPHA_MIN) for
-its x span on that row, so only pairs that can reach alpha >= 1/255 are ever visited; the spans are bucketed by row
-(a counting sort: count from a difference array, scan, fill) and each row's bucket is insertion-sorted by instance,
-i.e. front to back (instances arrive sorted by depth; on the CPU a launch runs in order, so the buckets are sorted
-already and the sort is skipped, on CUDA the atomics scramble them).  (2) Forward: a row's thread composites its
-spans front to back into the row's pixels (transmittance, channels, stop marker) - no per-pixel lists and no sort of
-pairs.  sigma is quadratic in x and y, so the Gaussian exp(-sigma) is evaluated by recurrences instead of an exp
-per pair: along a span two multiplies per pixel, in float64 so that it drifts < 1e-12; each span's start value and
-first ratio are carried from the instance's previous span by the same recurrences in x and y while the spans are
-bucketed (five exps per instance, none per span: an exp per span cost ~25 % of the forward).  (3) Backward: the same thread walks its spans back to front, recovers
-T_i = T_final / prod (1 - alpha_j) and the sum behind each Gaussian per pixel, and accumulates each span's gradient
-in registers - the geometry's as three moments of dL/dsigma along the span (dy is constant on a row) - before one
-atomic add per (instance, row).  Computation is float32 (the recurrence float64) whatever the input dtype; one pair
-of kernels is compiled per channel count.
+Design (chosen by measurement, ``tasks.render.benchmark``): one thread per image row.  (0) The drawn (camera,
+Gaussian) pairs, the instances, are sorted by depth and gathered once into packed records (geometry, features,
+exp(-a)), so no later kernel indexes the projection, the opacities or the colours.  (1) Every instance walks the rows
+of its box and solves the quadratic sigma(x) <= ln(opacity / ALPHA_MIN) for its x span on that row, so only pairs
+that can reach alpha >= 1/255 are ever visited; the spans are bucketed by row (a counting sort: count from a
+difference array, scan, fill) and each row's bucket is insertion-sorted by instance, i.e. front to back (instances
+arrive sorted by depth; on the CPU a launch runs in order, so the buckets are sorted already and the sort is skipped,
+on CUDA the atomics scramble them).  (2) Forward: a row's thread composites its spans front to back into the row's
+pixels (transmittance, channels, stop marker) - no per-pixel lists and no sort of pairs.  sigma is quadratic in x, so
+along a span exp(-sigma) is evaluated by a recurrence instead of an exp per pair (two float64 multiplies per pixel,
+drift < 1e-12); a span's start value and first ratio are two exps per span, taken vectorised by torch on the bucketed
+exponents.  (3) Backward: the same thread walks its spans back to front, recovers T_i = T_final / prod (1 - alpha_j)
+and the sum behind each Gaussian per pixel, and accumulates each span's gradient in registers - the geometry's as
+three moments of dL/dsigma along the span (dy is constant on a row) - before one add per (instance, row) into the
+instance's gradient record; one thread per instance then scatters the records' gradients to the projection, the
+opacities and the colours, and the projection's adjoint takes them to the Gaussians.  Computation is float32 (the
+recurrence float64) whatever the input dtype, with multiply-adds fused in the compositing kernels (-ffp-contract=fast
+on the CPU); the instance kernels are compiled per channel layout.
 """
 
 import functools
+from typing import NamedTuple
 
 import torch
 import warp as wp
 
+from .splat_projection import Projection
 from .splat_torch import ALPHA_FLOOR, ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
+from .splat_warp_projection import project_adjoint, project_warp
 from .warp_interop import launch, scratch, warp_view
 
 wp.set_module_options({"enable_backward": False})   # the backward pass is hand-written
@@ -36,30 +44,26 @@ _ALPHA_FLOOR = wp.constant(ALPHA_FLOOR)
 _NO_STOP = wp.constant(2**31 - 1)   # stop marker of a pixel that never stops
 _GAUSS_MAX = wp.constant(wp.float64(1.0 + 1e-6))   # exp(-sigma) above it: sigma < 0 beyond the recurrence's rounding
 _SPAN_MARGIN = wp.constant(1e-3)   # added to the exponent threshold so the spans hold every pair the rule keeps
+_ROW_SLACK = wp.constant(1e-2)   # px added to an instance's row reach against rounding (a whole row: 9 % empty spans)
 _vec6 = wp.types.vector(length=6, dtype=float)   # an instance's geometry: mean x, y px; conic a, b, c; opacity
+# the compositing kernels' CPU flags: Warp's plus -ffp-contract=fast (Warp emits one statement per operation, so
+# without it the compiler never fuses a multiply and an add)
+_FMA = {"cpu_compiler_flags": f"{wp.config.cpu_compiler_flags or '-march=native'} -ffp-contract=fast"}
 
 
 @wp.func
-def _geometry(means2d: wp.array(dtype=wp.vec2), conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float),
-              k: int, n: int):
-    """The geometry of the instance of camera-Gaussian k (flat camera * N + Gaussian) and Gaussian n."""
-    m, q = means2d[k], conics[k]
-    return _vec6(m[0], m[1], q[0], q[1], q[2], opacities[n])
-
-
-@wp.func
-def _pixel_gauss(geometry: _vec6, x: int, y: int):
-    """exp(-sigma) at pixel (x, y) and its step ratios to pixels (x + 1, y) and (x, y + 1), float64.
+def _pixel_exponents(geometry: _vec6, x: int, y: int):
+    """-sigma at pixel (x, y) and the exponent of its step ratio to pixel (x + 1, y), float64 (their exps are a
+    span's start: exp(-sigma) and ratio_x = exp(-sigma(x + 1, y)) / exp(-sigma(x, y))).
 
     sigma = 0.5 (a dx^2 + c dy^2) + b dx dy at the pixel centre (x + 0.5, y + 0.5) with d = centre - mean; it is
-    quadratic in x and y, so exp(-sigma(x + 1, y)) = exp(-sigma) ratio_x with ratio_x = exp(-(a (dx + 1/2) + b dy)),
-    which itself steps by exp(-a) along x and exp(-b) along y (ratio_y likewise by exp(-c) and exp(-b))."""
+    quadratic in x, so exp(-sigma(x + 1, y)) = exp(-sigma) ratio_x with ratio_x = exp(-(a (dx + 1/2) + b dy)),
+    which itself steps by exp(-a) along x (``decay``)."""
     a, b, c = wp.float64(geometry[2]), wp.float64(geometry[3]), wp.float64(geometry[4])
     half = wp.float64(0.5)
     dx = wp.float64(x) + half - wp.float64(geometry[0])
     dy = wp.float64(y) + half - wp.float64(geometry[1])
-    sigma = half * (a * dx * dx + c * dy * dy) + b * dx * dy
-    return wp.exp(-sigma), wp.exp(-(a * (dx + half) + b * dy)), wp.exp(-(c * (dy + half) + b * dx))
+    return -(half * (a * dx * dx + c * dy * dy) + b * dx * dy), -(a * (dx + half) + b * dy)
 
 
 @wp.func
@@ -83,78 +87,27 @@ def _row_span(geometry: _vec6, threshold: float, box: wp.vec4i, y: int):
 
 
 @wp.kernel
-def _bin(drawn: wp.array(dtype=int), n_gaussians: int, means2d: wp.array(dtype=wp.vec2),
-         conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float), radii: wp.array(dtype=int), width: int,
-         height: int, boxes: wp.array(dtype=wp.vec4i), decay: wp.array(dtype=wp.float64), marks: wp.array(dtype=int)):
-    """Per instance i: its pixel box (``splat_projection.pixel_boxes``) with its rows cut to those its span ellipse
-    sigma <= threshold reaches (|dy| <= sqrt(2 a threshold / det), plus a row of slack; no rows when empty),
-    exp(-a) and +1 / -1 in the difference array of per-row span counts at its first / past-last row."""
-    i = wp.tid()
-    k = drawn[i]
-    m, r, q = means2d[k], float(radii[k]), conics[k]
-    x0 = int(wp.clamp(wp.ceil(m[0] - r - 0.5), 0.0, float(width)))
-    x1 = int(wp.clamp(wp.floor(m[0] + r - 0.5) + 1.0, 0.0, float(width)))
-    threshold, det = _threshold(opacities[k % n_gaussians]), q[0] * q[2] - q[1] * q[1]
-    reach = r
-    if det > 0.0:
-        reach = wp.min(r, wp.sqrt(2.0 * q[0] * wp.max(threshold, 0.0) / det) + 1.0)
-    y0 = int(wp.clamp(wp.ceil(m[1] - reach - 0.5), 0.0, float(height)))
-    y1 = int(wp.clamp(wp.floor(m[1] + reach - 0.5) + 1.0, 0.0, float(height)))
-    if x1 <= x0 or threshold < 0.0 or y1 < y0:
-        y1 = y0
-    boxes[i] = wp.vec4i(x0, x1, y0, y1)
-    decay[i] = wp.exp(-wp.float64(conics[k][0]))
-    if y1 > y0:
-        first = (k // n_gaussians) * height
-        wp.atomic_add(marks, first + y0, 1)
-        wp.atomic_add(marks, first + y1, -1)
-
-
-@wp.kernel
-def _fill_rows(drawn: wp.array(dtype=int), n_gaussians: int, means2d: wp.array(dtype=wp.vec2),
-               conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float), boxes: wp.array(dtype=wp.vec4i),
-               height: int, decay: wp.array(dtype=wp.float64), row_offsets: wp.array(dtype=int),
-               cursors: wp.array(dtype=int), spans: wp.array(dtype=wp.vec3i), starts: wp.array(dtype=wp.vec2d)):
+def _fill_rows(drawn: wp.array(dtype=int), n_gaussians: int, geometry: wp.array(dtype=_vec6),
+               boxes: wp.array(dtype=wp.vec4i), height: int, row_offsets: wp.array(dtype=int),
+               cursors: wp.array(dtype=int),
+               spans: wp.array(dtype=wp.vec3i), starts: wp.array(dtype=wp.vec2d)):
     """spans[row_offsets[r] + j] = (instance, x_begin, x_end) for every box row r of every instance: the part of
-    the row where sigma <= ln(opacity / ALPHA_MIN) (+ _SPAN_MARGIN); starts[...] = exp(-sigma) and its step ratio
-    along x at x_begin (``_pixel_gauss``), carried from span to span by the recurrences in x and y (float64: 5 exps
-    per instance, not 2 per span; the values stay within ~exp(+-10) between spans inside the ellipse)."""
+    the row where sigma <= ln(opacity / ALPHA_MIN) (+ _SPAN_MARGIN); starts[...] = the exponents of exp(-sigma) and
+    of its step ratio along x at x_begin (``_pixel_exponents``; the caller takes their exps, vectorised)."""
     i = wp.tid()
-    k = drawn[i]
-    geo = _geometry(means2d, conics, opacities, k, k % n_gaussians)
+    geo = geometry[i]
     threshold = _threshold(geo[5])
     box = boxes[i]
-    first = (k // n_gaussians) * height
-    decay_x, decay_xy, decay_y = decay[i], wp.exp(-wp.float64(geo[3])), wp.exp(-wp.float64(geo[4]))
-    grow_x, grow_xy = wp.float64(1.0) / decay_x, wp.float64(1.0) / decay_xy
-    gauss, ratio_x, ratio_y = wp.float64(0.0), wp.float64(0.0), wp.float64(0.0)
-    xr, yr = int(0), int(-1)   # the pixel the recurrence stands at; yr < 0: not started
+    first = (drawn[i] // n_gaussians) * height
     for y in range(box[2], box[3]):
         x0, x1 = _row_span(geo, threshold, box, y)
-        if x1 > x0:
-            if yr < 0:
-                gauss, ratio_x, ratio_y = _pixel_gauss(geo, x0, y)
-            else:
-                while yr < y:
-                    gauss = gauss * ratio_y
-                    ratio_y = ratio_y * decay_y
-                    ratio_x = ratio_x * decay_xy
-                    yr += 1
-                while xr < x0:
-                    gauss = gauss * ratio_x
-                    ratio_x = ratio_x * decay_x
-                    ratio_y = ratio_y * decay_xy
-                    xr += 1
-                while xr > x0:
-                    ratio_x = ratio_x * grow_x
-                    gauss = gauss / ratio_x
-                    ratio_y = ratio_y * grow_xy
-                    xr -= 1
-            xr, yr = x0, y
         r = first + y
         j = row_offsets[r] + wp.atomic_add(cursors, r, 1)
         spans[j] = wp.vec3i(i, x0, x1)
-        starts[j] = wp.vec2d(gauss, ratio_x)
+        starts[j] = wp.vec2d(wp.float64(0.0), wp.float64(0.0))   # an empty span's: never read
+        if x1 > x0:
+            log_gauss, log_ratio = _pixel_exponents(geo, x0, y)
+            starts[j] = wp.vec2d(log_gauss, log_ratio)
 
 
 @wp.kernel
@@ -174,20 +127,75 @@ def _sort_rows(row_offsets: wp.array(dtype=int), spans: wp.array(dtype=wp.vec3i)
         starts[j + 1] = key_start
 
 
+class FrameKernels(NamedTuple):
+    """A channel layout's kernels (``_composite_kernels``) and its vector types: the channels, the colours alone,
+    the channels and the transmittance."""
+
+    instances: wp.Kernel
+    forward: wp.Kernel
+    backward: wp.Kernel
+    scatter: wp.Kernel
+    vec: type
+    vec_c: type
+    vec_t: type
+
+
 @functools.cache
-def _composite_kernels(n_channels: int):
-    """Forward and backward compositing kernels for n_channels feature channels (compiled once per count).
-    Instance i is camera-Gaussian k = drawn[i] (flat camera * N + Gaussian), Gaussian n = k % N; its features are
-    row k of ``features`` when per_camera, else row n."""
+def _composite_kernels(n_colors: int, with_depth: bool):
+    """The kernels of a frame's instances for n_colors colour channels and, with_depth, the camera-space depth as the
+    last channel (compiled once per pair): their records and boxes, the compositing forward and backward, and the
+    scatter of the instances' gradients.  Instance i is camera-Gaussian k = drawn[i] (flat camera * N + Gaussian),
+    Gaussian n = k % N; its colours are row k of ``colors`` when per_camera, else row n, its depth depths[k]."""
+    n_channels = n_colors + int(with_depth)
     vec = wp.types.vector(length=n_channels, dtype=float)
+    vec_c = wp.types.vector(length=max(n_colors, 1), dtype=float)   # the colours (a dummy channel when none)
     vec_t = wp.types.vector(length=n_channels + 1, dtype=float)   # the channels and the transmittance
 
     @wp.kernel(module="unique", enable_backward=False)
-    def forward(drawn: wp.array(dtype=int), n_gaussians: int, means2d: wp.array(dtype=wp.vec2),
-                conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float), features: wp.array(dtype=vec),
-                per_camera: int, decay: wp.array(dtype=wp.float64), row_offsets: wp.array(dtype=int),
-                spans: wp.array(dtype=wp.vec3i), starts: wp.array(dtype=wp.vec2d), width: int, height: int,
-                backgrounds: wp.array2d(dtype=float), n_background: int, expected_depth: int,
+    def instances(drawn: wp.array(dtype=int), n_gaussians: int, means2d: wp.array(dtype=wp.vec2),
+                  conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float), colors: wp.array(dtype=vec_c),
+                  depths: wp.array(dtype=float), per_camera: int, radii: wp.array(dtype=int), width: int, height: int,
+                  geometry: wp.array(dtype=_vec6), features: wp.array(dtype=vec), decay: wp.array(dtype=wp.float64),
+                  boxes: wp.array(dtype=wp.vec4i), marks: wp.array(dtype=int)):
+        """Per instance i, its packed records - geometry (mean x, y px, conic a, b, c 1/px^2, opacity), features,
+        exp(-a) - gathered once for all its spans; its pixel box (``splat_projection.pixel_boxes``) with its rows cut
+        to those its span ellipse sigma <= threshold reaches (|dy| <= sqrt(2 a threshold / det) + _ROW_SLACK; no
+        rows when empty); +1 / -1 in the difference array of per-row span counts at its first / past-last
+        row."""
+        i = wp.tid()
+        k = drawn[i]
+        n = k % n_gaussians
+        m, r, q = means2d[k], float(radii[k]), conics[k]
+        geometry[i] = _vec6(m[0], m[1], q[0], q[1], q[2], opacities[n])
+        f = vec()
+        c = vec_c(colors[wp.where(per_camera != 0, k, n)])
+        for ch in range(n_colors):
+            f[ch] = c[ch]
+        if wp.static(with_depth):
+            f[n_channels - 1] = depths[k]
+        features[i] = f
+        decay[i] = wp.exp(-wp.float64(q[0]))
+        x0 = int(wp.clamp(wp.ceil(m[0] - r - 0.5), 0.0, float(width)))
+        x1 = int(wp.clamp(wp.floor(m[0] + r - 0.5) + 1.0, 0.0, float(width)))
+        threshold, det = _threshold(opacities[n]), q[0] * q[2] - q[1] * q[1]
+        reach = r
+        if det > 0.0:
+            reach = wp.min(r, wp.sqrt(2.0 * q[0] * wp.max(threshold, 0.0) / det) + _ROW_SLACK)
+        y0 = int(wp.clamp(wp.ceil(m[1] - reach - 0.5), 0.0, float(height)))
+        y1 = int(wp.clamp(wp.floor(m[1] + reach - 0.5) + 1.0, 0.0, float(height)))
+        if x1 <= x0 or threshold < 0.0 or y1 < y0:
+            y1 = y0
+        boxes[i] = wp.vec4i(x0, x1, y0, y1)
+        if y1 > y0:
+            first = (k // n_gaussians) * height
+            wp.atomic_add(marks, first + y0, 1)
+            wp.atomic_add(marks, first + y1, -1)
+
+    @wp.kernel(module="unique", enable_backward=False, module_options=_FMA)
+    def forward(geometry: wp.array(dtype=_vec6), features: wp.array(dtype=vec), decay: wp.array(dtype=wp.float64),
+                row_offsets: wp.array(dtype=int), spans: wp.array(dtype=wp.vec3i), starts: wp.array(dtype=wp.vec2d),
+                width: int, height: int,
+                backgrounds: wp.array(dtype=float), n_background: int, expected_depth: int,
                 out_features: wp.array(dtype=vec), out_alphas: wp.array(dtype=float),
                 transmittance: wp.array(dtype=float), stop: wp.array(dtype=int), sums: wp.array(dtype=vec_t)):
         # sums: per pixel the composited channels and, last, the transmittance (one address per pair)
@@ -202,10 +210,8 @@ def _composite_kernels(n_channels: int):
             g, x0, x1 = spans[j][0], spans[j][1], spans[j][2]
             if x1 <= x0:
                 continue   # an empty span (a box row the Gaussian cannot reach with alpha >= 1/255)
-            k = drawn[g]
-            n = k % n_gaussians
-            geo = _geometry(means2d, conics, opacities, k, n)
-            f = vec(features[wp.where(per_camera != 0, k, n)])
+            geo = geometry[g]
+            f = features[g]
             f_t = vec_t()
             for c in range(n_channels):
                 f_t[c] = f[c]
@@ -244,19 +250,18 @@ def _composite_kernels(n_channels: int):
             if expected_depth != 0:
                 v[n_channels - 1] = v[n_channels - 1] / wp.max(1.0 - t, _ALPHA_FLOOR)
             for c in range(n_background):
-                v[c] = v[c] + t * backgrounds[camera, c]
+                v[c] = v[c] + t * backgrounds[camera * n_background + c]
             out_features[row + x] = v
 
-    @wp.kernel(module="unique", enable_backward=False)
-    def backward(drawn: wp.array(dtype=int), n_gaussians: int, means2d: wp.array(dtype=wp.vec2),
-                 conics: wp.array(dtype=wp.vec3), opacities: wp.array(dtype=float), features: wp.array(dtype=vec),
-                 per_camera: int, decay: wp.array(dtype=wp.float64), row_offsets: wp.array(dtype=int),
-                 spans: wp.array(dtype=wp.vec3i), starts: wp.array(dtype=wp.vec2d), width: int, height: int,
-                 backgrounds: wp.array2d(dtype=float), n_background: int, expected_depth: int, out_features: wp.array(dtype=vec),
+    @wp.kernel(module="unique", enable_backward=False, module_options=_FMA)
+    def backward(geometry: wp.array(dtype=_vec6), features: wp.array(dtype=vec), decay: wp.array(dtype=wp.float64),
+                 row_offsets: wp.array(dtype=int), spans: wp.array(dtype=wp.vec3i), starts: wp.array(dtype=wp.vec2d),
+                 width: int, height: int, backgrounds: wp.array(dtype=float), n_background: int, expected_depth: int,
+                 out_features: wp.array(dtype=vec),
                  stop: wp.array(dtype=int), transmittance: wp.array(dtype=float), grad_finished: wp.array(dtype=vec),
                  grad_finished_alphas: wp.array(dtype=float), grad_out_features: wp.array(dtype=vec),
-                 state: wp.array(dtype=wp.vec3), grad_means2d: wp.array(dtype=wp.vec2), grad_conics: wp.array(dtype=wp.vec3),
-                 grad_opacities: wp.array(dtype=float), grad_features: wp.array(dtype=vec)):
+                 state: wp.array(dtype=wp.vec3), grad_geometry: wp.array(dtype=_vec6),
+                 grad_features: wp.array(dtype=vec)):
         # per pixel, state = (T, behind, dL/dalpha of the composited alpha): T starts as the final transmittance and
         # is divided back to T_i; behind (starts 0) holds what the Gaussians behind the current one add to
         # grad . features + grad_alpha_image * alpha, per unit T in front (one array: one address per pixel)
@@ -269,7 +274,7 @@ def _composite_kernels(n_channels: int):
             grad_v = grad_finished[row + x]
             grad_a = grad_finished_alphas[row + x]
             for c in range(n_background):
-                grad_a -= grad_v[c] * backgrounds[camera, c]
+                grad_a -= grad_v[c] * backgrounds[camera * n_background + c]
             if expected_depth != 0:
                 a = 1.0 - transmittance[row + x]
                 if a > _ALPHA_FLOOR:
@@ -283,11 +288,8 @@ def _composite_kernels(n_channels: int):
             j -= 1
             if x1 <= x0:
                 continue
-            k = drawn[g]
-            n = k % n_gaussians
-            geo = _geometry(means2d, conics, opacities, k, n)
-            row_f = wp.where(per_camera != 0, k, n)
-            f = vec(features[row_f])
+            geo = geometry[g]
+            f = features[g]
             step = decay[g]
             dy = py - geo[1]
             grad_f = vec()
@@ -320,116 +322,173 @@ def _composite_kernels(n_channels: int):
                         m2 += grad_sigma * dx * dx
                         grad_opacity += gauss * grad_alpha
                 x += 1
-            wp.atomic_add(grad_means2d, k, wp.vec2(-(geo[2] * m1 + geo[3] * dy * m0), -(geo[3] * m1 + geo[4] * dy * m0)))
-            wp.atomic_add(grad_conics, k, wp.vec3(0.5 * m2, dy * m1, 0.5 * dy * dy * m0))
-            wp.atomic_add(grad_opacities, n, grad_opacity)
-            wp.atomic_add(grad_features, row_f, grad_f)
+            wp.atomic_add(grad_geometry, g, _vec6(-(geo[2] * m1 + geo[3] * dy * m0), -(geo[3] * m1 + geo[4] * dy * m0),
+                                                  0.5 * m2, dy * m1, 0.5 * dy * dy * m0, grad_opacity))
+            wp.atomic_add(grad_features, g, grad_f)
 
-    return forward, backward, vec, vec_t
+    @wp.kernel(module="unique", enable_backward=False)
+    def scatter(drawn: wp.array(dtype=int), n_gaussians: int, per_camera: int, grad_geometry: wp.array(dtype=_vec6),
+                grad_features: wp.array(dtype=vec), grad_means2d: wp.array(dtype=wp.vec2),
+                grad_conics: wp.array(dtype=wp.vec3), grad_opacities: wp.array(dtype=float),
+                grad_colors: wp.array(dtype=vec_c), grad_depths: wp.array(dtype=float)):
+        """Instance i's gradients (of its records) to those of the projection, opacities and colours it came from."""
+        i = wp.tid()
+        k = drawn[i]
+        n = k % n_gaussians
+        g, f = grad_geometry[i], grad_features[i]
+        wp.atomic_add(grad_means2d, k, wp.vec2(g[0], g[1]))
+        wp.atomic_add(grad_conics, k, wp.vec3(g[2], g[3], g[4]))
+        wp.atomic_add(grad_opacities, n, g[5])
+        c = vec_c()
+        for ch in range(n_colors):
+            c[ch] = f[ch]
+        wp.atomic_add(grad_colors, wp.where(per_camera != 0, k, n), c)
+        if wp.static(with_depth):
+            wp.atomic_add(grad_depths, k, f[n_channels - 1])
+
+    return FrameKernels(instances, forward, backward, scatter, vec, vec_c, vec_t)
 
 
-def row_spans(drawn: torch.Tensor, means2d: torch.Tensor, conics: torch.Tensor, radii: torch.Tensor,
-              opacities: torch.Tensor, width: int, height: int,
-              n_images: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Every image row's spans (instance, x_begin, x_end), front to back, and where their recurrences start. No
-    gradient.
+def instance_spans(kernels: FrameKernels, drawn: torch.Tensor, proj: Projection, opacities: torch.Tensor,
+                   colors: torch.Tensor, width: int, height: int) -> tuple[torch.Tensor, ...]:
+    """The instances' records and every image row's spans (instance, x_begin, x_end), front to back, with where
+    their recurrences start.  No gradient.
 
-    drawn: (G,) int32 flat camera * N + Gaussian of the instances, front to back; means2d (C * N, 2) px, conics
-    (C * N, 3) 1/px^2, radii (C * N,) int32 px, opacities (N,), all float32 contiguous; n_images = C.
-    Returns offsets (C * height + 1,) int32, spans (sum of box heights, 3) int32 - row r owns
+    kernels: those of the frame's channels; drawn: (G,) int32 flat camera * N + Gaussian of the instances, front to
+    back; proj: the Warp projection of the C cameras; opacities (N,), colors (N, D) or (C, N, D) float32 contiguous.
+    Returns the records geometry (G, 6)
+    (mean x, y px, conic a, b, c 1/px^2, opacity), features (G, D [+ 1 depth]) and decay (G,) float64 exp(-a);
+    offsets (C * height + 1,) int32, spans (sum of box heights, 3) int32 - row r owns
     ``spans[offsets[r]:offsets[r + 1]]``; a span is the part of the box row where the instance can reach
     alpha >= 1/255 (empty when x_end <= x_begin) -, starts (spans, 2) float64 exp(-sigma) and its step ratio at
-    each span's first pixel, and each instance's exp(-a) (G,) float64.
+    each span's first pixel.
     """
-    device, n_rows, n_gaussians = drawn.device, n_images * height, len(opacities)
-    # 1. boxes and the difference array of per-row counts, 2. its scan
-    boxes = scratch("boxes", (len(drawn), 4), torch.int32, device)
+    device, n_rows, n_gaussians = drawn.device, len(proj.radii) * height, len(opacities)
+    # 1. records, boxes and the difference array of per-row counts, 2. its scan
+    geometry = torch.empty(len(drawn), 6, dtype=torch.float32, device=device)
+    features = torch.empty(len(drawn), kernels.vec._length_, dtype=torch.float32, device=device)
     decay = torch.empty(len(drawn), dtype=torch.float64, device=device)
+    boxes = scratch("boxes", (len(drawn), 4), torch.int32, device)
     marks = scratch("marks", (n_rows + 1,), torch.int32, device).zero_()
-    views = [warp_view(drawn), n_gaussians, warp_view(means2d, wp.vec2), warp_view(conics, wp.vec3),
-             warp_view(opacities)]
-    launch(_bin, len(drawn), views + [warp_view(radii), width, height, warp_view(boxes, wp.vec4i),
-                                      warp_view(decay, wp.float64), warp_view(marks)], device)
+    launch(kernels.instances, len(drawn), [
+        warp_view(drawn), n_gaussians, warp_view(proj.means2d.view(-1, 2), wp.vec2),
+        warp_view(proj.conics.view(-1, 3), wp.vec3), warp_view(opacities),
+        warp_view(colors.view(-1, colors.shape[-1]), kernels.vec_c), warp_view(proj.depths.view(-1)),
+        int(colors.dim() == 3), warp_view(proj.radii.view(-1)), width, height, warp_view(geometry, _vec6),
+        warp_view(features, kernels.vec), warp_view(decay, wp.float64), warp_view(boxes, wp.vec4i),
+        warp_view(marks)], device)
     offsets = torch.zeros(n_rows + 1, dtype=torch.int32, device=device)
     torch.cumsum(torch.cumsum(marks[:-1], 0), 0, out=offsets[1:])
     # 3. the spans, 4. each row sorted front to back
     spans = torch.empty(int(offsets[-1]), 3, dtype=torch.int32, device=device)
     starts = torch.empty(len(spans), 2, dtype=torch.float64, device=device)
     cursors = scratch("cursors", (n_rows + 1,), torch.int32, device).zero_()
-    launch(_fill_rows, len(drawn), views + [warp_view(boxes, wp.vec4i), height,
-                                            warp_view(decay, wp.float64), warp_view(offsets),
-                                            warp_view(cursors), warp_view(spans, wp.vec3i),
-                                            warp_view(starts, wp.vec2d)], device)
+    launch(_fill_rows, len(drawn), [warp_view(drawn), n_gaussians, warp_view(geometry, _vec6),
+                                    warp_view(boxes, wp.vec4i), height, warp_view(offsets), warp_view(cursors),
+                                    warp_view(spans, wp.vec3i), warp_view(starts, wp.vec2d)], device)
+    torch.exp(starts, out=starts)   # two exps per span, vectorised
     if device.type != "cpu":   # a CPU launch runs its threads in order: the buckets are filled sorted
         launch(_sort_rows, n_rows, [warp_view(offsets), warp_view(spans, wp.vec3i), warp_view(starts, wp.vec2d)],
                device)
-    return offsets, spans, starts, decay
+    return geometry, features, decay, offsets, spans, starts
 
 
-class _Composite(torch.autograd.Function):
-    """Differentiable compositing of float32 instances over precomputed row spans into finished pixels (expected
-    depth, background), one Warp thread per image row."""
+class FrameSettings(NamedTuple):
+    """What a frame renders besides its tensors: image size px, the projection's eps2d px^2, near_plane and far_plane
+    m, the colour channels (n_colors, 0 for depth alone), the depth as a last channel (with_depth), the expected
+    depth instead of the accumulated one (expected_depth)."""
+
+    width: int
+    height: int
+    eps2d: float
+    near_plane: float
+    far_plane: float
+    n_colors: int
+    with_depth: bool
+    expected_depth: bool
+
+
+class _Frame(torch.autograd.Function):
+    """A whole frame of float32 Gaussians as one differentiable step, with no torch autograd inside: projection
+    (``project_warp``), the instances front to back, their records and row spans (``instance_spans``) and the
+    compositing forward; backward, the compositing backward, the scatter of the instances' gradients and the
+    projection's adjoint (``project_adjoint``)."""
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, drawn, per_camera: int, decay, row_offsets, spans,
-                starts, width: int, height: int, backgrounds, expected_depth: int):
-        forward_kernel, _, vec, vec_t = _composite_kernels(features.shape[1])
-        n_rows = len(row_offsets) - 1
-        device, n_pixels = means2d.device, n_rows * width
-        out_features = torch.empty(n_pixels, features.shape[1], dtype=torch.float32, device=device)
+    def forward(ctx, means, quats, scales, covars, opacities, colors, viewmats, Ks, backgrounds,
+                settings: FrameSettings):
+        device, n_images = means.device, len(viewmats)
+        proj = project_warp(means, quats, scales, covars, viewmats, Ks, tuple(settings[:5]))
+        # the drawn (camera, Gaussian) instances front to back (flat index camera * N + Gaussian)
+        drawn = torch.nonzero(proj.radii.flatten() > 0).squeeze(1)
+        drawn = drawn[torch.sort(proj.depths.flatten()[drawn], stable=True).indices].int()
+        kernels = _composite_kernels(settings.n_colors, settings.with_depth)
+        records = instance_spans(kernels, drawn, proj, opacities, colors, settings.width, settings.height)
+        n_channels, n_pixels = kernels.vec._length_, n_images * settings.height * settings.width
+        out_features = torch.empty(n_pixels, n_channels, dtype=torch.float32, device=device)
         out_alphas, final_t = (torch.empty(n_pixels, dtype=torch.float32, device=device) for _ in range(2))
         stop = torch.empty(n_pixels, dtype=torch.int32, device=device)
-        sums = scratch("sums", (n_pixels, features.shape[1] + 1), torch.float32, device)
-        ctx.finish = [width, height, warp_view(backgrounds), backgrounds.shape[1] * int(backgrounds.shape[0] > 0),
-                      expected_depth]
-        ctx.span_arrays = _span_arrays(means2d, conics, opacities, features, drawn, per_camera, decay, row_offsets,
-                                       spans, starts, vec)   # the backward's too (its tensors are saved below)
-        launch(forward_kernel, n_rows, ctx.span_arrays + ctx.finish + [
-            warp_view(out_features, vec), warp_view(out_alphas), warp_view(final_t), warp_view(stop),
-            warp_view(sums, vec_t)], device)
-        ctx.save_for_backward(means2d, conics, opacities, features, drawn, decay, row_offsets, spans, starts,
-                              final_t, stop, out_features, backgrounds)
-        ctx.per_camera = per_camera
-        return out_features, out_alphas
+        sums = scratch("sums", (n_pixels, n_channels + 1), torch.float32, device)
+        ctx.span_arrays = [warp_view(t, dtype) for t, dtype in zip(records, (
+            _vec6, kernels.vec, wp.float64, None, wp.vec3i, wp.vec2d))] + [
+            settings.width, settings.height, warp_view(backgrounds.view(-1)),
+            backgrounds.shape[1] * int(backgrounds.shape[0] > 0), int(settings.expected_depth)]
+        launch(kernels.forward, n_images * settings.height, ctx.span_arrays + [
+            warp_view(out_features, kernels.vec), warp_view(out_alphas), warp_view(final_t), warp_view(stop),
+            warp_view(sums, kernels.vec_t)], device)
+        ctx.save_for_backward(means, quats, scales, covars, viewmats, Ks, colors, drawn, *records, final_t, stop,
+                              out_features, backgrounds)
+        ctx.settings = settings
+        ctx.mark_non_differentiable(proj.radii, proj.means2d, proj.depths, proj.conics, drawn)
+        return out_features, out_alphas, proj.radii, proj.means2d, proj.depths, proj.conics, drawn
 
     @staticmethod
-    def backward(ctx, grad_features_image, grad_alphas_image):
-        (means2d, conics, opacities, features, drawn, decay, row_offsets, spans, starts, final_t, stop, out_features,
-         _) = ctx.saved_tensors
-        _, backward_kernel, vec, _ = _composite_kernels(features.shape[1])
-        grads = [torch.zeros_like(t) for t in (means2d, conics, opacities, features)]
-        grad_features_image, grad_alphas_image = grad_features_image.contiguous(), grad_alphas_image.contiguous()
-        grad_sums = scratch("grad_sums", tuple(out_features.shape), torch.float32, final_t.device)   # of the sums
-        state = scratch("state", (len(final_t), 3), torch.float32, final_t.device)   # T, behind, grad alpha
-        launch(backward_kernel, len(row_offsets) - 1, ctx.span_arrays + ctx.finish
-            + [warp_view(out_features, vec), warp_view(stop), warp_view(final_t),
-               warp_view(grad_features_image, vec), warp_view(grad_alphas_image),
-               warp_view(grad_sums, vec), warp_view(state, wp.vec3)] + [
-            warp_view(grads[0], wp.vec2), warp_view(grads[1], wp.vec3), warp_view(grads[2]),
-            warp_view(grads[3], vec)], means2d.device)
-        return (*grads, None, None, None, None, None, None, None, None, None, None)
+    def backward(ctx, grad_image, grad_alphas, *_):
+        means, quats, scales, covars, viewmats, Ks, colors, drawn, *records = ctx.saved_tensors
+        final_t, stop, out_features, _ = records[6:]
+        settings, device, shape = ctx.settings, means.device, (len(viewmats), len(means))
+        kernels = _composite_kernels(settings.n_colors, settings.with_depth)
+        # 1. the compositing backward into the instances' records, 2. to the projection, opacities and colours
+        grad_geometry, grad_features = torch.zeros_like(records[0]), torch.zeros_like(records[1])
+        grad_image, grad_alphas = grad_image.contiguous(), grad_alphas.contiguous()
+        grad_sums = scratch("grad_sums", tuple(out_features.shape), torch.float32, device)   # of the sums
+        state = scratch("state", (len(final_t), 3), torch.float32, device)   # T, behind, grad alpha
+        launch(kernels.backward, shape[0] * settings.height, ctx.span_arrays + [
+            warp_view(out_features, kernels.vec), warp_view(stop), warp_view(final_t),
+            warp_view(grad_image, kernels.vec), warp_view(grad_alphas), warp_view(grad_sums, kernels.vec),
+            warp_view(state, wp.vec3), warp_view(grad_geometry, _vec6), warp_view(grad_features, kernels.vec)], device)
+        grad_means2d, grad_depths, grad_conics = (torch.zeros(shape[0] * shape[1], size, dtype=torch.float32,
+                                                              device=device) for size in (2, 1, 3))
+        grad_opacities = torch.zeros(len(means), dtype=torch.float32, device=device)
+        grad_colors = torch.zeros_like(colors)
+        launch(kernels.scatter, len(drawn), [
+            warp_view(drawn), len(means), int(colors.dim() == 3), warp_view(grad_geometry, _vec6),
+            warp_view(grad_features, kernels.vec), warp_view(grad_means2d, wp.vec2), warp_view(grad_conics, wp.vec3),
+            warp_view(grad_opacities), warp_view(grad_colors.view(-1, colors.shape[-1]), kernels.vec_c),
+            warp_view(grad_depths.view(-1))], device)
+        # 3. the projection's adjoint
+        grad_means, grad_quats, grad_scales, grad_covars = project_adjoint(
+            means, quats, scales, covars, viewmats, Ks, tuple(settings[:5]), grad_means2d.view(shape + (2,)),
+            grad_depths.view(shape), grad_conics.view(shape + (3,)))
+        return grad_means, grad_quats, grad_scales, grad_covars, grad_opacities, grad_colors, None, None, None, None
 
 
-def _span_arrays(means2d, conics, opacities, features, drawn, per_camera, decay, row_offsets, spans, starts,
-                 vec) -> list:
-    return [warp_view(drawn), len(opacities), warp_view(means2d, wp.vec2), warp_view(conics, wp.vec3),
-            warp_view(opacities), warp_view(features, vec), per_camera, warp_view(decay, wp.float64),
-            warp_view(row_offsets), warp_view(spans, wp.vec3i), warp_view(starts, wp.vec2d)]
-
-
-def composite_warp(means2d: torch.Tensor, conics: torch.Tensor, radii: torch.Tensor, opacities: torch.Tensor,
-                   features: torch.Tensor, drawn: torch.Tensor, width: int, height: int, n_images: int,
-                   backgrounds: torch.Tensor | None = None,
-                   expected_depth: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
-    """Warp twin of ``splat_torch.composite_instances`` (same arguments, same rule, same outputs): the instances
-    are gathered inside the kernels, their gradients scattered back there, and the pixels finished there."""
-    f32 = [t.float().contiguous() for t in (means2d.reshape(-1, 2), conics.reshape(-1, 3), opacities,
-                                             features.reshape(-1, features.shape[-1]))]
-    drawn = drawn.int()
-    row_offsets, spans, starts, decay = row_spans(drawn, *(t.detach() for t in f32[:2]), radii.reshape(-1).int(),
-                                                  f32[2].detach(), width, height, n_images)
-    backgrounds = (torch.zeros(0, 1, device=means2d.device) if backgrounds is None
+def render_warp(means: torch.Tensor, quats: torch.Tensor | None, scales: torch.Tensor | None,
+                covars: torch.Tensor | None, opacities: torch.Tensor, colors: torch.Tensor | None,
+                viewmats: torch.Tensor, Ks: torch.Tensor, backgrounds: torch.Tensor | None,
+                settings: FrameSettings) -> tuple[torch.Tensor, torch.Tensor, Projection, torch.Tensor]:
+    """A frame of ``splat.rasterization`` on the Warp backend: Gaussians (quats and scales, or covars) into the
+    cameras, composited into finished pixels (colours, then the depth with settings.with_depth; expected depth,
+    backgrounds), differentiable w.r.t. means, quats, scales, covars, opacities and colors (None with n_colors 0).
+    Returns features (C * height * width, channels) and alphas (C * height * width,) in the colours' dtype, the
+    projection and the drawn instances (flat camera * N + Gaussian, front to back)."""
+    dtype = means.dtype if colors is None else colors.dtype
+    f32 = [None if t is None else t.float().contiguous() for t in (means, quats, scales, covars, opacities)]
+    if colors is None:   # depth alone: a dummy colour channel the kernels never read
+        colors = torch.zeros(len(means), 1, dtype=torch.float32, device=means.device)
+    backgrounds = (torch.zeros(0, 1, device=means.device) if backgrounds is None
                    else backgrounds.detach().float().contiguous())
-    out_features, out_alphas = _Composite.apply(*f32, drawn, int(features.dim() == 3), decay, row_offsets, spans,
-                                                starts, width, height, backgrounds, int(expected_depth))
-    return out_features.to(features.dtype), out_alphas.to(features.dtype)
+    features, alphas, radii, means2d, depths, conics, drawn = _Frame.apply(
+        *f32, colors.float().contiguous(), viewmats.detach().float().contiguous(), Ks.detach().float().contiguous(),
+        backgrounds, settings)
+    return features.to(dtype), alphas.to(dtype), Projection(radii, means2d, depths, conics), drawn

@@ -51,6 +51,8 @@ def launch(kernel, dim, inputs: list, device: torch.device, outputs: list | None
     generated adjoint (inputs and outputs as in the forward launch, then their adjoints).  Arrays are
     ``warp_view``s or None (a null array); on the CPU the launch replays a recorded command with the new
     arguments written into it."""
+    if 0 in (dim if isinstance(dim, tuple) else (dim,)):
+        return   # no threads (e.g. every Gaussian culled); Warp records no command for an empty launch
     adjoint = adj_inputs is not None
     args = inputs + (outputs or [])
     adj_args = (adj_inputs or []) + (adj_outputs or [])
