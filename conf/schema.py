@@ -236,6 +236,20 @@ class SimulationConfig:
         after its mass scaling (a weakly compressible fluid or the torn skin pushed faster than ~0.3 of its wave speed
         shocks and inverts: with 10 substeps per 1/15 s frame, c = 0.36 m/s and a 1.5 m/s release tore the can's,
         orange's and tomato's skins past the J guard).  At the default settings c >= 6 m/s: no effect.
+    stuffing_packing: volume ratio (1) of the plush toy's stuffing packed in the toy to the same fibres relaxed (the
+        oracle's ``foam`` interior, loose fibrefill): released stuffing leaves at this J (F = J^(1/3) I) and expands
+        out of the opening as a cohesive bulge (a fluid interior, juice and cola, is released at its rest volume
+        whatever this is).  0.5 (default; the oracle's loose fibrefill is the packed stuffing's modulus and yield x
+        0.5^3, van Wyk's cube law): the full plush toy's stuffing ends 41 % outside the rest surface (max 11.6 mm, a
+        dome over the opening), in one piece (99 %); measured at E = yield = 1 kPa: 0.6 29 %, max 10 mm, 1 (no
+        packing) 24 %, max 6 mm.  A fluid stuffing released at 0.5 flew apart (43 pieces).
+    seam_opening: where the interior is packed stuffing, the torn fabric opens at the release as a hole of this
+        fraction of ``release_radius`` (the fabric folded into the ring around it,
+        ``tasks.physics.mpm_rollout.seam_opening``) instead of the torn patch staying as a lid over the opening
+        (fruit skins keep the peel-back alone).  0.6 (default, 12 mm at release_radius 20 mm; 0.7 and 0.8 moved the
+        stuffing's outward reach by < 1 mm).  0: the torn patch, one continuum in the grid, stays a lid over the opening and the stuffing stops
+        under it within ~8 ms (5 mm).  The full plush toy's substeps 10,403 -> 9,004 with both (the loose foam's
+        stable step is longer than the former viscous fluid's); Table 2 within 0.02.
     feedback_max_force: N, the glove's per-finger force-feedback range (resistive force is clipped to it).
     feedback_rule: the resistive force per finger (sec. 3.2), clipped to ``feedback_max_force``: ``yield_area``
         (the paper's rule: the shell's yield stress tau_y (Pa) x the contact patch area A_k (m^2); the simulated
@@ -256,6 +270,8 @@ class SimulationConfig:
     max_release_speed: float = 1.5
     release_mach_max: float = 0.3
     ruptured_softening: float = 1.0e-2
+    stuffing_packing: float = 0.5
+    seam_opening: float = 0.6
     feedback_max_force: float = 20.0
     feedback_rule: str = "auto"
 
@@ -399,6 +415,10 @@ def validate_simulation(cfg: Any, objects: list[tuple[str, Any]]) -> None:
          f"must be in (0, 1] (a fraction of the released material's sound speed), got {sim.release_mach_max}")
     need(0 < sim.ruptured_softening <= 1, "simulation.ruptured_softening",
          f"must be in (0, 1], got {sim.ruptured_softening}")
+    need(0.2 <= sim.stuffing_packing <= 1, "simulation.stuffing_packing",
+         f"must be in [0.2, 1] (packed / relaxed volume of the stuffing; 1 = not packed), got {sim.stuffing_packing}")
+    need(0 <= sim.seam_opening < 1, "simulation.seam_opening",
+         f"must be in [0, 1) (the hole's radius over release_radius; 0 = no opening), got {sim.seam_opening}")
     need(sim.force_balance in FORCE_BALANCES, "simulation.force_balance",
          f"must be fingers (the fingers' forces sum to zero) or none, got {sim.force_balance!r}")
     need(sim.force_balance_friction > 0, "simulation.force_balance_friction",

@@ -52,9 +52,6 @@ KEY_ENV = "VIRSQUEEZER_TEST_LLM_KEY"
 
 
 # ----------------------------------------------------------------------------------------------- schema
-LOOSE_SOLIDS = ("polyester_fibrefill",)  # released as the cohesionless 'fluid' model, not a liquid
-
-
 def test_every_table_entry_validates():
     assert len({e.key for e in TABLE}) == len(TABLE)
     for entry in TABLE:
@@ -72,9 +69,8 @@ def test_every_table_entry_validates():
                 assert m.wave_speed > 0
     for item in INTERIORS.values():
         assert MaterialProperties.model_validate(item.material.model_dump()) == item.material
-        if item.material.model == "fluid":
-            if item.key not in LOOSE_SOLIDS:  # liquids: physical value, scaled by the simulator
-                assert item.material.bulk_modulus == pytest.approx(2.2e9)
+        if item.material.model == "fluid":  # liquids: physical value, scaled by the simulator
+            assert item.material.bulk_modulus == pytest.approx(2.2e9)
             assert item.material.viscosity and item.material.viscosity > 0
         if item.core is not None:  # the solid the released interior is made of: same density, not a fluid
             assert item.core.model != "fluid" and item.core.density == item.material.density
@@ -461,4 +457,16 @@ def test_table_file_errors_name_the_entry_and_field(tmp_path):
 def test_table_fluids_store_their_bulk_modulus():
     """A fluid's E, nu in the table encode the liquid's bulk modulus K = E / (3 (1 - 2 nu)) given in the file."""
     assert INTERIORS["water"].material.bulk_modulus == pytest.approx(2.2e9, rel=1e-12)
-    assert INTERIORS["polyester_fibrefill"].material.bulk_modulus == pytest.approx(5e3, rel=1e-12)
+
+
+def test_loose_stuffing_is_the_packed_stuffing_relaxed_by_van_wyks_cube_law():
+    """The torn-out fibrefill is the packed stuffing (the core) relaxed to 1 / simulation.stuffing_packing of its
+    volume: a cohesive foam of the same density (mass conserved) whose modulus and yield stress scale with the cube
+    of the fibre volume fraction (van Wyk 1946): x packing^3 = 0.125 at the default 0.5."""
+    from conf.schema import SimulationConfig
+
+    loose, packed = INTERIORS["polyester_fibrefill"].material, INTERIORS["polyester_fibrefill"].core
+    cube = SimulationConfig().stuffing_packing ** 3
+    assert loose.model == "foam" and loose.density == packed.density
+    assert loose.youngs_modulus == pytest.approx(packed.youngs_modulus * cube, rel=1e-12)
+    assert loose.yield_stress == pytest.approx(packed.yield_stress * cube, rel=1e-12)

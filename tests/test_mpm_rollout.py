@@ -27,6 +27,7 @@ from tasks.physics.mpm_rollout import (
     load_rise_time,
     peel_velocities,
     resistive_feedback,
+    seam_opening,
 )
 from tasks.physics.regions import (
     CONTACT_CORE_PHI,
@@ -571,11 +572,11 @@ def test_bernoulli_release_speed_of_a_pressed_liquid():
         bernoulli_speed(1e3, 0.0)
 
 
-def test_release_leaves_opposite_the_squeeze_at_the_bernoulli_speed_from_rest_volume():
-    """A squeezed block of pulp (core, J = 0.9) under a skin layer, pressed by finger 0 along -x at 20 kPa (2 N
-    on 1 cm^2): at the threshold the pulp within release_radius of the contact becomes juice moving along +x (the
-    outward patch normal, opposite to the squeeze) at sqrt(2 p / rho) = 6.32 m/s, as one (F = I: its pressure is
-    the speed, C = 0); the skin there tears and is carried along; everything else keeps its state."""
+def _pressed_block(interior):
+    """A block of core (J = 0.9, C = 0.5) under a skin layer (x > 16 mm), pressed by finger 0 along -x at 20 kPa
+    (2 N on 1 cm^2) and released at the threshold (:func:`_release`, release radius 12 mm, centre on the skin) with
+    the ``interior`` material: returns the solver, rest positions, labels, initial F, release event, released mask
+    and the finger's contact centre."""
     from conf.hand import N_FINGERS
     from tasks.physics.mpm.materials import Material
     from tasks.physics.mpm.solver import MPMSolver
@@ -586,9 +587,8 @@ def test_release_leaves_opposite_the_squeeze_at_the_bernoulli_speed_from_rest_vo
     x = lattice([-0.02, -0.02, 0.0], [0.02, 0.02, 0.04], h)
     mid = np.where(x[:, 0] > 0.016, SHELL, CORE).astype(np.int32)
     skin = Material(name="shell", model="fixed_corotated", youngs_modulus=1e5, density=1000.0)
-    mats = [skin, Material(name="interior", model="fluid", youngs_modulus=1e4, bulk_modulus=1e6, density=1000.0,
-                           fluid_gamma=1.0, mass_scaled=False),
-            Material(name="ruptured_shell", model="fixed_corotated", youngs_modulus=1e3, density=1000.0),
+    mats = [skin, interior, Material(name="ruptured_shell", model="fixed_corotated", youngs_modulus=1e3,
+                                     density=1000.0),
             Material(name="core", model="neo_hookean", youngs_modulus=1e5, density=1000.0)]
     slot = np.array([SHELL, INTERIOR, RUPTURED, CORE], np.int32)  # labels are the solver's material ids here
     s = MPMSolver(x, h ** 3, mats, material_ids=mid,
@@ -605,11 +605,25 @@ def test_release_leaves_opposite_the_squeeze_at_the_bernoulli_speed_from_rest_vo
     reaction = np.zeros((N_FINGERS, 3))
     reaction[0] = [2.0, 0.0, 0.0]  # N: 20 kPa over the patch
     released = np.zeros(len(x), bool)
-    sim = {"release_radius": 0.012, "max_release_speed": 10.0, "release_mach_max": 1.0}
+    sim = {"release_radius": 0.012, "max_release_speed": 10.0, "release_mach_max": 1.0, "stuffing_packing": 0.5,
+           "seam_opening": 0.6}
     strain = np.eye(1, N_FINGERS)[0] * 0.3
     ev = _release(s, 0, 0.5, strain, 0.2, patches, centre, reaction, reaction * 0, "dirichlet", mid, slot, released,
                   sim)
-    near = np.linalg.norm(x - centre[0], axis=1) <= 0.012
+    return s, x, mid, F0, ev, released, centre[0]
+
+
+def test_release_leaves_opposite_the_squeeze_at_the_bernoulli_speed_from_rest_volume():
+    """A squeezed block of pulp (core, J = 0.9) under a skin layer, pressed by finger 0 along -x at 20 kPa (2 N
+    on 1 cm^2): at the threshold the pulp within release_radius of the contact becomes juice moving along +x (the
+    outward patch normal, opposite to the squeeze) at sqrt(2 p / rho) = 6.32 m/s, as one (F = I: its pressure is
+    the speed, C = 0); the skin there tears and is carried along; everything else keeps its state."""
+    from tasks.physics.mpm.materials import Material
+
+    juice = Material(name="interior", model="fluid", youngs_modulus=1e4, bulk_modulus=1e6, density=1000.0,
+                     fluid_gamma=1.0, mass_scaled=False)
+    s, x, mid, F0, ev, released, centre = _pressed_block(juice)
+    near = np.linalg.norm(x - centre, axis=1) <= 0.012
     np.testing.assert_array_equal(released, near & (mid == CORE))
     np.testing.assert_array_equal(ev["labels"], np.where(near, np.where(mid == CORE, INTERIOR, RUPTURED), mid))
     assert ev["release_speeds"] == [pytest.approx(math.sqrt(40.0), rel=1e-6)]
@@ -623,3 +637,41 @@ def test_release_leaves_opposite_the_squeeze_at_the_bernoulli_speed_from_rest_vo
     assert np.all(C[released] == 0.0)
     np.testing.assert_allclose(F[~released], F0[~released], rtol=1e-6)  # the torn skin and the rest keep theirs
     assert np.all(v[~near] == 0.0) and np.all(C[~released] == np.float32(0.5))
+
+
+def test_packed_stuffing_leaves_compressed_through_a_seam_that_opens():
+    """The same block with a foam interior (loose stuffing, simulation.stuffing_packing 0.5, seam_opening 0.6):
+    the stuffing leaves at its packed volume, F = 0.5^(1/3) I (J = 0.5), at the release speed; the torn skin is
+    moved along the surface (x unchanged) into the ring between the hole (7.2 mm) and the patch's rim (12 mm), at
+    the known radius hole + r (R - hole) / R; no other particle moves."""
+    from tasks.physics.mpm.materials import Material
+
+    stuffing = Material(name="interior", model="foam", youngs_modulus=625.0, poisson_ratio=0.15, density=1000.0,
+                        yield_stress=125.0, crush_strain=math.log(2.0), mass_scaled=False)
+    s, x, mid, F0, ev, released, centre = _pressed_block(stuffing)
+    near = np.linalg.norm(x - centre, axis=1) <= 0.012
+    np.testing.assert_array_equal(released, near & (mid == CORE))
+    F, v, xn = s.deformation_gradients(), s.velocities(), s.positions()
+    np.testing.assert_allclose(np.linalg.det(F[released]), 0.5, rtol=1e-6)
+    np.testing.assert_allclose(F[released], np.tile(np.cbrt(0.5) * np.eye(3), (released.sum(), 1, 1)), atol=1e-7)
+    np.testing.assert_allclose(v[released, 0], ev["release_speeds"][0], rtol=1e-6)
+    torn = near & (mid == SHELL)
+    r0 = np.linalg.norm((x - centre)[torn, 1:], axis=1)
+    r1 = np.linalg.norm((xn - centre)[torn, 1:], axis=1)
+    np.testing.assert_allclose(r1, 0.0072 + r0 * (0.012 - 0.0072) / 0.012, rtol=1e-5)
+    np.testing.assert_allclose(xn[torn, 0], x[torn, 0], atol=1e-7)
+    np.testing.assert_array_equal(xn[~torn], x[~torn].astype(np.float32))
+    np.testing.assert_allclose(F[~released], F0[~released], rtol=1e-6)
+
+
+def test_seam_opening_folds_the_torn_patch_into_a_ring():
+    """seam_opening: r -> hole + r (R - hole) / R along the surface (known answer), nothing along the normal
+    (not unit), the patch's rim fixed, the hole's edge for a point on the axis; a hole >= R is refused."""
+    centre, normal = np.array([0.01, -0.02, 0.03]), np.array([0.0, 0.0, 2.0])
+    x = centre + np.array([[0.02, 0.0, 0.004], [0.0, -0.01, -0.002], [0.006, 0.008, 0.0], [1e-9, 0.0, 0.001]])
+    y = seam_opening(x, centre, normal, radius=0.02, hole=0.012)
+    np.testing.assert_allclose(y - centre, [[0.02, 0, 0.004], [0, -0.016, -0.002], [0.0096, 0.0128, 0.0],
+                                            [0.012, 0.0, 0.001]], atol=1e-9)
+    np.testing.assert_allclose(seam_opening(x, centre, normal, 0.02, 0.0), x, atol=1e-15)
+    with pytest.raises(ValueError, match="hole radius"):
+        seam_opening(x, centre, normal, 0.02, 0.02)

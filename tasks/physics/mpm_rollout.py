@@ -35,7 +35,9 @@ within ``release_radius + 1.5 dx`` any more, so the opening is free) and the int
 to the squeeze direction (along the outward patch normal) at the Bernoulli speed sqrt(2 p_k / rho) (capped,
 :func:`bernoulli_speed`), p_k the finger's contact pressure = |reaction| / patch area, rho the interior's density,
 from its rest volume (its pressure is that speed), while the torn skin over it peels back along the surface, away
-from the opening (:func:`peel_velocities`), so it opens locally and stays on the object.  A scene with releasable
+from the opening (:func:`peel_velocities`), so it opens locally and stays on the object.  Packed stuffing (a ``foam``
+interior) leaves at its packed volume (``simulation.stuffing_packing``) through a seam that opens at once into a hole
+(:func:`seam_opening`), so it expands out of the tear as one cohesive bulge.  A scene with releasable
 material gets at least ``simulation.release_margin_cells`` free cells around it.
 
 Interior and core: the oracle's ``core`` (fruit flesh, plush stuffing) fills the cavity and is part of the body:
@@ -818,12 +820,17 @@ def _quasi_static_bound(solver: MPMSolver, cfg: MPMConfig) -> dict:
 def _released_material(interior: Any, sim: Mapping[str, Any]) -> Material:
     """The solver material of what is released past the threshold (label INTERIOR).
 
-    A fluid (juice, cola, the table's loose stuffing) gets the Tait exponent ``simulation.fluid_tait_exponent``
-    (its bulk modulus is set with the mass scale).  A solid interior (an LLM's answer may give one) is
-    ``ruptured_softening`` times softer than stated: torn loose, it no longer carries load."""
+    A fluid (juice, cola) gets the Tait exponent ``simulation.fluid_tait_exponent`` (its bulk modulus is set with
+    the mass scale).  A ``foam`` (the table's loose fibrefill stuffing: a cohesive, crushable fibre mass) is used as
+    stated, the torn-out fibre mass itself, with a crush cap that admits the packed state it is released at
+    (``simulation.stuffing_packing``, :func:`_release`): compression up to it is elastic, beyond it permanent.  Any
+    other solid interior (an LLM's answer may give one) is ``ruptured_softening`` times softer than stated: torn
+    loose, it no longer carries load."""
     m = material_from_dict(mpm_material_kwargs(interior, "interior"))
     if m.model == "fluid":
         return replace(m, fluid_gamma=float(sim["fluid_tait_exponent"]))
+    if m.model == "foam":
+        return replace(m, crush_strain=max(m.crush_strain, -math.log(float(sim["stuffing_packing"]))))
     soft = float(sim["ruptured_softening"])
     return replace(m, name="released_interior", youngs_modulus=m.youngs_modulus * soft,
                    yield_stress=m.yield_stress * soft)
@@ -877,6 +884,29 @@ def peel_velocities(x: np.ndarray, centre: np.ndarray, normal: np.ndarray, speed
     return speed / radius * along
 
 
+def seam_opening(x: np.ndarray, centre: np.ndarray, normal: np.ndarray, radius: float, hole: float) -> np.ndarray:
+    """(particle, xyz) m: the torn fabric ``x`` (particle, xyz) m of an opening at ``centre`` (m) with outward
+    ``normal``, moved along the surface to open a hole of radius ``hole`` (m) in the torn patch of radius ``radius``
+    (m): a particle at distance r from the opening's axis moves away from it to hole + r (radius - hole) / radius,
+    with no component along ``normal``, so the torn fabric is folded into the ring between the hole and the intact
+    fabric (the patch's rim, r = radius, stays).
+
+    A seam or fabric tear over packed stuffing opens as the stuffing pushes the lips apart and the stretched fabric
+    springs back.  The fabric retracts at its bar wave speed sqrt(E / rho) (the table's plush: 32 m/s, 1 cm in 0.3 ms,
+    about one substep), so the opening is applied at once.  In the grid a torn patch only parts where its pieces end
+    farther apart than a B-spline stencil (~1.5 cells): the peel-back of :func:`peel_velocities` leaves the middle of
+    a 2.5-cell patch in place, a lid the stuffing cannot pass (the plush toy's stuffing moved 4 mm out and stopped
+    under it)."""
+    if not 0.0 <= hole < radius:
+        raise ValueError(f"seam_opening: the hole radius must be in [0, radius = {radius} m), got {hole} m")
+    n = np.asarray(normal, np.float64) / np.linalg.norm(normal)
+    r = np.asarray(x, np.float64) - np.asarray(centre, np.float64)
+    along = r - np.outer(r @ n, n)
+    dist = np.linalg.norm(along, axis=1)
+    scale = (hole + dist * (radius - hole) / radius) / np.maximum(dist, 1e-12)
+    return np.asarray(x, np.float64) + along * (scale - 1.0)[:, None]
+
+
 def bernoulli_speed(pressure: float, density: float) -> float:
     """The speed (m/s) at which a liquid at gauge ``pressure`` (Pa) leaves through an opening into still air,
     sqrt(2 p / rho) (Bernoulli along a streamline from the pressed interior, at rest, to the jet at ambient
@@ -906,6 +936,7 @@ def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold:
     fingers = fingers or [int(np.argmax(strain))]
     interior = solver.materials[int(slot[INTERIOR])]
     c_released = interior.p_wave_speed(solver.stiffness_scale, float(solver.material_mass_scale[int(slot[INTERIOR])]))
+    stuffing = interior.model == "foam"  # packed stuffing: released compressed, through a seam that opens
     speeds, pressures = [], []
     for k in fingers:
         c = centers[k]
@@ -922,15 +953,22 @@ def _release(solver: MPMSolver, f: int, t: float, strain: np.ndarray, threshold:
         # the interior leaves opposite to the squeeze direction (-n_out); the torn skin over it peels back
         v[out] = n_out * speed
         v[torn] = peel_velocities(x[torn], c, n_out, speed, radius)
+        if stuffing:
+            x[torn] = seam_opening(x[torn], c, n_out, radius, float(sim["seam_opening"]) * radius)
         released |= out
         speeds.append(speed)
         pressures.append(pressure)
     solver.set_material_ids(slot[ids])
     solver.set_velocities(v.astype(np.float32))
-    # the interior's pressure is spent on the release speed (Bernoulli): what leaves starts at its rest volume and
-    # moves as one (F = I, C = 0); the squeezed pulp's compression left in it would burst it in every direction
+    if stuffing:
+        solver.set_positions(x.astype(np.float32))
+    # a liquid's pressure is spent on the release speed (Bernoulli): what leaves starts at its rest volume and moves
+    # as one (F = I, C = 0); the squeezed pulp's compression left in it would burst it in every direction.  Stuffing
+    # is a solid fibre mass packed into the toy: it leaves at its packed volume J = simulation.stuffing_packing
+    # (F = J^(1/3) I) and expands out of the opening, cohesive (the foam carries tension), as a bulge
+    packing = float(sim["stuffing_packing"]) if stuffing else 1.0
     F, C = solver.deformation_gradients(), solver.affine_velocities()
-    F[released], C[released] = np.eye(3, dtype=F.dtype), 0.0
+    F[released], C[released] = np.cbrt(packing) * np.eye(3, dtype=F.dtype), 0.0
     solver.set_deformation_gradients(F)
     solver.set_affine_velocities(C)
     return {"crossed": True, "frame": int(f), "time": float(t), "fingers": fingers,
