@@ -195,6 +195,7 @@ class Colliders:
     that touch them (see :func:`contact_velocity`).  Arrays of length >= ``count`` (at least 1)."""
 
     count: int  # number of active colliders (0: no contact, nothing is evaluated)
+    fields: int  # bit f set: some collider acts on velocity field f (a particle of another field skips the contact)
     kind: wp.array(dtype=wp.int32)  # COLLIDER_PLANE / _SPHERE / _CAPSULE
     a: wp.array(dtype=wp.vec3)  # plane: a point on it; sphere: centre; capsule: segment end A (m)
     b: wp.array(dtype=wp.vec3)  # plane: unit normal towards the material; capsule: segment end B (m)
@@ -574,9 +575,10 @@ def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles
     mass = particle_mass(p, mid, ps, mats)
     A = (-sp.dt_p2g * vol * 4.0 * gi.inv_dx * gi.inv_dx) * r.tau + mass * r.C
     mv = mass * r.v
-    if col.count > 0:
+    field = mats.field[mid]
+    if col.count > 0 and ((col.fields >> field) & 1) != 0:
         cr = contact_velocity(col, r.x, r.v, r.C, r.F, r.tau, vol, 0.5 * wp.pow(vol, 1.0 / 3.0), mass, sp.dt_p2g,
-                              gi.inv_dx, mats.field[mid])
+                              gi.inv_dx, field)
         mv = mass * cr.v
         A = A + cr.A
     if sp.weight_in_p2g != 0:

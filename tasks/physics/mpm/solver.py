@@ -965,6 +965,7 @@ class MPMSolver:
         self.col.mu = wp.array(np.asarray(cols[5], np.float32), dtype=float, device=d)
         self.col.finger = wp.array(np.asarray(cols[6], np.int32), dtype=wp.int32, device=d)
         self.col.field = wp.array(np.asarray(cols[7], np.int32), dtype=wp.int32, device=d)
+        self.col.fields = int(np.bitwise_or.reduce([3 if f < 0 else 1 << f for f in cols[7]])) if n else 0
         self.col.work = self.boundary_work
         self._col_version += 1
 
@@ -1140,7 +1141,7 @@ class MPMSolver:
         accumulators (summed into the fingers' reactions and the boundary work at the frame's end)."""
         if sh["react"].shape[0] != self.n_fingers:
             sh["react"] = wp.zeros(self.n_fingers, dtype=wp.vec3, device=self.device)
-        for name in ("count", "kind", "a", "b", "radius", "vel", "mu", "finger"):
+        for name in ("count", "fields", "kind", "a", "b", "radius", "vel", "mu", "finger", "field"):
             setattr(sh["col"], name, getattr(self.col, name))
         sh["col"].impulse = sh["react"]
         sh["col"].work = sh["work"]
