@@ -21,12 +21,12 @@ Grid layout: ``wp.array3d(dtype=wp.vec4)``, node (i, j, k) at ``lo + (i, j, k) d
 
 Two velocity fields (multi-field MPM, Bardenhagen et al. 2000): each material belongs to field 0 (the body) or
 field 1 (released material, fluids; ``MaterialTable.field``).  Field-1 particles scatter into and gather from a
-second pair of grid buffers (``grid2_*``), updated by the same grid kernel (gravity, walls; the floor, the Dirichlet
-constraints and the force patches act on the body field only: the table acts on the released field's particles as
-a plane collider where their surface touches it, :func:`contact_velocity`) and coupled to the body only by the
-frictionless contact of :func:`k_field_contact`.  While no particle is in field 1 the second grid is never touched (the solver passes a
-one-node placeholder, skips its launches and runs the single-field fused kernel), so the single-field path is
-unchanged.
+second pair of grid buffers (``grid2_*``), updated by the same grid kernel (gravity, walls; the floor, the
+Dirichlet constraints and the force patches act on the body field only: the table acts on the released field's
+particles as a plane collider where their surface touches it, :func:`contact_velocity`) and coupled to the body
+only by the frictionless contact of :func:`k_field_contact`.  While no particle is in field 1 the second grid is
+never touched (the solver passes a one-node placeholder, skips its launches and runs the single-field fused
+kernel), so the single-field path is unchanged.
 
 Index safety: every particle or point coordinate is checked against the safe band of the grid before any grid
 access; an offending coordinate (including NaN) is clamped into the band and an error flag is raised in

@@ -19,7 +19,8 @@ Boundary conditions (generic; the finger field is connected by the caller)
       the given vector, independent of the particle count.
     * :class:`Collider` (surface contact): rigid planes, spheres and capsules with signed distances, acting on the
       particles whose surface touches them (:func:`tasks.physics.mpm.kernels.contact_velocity`); their impulses
-      join the per-finger reactions.  ``mpm.contact = surface`` makes the floor such a plane (under ``grid`` contact, for the released field only).
+      join the per-finger reactions.  ``mpm.contact = surface`` makes the floor such a plane (``grid``: for the
+      released field only).
     * floor plane and domain walls (config).
 Tracers (surface 3D Gaussians) are embedded in the material: each is bound at rest to its nearest particles
 (:meth:`MPMSolver._bind_tracers`) and placed from their positions and deformation gradients when read
@@ -1014,6 +1015,9 @@ class MPMSolver:
                 b = b / np.linalg.norm(b)
             elif not c.radius > 0:
                 raise ValueError(f"collider {i} ({c.kind}): radius must be > 0 m (got {c.radius})")
+            if c.field > 1:
+                raise ValueError(f"collider {i} ({c.kind}): field {c.field} is not a velocity field; use 0 (the body), "
+                                 f"1 (the released field) or -1 (every particle)")
             rows.append((Collider.KINDS.index(c.kind), a, b, float(c.radius), vel, float(c.friction),
                          int(c.finger_id), int(c.field)))
         self._grow_fingers(max([r[6] + 1 for r in rows], default=0))
