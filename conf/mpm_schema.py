@@ -40,8 +40,10 @@ class MPMConfig:
         floor_sticky: the floor holds the material (no slip, no separation).
         wall_sticky: domain walls are sticky instead of slip.
         contact: how the floor and rigid colliders (``Collider``: plane, sphere, capsule) act.  ``grid`` (the
-            floor acts on the grid nodes at or below it, so on material within its B-spline stencil, ~1.5 dx above
-            it; the floor height defaults to the lowest particle's centre); ``surface`` (the floor is a plane
+            floor acts on the body's grid nodes at or below it, so on material within its B-spline stencil, ~1.5 dx
+            above it; the floor height defaults to the lowest particle's centre; with two velocity fields,
+            ``multi_field``, the released field meets it as ``surface``'s plane collider, where its particles touch
+            it, friction ``floor_friction`` or no slip while touching if ``floor_sticky``); ``surface`` (the floor is a plane
             collider: colliders act on the particles whose surface, centre -+ half the particle spacing, touches
             them, through the P2G momentum; the floor height defaults to the lowest particle's surface;
             ``floor_sticky`` then means no slip while touching).  ``Collider`` s passed to ``step_frame`` act at

@@ -196,3 +196,5 @@ def test_bad_contact_mode_and_collider_are_one_line_errors():
         s.step_frame(1e-3, colliders=Collider("cone", (0, 0, 0)))
     with pytest.raises(ValueError, match=r"^collider 1 \(sphere\): radius must be > 0 m \(got 0.0\)$"):
         s.step_frame(1e-3, colliders=[Collider("plane", (0, 0, 0)), Collider("sphere", (0, 0, 0.1))])
+    with pytest.raises(ValueError, match=r"^collider 0 \(plane\): field 2 is not a velocity field; use 0"):
+        s.step_frame(1e-3, colliders=Collider("plane", (0, 0, 0), field=2))

@@ -254,6 +254,37 @@ def test_flight_recorder_holds_a_blob_while_it_touches_the_body_then_measures_it
     assert flight.acceleration == pytest.approx(-9.81, rel=0.01)
 
 
+def test_flight_recorder_holds_a_falling_blob_once_its_surface_touches_the_table_not_at_the_floor_nodes():
+    """The recorder on a fluid blob (INTERIOR, field 1) dropped from 2 cm above the table, 3 cm from the wall
+    (SHELL); 18 frames of 1/240 s sampled every 2 substeps.  The table acts on the released field as a plane at its
+    surface, so the blob is one free flight from the start (-9.81 within 1 %) until the first sample where a
+    particle's surface (centre - half its spacing r) is within 0.25 r of the table: its last free sample is < 1 mm
+    above it (the floor nodes' reach, 1.44 dx = 7.2 mm, held it from there before), and it is held from then on."""
+    from tasks.physics.free_flight import TABLE_GAP
+    from tasks.physics.mpm_rollout import FlightRecord
+    from tests.test_mpm_multifield import DX, FRAME_DT, wall_and_blob
+
+    s, ids = wall_and_blob([0.05, 0.03, 0.02], [0.07, 0.05, 0.03])
+    rec = FlightRecord.start(s, np.where(ids == 1, INTERIOR, SHELL))
+    rec.sample(s, 0.0)
+    dt = FRAME_DT / 4
+    for f in range(18):
+        s.step_frame(dt, probe_every=2, probe=lambda t, f=f: rec.sample(s, f * dt + t))
+        rec.sample(s, (f + 1) * dt)
+    arrays = rec.as_arrays(s)
+    x, held = arrays["released_flight_positions"], arrays["released_flight_held"]
+    r = DX / 4
+    gap = x[:, :, 2].min(axis=1) - r - s.floor_height  # the blob's lowest surface above the table, m
+    touching = gap <= TABLE_GAP * r
+    first = int(np.argmax(touching))
+    assert touching.any() and not touching[:first].any()
+    assert not held[:first].any() and held[first:].any(axis=1).all()
+    (flight,) = rollout_flights(arrays, {"grid_origin": s.lo, "dx": s.dx, "gravity": -9.81})
+    assert (flight.start, flight.stop) == (0, first) and len(flight.members) == (ids == 1).sum()
+    assert gap[first - 1] < 1e-3
+    assert flight.acceleration == pytest.approx(-9.81, rel=0.01)
+
+
 # ------------------------------------------------------------------------------------------ real rollouts
 
 

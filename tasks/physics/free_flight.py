@@ -3,9 +3,11 @@ other grid forces"), measured so that its answer is known: g.
 
 Free flight means no force but gravity.  In MLS-MPM a particle only exchanges momentum with the grid nodes of its
 quadratic B-spline stencil (the 3 x 3 x 3 nodes from ``floor((x - origin) / dx - 0.5)``), so two particles are
-coupled exactly when their stencils share a node (stencil bases at most 2 apart on every axis); the table, the
-domain walls and the fingers act on nodes too.  A *free blob* is a connected set of released particles (linked by
-shared nodes) none of which shares a node with the body, a boundary point, a wall or floor node.  Its internal
+coupled exactly when their stencils share a node (stencil bases at most 2 apart on every axis); the domain walls
+and the fingers act on nodes too, and so does the table on the body's velocity field, while on the released field
+(and under surface contact) it is a plane acting on the particles whose surface touches it.  A *free blob* is a
+connected set of released particles (linked by shared nodes) none of which shares a node with the body, a boundary
+point, a wall or floor node, or touches the table plane (:func:`touches_table`).  Its internal
 forces (pressure, viscosity, elasticity) cancel: P2G, grid update and G2P conserve its linear momentum (the APIC
 transfer is exact for it), and the only external force is its weight, so its centre of mass accelerates at
 exactly ``g sum m_phys / sum m`` (= g: released material keeps its physical mass under selective mass scaling).
@@ -50,13 +52,25 @@ def shares_node(bases: np.ndarray, holder_bases: np.ndarray) -> np.ndarray:
     return reach[tuple((b - lo).T)]
 
 
-def held_by_boundary(bases: np.ndarray, dims: np.ndarray, padding: int, floor_node: float) -> np.ndarray:
+def held_by_boundary(bases: np.ndarray, dims: np.ndarray, padding: int, floor_node) -> np.ndarray:
     """(n,) bool: stencils reaching a node the grid update constrains (:func:`tasks.physics.mpm.kernels.
     fixed_boundaries`): a wall node (within ``padding`` nodes of a face of the ``dims`` grid) or a floor node
-    (z index <= ``floor_node``, the table's height in grid units; -inf: no table)."""
+    (z index <= ``floor_node``, the table's height in grid units, a scalar or one per stencil; -inf: no table or,
+    for that particle, none on the grid)."""
     b = np.asarray(bases)
     return (np.any(b < padding, axis=1) | np.any(b + 2 >= np.asarray(dims) - padding, axis=1)
             | (b[:, 2] <= floor_node + 1e-4))
+
+
+TABLE_GAP = 0.25  # a particle touches the table plane when its surface is within this fraction of its radius
+
+
+def touches_table(z: np.ndarray, radius: np.ndarray, height: float) -> np.ndarray:
+    """(n,) bool: particles (centre heights ``z`` (n,) m, ``radius`` (n,) m: half their undeformed spacing) whose
+    surface z - radius is within ``TABLE_GAP`` radius of the table plane at ``height`` m, or below it: the ones the
+    plane collider is acting on (:func:`tasks.physics.mpm.kernels.contact_velocity` pushes a particle whose gap would
+    close within the substep; a resting one keeps a gap of ~0)."""
+    return np.asarray(z) - np.asarray(radius) - height <= TABLE_GAP * np.asarray(radius)
 
 
 def coupled_components(bases: np.ndarray) -> np.ndarray:

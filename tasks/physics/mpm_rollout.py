@@ -74,6 +74,7 @@ from tasks.physics.free_flight import (
     rollout_flights,
     shares_node,
     stencil_bases,
+    touches_table,
 )
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
 from tasks.physics.mpm.materials import Material, material_from_dict
@@ -200,13 +201,15 @@ class FlightRecord:
     FLIGHT_FRAMES frames after it: at every sample the time ``times`` (s), the positions ``x`` (loose, xyz) m of
     the loose particles (labels INTERIOR and RUPTURED after the release: the released interior and the torn skin it
     may carry off) and which of them are ``held`` (loose,) bool: their B-spline stencil shares a grid node with the
-    body (every other particle), a boundary point of the frame (Dirichlet or force point) or a wall or floor node
+    body (every other particle), a boundary point of the frame (Dirichlet or force point) or a wall or floor node,
+    or, where the table acts as a plane collider (the released field), their surface touches it
     (:mod:`tasks.physics.free_flight`; collider fingers are not counted).  ``mass``/``physical_mass`` (loose,) kg
-    the inertial and physical masses after the release."""
+    the inertial and physical masses after the release, ``radius`` (loose,) m half their undeformed spacing."""
 
     loose: np.ndarray  # (particle,) bool: the particles sampled
     mass: np.ndarray
     physical_mass: np.ndarray
+    radius: np.ndarray
     times: list[float]
     x: list[np.ndarray]
     held: list[np.ndarray]
@@ -215,7 +218,8 @@ class FlightRecord:
     def start(cls, solver: MPMSolver, labels: np.ndarray) -> "FlightRecord":
         """An empty record of the loose particles of ``labels`` (particle,), the labels after the release."""
         loose = (labels == INTERIOR) | (labels == RUPTURED)
-        return cls(loose, solver.masses()[loose], solver.physical_masses()[loose], [], [], [])
+        return cls(loose, solver.masses()[loose], solver.physical_masses()[loose],
+                   0.5 * np.cbrt(solver.volumes()[loose]), [], [], [])
 
     def sample(self, solver: MPMSolver, t: float, points: Optional[np.ndarray] = None) -> None:
         """Record the ``solver``'s particles at time ``t`` (s); ``points`` (n, xyz) m the boundary points acting
@@ -223,9 +227,12 @@ class FlightRecord:
         x = solver.positions()
         bases = stencil_bases(x[self.loose], solver.lo, solver.dx)
         holders = x[~self.loose] if points is None else np.concatenate([x[~self.loose], points])
-        floor = solver.floor_g if solver.floor_height is not None else -np.inf
+        plane = solver.on_table_plane()[self.loose]
+        floor = np.where(plane, -np.inf, solver.floor_g if solver.floor_height is not None else -np.inf)
         held = shares_node(bases, stencil_bases(holders, solver.lo, solver.dx))
         held |= held_by_boundary(bases, np.asarray(solver.dims), int(solver.cfg.padding), floor)
+        if plane.any():
+            held[plane] |= touches_table(x[self.loose][plane, 2], self.radius[plane], solver.floor_height)
         self.times.append(float(t))
         self.x.append(x[self.loose].astype(np.float32))
         self.held.append(held)

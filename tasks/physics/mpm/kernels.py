@@ -21,11 +21,12 @@ Grid layout: ``wp.array3d(dtype=wp.vec4)``, node (i, j, k) at ``lo + (i, j, k) d
 
 Two velocity fields (multi-field MPM, Bardenhagen et al. 2000): each material belongs to field 0 (the body) or
 field 1 (released material, fluids; ``MaterialTable.field``).  Field-1 particles scatter into and gather from a
-second pair of grid buffers (``grid2_*``), updated by the same grid kernel (gravity, walls, floor; the Dirichlet
-constraints and force patches act on the body field only) and coupled to the body only by the frictionless contact
-of :func:`k_field_contact`.  While no particle is in field 1 the second grid is never touched (the solver passes a
-one-node placeholder, skips its launches and runs the single-field fused kernel), so the single-field path is
-unchanged.
+second pair of grid buffers (``grid2_*``), updated by the same grid kernel (gravity, walls; the floor, the
+Dirichlet constraints and the force patches act on the body field only: the table acts on the released field's
+particles as a plane collider where their surface touches it, :func:`contact_velocity`) and coupled to the body
+only by the frictionless contact of :func:`k_field_contact`.  While no particle is in field 1 the second grid is
+never touched (the solver passes a one-node placeholder, skips its launches and runs the single-field fused
+kernel), so the single-field path is unchanged.
 
 Index safety: every particle or point coordinate is checked against the safe band of the grid before any grid
 access; an offending coordinate (including NaN) is clamped into the band and an error flag is raised in
@@ -194,6 +195,7 @@ class Colliders:
     that touch them (see :func:`contact_velocity`).  Arrays of length >= ``count`` (at least 1)."""
 
     count: int  # number of active colliders (0: no contact, nothing is evaluated)
+    fields: int  # bit f set: some collider acts on velocity field f (a particle of another field skips the contact)
     kind: wp.array(dtype=wp.int32)  # COLLIDER_PLANE / _SPHERE / _CAPSULE
     a: wp.array(dtype=wp.vec3)  # plane: a point on it; sphere: centre; capsule: segment end A (m)
     b: wp.array(dtype=wp.vec3)  # plane: unit normal towards the material; capsule: segment end B (m)
@@ -201,6 +203,7 @@ class Colliders:
     vel: wp.array(dtype=wp.vec3)  # translation velocity (m/s)
     mu: wp.array(dtype=float)  # Coulomb friction coefficient (0: frictionless; < 0: no slip while touching)
     finger: wp.array(dtype=wp.int32)  # finger id whose reaction receives the impulses (< 0: not reported)
+    field: wp.array(dtype=wp.int32)  # velocity field it acts on (MaterialTable.field; < 0: every particle)
     impulse: wp.array(dtype=wp.vec3)  # (finger,) impulse the colliders applied to the material (N s)
     work: wp.array(dtype=wp.float64)  # [0]: work of those impulses, impulse . new velocity (J)
 
@@ -498,10 +501,10 @@ class ContactResult:
 
 @wp.func
 def contact_velocity(col: Colliders, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.mat33, tau: wp.mat33, vol: float,
-                     radius: float, mass: float, dt: float, inv_dx: float) -> ContactResult:
+                     radius: float, mass: float, dt: float, inv_dx: float, field: int) -> ContactResult:
     """Surface contact of one particle (centre x, m; velocity v, m/s; velocity gradient C, 1/s; deformation
-    gradient F; radius = half its undeformed spacing, m; mass, kg) with the colliders, before its P2G over the
-    coming substep dt (s).
+    gradient F; radius = half its undeformed spacing, m; mass, kg; velocity field ``field``) with the colliders
+    that act on its field (``col.field``: that field or < 0, all), before its P2G over the coming substep dt (s).
 
     The particle is the ellipsoid x + F X, |X| <= radius: towards collider c (normal n at the closest surface point,
     signed distance phi_c(x)) it reaches r = radius |F^T n|, so its surface point x - r n has the gap
@@ -522,6 +525,9 @@ def contact_velocity(col: Colliders, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.
     vn = v
     A = wp.mat33(0.0)
     for c in range(col.count):
+        cf = col.field[c]
+        if cf >= 0 and cf != field:
+            continue
         dn = collider_distance(col, c, x)
         n = wp.vec3(dn[0], dn[1], dn[2])
         r = radius * wp.length(wp.transpose(F) @ n)
@@ -569,9 +575,10 @@ def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles
     mass = particle_mass(p, mid, ps, mats)
     A = (-sp.dt_p2g * vol * 4.0 * gi.inv_dx * gi.inv_dx) * r.tau + mass * r.C
     mv = mass * r.v
-    if col.count > 0:
+    field = mats.field[mid]
+    if col.count > 0 and ((col.fields >> field) & 1) != 0:
         cr = contact_velocity(col, r.x, r.v, r.C, r.F, r.tau, vol, 0.5 * wp.pow(vol, 1.0 / 3.0), mass, sp.dt_p2g,
-                              gi.inv_dx)
+                              gi.inv_dx, field)
         mv = mass * cr.v
         A = A + cr.A
     if sp.weight_in_p2g != 0:
@@ -922,7 +929,7 @@ def mass_gradient(grid: wp.array3d(dtype=wp.vec4), i: int, j: int, k: int) -> wp
 
 
 @wp.kernel
-def k_field_contact(gs: GridStep, cond: GridConditions, body: wp.array3d(dtype=wp.vec4),
+def k_field_contact(gs: GridStep, cond: GridConditions, cond_free: GridConditions, body: wp.array3d(dtype=wp.vec4),
                     free: wp.array3d(dtype=wp.vec4)):
     """Frictionless contact of the two velocity fields (multi-field MPM: Bardenhagen et al. 2000, sec. 3; normals
     as discussed by Homel & Herbold 2017), after both grid updates, over the active box (``gs.origin`` + launch
@@ -938,8 +945,9 @@ def k_field_contact(gs: GridStep, cond: GridConditions, body: wp.array3d(dtype=w
     wall they are ~90 degrees apart and the wall's normal must stay, or the sheet's own edge would brake it).  If the fields approach, (v_free - v_body) . n < 0, both normal components
     become the centre-of-mass normal velocity (m_b v_b + m_f v_f) . n / (m_b + m_f), which conserves the node's
     momentum and stops the interpenetration while the tangential components stay free (no friction); separating
-    fields are left independent (no sticking).  The domain walls and the floor are applied again to the corrected
-    velocities."""
+    fields are left independent (no sticking).  Each field's fixed boundaries are applied again to its corrected
+    velocity: ``cond`` the body's (walls, floor), ``cond_free`` the released field's (walls; the table acts on
+    that field's particles as a plane collider, see the solver's ``_upload_colliders``)."""
     ti, tj, tk = wp.tid()
     i = ti + gs.origin[0]
     j = tj + gs.origin[1]
@@ -970,7 +978,7 @@ def k_field_contact(gs: GridStep, cond: GridConditions, body: wp.array3d(dtype=w
     ny = body.shape[1]
     nz = body.shape[2]
     vb = fixed_boundaries(vb + (vn - wp.dot(vb, n)) * n, i, j, k, cond, nx, ny, nz)
-    vf = fixed_boundaries(vf + (vn - wp.dot(vf, n)) * n, i, j, k, cond, nx, ny, nz)
+    vf = fixed_boundaries(vf + (vn - wp.dot(vf, n)) * n, i, j, k, cond_free, nx, ny, nz)
     body[i, j, k] = wp.vec4(vb[0], vb[1], vb[2], mb)
     free[i, j, k] = wp.vec4(vf[0], vf[1], vf[2], mf)
 

@@ -19,7 +19,8 @@ Boundary conditions (generic; the finger field is connected by the caller)
       the given vector, independent of the particle count.
     * :class:`Collider` (surface contact): rigid planes, spheres and capsules with signed distances, acting on the
       particles whose surface touches them (:func:`tasks.physics.mpm.kernels.contact_velocity`); their impulses
-      join the per-finger reactions.  ``mpm.contact = surface`` makes the floor such a plane.
+      join the per-finger reactions.  ``mpm.contact = surface`` makes the floor such a plane (``grid``: for the
+      released field only).
     * floor plane and domain walls (config).
 Tracers (surface 3D Gaussians) are embedded in the material: each is bound at rest to its nearest particles
 (:meth:`MPMSolver._bind_tracers`) and placed from their positions and deformation gradients when read
@@ -129,7 +130,9 @@ class Collider:
     ``kind``: ``plane`` (``a`` a point on it, ``b`` its normal towards the material), ``sphere`` (centre ``a``,
     ``radius``) or ``capsule`` (segment ``a``-``b``, ``radius``; e.g. a fingertip); positions in m.  ``velocity``:
     rigid translation (m/s; the solver moves it every substep).  ``friction``: Coulomb coefficient (0 frictionless,
-    < 0 no slip while touching).  ``finger_id``: the reaction array entry that receives its force (< 0: none)."""
+    < 0 no slip while touching).  ``finger_id``: the reaction array entry that receives its force (< 0: none).
+    ``field``: the velocity field whose particles it acts on (0 the body, 1 the released field; < 0: every
+    particle)."""
 
     kind: str
     a: Sequence[float]
@@ -138,6 +141,7 @@ class Collider:
     velocity: Sequence[float] = (0.0, 0.0, 0.0)
     friction: float = 0.0
     finger_id: int = -1
+    field: int = -1
 
     KINDS = ("plane", "sphere", "capsule")
 
@@ -950,10 +954,10 @@ class MPMSolver:
                             count=len(pos)))
         return out
 
-    def _set_colliders(self, rows: list[tuple[int, np.ndarray, np.ndarray, float, np.ndarray, float, int]]) -> None:
-        """Upload collider rows (kind code, a, b, radius, velocity, friction, finger id) into ``self.col``."""
+    def _set_colliders(self, rows: list[tuple[int, np.ndarray, np.ndarray, float, np.ndarray, float, int, int]]) -> None:
+        """Upload collider rows (kind code, a, b, radius, velocity, friction, finger id, field) into ``self.col``."""
         d, n = self.device, len(rows)
-        cols = list(zip(*rows)) if n else [[0], [np.zeros(3)], [np.zeros(3)], [0.0], [np.zeros(3)], [0.0], [-1]]
+        cols = list(zip(*rows)) if n else [[0], [np.zeros(3)], [np.zeros(3)], [0.0], [np.zeros(3)], [0.0], [-1], [-1]]
         self.col.count = n
         self.col.kind = wp.array(np.asarray(cols[0], np.int32), dtype=wp.int32, device=d)
         for name, vals in (("a", cols[1]), ("b", cols[2]), ("vel", cols[4])):
@@ -961,15 +965,41 @@ class MPMSolver:
         self.col.radius = wp.array(np.asarray(cols[3], np.float32), dtype=float, device=d)
         self.col.mu = wp.array(np.asarray(cols[5], np.float32), dtype=float, device=d)
         self.col.finger = wp.array(np.asarray(cols[6], np.int32), dtype=wp.int32, device=d)
+        self.col.field = wp.array(np.asarray(cols[7], np.int32), dtype=wp.int32, device=d)
+        self.col.fields = int(np.bitwise_or.reduce([3 if f < 0 else 1 << f for f in cols[7]])) if n else 0
         self.col.work = self.boundary_work
         self._col_version += 1
 
+    def table_plane_fields(self) -> Optional[int]:
+        """Which particles the table (floor) acts on as a plane collider, where their surface touches it: every
+        particle under ``mpm.contact = surface`` (-1), the released field's (1) under ``grid`` contact with two
+        velocity fields (the body's field keeps the floor as a grid condition, :func:`tasks.physics.mpm.kernels.
+        fixed_boundaries`), or none (None: no table, or one field under ``grid`` contact)."""
+        if self.floor_height is None:
+            return None
+        if self.cfg.contact == "surface":
+            return -1
+        return 1 if self.two_fields else None
+
+    def on_table_plane(self) -> np.ndarray:
+        """(particle,) bool: the particles the table acts on as a plane collider (:meth:`table_plane_fields`)."""
+        which = self.table_plane_fields()
+        if which is None:
+            return np.zeros(self.n_particles, bool)
+        if which < 0:
+            return np.ones(self.n_particles, bool)
+        return self.mat_field.numpy()[self.material_ids()] == which
+
     def _upload_colliders(self, spec: Optional[Union[Collider, Sequence[Collider]]]) -> int:
-        """The frame's colliders (plus the floor plane under ``mpm.contact = surface``); returns their number."""
+        """The frame's colliders plus the table as a plane collider (:meth:`table_plane_fields`: for every particle
+        under ``mpm.contact = surface``, for the released field under ``grid`` contact; friction ``floor_friction``,
+        no slip if ``floor_sticky``); returns their number."""
         items = [] if spec is None else ([spec] if isinstance(spec, Collider) else list(spec))
-        if self.cfg.contact == "surface" and self.floor_height is not None:
+        table = self.table_plane_fields()
+        if table is not None:
             mu = -1.0 if self.cfg.floor_sticky else float(self.cfg.floor_friction)
-            items = [Collider("plane", (0.0, 0.0, self.floor_height), (0.0, 0.0, 1.0), friction=mu)] + items
+            items = [Collider("plane", (0.0, 0.0, self.floor_height), (0.0, 0.0, 1.0), friction=mu,
+                              field=table)] + items
         rows = []
         for i, c in enumerate(items):
             a, b, vel = (np.asarray(v, np.float64).reshape(3) for v in (c.a, c.b, c.velocity))
@@ -985,8 +1015,11 @@ class MPMSolver:
                 b = b / np.linalg.norm(b)
             elif not c.radius > 0:
                 raise ValueError(f"collider {i} ({c.kind}): radius must be > 0 m (got {c.radius})")
+            if c.field > 1:
+                raise ValueError(f"collider {i} ({c.kind}): field {c.field} is not a velocity field; use 0 (the body), "
+                                 f"1 (the released field) or -1 (every particle)")
             rows.append((Collider.KINDS.index(c.kind), a, b, float(c.radius), vel, float(c.friction),
-                         int(c.finger_id)))
+                         int(c.finger_id), int(c.field)))
         self._grow_fingers(max([r[6] + 1 for r in rows], default=0))
         self._collider_speed = max([float(np.linalg.norm(r[4])) for r in rows], default=0.0)
         if rows or self.col.count:
@@ -1012,15 +1045,17 @@ class MPMSolver:
         sp.weight_in_p2g = int(self._weight_in_p2g)
         return sp
 
-    def _grid_conditions(self) -> K.GridConditions:
+    def _grid_conditions(self, released: bool = False) -> K.GridConditions:
         """Gravity (m/s^2: g / s under a uniform mass scale s, else zero: the P2G adds the weight), domain walls
-        and floor of the grid update."""
+        and floor of the grid update of the body's field, or with ``released`` of the released field (no floor:
+        the table acts on its particles as a plane collider, :meth:`table_plane_fields`)."""
         cfg = self.cfg
         gc = K.GridConditions()
         gc.gravity = wp.vec3(*self._grid_gravity)
         gc.pad = int(cfg.padding)
         gc.wall_sticky = int(cfg.wall_sticky)
-        gc.floor_on = int(self.floor_height is not None and cfg.contact == "grid")  # surface: a plane collider
+        # surface contact, or the released field: the table is a plane collider
+        gc.floor_on = int(self.floor_height is not None and cfg.contact == "grid" and not released)
         gc.floor_g = float(self.floor_g)
         gc.floor_mu = float(cfg.floor_friction)
         gc.floor_sticky = int(cfg.floor_sticky)
@@ -1038,6 +1073,7 @@ class MPMSolver:
         cmds: dict = {"sp": self._step_params(0.0, 0.0), "gs": K.GridStep()}
         fused_kernel = K.FUSED[self.all_corotated, self.two_fields]
         conditions = self._grid_conditions()
+        conditions_free = self._grid_conditions(released=True)
         cmds["gs2"] = K.GridStep()  # the released field's grid update: no Dirichlet nodes
         shares = self._thread_shares()
         # one StepParams per chunk: a recorded launch holds its struct argument by reference
@@ -1062,9 +1098,9 @@ class MPMSolver:
             fields = None
             if self.two_fields:
                 fields = (wp.launch(K.k_grid_update, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
-                    cmds["gs2"], conditions, cur2, other2, self.bc_grid, self.gstats, self.boundary_work]),
+                    cmds["gs2"], conditions_free, cur2, other2, self.bc_grid, self.gstats, self.boundary_work]),
                     wp.launch(K.k_field_contact, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
-                        cmds["gs"], conditions, cur, cur2]))
+                        cmds["gs"], conditions, conditions_free, cur, cur2]))
             cmds[id(cur)] = (fused, grid, fields, accumulate)
         cmds["col_version"] = {id(self.grid_a): self._col_version, id(self.grid_b): self._col_version}
         self._cmds = cmds
@@ -1109,7 +1145,7 @@ class MPMSolver:
         accumulators (summed into the fingers' reactions and the boundary work at the frame's end)."""
         if sh["react"].shape[0] != self.n_fingers:
             sh["react"] = wp.zeros(self.n_fingers, dtype=wp.vec3, device=self.device)
-        for name in ("count", "kind", "a", "b", "radius", "vel", "mu", "finger"):
+        for name in ("count", "fields", "kind", "a", "b", "radius", "vel", "mu", "finger", "field"):
             setattr(sh["col"], name, getattr(self.col, name))
         sh["col"].impulse = sh["react"]
         sh["col"].work = sh["work"]
