@@ -570,7 +570,7 @@ def force_patch(scene: Scene, field: Mapping[str, np.ndarray], forces: np.ndarra
             share = untorn / int((constrained & (finger_of[f] == k)).sum())
             total[k] = float(sim["force_per_coefficient"]) * forces[f, k] * share * -patches["patch_normals"][f, k]
     return ForcePatch(positions=scene.solver.tracer_positions()[idx], finger_ids=finger_of[f, idx].astype(np.int32),
-                      forces=balanced_push(total, "none" if torn.any() else str(sim["force_balance"]),
+                      tracers=idx, forces=balanced_push(total, "none" if torn.any() else str(sim["force_balance"]),
                                            float(sim["force_balance_friction"])))
 
 
