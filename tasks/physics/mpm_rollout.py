@@ -555,9 +555,11 @@ def force_patch(scene: Scene, field: Mapping[str, np.ndarray], forces: np.ndarra
     finger's pressure, not its total force: a finger whose patch is partly torn presses with the untorn share of
     its force (the rest goes through the opening, where the released material offers no support).  Concentrating
     the whole force on the few points left beside an opening crushed the loose stuffing there to det F = 3e-4.
-    The fingers' forces are then balanced (``simulation.force_balance``, :func:`balanced_push`) until the shell
-    ruptures; after it they push as given: balanced, the fingers left pressing beside the plush toy's openings drove
-    its torn body to 13 m/s and, in runs differing by one onset frame, diverged (dt 1e-9 s at frames 63-72)."""
+    The points are the surface tracers, re-placed every substep (``ForcePatch.tracers``): the push follows the
+    skin.  (Fixed for a frame, they were left behind by a torn arm moving at 3 m/s, 10 cm per frame, and the
+    finger's whole force went to the fringe mass still under them, 2.3 N on 4e-5 kg: the divergence, dt 1e-9 s,
+    of the plush toy pushed with balanced fingers after its rupture.)  The fingers' forces are then balanced
+    (``simulation.force_balance``, :func:`balanced_push`) until the shell ruptures; after it they push as given."""
     finger_of = field["finger"]
     constrained = field["constrained"][f]
     idx = np.flatnonzero(constrained & ~torn)
@@ -570,7 +572,7 @@ def force_patch(scene: Scene, field: Mapping[str, np.ndarray], forces: np.ndarra
             share = untorn / int((constrained & (finger_of[f] == k)).sum())
             total[k] = float(sim["force_per_coefficient"]) * forces[f, k] * share * -patches["patch_normals"][f, k]
     return ForcePatch(positions=scene.solver.tracer_positions()[idx], finger_ids=finger_of[f, idx].astype(np.int32),
-                      forces=balanced_push(total, "none" if torn.any() else str(sim["force_balance"]),
+                      tracers=idx, forces=balanced_push(total, "none" if torn.any() else str(sim["force_balance"]),
                                            float(sim["force_balance_friction"])))
 
 

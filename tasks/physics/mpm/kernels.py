@@ -1049,6 +1049,8 @@ def k_force_weights(gi: GridInfo, px: wp.array(dtype=wp.vec3), pfinger: wp.array
                     flags: wp.array(dtype=wp.int32), gs: GridStep):
     """Total mass-weighted B-spline weight sum(w m_i) of each finger's points (force-mode normaliser)."""
     p = wp.tid()
+    if pfinger[p] < 0:  # a tracer not in the patch
+        return
     s = point_stencil(px[p], gi, flags, gs.substep, p)
     b = s.base
     acc = float(0.0)
@@ -1066,6 +1068,8 @@ def patch_impulse_per_weight(finger_force: wp.array(dtype=wp.vec3), finger_w: wp
                              dt: float) -> wp.vec3:
     """dt F_k / W_k (N s / kg): finger k's impulse per unit of its patch weight W_k = sum w m; zero for a finger
     whose patch touches no mass (W_k = 0)."""
+    if kf < 0:  # a tracer not in the patch
+        return wp.vec3(0.0)
     W = finger_w[kf]
     if W <= 0.0:
         return wp.vec3(0.0)
