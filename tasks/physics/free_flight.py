@@ -52,7 +52,8 @@ def shares_node(bases: np.ndarray, holder_bases: np.ndarray) -> np.ndarray:
     return reach[tuple((b - lo).T)]
 
 
-def held_by_boundary(bases: np.ndarray, dims: np.ndarray, padding: int, floor_node) -> np.ndarray:
+def held_by_boundary(bases: np.ndarray, dims: np.ndarray, padding: int,
+                     floor_node: float | np.ndarray) -> np.ndarray:
     """(n,) bool: stencils reaching a node the grid update constrains (:func:`tasks.physics.mpm.kernels.
     fixed_boundaries`): a wall node (within ``padding`` nodes of a face of the ``dims`` grid) or a floor node
     (z index <= ``floor_node``, the table's height in grid units, a scalar or one per stencil; -inf: no table or,

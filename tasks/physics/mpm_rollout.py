@@ -219,7 +219,7 @@ class FlightRecord:
         """An empty record of the loose particles of ``labels`` (particle,), the labels after the release."""
         loose = (labels == INTERIOR) | (labels == RUPTURED)
         return cls(loose, solver.masses()[loose], solver.physical_masses()[loose],
-                   0.5 * np.cbrt(solver.volumes()[loose]), [], [], [])
+                   solver.contact_radii()[loose], [], [], [])
 
     def sample(self, solver: MPMSolver, t: float, points: Optional[np.ndarray] = None) -> None:
         """Record the ``solver``'s particles at time ``t`` (s); ``points`` (n, xyz) m the boundary points acting
@@ -527,7 +527,7 @@ def finger_colliders(solver: MPMSolver, surface0: np.ndarray, field: Mapping[str
     on = [k for k in range(N_FINGERS) if active[f, k] and not torn[nearest[k]]]
     arriving = [k for k in on if not active[f - 1, k]]
     if arriving:
-        x, half = solver.positions().astype(np.float64), 0.5 * np.cbrt(solver.volumes())
+        x, half = solver.positions().astype(np.float64), solver.contact_radii()
         for k in arriving:
             start[k] = _touching(x, half, centres[k] + radius * patches["patch_normals"][f, k],
                                  patches["patch_normals"][f, k], radius)

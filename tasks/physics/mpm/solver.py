@@ -1700,6 +1700,11 @@ class MPMSolver:
     def volumes(self) -> np.ndarray:
         return self.vol.numpy().copy()
 
+    def contact_radii(self) -> np.ndarray:
+        """(particle,) m: half each particle's undeformed spacing, cbrt(V0) / 2, the radius with which surface
+        contact reaches a collider (:func:`tasks.physics.mpm.kernels.contact_velocity`, before its F^T n stretch)."""
+        return 0.5 * np.cbrt(self.volumes())
+
     def masses(self) -> np.ndarray:
         """Particle masses (kg), including the material's current mass scale (the inertia)."""
         par = self.mat_par.numpy()
