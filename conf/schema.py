@@ -192,16 +192,20 @@ class SimulationConfig:
         keeps the sound speed constant under compression (water's gamma = 7 doubles it at J = 0.8, which an
         explicit step sized for the rest state does not survive in a squeezed, sealed can).
     force_per_coefficient: N per unit force coefficient c (force mode, the no_dirichlet variant).
-    force_balance: how the force mode's finger forces (N) are balanced: ``fingers`` (default) takes their net force
-        off the fingers in proportion to their magnitudes, so they sum to 0 N (as far as the grip's friction allows;
-        a poke, no two fingers pushing against each other, is left to the table); ``none`` pushes each finger along
-        its inward patch normal unchanged (``tasks.physics.mpm_rollout.balanced_push``).  A hand squeezing an
-        object is a closed force loop (the table carries only the object's weight); unbalanced, the fingers' net
-        push (1.8 N at the force-driven plush toy's contact, 4.7x its weight) swayed the toy on the table, made its
-        squeeze dynamic (KE/IE 0.133 > 0.1: a quasi-static warning) and tipped it over.
-    force_balance_friction: Coulomb coefficient (1) of the fingertips' grip under ``force_balance=fingers``: the net
-        force is removed only as far as no finger's tangential force exceeds this times its normal push (the rest
-        is left for the table).  1: a fingertip on rubber or fabric; the default grasps need <= 0.74.
+    force_balance: how the force mode's finger forces (N) are balanced: ``wrench`` (default) takes their net force
+        off the fingers in proportion to their magnitudes, so they sum to 0 N, then their net moment about the
+        centres of their patches by the least change of the same weights (each as far as the grip's friction
+        allows; a poke, no two fingers pushing against each other, is left to the table); ``fingers`` the net
+        force alone; ``none`` pushes each finger along its inward patch normal unchanged
+        (``tasks.physics.mpm_rollout.balanced_push``).  A hand squeezing an object is a closed force loop (the
+        table carries only the object's weight); unbalanced, the fingers' net push (1.8 N at the force-driven plush
+        toy's contact, 4.7x its weight) swayed the toy on the table, made its squeeze dynamic (KE/IE 0.133 > 0.1: a
+        quasi-static warning) and tipped it over; with the force alone balanced, the moment left (0.028 N m at its
+        rupture) swayed it once its force points followed the skin (KE/IE 0.123; ``wrench``: 0.037).
+    force_balance_friction: Coulomb coefficient (1) of the fingertips' grip under ``force_balance=fingers`` or
+        ``wrench``: the net force and moment are removed only as far as no finger's tangential force exceeds this
+        times its normal push (the rest is left for the table).  1: a fingertip on rubber or fabric; the default
+        grasps' force balance needs <= 0.74.
     release_radius: m; interior particles this close to a finger's patch centre are released at the
         threshold crossing (for an object with a solid core: the core particles there, which become the interior
         material), and shell particles this close rupture (become ``ruptured_softening`` x softer).  Keep it
@@ -263,7 +267,7 @@ class SimulationConfig:
     fluid_mach: float = 0.3
     fluid_tait_exponent: float = 1.0
     force_per_coefficient: float = 8.0
-    force_balance: str = "fingers"
+    force_balance: str = "wrench"
     force_balance_friction: float = 1.0
     release_radius: float = 0.02
     release_margin_cells: int = 8
@@ -278,7 +282,7 @@ class SimulationConfig:
 
 # ----------------------------------------------------------------------------------------------- runner
 RUNNER_KINDS = ("sequential", "threads", "dask")
-FORCE_BALANCES = ("fingers", "none")  # simulation.force_balance
+FORCE_BALANCES = ("wrench", "fingers", "none")  # simulation.force_balance
 
 
 @dataclass
@@ -420,7 +424,8 @@ def validate_simulation(cfg: Any, objects: list[tuple[str, Any]]) -> None:
     need(0 <= sim.seam_opening < 1, "simulation.seam_opening",
          f"must be in [0, 1) (the hole's radius over release_radius; 0 = no opening), got {sim.seam_opening}")
     need(sim.force_balance in FORCE_BALANCES, "simulation.force_balance",
-         f"must be fingers (the fingers' forces sum to zero) or none, got {sim.force_balance!r}")
+         f"must be wrench (the fingers' forces and moments sum to zero), fingers (their forces) or none, "
+         f"got {sim.force_balance!r}")
     need(sim.force_balance_friction > 0, "simulation.force_balance_friction",
          f"must be > 0 (a Coulomb coefficient, e.g. 1), got {sim.force_balance_friction}")
     need(sim.feedback_rule in ("auto", "reaction", "yield_area"), "simulation.feedback_rule",

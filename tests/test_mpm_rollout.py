@@ -23,6 +23,7 @@ from tasks.physics.mpm_rollout import (
     balanced_push,
     bernoulli_speed,
     cauchy_free_measures,
+    inside_friction_cones,
     interior_plan,
     load_rise_time,
     peel_velocities,
@@ -490,14 +491,19 @@ def test_tomato_below_its_threshold_has_flesh_but_no_interior(tmp_path):
 
 def test_force_mode_applies_the_balanced_force_per_finger(tmp_path):
     """The solver applies each finger's force of :func:`balanced_push` (8 N per coefficient along the inward patch
-    normal, less its share of the net force): the fingers' applied forces sum to zero where the grip's friction
-    suffices, to the friction cone's remainder elsewhere."""
+    normal, less its share of the net force and moment about the centres of its points at the frame's start): the
+    fingers' applied forces sum to zero where the grip's friction suffices, to the friction cone's remainder
+    elsewhere."""
     # (without the quasi-static bound of the mass scale: 3.7x the substeps, for a test of the applied force)
     art = _rollout(tmp_path, "rubber_ball", "variant.boundary=force", "signal.duration=1.0", "mpm.quasi_static_margin=0")
     r = art["rollout"]
     c, active = art["forces"]["force_coefficients"], art["patches"]["patch_active"]
     pushed = 8.0 * (c * active)[..., None] * -art["patches"]["patch_normals"]  # force_per_coefficient = 8 N
-    expected = np.stack([balanced_push(p, "fingers", 1.0) for p in pushed])
+    field, x = art["field"], r["gaussian_positions"]
+    centres = [np.array([x[f - 1][field["constrained"][f] & (field["finger"][f] == k)].mean(axis=0)
+                         if (field["constrained"][f] & (field["finger"][f] == k)).any() else np.zeros(3)
+                         for k in range(5)]) for f in range(1, len(pushed))]
+    expected = np.stack([pushed[0]] + [balanced_push(p, "wrench", 1.0, c) for p, c in zip(pushed[1:], centres)])
     on = np.linalg.norm(expected[1:], axis=-1) > 0.5
     assert on.sum() > 20  # 1 s at 20 Hz: 45 finger-frames pushing over 0.5 N (up to 1.5 N)
     np.testing.assert_allclose(r["applied_force"][1:][on], expected[1:][on], atol=0.02 * 1.5)
@@ -531,7 +537,7 @@ def test_balanced_push_sums_to_zero_and_keeps_each_fingers_share():
     for poke in ([[0.0, 0.0, 0.0], [0.3, 0.0, -1.0]], [[-2.0, 0.0, 0.0], [-0.5, 0.1, 0.0]]):
         assert balanced_push(np.array(poke), "fingers", 1.0).tolist() == poke
     assert balanced_push(push, "none", 1.0) is push
-    with pytest.raises(ValueError, match="simulation.force_balance must be fingers or none"):
+    with pytest.raises(ValueError, match="simulation.force_balance must be wrench, fingers or none"):
         balanced_push(push, "palm", 1.0)
 
 
@@ -553,11 +559,43 @@ def test_balanced_push_stops_at_the_friction_cone():
                                math.tan(math.radians(30)), rtol=1e-12)
 
 
+def test_wrench_balance_closes_force_then_moment_within_the_friction_cones():
+    """``simulation.force_balance=wrench``: the force step of ``fingers``, then the net moment about the fingers'
+    centres by dF_k = |F_k| m x r_k.  Known answers: a random grasp ends with zero net force and zero net moment about
+    any point, every finger inside its friction cone; two antiparallel 2 N fingers 4 cm apart along x and offset
+    1 cm in z (a 0.02 N m couple about y) end at (32/17, 0, 8/17) N and its mirror (m = 0.02 / 0.0017 N/m about y:
+    tangential / normal 1/4), with friction 0.2 stop at the cone at b = 17/21, (40/21, 0, 8/21) N, leaving 4/21 of
+    the couple for the table; the same pinch offset 1 cm across it in y ends at (0.8, -0.4, 0) N and its mirror
+    (m = 20 about z); a pinch along one line has no moment and is left as given."""
+    rng = np.random.default_rng(3)
+    push = 0.3 * rng.normal(size=(5, 3)) + np.array([[2.0, 0, -1], [-1, 0, -1], [-1, 0, -1], [-1, 0, -1], [-1, 0, -1]])
+    centres = 0.03 * rng.normal(size=(5, 3))
+    out, forces_only = balanced_push(push, "wrench", 100.0, centres), balanced_push(push, "fingers", 100.0)
+    assert np.abs(out.sum(axis=0)).max() < 1e-12
+    assert np.abs(np.cross(centres + [1.0, -2.0, 0.5], out).sum(axis=0)).max() < 1e-12
+    assert np.abs(np.cross(centres, forces_only).sum(axis=0)).max() > 1e-2  # the force step alone leaves a moment
+    assert inside_friction_cones(out, push, 1.0)
+    pinch = np.array([[2.0, 0.0, 0.0], [-2.0, 0.0, 0.0]])
+    offset = np.array([[-0.02, 0.0, 0.0], [0.02, 0.0, 0.01]])
+    np.testing.assert_allclose(balanced_push(pinch, "wrench", 1.0, offset), [[32 / 17, 0, 8 / 17], [-32 / 17, 0, -8 / 17]],
+                               atol=1e-12)
+    capped = balanced_push(pinch, "wrench", 0.2, offset)
+    np.testing.assert_allclose(capped, [[40 / 21, 0, 8 / 21], [-40 / 21, 0, -8 / 21]], atol=1e-9)
+    np.testing.assert_allclose(np.cross(offset, capped).sum(axis=0), [0, -0.02 * 4 / 21, 0], atol=1e-9)
+    across = np.array([[-0.02, 0.01, 0.0], [0.02, -0.01, 0.0]])
+    np.testing.assert_allclose(balanced_push(pinch / 2, "wrench", 1.0, across), [[0.8, -0.4, 0], [-0.8, 0.4, 0]],
+                               atol=1e-12)
+    np.testing.assert_allclose(balanced_push(pinch, "wrench", 1.0, [[-0.02, 0, 0], [0.02, 0, 0]]), pinch, atol=1e-15)
+    with pytest.raises(ValueError, match="needs the fingers' centres"):
+        balanced_push(pinch, "wrench", 1.0)
+
+
 def test_force_push_keeps_the_finger_pressure_when_its_patch_tears():
     """Force mode: a finger presses with c_k * force_per_coefficient N over its untorn patch; when half of its
     patch points are torn, it presses with half the force (same pressure), not the whole force on half the
     points.  Two fingers pressing against each other (2 N and 1.5 N) are balanced while the shell is whole (12/7 N
-    each: 2 F1 F2 / (F1 + F2)), and push as given once it has torn."""
+    each: 2 F1 F2 / (F1 + F2)), and still once it has torn (1 N against 1.5 N: 1.2 N each): the hand keeps
+    closing its grip on a torn object."""
     from types import SimpleNamespace
 
     from conf.hand import N_FINGERS
@@ -580,8 +618,8 @@ def test_force_push_keeps_the_finger_pressure_when_its_patch_tears():
     np.testing.assert_allclose(whole.forces[1:3], [[0.0, 0.0, -12 / 7], [0.0, 0.0, 12 / 7]], rtol=1e-12)
     torn[:2] = True  # half of finger 1's patch
     push = force_patch(scene, field, forces, patches, 0, torn, sim)
-    assert push.forces[1].tolist() == [0.0, 0.0, -1.0]  # 4 N/coefficient x 0.5 x 2/4 untorn, inward
-    assert push.forces[2].tolist() == [0.0, 0.0, 1.5]  # untouched patch: the whole force
+    # finger 1: 4 N/coefficient x 0.5 x 2/4 untorn = 1 N, finger 2 its whole 1.5 N; balanced: 2 x 1 x 1.5 / 2.5
+    np.testing.assert_allclose(push.forces[1:3], [[0.0, 0.0, -1.2], [0.0, 0.0, 1.2]], rtol=1e-12)
     assert push.forces[0].tolist() == [0.0, 0.0, 0.0] and len(push.positions) == 6
 
 
@@ -627,6 +665,8 @@ def _pressed_block(interior):
     F0 = np.broadcast_to(np.cbrt(0.9) * np.eye(3, dtype=np.float32), (len(x), 3, 3)).copy()
     s.set_deformation_gradients(F0)
     s.set_affine_velocities(np.full((len(x), 3, 3), 0.5, np.float32))
+    if s.has_plastic:  # a crushed core: the plastic strain it accumulated under the finger
+        s.set_plastic_strain(np.full(len(x), 0.3))
     normals = np.zeros((1, N_FINGERS, 3))
     normals[0, 0] = [1.0, 0.0, 0.0]  # outward: the finger pushes along -x
     patches = {"patch_normals": normals, "patch_areas": np.full((1, N_FINGERS), 1e-4),
@@ -674,7 +714,8 @@ def test_packed_stuffing_leaves_compressed_through_a_seam_that_opens():
     """The same block with a foam interior (loose stuffing, simulation.stuffing_packing 0.5, seam_opening 0.6):
     the stuffing leaves at its packed volume, F = 0.5^(1/3) I (J = 0.5), at the release speed; the torn skin is
     moved along the surface (x unchanged) into the ring between the hole (7.2 mm) and the patch's rim (12 mm), at
-    the known radius hole + r (R - hole) / R; no other particle moves."""
+    the known radius hole + r (R - hole) / R; no other particle moves.  The stuffing starts as a fresh mass: the
+    core's plastic strain (0.3) is not carried into it, while every other particle keeps its own."""
     from tasks.physics.mpm.materials import Material
 
     stuffing = Material(name="interior", model="foam", youngs_modulus=625.0, poisson_ratio=0.15, density=1000.0,
@@ -693,6 +734,10 @@ def test_packed_stuffing_leaves_compressed_through_a_seam_that_opens():
     np.testing.assert_allclose(xn[torn, 0], x[torn, 0], atol=1e-7)
     np.testing.assert_array_equal(xn[~torn], x[~torn].astype(np.float32))
     np.testing.assert_allclose(F[~released], F0[~released], rtol=1e-6)
+    alpha = s.plastic_strain()
+    assert np.all(alpha[released] == 0.0) and np.all(alpha[~released] == np.float32(0.3))
+    with pytest.raises(ValueError, match="alpha must be finite and >= 0"):
+        s.set_plastic_strain(np.full(len(x), -0.1))
 
 
 def test_seam_opening_folds_the_torn_patch_into_a_ring():
