@@ -595,7 +595,9 @@ def test_force_push_keeps_the_finger_pressure_when_its_patch_tears():
     patch points are torn, it presses with half the force (same pressure), not the whole force on half the
     points.  Two fingers pressing against each other (2 N and 1.5 N) are balanced while the shell is whole (12/7 N
     each: 2 F1 F2 / (F1 + F2)), and still once it has torn (1 N against 1.5 N: 1.2 N each): the hand keeps
-    closing its grip on a torn object."""
+    closing its grip on a torn object.  Once finger 2's whole patch has torn, finger 1 alone is left of a grasp, not a
+    poke: balanced, it pushes nothing (what it pushed against went through the opening); a finger alone that never
+    had another against it (a poke) pushes as given."""
     from types import SimpleNamespace
 
     from conf.hand import N_FINGERS
@@ -620,6 +622,10 @@ def test_force_push_keeps_the_finger_pressure_when_its_patch_tears():
     push = force_patch(scene, field, forces, patches, 0, torn, sim)
     # finger 1: 4 N/coefficient x 0.5 x 2/4 untorn = 1 N, finger 2 its whole 1.5 N; balanced: 2 x 1 x 1.5 / 2.5
     np.testing.assert_allclose(push.forces[1:3], [[0.0, 0.0, -1.2], [0.0, 0.0, 1.2]], rtol=1e-12)
+    torn[4:] = True  # finger 2's whole patch: finger 1 is left of the grasp
+    np.testing.assert_allclose(force_patch(scene, field, forces, patches, 0, torn, sim).forces, 0.0, atol=1e-12)
+    poke = dict(patches, patch_active=np.eye(1, N_FINGERS, 1, dtype=bool))  # finger 1 alone, from the start
+    assert force_patch(scene, field, forces, poke, 0, torn, sim).forces[1].tolist() == [0.0, 0.0, -1.0]
     assert push.forces[0].tolist() == [0.0, 0.0, 0.0] and len(push.positions) == 6
 
 
