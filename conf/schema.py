@@ -200,8 +200,8 @@ class SimulationConfig:
         (``tasks.physics.mpm_rollout.balanced_push``).  A hand squeezing an object is a closed force loop (the
         table carries only the object's weight); unbalanced, the fingers' net push (1.8 N at the force-driven plush
         toy's contact, 4.7x its weight) swayed the toy on the table, made its squeeze dynamic (KE/IE 0.133 > 0.1: a
-        quasi-static warning) and tipped it over; with the force alone balanced, the moment left (0.028 N m at its
-        rupture) swayed it once its force points followed the skin (KE/IE 0.123; ``wrench``: 0.037).
+        quasi-static warning) and tipped it over; with the force alone balanced, the moment left (0.028 N m two
+        frames before its rupture) swayed it once its force points followed the skin (KE/IE 0.123; ``wrench``: 0.037).
     force_balance_friction: Coulomb coefficient (1) of the fingertips' grip under ``force_balance=fingers`` or
         ``wrench``: the net force and moment are removed only as far as no finger's tangential force exceeds this
         times its normal push (the rest is left for the table).  1: a fingertip on rubber or fabric; the default

@@ -611,8 +611,8 @@ def balanced_push(total: np.ndarray, balance: str, friction: float,
     against each other (F_j . F_k < 0: one finger, or fingers side by side, the clay's poke) is left as given, for
     the table to carry as under Dirichlet fingers (balanced, a poke would vanish); ``grasp`` (default: that test on
     ``total``) overrides the test, e.g. for a grasp whose opposing finger tore through the skin (the fingers left
-    side by side then balance to what they push against each other).  ``none``: the push as given (its net force, up to ~50 % of the fingers' sum
-    along the eq. 3 directions, is carried by nothing but the table)."""
+    side by side then balance to what they push against each other).  ``none``: the push as given (its net force,
+    up to ~50 % of the fingers' sum along the eq. 3 directions, is carried by nothing but the table)."""
     if balance == "none":
         return total
     if balance not in ("wrench", "fingers"):
