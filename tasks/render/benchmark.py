@@ -48,6 +48,7 @@ import torch
 from conf.render_schema import RenderConfig
 from conf.schema import SamplingConfig
 
+from . import splat_warp
 from .splat import rasterization
 from .splat_projection import pixel_boxes, project_gaussians, quat_scale_to_covar
 from .splat_torch import pair_weights
@@ -145,13 +146,19 @@ def floor_seconds(counts: dict, rates: dict, exp_free: bool = False) -> tuple[fl
 def frame_function(scene: list[torch.Tensor], viewmats: torch.Tensor, Ks: torch.Tensor, resolution: int,
                    backend: str, backward: bool):
     """One frame, forward or forward+backward w.r.t. every parameter, as a call; run once (warm-up: Warp compiles
-    or loads its kernels)."""
+    or loads its kernels).  backend: "torch", "warp" or "warp-scalar" (the Warp backend with its pure-Warp
+    compositing kernels, CUDA's, instead of the CPU's lanes compositor: ``splat_warp.COMPOSITOR``)."""
     leaves = [t.clone().requires_grad_(backward) for t in scene]
+    name, compositor = ("warp", "scalar") if backend == "warp-scalar" else (backend, "auto")
 
     def frame():
-        image, alphas, _ = rasterization(*leaves, viewmats, Ks, resolution, resolution, backend=backend)
-        if backward:
-            (image.sum() + alphas.sum()).backward()
+        previous, splat_warp.COMPOSITOR = splat_warp.COMPOSITOR, compositor
+        try:
+            image, alphas, _ = rasterization(*leaves, viewmats, Ks, resolution, resolution, backend=name)
+            if backward:
+                (image.sum() + alphas.sum()).backward()
+        finally:
+            splat_warp.COMPOSITOR = previous
 
     frame()
     return frame
@@ -199,7 +206,7 @@ def peak_extra_memory(scene: list[torch.Tensor], viewmats: torch.Tensor, Ks: tor
 
 def main(resolutions: tuple[int, ...] = (RenderConfig.width,),
          sizes: tuple[int, ...] = (SamplingConfig.surface_points, SamplingConfig.surface_points + RELEASED_MAX),
-         backends: tuple[str, ...] = ("torch", "warp")) -> list[dict]:
+         backends: tuple[str, ...] = ("torch", "warp-scalar", "warp")) -> list[dict]:
     """Print and return forward / forward+backward time per frame for every backend, resolution and N, with the
     work counts, the floors and the ratios to them (defaults: the default render resolution, the grid's sizes)."""
     torch.set_num_threads(int(os.environ.get("VIRSQUEEZER_TORCH_THREADS", "1")))
@@ -210,7 +217,7 @@ def main(resolutions: tuple[int, ...] = (RenderConfig.width,),
           f"of the same repeat: best-median-worst; floors (medians): 3DGS (an exp per pair), exp-free (docstring); "
           f"x exp-free: medians; G exp/s: the range measured over the repeats")
     print(f"{'res':>4} {'N':>6} {'kept/box pairs':>16} {'contrib':>8} {'floor fwd / f+b':>16} {'exp-free':>12} "
-          f"{'backend':>7} {'reps':>4} {'forward ms':>14} {'fwd+bwd ms':>14} {'x floor fwd':>15} "
+          f"{'backend':>11} {'reps':>4} {'forward ms':>14} {'fwd+bwd ms':>14} {'x floor fwd':>15} "
           f"{'x floor f+b':>15} {'<10x':>7} {'x exp-free':>11} {'G exp/s':>9} {'extra MB':>8}")
     rows = []
     for resolution in resolutions:
@@ -241,7 +248,7 @@ def main(resolutions: tuple[int, ...] = (RenderConfig.width,),
                 print(f"{resolution:>4} {n:>6} {counts['kept_pairs'] / 1e6:>6.2f}M/{counts['box_pairs'] / 1e6:.2f}M "
                       f"{counts['contributing_pairs'] / 1e6:>7.2f}M {row['floor_forward_s'] * 1e3:>6.2f}/"
                       f"{row['floor_forward_backward_s'] * 1e3:.2f} ms {row['exp_free_floor_forward_s'] * 1e3:>5.2f}/"
-                      f"{row['exp_free_floor_forward_backward_s'] * 1e3:.2f} {backend:>7} {repeats:>4}{times}{spread} "
+                      f"{row['exp_free_floor_forward_backward_s'] * 1e3:.2f} {backend:>11} {repeats:>4}{times}{spread} "
                       f"{under:>3}/{repeats:<3} {np.median(free['forward']):>5.1f}/"
                       f"{np.median(free['forward_backward']):<5.1f} "
                       f"{t['exp_rate'].min() / 1e9:>4.2f}-{t['exp_rate'].max() / 1e9:<4.2f} "

@@ -22,6 +22,10 @@ instance's gradient record; one thread per instance then scatters the records' g
 opacities and the colours, and the projection's adjoint takes them to the Gaussians.  Computation is float32 (the
 recurrence float64) whatever the input dtype, with multiply-adds fused in the compositing kernels (-ffp-contract=fast
 on the CPU); the instance kernels are compiled per channel layout.
+
+On the CPU, steps (2) and (3) run in the lanes compositor (``splat_warp_lanes``, ``COMPOSITOR``): the same pairs in
+the same order, a span's pixels 16 at a time in SIMD registers with one vectorised exp per pixel instead of the
+recurrence (Warp's CPU code generation leaves these scalar kernels scalar); CUDA runs the kernels below.
 """
 
 import functools
@@ -31,7 +35,9 @@ import torch
 import warp as wp
 
 from .splat_projection import Projection
-from .splat_torch import ALPHA_FLOOR, ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
+from .splat_torch import ALPHA_MAX, ALPHA_MIN, TRANSMITTANCE_MIN
+from .splat_warp_finish import finished_pixel, finished_pixel_adjoint
+from .splat_warp_lanes import LANES, MAX_CHANNELS, lane_kernels, plane_stride
 from .splat_warp_projection import project_adjoint, project_warp
 from .warp_interop import launch, scratch, warp_view
 
@@ -40,7 +46,6 @@ wp.set_module_options({"enable_backward": False})   # the backward pass is hand-
 _ALPHA_MIN = wp.constant(ALPHA_MIN)
 _ALPHA_MAX = wp.constant(ALPHA_MAX)
 _T_MIN = wp.constant(TRANSMITTANCE_MIN)
-_ALPHA_FLOOR = wp.constant(ALPHA_FLOOR)
 _NO_STOP = wp.constant(2**31 - 1)   # stop marker of a pixel that never stops
 _GAUSS_MAX = wp.constant(wp.float64(1.0 + 1e-6))   # exp(-sigma) above it: sigma < 0 beyond the recurrence's rounding
 _SPAN_MARGIN = wp.constant(1e-3)   # added to the exponent threshold so the spans hold every pair the rule keeps
@@ -90,10 +95,11 @@ def _row_span(geometry: _vec6, threshold: float, box: wp.vec4i, y: int):
 def _fill_rows(drawn: wp.array(dtype=int), n_gaussians: int, geometry: wp.array(dtype=_vec6),
                boxes: wp.array(dtype=wp.vec4i), height: int, row_offsets: wp.array(dtype=int),
                cursors: wp.array(dtype=int),
-               spans: wp.array(dtype=wp.vec3i), starts: wp.array(dtype=wp.vec2d)):
+               spans: wp.array(dtype=wp.vec3i), with_starts: int, starts: wp.array(dtype=wp.vec2d)):
     """spans[row_offsets[r] + j] = (instance, x_begin, x_end) for every box row r of every instance: the part of
-    the row where sigma <= ln(opacity / ALPHA_MIN) (+ _SPAN_MARGIN); starts[...] = the exponents of exp(-sigma) and
-    of its step ratio along x at x_begin (``_pixel_exponents``; the caller takes their exps, vectorised)."""
+    the row where sigma <= ln(opacity / ALPHA_MIN) (+ _SPAN_MARGIN); with_starts, starts[...] = the exponents of
+    exp(-sigma) and of its step ratio along x at x_begin (``_pixel_exponents``; the caller takes their exps,
+    vectorised)."""
     i = wp.tid()
     geo = geometry[i]
     threshold = _threshold(geo[5])
@@ -104,6 +110,8 @@ def _fill_rows(drawn: wp.array(dtype=int), n_gaussians: int, geometry: wp.array(
         r = first + y
         j = row_offsets[r] + wp.atomic_add(cursors, r, 1)
         spans[j] = wp.vec3i(i, x0, x1)
+        if with_starts == 0:
+            continue
         starts[j] = wp.vec2d(wp.float64(0.0), wp.float64(0.0))   # an empty span's: never read
         if x1 > x0:
             log_gauss, log_ratio = _pixel_exponents(geo, x0, y)
@@ -247,11 +255,7 @@ def _composite_kernels(n_colors: int, with_depth: bool):
             v = vec()
             for c in range(n_channels):
                 v[c] = s[c]
-            if expected_depth != 0:
-                v[n_channels - 1] = v[n_channels - 1] / wp.max(1.0 - t, _ALPHA_FLOOR)
-            for c in range(n_background):
-                v[c] = v[c] + t * backgrounds[camera * n_background + c]
-            out_features[row + x] = v
+            out_features[row + x] = finished_pixel(v, t, expected_depth, backgrounds, n_background, camera)
 
     @wp.kernel(module="unique", enable_backward=False, module_options=_FMA)
     def backward(geometry: wp.array(dtype=_vec6), features: wp.array(dtype=vec), decay: wp.array(dtype=wp.float64),
@@ -271,15 +275,9 @@ def _composite_kernels(n_colors: int, with_depth: bool):
         # gradients of the finished pixels -> of the composited sums and alpha (grad_out_*: written here)
         camera = r // height
         for x in range(width):
-            grad_v = grad_finished[row + x]
-            grad_a = grad_finished_alphas[row + x]
-            for c in range(n_background):
-                grad_a -= grad_v[c] * backgrounds[camera * n_background + c]
-            if expected_depth != 0:
-                a = 1.0 - transmittance[row + x]
-                if a > _ALPHA_FLOOR:
-                    grad_a -= grad_v[n_channels - 1] * out_features[row + x][n_channels - 1] / a
-                grad_v[n_channels - 1] = grad_v[n_channels - 1] / wp.max(a, _ALPHA_FLOOR)
+            grad_v, grad_a = finished_pixel_adjoint(grad_finished[row + x], grad_finished_alphas[row + x],
+                                                    transmittance[row + x], out_features[row + x][n_channels - 1],
+                                                    expected_depth, backgrounds, n_background, camera)
             grad_out_features[row + x] = grad_v
             state[row + x] = wp.vec3(transmittance[row + x], 0.0, grad_a)
         j = row_offsets[r + 1] - 1
@@ -350,7 +348,7 @@ def _composite_kernels(n_colors: int, with_depth: bool):
 
 
 def instance_spans(kernels: FrameKernels, drawn: torch.Tensor, proj: Projection, opacities: torch.Tensor,
-                   colors: torch.Tensor, width: int, height: int) -> tuple[torch.Tensor, ...]:
+                   colors: torch.Tensor, width: int, height: int, with_starts: bool = True) -> tuple[torch.Tensor, ...]:
     """The instances' records and every image row's spans (instance, x_begin, x_end), front to back, with where
     their recurrences start.  No gradient.
 
@@ -361,7 +359,7 @@ def instance_spans(kernels: FrameKernels, drawn: torch.Tensor, proj: Projection,
     offsets (C * height + 1,) int32, spans (sum of box heights, 3) int32 - row r owns
     ``spans[offsets[r]:offsets[r + 1]]``; a span is the part of the box row where the instance can reach
     alpha >= 1/255 (empty when x_end <= x_begin) -, starts (spans, 2) float64 exp(-sigma) and its step ratio at
-    each span's first pixel.
+    each span's first pixel (with_starts; else (0, 2): the lanes compositor takes an exp per pixel).
     """
     device, n_rows, n_gaussians = drawn.device, len(proj.radii) * height, len(opacities)
     # 1. records, boxes and the difference array of per-row counts, 2. its scan
@@ -381,16 +379,28 @@ def instance_spans(kernels: FrameKernels, drawn: torch.Tensor, proj: Projection,
     torch.cumsum(torch.cumsum(marks[:-1], 0), 0, out=offsets[1:])
     # 3. the spans, 4. each row sorted front to back
     spans = torch.empty(int(offsets[-1]), 3, dtype=torch.int32, device=device)
-    starts = torch.empty(len(spans), 2, dtype=torch.float64, device=device)
+    starts = torch.empty(len(spans) if with_starts else 0, 2, dtype=torch.float64, device=device)
     cursors = scratch("cursors", (n_rows + 1,), torch.int32, device).zero_()
     launch(_fill_rows, len(drawn), [warp_view(drawn), n_gaussians, warp_view(geometry, _vec6),
                                     warp_view(boxes, wp.vec4i), height, warp_view(offsets), warp_view(cursors),
-                                    warp_view(spans, wp.vec3i), warp_view(starts, wp.vec2d)], device)
+                                    warp_view(spans, wp.vec3i), int(with_starts), warp_view(starts, wp.vec2d)],
+           device)
     torch.exp(starts, out=starts)   # two exps per span, vectorised
     if device.type != "cpu":   # a CPU launch runs its threads in order: the buckets are filled sorted
         launch(_sort_rows, n_rows, [warp_view(offsets), warp_view(spans, wp.vec3i), warp_view(starts, wp.vec2d)],
                device)
     return geometry, features, decay, offsets, spans, starts
+
+
+COMPOSITOR = "auto"   # "auto": the lanes compositor on the CPU (``splat_warp_lanes``), these kernels on CUDA; "scalar"
+
+
+def uses_lanes(device: torch.device, n_channels: int) -> bool:
+    """Whether a frame of ``n_channels`` composited channels on ``device`` takes the lanes compositor
+    (``COMPOSITOR``; a layout of more than MAX_CHANNELS - 1 channels takes the scalar kernels)."""
+    if COMPOSITOR not in ("auto", "scalar"):
+        raise ValueError(f"splat_warp.COMPOSITOR must be auto or scalar, got {COMPOSITOR!r}")
+    return COMPOSITOR == "auto" and device.type == "cpu" and n_channels + 1 <= MAX_CHANNELS
 
 
 class FrameSettings(NamedTuple):
@@ -423,19 +433,34 @@ class _Frame(torch.autograd.Function):
         drawn = torch.nonzero(proj.radii.flatten() > 0).squeeze(1)
         drawn = drawn[torch.sort(proj.depths.flatten()[drawn], stable=True).indices].int()
         kernels = _composite_kernels(settings.n_colors, settings.with_depth)
-        records = instance_spans(kernels, drawn, proj, opacities, colors, settings.width, settings.height)
-        n_channels, n_pixels = kernels.vec._length_, n_images * settings.height * settings.width
+        n_channels, n_rows = kernels.vec._length_, n_images * settings.height
+        lanes = uses_lanes(device, n_channels)
+        records = instance_spans(kernels, drawn, proj, opacities, colors, settings.width, settings.height,
+                                 with_starts=not lanes)
+        n_pixels = n_rows * settings.width
         out_features = torch.empty(n_pixels, n_channels, dtype=torch.float32, device=device)
         out_alphas, final_t = (torch.empty(n_pixels, dtype=torch.float32, device=device) for _ in range(2))
-        stop = torch.empty(n_pixels, dtype=torch.int32, device=device)
-        sums = scratch("sums", (n_pixels, n_channels + 1), torch.float32, device)
-        ctx.span_arrays = [warp_view(t, dtype) for t, dtype in zip(records, (
-            _vec6, kernels.vec, wp.float64, None, wp.vec3i, wp.vec2d))] + [
-            settings.width, settings.height, warp_view(backgrounds.view(-1)),
-            backgrounds.shape[1] * int(backgrounds.shape[0] > 0), int(settings.expected_depth)]
-        launch(kernels.forward, n_images * settings.height, ctx.span_arrays + [
-            warp_view(out_features, kernels.vec), warp_view(out_alphas), warp_view(final_t), warp_view(stop),
-            warp_view(sums, kernels.vec_t)], device)
+        finishing = [warp_view(backgrounds.view(-1)), backgrounds.shape[1] * int(backgrounds.shape[0] > 0),
+                     int(settings.expected_depth)]
+        geometry, features, decay, offsets, spans, starts = records
+        if lanes:   # 16 pixels of a span at a time, in planes (``splat_warp_lanes``)
+            stride = plane_stride(settings.width)
+            stop = torch.empty(n_rows, stride, dtype=torch.int32, device=device)
+            sums = scratch("sums_planes", (n_rows * (n_channels + 1) * stride,), torch.float32, device)
+            ctx.span_arrays = [warp_view(geometry, _vec6), warp_view(features.view(-1)), warp_view(offsets),
+                               warp_view(spans, wp.vec3i), settings.width, settings.height, stride] + finishing
+            forward = lane_kernels(n_channels, kernels.vec).forward
+        else:
+            stop = torch.empty(n_pixels, dtype=torch.int32, device=device)
+            sums = scratch("sums", (n_pixels, n_channels + 1), torch.float32, device)
+            ctx.span_arrays = [warp_view(geometry, _vec6), warp_view(features, kernels.vec),
+                               warp_view(decay, wp.float64), warp_view(offsets), warp_view(spans, wp.vec3i),
+                               warp_view(starts, wp.vec2d), settings.width, settings.height] + finishing
+            forward = kernels.forward
+        launch(forward, n_rows, ctx.span_arrays + [
+            warp_view(out_features, kernels.vec), warp_view(out_alphas), warp_view(final_t), warp_view(stop.view(-1)),
+            warp_view(sums) if lanes else warp_view(sums, kernels.vec_t)], device)
+        ctx.lanes = lanes
         ctx.save_for_backward(means, quats, scales, covars, viewmats, Ks, colors, drawn, *records, final_t, stop,
                               out_features, backgrounds)
         ctx.settings = settings
@@ -449,14 +474,32 @@ class _Frame(torch.autograd.Function):
         settings, device, shape = ctx.settings, means.device, (len(viewmats), len(means))
         kernels = _composite_kernels(settings.n_colors, settings.with_depth)
         # 1. the compositing backward into the instances' records, 2. to the projection, opacities and colours
-        grad_geometry, grad_features = torch.zeros_like(records[0]), torch.zeros_like(records[1])
         grad_image, grad_alphas = grad_image.contiguous(), grad_alphas.contiguous()
-        grad_sums = scratch("grad_sums", tuple(out_features.shape), torch.float32, device)   # of the sums
-        state = scratch("state", (len(final_t), 3), torch.float32, device)   # T, behind, grad alpha
-        launch(kernels.backward, shape[0] * settings.height, ctx.span_arrays + [
-            warp_view(out_features, kernels.vec), warp_view(stop), warp_view(final_t),
-            warp_view(grad_image, kernels.vec), warp_view(grad_alphas), warp_view(grad_sums, kernels.vec),
-            warp_view(state, wp.vec3), warp_view(grad_geometry, _vec6), warp_view(grad_features, kernels.vec)], device)
+        n_rows, n_channels = shape[0] * settings.height, kernels.vec._length_
+        if ctx.lanes:
+            stride = plane_stride(settings.width)
+            grad_sums = scratch("grad_sums_planes", (n_rows * n_channels * stride,), torch.float32, device)
+            state = scratch("state_planes", (n_rows * 3 * stride,), torch.float32, device)   # T, behind, grad alpha
+            # the gradients of the records (geometry, features) per instance and lane
+            # (a power-of-two buffer: a frame's instance count varies, a buffer per count would pile up)
+            size = len(drawn) * (6 + n_channels) * LANES
+            partials = scratch("partials", (1 << (size - 1).bit_length(),), torch.float32, device)[:size].zero_()
+            partials = partials.view(len(drawn), 6 + n_channels, LANES)
+            backward, views = lane_kernels(n_channels, kernels.vec).backward, (
+                warp_view(grad_sums), warp_view(state), warp_view(partials.view(-1)))
+        else:
+            grad_sums = scratch("grad_sums", tuple(out_features.shape), torch.float32, device)   # of the sums
+            state = scratch("state", (len(final_t), 3), torch.float32, device)   # T, behind, grad alpha
+            grad_geometry, grad_features = torch.zeros_like(records[0]), torch.zeros_like(records[1])
+            backward, views = kernels.backward, (warp_view(grad_sums, kernels.vec), warp_view(state, wp.vec3),
+                                                 warp_view(grad_geometry, _vec6),
+                                                 warp_view(grad_features, kernels.vec))
+        launch(backward, n_rows, ctx.span_arrays + [
+            warp_view(out_features, kernels.vec), warp_view(stop.view(-1)), warp_view(final_t),
+            warp_view(grad_image, kernels.vec), warp_view(grad_alphas), *views], device)
+        if ctx.lanes:   # the instances' records: their lanes summed
+            records_grad = partials.sum(dim=2)
+            grad_geometry, grad_features = records_grad[:, :6].contiguous(), records_grad[:, 6:].contiguous()
         grad_means2d, grad_depths, grad_conics = (torch.zeros(shape[0] * shape[1], size, dtype=torch.float32,
                                                               device=device) for size in (2, 1, 3))
         grad_opacities = torch.zeros(len(means), dtype=torch.float32, device=device)
