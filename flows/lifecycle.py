@@ -7,8 +7,9 @@
    first job's artifacts folder keeps the server's home (the cache records follow each job's folder anyway,
    :func:`flows.runtime.result_storage_settings`).
 2. **Stopping.**  :func:`begin_run` also installs the SIGINT (Ctrl-C) and SIGTERM handlers (and the flow body
-   takes SIGTERM back from Prefect's engine, :func:`watch_progress`).  The first signal prints one line (how
-   many steps finished and are kept), kills this process's children - the Dask workers and the temporary
+   takes SIGTERM back from Prefect's engine, :func:`watch_progress`).  The first signal freezes this process's
+   children (a Dask worker shares the run's output: a step it finished a moment later once logged after the line),
+   prints one line (how many steps finished and are kept), kills the children - the Dask workers and the temporary
    server (its database is SQLite: a kill loses no committed state, whereas a graceful shutdown with the
    flow's connections still open prints a page of cancelled-task tracebacks) - and exits with 130 (SIGINT)
    or 143 (SIGTERM) without talking to the Prefect API again.  Further signals are ignored; a watchdog exits
@@ -142,11 +143,14 @@ def stop(signum: int) -> None:
         signal.signal(other, signal.SIG_IGN)
     threading.Timer(STOP_DEADLINE_S, os._exit, (code,)).start()  # whatever hangs below, the process ends
     logging.disable(logging.CRITICAL)
-    _write_line(stop_line(signum))
-    _silence_output()  # threads still running (Prefect's log shipping, Dask) print nothing after the line
     import psutil
 
     children = _children()
+    for child in children:  # frozen first: a Dask worker mid-step shares our output and would log after the line
+        with contextlib.suppress(psutil.Error):
+            child.suspend()
+    _write_line(stop_line(signum))
+    _silence_output()  # threads still running (Prefect's log shipping, Dask) print nothing after the line
     for child in children:  # Dask workers mid-step (their half-written artifacts are temporary folders), server
         with contextlib.suppress(psutil.Error):
             child.kill()
