@@ -7,12 +7,13 @@
    first job's artifacts folder keeps the server's home (the cache records follow each job's folder anyway,
    :func:`flows.runtime.result_storage_settings`).
 2. **Stopping.**  :func:`begin_run` also installs the SIGINT (Ctrl-C) and SIGTERM handlers (and the flow body
-   takes SIGTERM back from Prefect's engine, :func:`watch_progress`).  The first signal freezes this process's
-   children (a Dask worker shares the run's output: a step it finished a moment later once logged after the line),
-   prints one line (how many steps finished and are kept), kills the children - the Dask workers and the temporary
-   server (its database is SQLite: a kill loses no committed state, whereas a graceful shutdown with the
-   flow's connections still open prints a page of cancelled-task tracebacks) - and exits with 130 (SIGINT)
-   or 143 (SIGTERM) without talking to the Prefect API again.  Further signals are ignored; a watchdog exits
+   takes SIGTERM back from Prefect's engine, :func:`watch_progress`).  The first signal silences this process,
+   kills its children - the Dask workers and the temporary server (its database is SQLite: a kill loses no
+   committed state, whereas a graceful shutdown with the flow's connections still open prints a page of
+   cancelled-task tracebacks) -, then prints one line, how many steps finished and are kept (last: a Dask worker
+   shares the run's output, and with the line printed before the workers were gone, a step one of them finished a
+   moment later was logged after it), and exits with 130 (SIGINT) or 143 (SIGTERM) without talking to the Prefect
+   API again.  Further signals are ignored; a watchdog exits
    after :data:`STOP_DEADLINE_S` whatever happens.  A step stopped half-way leaves only its temporary folder
    (artifacts are written under a temporary name and renamed when complete): nothing a later run trusts.
 3. **No server outlives its run.**  :func:`temporary_server` starts Prefect's temporary server itself, in its
@@ -131,7 +132,7 @@ def _on_signal(signum: int, _frame: Any) -> None:
 
 
 def stop(signum: int) -> None:
-    """Print the stop line, end the children (Dask workers, the temporary server) and exit ``128 + signum``.
+    """End the children (Dask workers, the temporary server), print the stop line and exit ``128 + signum``.
 
     Never returns.  Runs in the main thread, where Python delivers signals; the Prefect API is not called again
     (the steps' states are not reported: the artifacts on disk are the record)."""
@@ -143,18 +144,16 @@ def stop(signum: int) -> None:
         signal.signal(other, signal.SIG_IGN)
     threading.Timer(STOP_DEADLINE_S, os._exit, (code,)).start()  # whatever hangs below, the process ends
     logging.disable(logging.CRITICAL)
+    line = stop_line(signum)
+    err = _silence_output()  # threads still running (Prefect's log shipping, Dask) print nothing from now on
     import psutil
 
     children = _children()
-    for child in children:  # frozen first: a Dask worker mid-step shares our output and would log after the line
-        with contextlib.suppress(psutil.Error):
-            child.suspend()
-    _write_line(stop_line(signum))
-    _silence_output()  # threads still running (Prefect's log shipping, Dask) print nothing after the line
     for child in children:  # Dask workers mid-step (their half-written artifacts are temporary folders), server
         with contextlib.suppress(psutil.Error):
             child.kill()
     psutil.wait_procs(children, timeout=STOP_DEADLINE_S / 2)
+    _write_line(line, err)  # the last line: the workers, which share the run's output, are gone
     _forget_server_record()
     # multiprocessing's exit-time cleanup, which os._exit skips: it unlinks the named semaphores of the Dask
     # cluster's queues.  Then its resource tracker goes too: it would print a warning for each semaphore it
@@ -172,16 +171,20 @@ def stop(signum: int) -> None:
     os._exit(code)
 
 
-def _write_line(line: str) -> None:
+def _write_line(line: str, fd: int = 2) -> None:
     with contextlib.suppress(OSError):
-        os.write(2, (line + "\n").encode())
+        os.write(fd, (line + "\n").encode())
 
 
-def _silence_output() -> None:
+def _silence_output() -> int:
+    """Point this process's stdout and stderr at the null device; returns a descriptor of the former stderr."""
+    err = 2
     with contextlib.suppress(OSError):
+        err = os.dup(2)
         devnull = os.open(os.devnull, os.O_WRONLY)
         os.dup2(devnull, 1)
         os.dup2(devnull, 2)
+    return err
 
 
 def _children() -> list:

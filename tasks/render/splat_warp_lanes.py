@@ -174,6 +174,9 @@ for (int j = offsets[r + 1] - 1; j >= offsets[r]; --j) {
 
 
 def _constants(snippet: str) -> str:
+    """The snippet with its named constants written in: LANES, the compositing rule's ALPHA_MAX, ALPHA_MIN and
+    T_MIN (``splat_torch``) and GAUSS_MAX, the exp(-sigma) above which sigma < 0 beyond rounding (1 + 1e-6, as in
+    ``splat_warp``)."""
     return (snippet.replace("LANES", str(LANES))
             .replace("ALPHA_MAX", f"{ALPHA_MAX!r}f").replace("ALPHA_MIN", f"{ALPHA_MIN!r}f")
             .replace("T_MIN", f"{TRANSMITTANCE_MIN!r}f").replace("GAUSS_MAX", "1.000001f"))
