@@ -29,7 +29,11 @@ exp of a quadratic along an image row, so the compositor evaluates it by a recur
 vectorised libraries (torch / numpy): ~0.8 G exp/s on one AVX2 core (AMD EPYC), 2.0-4.0 G exp/s on one AVX-512
 core (Intel Xeon, torch): the 3DGS floor is ~3x lower on the second.
 
-Example (2-core Intel Xeon, AVX-512, 1 thread, under load: load average 3-4; two runs, de6686a):
+Example (2-core AMD EPYC Zen 5, AVX-512, 1 thread, idle; two runs, 331b9b8): 192 x 192 px, N = 3,000 and 3,400:
+floor 0.25-0.26 / 0.65-0.67 ms; warp (the lanes compositor) 1.41-1.64 / 3.41-3.67 ms at best, medians 6.3-6.7x /
+5.5-6.0x the floor, 20 of 20 repeats below 10x; warp-scalar (CUDA's kernels on the CPU) medians 8.9-9.9x / 8.4-8.8x.
+Before the lanes compositor (2-core Intel Xeon, AVX-512, 1 thread, under load: load average 3-4; two runs,
+de6686a):
 192 x 192 px, N = 3,000 (3,400): 0.41 M kept pairs of 0.89 M box pairs; floor (medians) 0.18-0.23 / 0.46-0.58 ms
 forward / forward+backward (exp-free 0.08-0.10 / 0.29-0.35); warp 3.7-3.9 / 8.7-8.9 ms at best, 17-22x / 16-17x
 the floor at best, medians 21-25x / 18-23x, no repeat below 10x (exp-free: 49-57x / 31-37x); the code before
