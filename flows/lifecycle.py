@@ -171,7 +171,7 @@ def stop(signum: int) -> None:
     os._exit(code)
 
 
-def _write_line(line: str, fd: int = 2) -> None:
+def _write_line(line: str, fd: int) -> None:
     with contextlib.suppress(OSError):
         os.write(fd, (line + "\n").encode())
 

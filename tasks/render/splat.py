@@ -4,8 +4,8 @@ differentiable renderer R(Theta_p; v, t) of eq. 7.
 
 Two backends implement the same maths: ``"torch"``, the pure-torch reference (``splat_projection``, ``splat_torch``:
 the test oracle), and ``"warp"``, a whole frame of Warp kernels with hand-written backward passes (``splat_warp``,
-``splat_warp_projection``), the default because it is 30-50x faster on the CPU (``tasks.render.benchmark``).  Both run on the
-device of the inputs (CPU or CUDA).
+``splat_warp_projection``), the default because it is 30-50x faster on the CPU (``tasks.render.benchmark``).  Both
+run on the device of the inputs (CPU or CUDA).
 """
 
 from typing import Literal

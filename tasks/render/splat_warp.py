@@ -481,10 +481,7 @@ class _Frame(torch.autograd.Function):
             grad_sums = scratch("grad_sums_planes", (n_rows * n_channels * stride,), torch.float32, device)
             state = scratch("state_planes", (n_rows * 3 * stride,), torch.float32, device)   # T, behind, grad alpha
             # the gradients of the records (geometry, features) per instance and lane
-            # (a power-of-two buffer: a frame's instance count varies, a buffer per count would pile up)
-            size = len(drawn) * (6 + n_channels) * LANES
-            partials = scratch("partials", (1 << (size - 1).bit_length(),), torch.float32, device)[:size].zero_()
-            partials = partials.view(len(drawn), 6 + n_channels, LANES)
+            partials = scratch("partials", (len(drawn), 6 + n_channels, LANES), torch.float32, device).zero_()
             backward, views = lane_kernels(n_channels, kernels.vec).backward, (
                 warp_view(grad_sums), warp_view(state), warp_view(partials.view(-1)))
         else:

@@ -2,6 +2,7 @@
 per-call Python: array descriptors are cached by what they describe and CPU launches are replayed from recorded
 commands (a renderer frame makes ~8 launches with ~80 array arguments; packing them anew cost ~1-2 ms a frame under load)."""
 
+import math
 import threading
 
 import torch
@@ -12,7 +13,7 @@ wp.config.log_level = max(wp.config.log_level, wp.LOG_WARNING)   # no init banne
 _VIEWS: dict = {}          # (address, shape, strides, torch dtype, device, warp dtype) -> array descriptor
 _VIEWS_MAX = 4096          # cleared when full: the renderer's working set is ~100 descriptors
 _COMMANDS: dict = {}       # (kernel, adjoint, torch device, thread) -> (recorded wp.Launch, its dim) (CPU)
-_SCRATCH: dict = {}        # (name, shape, dtype, device, thread) -> work buffer
+_SCRATCH: dict = {}        # (name, dtype, device, thread) -> flat work buffer (power-of-two elements)
 _SCRATCH_MAX = 64          # cleared when full: the renderer uses ~10 per image size
 
 
@@ -33,16 +34,18 @@ def warp_view(tensor: torch.Tensor, dtype=None):
 
 
 def scratch(name: str, shape: tuple, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
-    """An uninitialised work buffer for memory that kernels write and read inside one call and no caller sees (not
-    a returned or saved tensor): the same memory (and ``warp_view``) for every call of the same name and shape on
-    the calling thread."""
-    key = (name, shape, dtype, device, threading.get_ident())
+    """An uninitialised work buffer of ``shape`` for memory that kernels write and read inside one call and no
+    caller sees (not a returned or saved tensor): a view of the same memory for every call of the same name on the
+    calling thread, grown to the next power of two of the elements asked for (a frame's instance count varies from
+    frame to frame: a buffer per shape would pile up)."""
+    key = (name, dtype, device, threading.get_ident())
+    size = math.prod(shape)
     buffer = _SCRATCH.get(key)
-    if buffer is None:
-        if len(_SCRATCH) >= _SCRATCH_MAX:
+    if buffer is None or len(buffer) < size:
+        if buffer is None and len(_SCRATCH) >= _SCRATCH_MAX:
             _SCRATCH.clear()
-        buffer = _SCRATCH[key] = torch.empty(shape, dtype=dtype, device=device)
-    return buffer
+        buffer = _SCRATCH[key] = torch.empty(1 << max(size - 1, 0).bit_length(), dtype=dtype, device=device)
+    return buffer[:size].view(shape)
 
 
 def launch(kernel, dim, inputs: list, device: torch.device, outputs: list | None = None,
