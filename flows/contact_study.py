@@ -21,6 +21,7 @@ from pathlib import Path
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--hertz-cells", type=int, nargs="*", default=[8, 12, 16], help="R / dx of the Hertz sphere")
+    ap.add_argument("--hertz-nu", type=float, nargs="*", default=[0.45, 0.0], help="Poisson ratios (Hertz)")
     ap.add_argument("--uniaxial-cells", type=int, nargs="*", default=[8, 12, 16], help="L / dx of the cube")
     ap.add_argument("--nu", type=float, nargs="*", default=[0.3, 0.45, 0.49], help="Poisson ratios (uniaxial)")
     ap.add_argument("--indent-cells", type=float, nargs="*", default=[1.5, 2.0, 2.7],
@@ -34,7 +35,6 @@ def main(argv: list[str] | None = None) -> None:
     from tasks.verification.contact import (
         HERTZ_DEPTHS,
         HERTZ_E,
-        HERTZ_NU,
         HERTZ_R,
         fingertip_case,
         hertz_case,
@@ -46,28 +46,36 @@ def main(argv: list[str] | None = None) -> None:
     from tasks.verification.sphere_fe import sphere_between_flats
 
     lines = [f"# Contact study ({datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, Warp CPU)", "",
-             "Force error = simulated / closed form - 1.  Hertz: sphere R = 35 mm, E = 2 MPa, nu = 0.45 between two "
+             "Force error = simulated / closed form - 1.  Hertz: sphere R = 35 mm, E = 2 MPa between two "
              "frictionless flats, each approaching its centre by d; radius = flattened patch against a = sqrt(R d).  "
              "Indentation: rigid sphere collider R = 35 mm into a nu = 0.45 block (8 a wide, 5 a deep).  Uniaxial: "
              "cube L = 40 mm, E = 0.1 MPa, frictionless plates, lateral faces free, force at 1 % plate travel "
              "against E A eps.  Seconds: wall time of the run on this (shared) machine.", "",
              "## Hertz", ""]
-    pct = lambda v: " / ".join(f"{100 * e:+.0f}%" for e in v)  # noqa: E731
+    pct = lambda v: " / ".join(f"{100 * e:+.1f}%" for e in v)  # noqa: E731
     if args.hertz_cells:
-        fe = sphere_between_flats(HERTZ_DEPTHS, HERTZ_R, HERTZ_E, HERTZ_NU, growth=0.1)
-        fe_err = fe["force"] / hertz_force(fe["at"]) - 1.0
-        print(f"hertz    finite-sphere FE (linear, {fe['nodes']} nodes) against Hertz: {pct(fe_err)}", flush=True)
-        lines += [f"The finite sphere itself (linear axisymmetric FE, `tasks.verification.sphere_fe`) reads "
-                  f"{pct(fe_err)} against Hertz at 1/2/3/4 mm; `vs FE` is the simulation against it.", "",
-                  "| contact | R/dx | dx (mm) | force err 1/2/3/4 mm | vs FE | radius err 1/2/3/4 mm | particles "
-                  "| seconds |", "|---|---|---|---|---|---|---|---|"]
-    for n in args.hertz_cells:
-        for mode in args.modes:
-            r = hertz_case(mode, n)
-            vs_fe = r["force_at"] / fe["force"] - 1.0
-            print(summary_line(r, "hertz", f"against the FE sphere {pct(vs_fe)}"), flush=True)
-            lines.append(f"| {mode} | {n} | {1e3 * r['dx']:.3g} | {pct(r['force_error'])} | {pct(vs_fe)} "
-                         f"| {pct(r['radius_error'])} | {r['particles']} | {r['seconds']:.0f} |")
+        lines += ["The finite sphere itself (axisymmetric FE, `tasks.verification.sphere_fe`) against Hertz at "
+                  "1/2/3/4 mm: small strain (linear) and finite strain (fixed-corotated, the solver's model); `vs FE` "
+                  "is the simulation against the finite-strain FE.", ""]
+        fe = {}
+        for nu in args.hertz_nu:
+            for model in ("linear", "fixed_corotated"):
+                r = sphere_between_flats(HERTZ_DEPTHS, HERTZ_R, HERTZ_E, nu, growth=0.1, model=model)
+                err = pct(r["force"] / hertz_force(r["at"], HERTZ_R, HERTZ_E, nu) - 1.0)
+                print(f"hertz    finite-sphere FE ({model}, nu {nu:g}, {r['nodes']} nodes) against Hertz: {err}",
+                      flush=True)
+                lines.append(f"- nu = {nu:g}, {model}: {err}")
+                fe[nu] = r["force"]
+        lines += ["", "| contact | nu | R/dx | dx (mm) | force err 1/2/3/4 mm | vs FE | radius err 1/2/3/4 mm "
+                  "| particles | seconds |", "|---|---|---|---|---|---|---|---|---|"]
+    for nu in args.hertz_nu if args.hertz_cells else ():
+        for n in args.hertz_cells:
+            for mode in args.modes:
+                r = hertz_case(mode, n, nu=nu)
+                vs_fe = r["force_at"] / fe[nu] - 1.0
+                print(summary_line(r, "hertz", f"nu {nu:g}, against the finite-strain FE {pct(vs_fe)}"), flush=True)
+                lines.append(f"| {mode} | {nu:g} | {n} | {1e3 * r['dx']:.3g} | {pct(r['force_error'])} "
+                             f"| {pct(vs_fe)} | {pct(r['radius_error'])} | {r['particles']} | {r['seconds']:.0f} |")
     surface_sections = [
         ("indent", "Rigid sphere indenting a block (surface contact)", "a/dx at 4 mm", "2, 3, 4", "2/3/4",
          indentation_case, args.indent_cells),
