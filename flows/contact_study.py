@@ -6,9 +6,9 @@
 
 Wires :mod:`tasks.verification.contact` (Hertz: elastic sphere between two flats, also against a finite-sphere
 FE (:mod:`tasks.verification.sphere_fe`), and a rigid sphere indenting a block; uniaxial compression between
-frictionless plates; each with ``mpm.contact = grid`` and ``surface``): prints one line per case (force error,
-contact radius error, particles, wall seconds) and writes ``<out>/contact_study.md``.  No Prefect: short
-diagnostics run in this process, one after the other.
+frictionless plates; each with ``mpm.contact = grid`` and ``surface``, the plates also as particle pins): prints
+one line per case (force error, contact radius error, particles, wall seconds) and writes
+``<out>/contact_study.md``.  No Prefect: short diagnostics run in this process, one after the other.
 """
 from __future__ import annotations
 
@@ -29,6 +29,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--finger-cells", type=float, nargs="*", default=[1.0, 1.5, 2.0],
                     help="contact radius / dx (at 2 mm) of the collider finger driven by the eq. 3 field into a block")
     ap.add_argument("--modes", nargs="*", default=["grid", "surface"], choices=["grid", "surface"])
+    ap.add_argument("--uniaxial-modes", nargs="*", default=["grid", "surface", "pins"],
+                    choices=["grid", "surface", "pins"], help="plates: grid nodes, plane colliders, particle pins")
     ap.add_argument("--out", default="reports/contact", help="folder of contact_study.md")
     args = ap.parse_args(argv)
 
@@ -49,7 +51,8 @@ def main(argv: list[str] | None = None) -> None:
              "Force error = simulated / closed form - 1.  Hertz: sphere R = 35 mm, E = 2 MPa between two "
              "frictionless flats, each approaching its centre by d; radius = flattened patch against a = sqrt(R d).  "
              "Indentation: rigid sphere collider R = 35 mm into a nu = 0.45 block (8 a wide, 5 a deep).  Uniaxial: "
-             "cube L = 40 mm, E = 0.1 MPa, frictionless plates, lateral faces free, force at 1 % plate travel "
+             "cube L = 40 mm, E = 0.1 MPa, frictionless plates (grid nodes, plane colliders or pinned particle "
+             "layers), lateral faces free, force at 1 % plate travel "
              "against E A eps.  Seconds: wall time of the run on this (shared) machine.", "",
              "## Hertz", ""]
     pct = lambda v: " / ".join(f"{100 * e:+.1f}%" for e in v)  # noqa: E731
@@ -94,7 +97,7 @@ def main(argv: list[str] | None = None) -> None:
               "|---|---|---|---|---|---|"]
     for n in args.uniaxial_cells:
         for nu in args.nu:
-            for mode in args.modes:
+            for mode in args.uniaxial_modes:
                 r = uniaxial_case(mode, nu, n)
                 print(summary_line(r, "uniaxial"), flush=True)
                 lines.append(f"| {mode} | {n} | {nu:g} | {100 * r['error']:+.1f}% | {r['particles']} "

@@ -20,6 +20,7 @@ from pathlib import Path
 
 MODES = {  # name -> config overrides
     "grid_dirichlet": ["mpm.contact=grid", "mpm.fingers=dirichlet"],  # the default
+    "grid_particles": ["mpm.contact=grid", "mpm.fingers=particles"],
     "surface_dirichlet": ["mpm.contact=surface", "mpm.fingers=dirichlet"],
     "surface_collider": ["mpm.contact=surface", "mpm.fingers=collider"],
 }

@@ -22,6 +22,12 @@ converges (Hertz within 3-15 % at 1.5 cells per contact radius), but the squeeze
 where eq. 3 puts it: under the default mass scaling a pushed clay keeps flowing past the finger and the one-layer
 rubber ball's shell buckles in, so Table 2 gets worse; not the default.
 
+Particle fingers (``mpm.fingers = particles``, :func:`particle_pins`): the Dirichlet targets of eq. 3 on the
+particles the constrained surface points are embedded in (their surface points driven through the P2G momentum,
+:class:`ParticlePins`), with no grid node held, so no layer beside the finger is held rigid.  Not the default:
+Table 2 ties on BDC-T and SDC and loses on BDC-S and mIoU (the halo of the grid-node fingers widened the deformed
+region the metrics compare with the contact areas), and the can's and plush toy's contacts turn dynamic (README).
+
 Squeezing threshold (sec. 3.2): the squeeze strain of finger k is the indentation under the fingertip divided
 by the object's half extent along the squeeze direction, ``eps_k = mean(u . d_k) / h(d_k)``, the mean taken over
 the contact core of finger k's patch (the surface points of its region with patch weight phi >= exp(-1/2), i.e.
@@ -83,6 +89,7 @@ from tasks.physics.mpm.solver import (
     DirichletPoints,
     ForcePatch,
     MPMSolver,
+    ParticlePins,
     QuasiStaticLoad,
     deform_covariances,
     material_mass_scales,
@@ -483,6 +490,32 @@ def dirichlet_points(scene: Scene, field: Mapping[str, np.ndarray], f: int, torn
     return bc, idx, target_x
 
 
+def particle_pins(scene: Scene, bc: Optional[DirichletPoints], idx: np.ndarray, target_x: np.ndarray, f: int,
+                  field: Mapping[str, np.ndarray]) -> Optional[ParticlePins]:
+    """``mpm.fingers = particles``: the Dirichlet conditions of frame f (:func:`dirichlet_points`: surface points
+    ``idx``, targets ``target_x``) on the particles instead of the grid nodes.  Each constrained point's particle
+    (the nearest it is embedded in) has its surface point, along the finger's outward patch normal, driven by the
+    mean displacement its points still need (target - where they are); the push acts on those particles only, at
+    their surface (no node is held, so no layer next to the finger is held rigid) and its impulses are the
+    finger's reaction (:class:`ParticlePins`)."""
+    if bc is None:
+        return None
+    anchors = scene.solver.tracer_anchor_particles()[idx]  # (point, anchor)
+    point = np.repeat(np.arange(len(idx)), anchors.shape[1])
+    particles, which = np.unique(anchors.reshape(-1), return_inverse=True)
+    count = np.bincount(which, minlength=len(particles)).astype(np.float64)[:, None]
+    finger = field["finger"][f, idx]
+    outward = -scene.regions.direction[f, finger]
+    need = (target_x - bc.positions)[point]
+    move = np.stack([np.bincount(which, need[:, c], len(particles)) for c in range(3)], 1)
+    normal = np.stack([np.bincount(which, outward[point, c], len(particles)) for c in range(3)], 1)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    first = np.full(len(particles), -1, np.int64)
+    first[which[::-1]] = point[::-1]  # each particle's first point gives its finger
+    start = scene.solver.surface_points(particles, normal)
+    return ParticlePins(particles, start + move / count, normal, finger[first].astype(np.int32))
+
+
 def fingertip_travel(field: Mapping[str, np.ndarray], patches: Mapping[str, np.ndarray], f: int) -> np.ndarray:
     """The eq. 3 amplitude eta c_k,t (m) of every finger at frame f, read from the field: the least-squares A_k of
     u_i . d_k = A_k phi_k(x_i) over finger k's constrained points (u the displacement, phi_k = the stored weight,
@@ -690,10 +723,12 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
     record_frame(rec, 0, scene, mu_phys, cov0, q0, torn)
     for f in range(1, T):
         # 1. boundary condition of the frame
-        bc, push, tips, idx = None, None, None, np.zeros(0, np.int64)
+        bc, push, tips, pins, idx = None, None, None, None, np.zeros(0, np.int64)
         if boundary == "dirichlet":  # (the Dirichlet points also give the tracking error of the collider fingers)
             bc, idx, target_x = dirichlet_points(scene, field, f, torn, contact_tolerance)
-            if scene.config.fingers == "collider":
+            if scene.config.fingers == "particles":
+                bc, pins = None, particle_pins(scene, bc, idx, target_x, f, field)
+            elif scene.config.fingers == "collider":
                 bc, tips = None, finger_colliders(solver, scene.surface0, field, patches, f, torn, scene.frame_dt,
                                                   scene.config.finger_friction)
         else:
@@ -703,7 +738,7 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
         flying = rec.flight is not None and f <= rec.event["frame"] + FLIGHT_FRAMES
         start = float(times[f - 1])
         st = solver.step_frame(scene.frame_dt, dirichlet=bc, forces=push, quasi_static=not rec.event["crossed"],
-                               colliders=tips, probe_every=FLIGHT_SAMPLE_SUBSTEPS,
+                               colliders=tips, pins=pins, probe_every=FLIGHT_SAMPLE_SUBSTEPS,
                                probe=(lambda t: rec.flight.sample(solver, start + t, boundary_points(bc, push, t)))
                                if flying else None)
         if flying:

@@ -26,7 +26,7 @@ import numpy as np
 
 from conf.hand import FINGERTIP_PAD_RADIUS, N_FINGERS
 from tasks.control.dirichlet_field import dirichlet_field
-from tasks.physics.mpm import Collider, DirichletPoints, Material, MPMSolver
+from tasks.physics.mpm import Collider, DirichletPoints, Material, MPMSolver, ParticlePins
 from tasks.physics.mpm_rollout import finger_colliders, fingertip_travel
 
 HERTZ_R = 0.035  # m (the issue's sphere: R = 35 mm, E = 2 MPa, nu = 0.45)
@@ -88,15 +88,25 @@ def _press(solver: MPMSolver, plate: str, plate_z: float, half_width: float, tra
         vz = -_ramped_speed((f + 0.5) * fdt, total, travel)
         coll = [fixed] if isinstance(fixed, Collider) else []
         bcs = [fixed] if isinstance(fixed, DirichletPoints) else []
+        pins = None
         for normal, finger in plates:
             at, v = (z, vz) if finger == 1 else (zm, -vz)
-            if plate == "grid":
+            if plate == "pins":  # the particles whose surface touches the plate: their surface points follow it
+                x = solver.positions()
+                top = x[:, 2] > at - h
+                target = x[top].copy()
+                target[:, 2] = at + v * fdt
+                pins = ParticlePins(np.flatnonzero(top), target, np.tile(-normal, (int(top.sum()), 1)),
+                                    np.full(int(top.sum()), finger), slip=True)
+            elif plate == "grid":
                 pts = _plate_points(half_width, h, at)
                 bcs.append(DirichletPoints(pts, np.tile([0.0, 0.0, v], (len(pts), 1)), np.full(len(pts), finger),
                                            normals=np.tile(normal, (len(pts), 1))))
             else:
                 coll.append(Collider("plane", (0.0, 0.0, at), normal, velocity=(0.0, 0.0, v), finger_id=finger))
-        st = solver.step_frame(fdt, dirichlet=bcs or None, colliders=coll or None)
+        if isinstance(fixed, ParticlePins):
+            pins = _joined(fixed, pins)
+        st = solver.step_frame(fdt, dirichlet=bcs or None, colliders=coll or None, pins=pins)
         z += vz * fdt
         zm = None if zm is None else zm - vz * fdt
         on_frame(f, plate_z - z, st)
@@ -155,6 +165,15 @@ def hertz_case(contact: str, cells_per_radius: int, depth: float = 0.004, load_t
     return out
 
 
+def _joined(a: ParticlePins, b: Optional[ParticlePins]) -> ParticlePins:
+    """Two pin sets of one slip kind as one."""
+    if b is None:
+        return a
+    return ParticlePins(np.concatenate([a.indices, b.indices]), np.concatenate([a.targets, b.targets]),
+                        np.concatenate([a.normals, b.normals]), np.concatenate([a.finger_ids, b.finger_ids]),
+                        slip=a.slip)
+
+
 def uniaxial_case(contact: str, nu: float, cells_across: int, strain: float = 0.01, L: float = 0.04,
                   E: float = 1.0e5, load_transits: float = 20.0, n_frames: int = 30,
                   model: str = "fixed_corotated") -> dict:
@@ -170,8 +189,8 @@ def uniaxial_case(contact: str, nu: float, cells_across: int, strain: float = 0.
     g = (np.arange(2 * cells_across) + 0.5) * h - L / 2
     X = np.stack(np.meshgrid(g, g, g + L / 2, indexing="ij"), -1).reshape(-1, 3)
     mat = Material(name="cube", model=model, youngs_modulus=E, poisson_ratio=nu, density=DENSITY)
-    cfg = dict(device="cpu", dx=dx, gravity=[0.0, 0.0, 0.0], floor=False, contact=contact, margin_cells=3,
-               energy_guard_tolerance=0.0)
+    cfg = dict(device="cpu", dx=dx, gravity=[0.0, 0.0, 0.0], floor=False, margin_cells=3,
+               contact="grid" if contact == "pins" else contact, energy_guard_tolerance=0.0)
     s = MPMSolver(X, h ** 3, mat, config=cfg, label="uniaxial")
     total = load_transits * L / mat.bar_wave_speed()
     half = L / 2 + 2 * dx
@@ -179,6 +198,12 @@ def uniaxial_case(contact: str, nu: float, cells_across: int, strain: float = 0.
         bottom = _plate_points(half, h, 0.0)
         fixed = DirichletPoints(bottom, np.zeros_like(bottom), np.zeros(len(bottom), int),
                                 normals=np.tile([0.0, 0.0, 1.0], (len(bottom), 1)), advect=False)
+    elif contact == "pins":  # the bottom layer's surface points held at z = 0 (slip)
+        low = X[:, 2] < h
+        target = X[low].copy()
+        target[:, 2] = 0.0
+        fixed = ParticlePins(np.flatnonzero(low), target, np.tile([0.0, 0.0, -1.0], (int(low.sum()), 1)),
+                             np.zeros(int(low.sum()), int), slip=True)
     else:
         fixed = Collider("plane", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), finger_id=0)
     rec: dict[str, list] = {"strain": [], "force": [], "force_floor": [], "strain_mid": []}

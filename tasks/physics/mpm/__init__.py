@@ -7,6 +7,7 @@ from .solver import (  # noqa: F401
     ForcePatch,
     FrameStats,
     MPMSolver,
+    ParticlePins,
     SimulationError,
     deform_covariances,
     mass_scale_for,

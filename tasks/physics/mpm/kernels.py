@@ -206,6 +206,14 @@ class Colliders:
     field: wp.array(dtype=wp.int32)  # velocity field it acts on (MaterialTable.field; < 0: every particle)
     impulse: wp.array(dtype=wp.vec3)  # (finger,) impulse the colliders applied to the material (N s)
     work: wp.array(dtype=wp.float64)  # [0]: work of those impulses, impulse . new velocity (J)
+    # particle pins (:func:`pin_velocity`): the surface points of some particles driven along prescribed paths
+    pins: int  # number of pinned particles (0: none)
+    pin_slip: int  # 1: only the normal component of the surface point's velocity is prescribed
+    pin_slot: wp.array(dtype=wp.int32)  # (particle,) its pin, or -1 (length 1 when there are none)
+    pin_y: wp.array(dtype=wp.vec3)  # (pin,) where its surface point is to be now (m; advanced every substep)
+    pin_v: wp.array(dtype=wp.vec3)  # (pin,) the path's velocity (m/s)
+    pin_n: wp.array(dtype=wp.vec3)  # (pin,) outward unit normal of the surface at the particle
+    pin_finger: wp.array(dtype=wp.int32)  # (pin,) finger id whose reaction receives its impulses (< 0: none)
 
 
 @wp.struct
@@ -562,6 +570,36 @@ def contact_velocity(col: Colliders, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.
 
 
 @wp.func
+def pin_velocity(col: Colliders, slot: int, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.mat33, radius: float,
+                 mass: float, dt: float, inv_dx: float) -> ContactResult:
+    """A pinned particle (``col.pin_slot``): its surface point x_s = x + r n (n the surface's outward normal, r =
+    radius |F^T n|, as in :func:`contact_velocity`) is driven along its prescribed path, which is at ``col.pin_y``
+    now and moves at ``col.pin_v``: the point's velocity u = v + r C n becomes pin_v + (pin_y - x_s) / dt over the
+    coming substep dt (the second term takes back what the grid's blend of the particle with its neighbours left of
+    the last one), all of it or, with ``col.pin_slip``, its normal component.  The change du enters the P2G like a
+    collider's: v + du, with the affine term 4/dx^2 m du (x_s - x)^T, so the impulse J = m du acts at the surface
+    point, where the finger is, not as a body force at the centre.  J is added to the pin's finger reaction (N s)
+    with its work J . v_new (J).  Unlike grid-node Dirichlet conditions, no node is held: the neighbours of a
+    pinned particle move with the material, so no layer next to the boundary is held rigid."""
+    n = col.pin_n[slot]
+    r = radius * wp.length(wp.transpose(F) @ n)
+    xs = x + r * n
+    u = v + r * (C @ n)
+    du = col.pin_v[slot] + (col.pin_y[slot] - xs) / dt - u
+    if col.pin_slip != 0:
+        du = wp.dot(du, n) * n
+    new = v + du
+    k = col.pin_finger[slot]
+    if k >= 0:
+        wp.atomic_add(col.impulse, k, mass * du)
+    wp.atomic_add(col.work, 0, wp.float64(mass * wp.dot(du, new)))
+    res = ContactResult()
+    res.v = new
+    res.A = (4.0 * inv_dx * inv_dx * mass * r) * wp.outer(du, n)
+    return res
+
+
+@wp.func
 def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles, mats: MaterialTable,
                      gi: GridInfo, sp: StepParams, grid: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32),
                      bbox: wp.array(dtype=wp.int32), col: Colliders):
@@ -576,8 +614,16 @@ def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles
     A = (-sp.dt_p2g * vol * 4.0 * gi.inv_dx * gi.inv_dx) * r.tau + mass * r.C
     mv = mass * r.v
     field = mats.field[mid]
+    v = r.v
+    if col.pins > 0:
+        slot = col.pin_slot[p]
+        if slot >= 0:
+            pr = pin_velocity(col, slot, r.x, v, r.C, r.F, 0.5 * wp.pow(vol, 1.0 / 3.0), mass, sp.dt_p2g, gi.inv_dx)
+            v = pr.v
+            mv = mass * v
+            A = A + pr.A
     if col.count > 0 and ((col.fields >> field) & 1) != 0:
-        cr = contact_velocity(col, r.x, r.v, r.C, r.F, r.tau, vol, 0.5 * wp.pow(vol, 1.0 / 3.0), mass, sp.dt_p2g,
+        cr = contact_velocity(col, r.x, v, r.C, r.F, r.tau, vol, 0.5 * wp.pow(vol, 1.0 / 3.0), mass, sp.dt_p2g,
                               gi.inv_dx, field)
         mv = mass * cr.v
         A = A + cr.A
@@ -1139,6 +1185,13 @@ def k_collider_advance(col: Colliders, gs: GridStep):
     col.a[c] = col.a[c] + d
     if col.kind[c] == COLLIDER_CAPSULE:
         col.b[c] = col.b[c] + d
+
+
+@wp.kernel
+def k_pin_advance(col: Colliders, gs: GridStep):
+    """Move every pin's target point along its path by dt = ``gs.dt`` times its velocity (m)."""
+    i = wp.tid()
+    col.pin_y[i] = col.pin_y[i] + gs.dt * col.pin_v[i]
 
 
 # ============================================================================================ tracers

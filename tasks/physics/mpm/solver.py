@@ -153,6 +153,22 @@ class Collider:
     KINDS = ("plane", "sphere", "capsule")
 
 
+@dataclass
+class ParticlePins:
+    """Particle-level Dirichlet conditions (the kernel: :func:`tasks.physics.mpm.kernels.pin_velocity`): the
+    surface point of each particle ``indices`` (its centre + r n along the outward surface normal ``normals``, r
+    half its spacing stretched by F) is driven in a straight line from where it is at the frame start to
+    ``targets`` (m) at the frame's end, all of its velocity or, with ``slip``, its normal component.  The push acts
+    on those particles only, at their surface points (no grid node is held: no rigid layer next to the boundary);
+    its impulses are the reactions of ``finger_ids`` (< 0: not reported)."""
+
+    indices: np.ndarray
+    targets: np.ndarray
+    normals: np.ndarray
+    finger_ids: Optional[np.ndarray] = None
+    slip: bool = False
+
+
 BoundarySpec = Union[DirichletPoints, DirichletNodes, Sequence[Union[DirichletPoints, DirichletNodes]], None,
                      Callable[[float, Optional[float]], Any]]
 
@@ -681,6 +697,7 @@ class MPMSolver:
         self.col = K.Colliders()  # surface-contact colliders (count 0: none), see _upload_colliders
         self._col_version = 0  # bumped when self.col changes (the recorded launches re-read it)
         self._set_colliders([])
+        self._set_pins(None)
         self._alloc_finger_arrays(self.n_fingers)
         # CPU threads of the fused G2P/P2G (mpm.threads): the particles are cut into CHUNKS_PER_THREAD x threads
         # chunks; chunk c > 0 scatters into its own P2G grid, error flags, stencil box and collider impulses
@@ -984,6 +1001,64 @@ class MPMSolver:
         self.col.work = self.boundary_work
         self._col_version += 1
 
+    def _set_pins(self, pins: Optional[ParticlePins]) -> int:
+        """Upload the frame's :class:`ParticlePins` into ``self.col`` (none: ``pins = 0``); returns their number.
+        Each pin's path starts at its particle's surface point now and ends at its target at the frame's end."""
+        d, col = self.device, self.col
+        n = 0 if pins is None else len(np.asarray(pins.indices).reshape(-1))
+        self._pin_speed = 0.0
+        if n == 0:
+            if getattr(col, "pins", None) != 0 or col.pin_slot is None:
+                col.pins, col.pin_slip = 0, 0
+                col.pin_slot = wp.full(1, -1, dtype=wp.int32, device=d)
+                for name in ("pin_y", "pin_v", "pin_n"):
+                    setattr(col, name, wp.zeros(1, dtype=wp.vec3, device=d))
+                col.pin_finger = wp.full(1, -1, dtype=wp.int32, device=d)
+                self._col_version += 1
+            return 0
+        idx = np.asarray(pins.indices, np.int64).reshape(-1)
+        target = np.asarray(pins.targets, np.float64).reshape(-1, 3)
+        normal = np.asarray(pins.normals, np.float64).reshape(-1, 3)
+        fid = (np.full(n, -1, np.int32) if pins.finger_ids is None
+               else np.asarray(pins.finger_ids, np.int32).reshape(-1))
+        if not (len(target) == len(normal) == len(fid) == n):
+            raise ValueError(f"ParticlePins: {n} indices but {len(target)} targets, {len(normal)} normals and "
+                             f"{len(fid)} finger ids")
+        if idx.min() < 0 or idx.max() >= self.n_particles or len(np.unique(idx)) != n:
+            raise ValueError(f"ParticlePins: indices must be distinct particles in [0, {self.n_particles})")
+        length = np.linalg.norm(normal, axis=1)
+        if not (np.isfinite(target).all() and np.isfinite(normal).all() and (length > 0).all()):
+            raise ValueError(f"ParticlePins at frame {self.frame}: NaN/inf targets or zero normals")
+        normal = normal / length[:, None]
+        start = self.surface_points(idx, normal)
+        velocity = (target - start) / self._frame_dt_now
+        slot = np.full(self.n_particles, -1, np.int32)
+        slot[idx] = np.arange(n, dtype=np.int32)
+        col.pins, col.pin_slip = n, int(bool(pins.slip))
+        col.pin_slot = wp.array(slot, dtype=wp.int32, device=d)
+        col.pin_y = wp.array(start.astype(np.float32), dtype=wp.vec3, device=d)
+        col.pin_v = wp.array(velocity.astype(np.float32), dtype=wp.vec3, device=d)
+        col.pin_n = wp.array(normal.astype(np.float32), dtype=wp.vec3, device=d)
+        col.pin_finger = wp.array(fid, dtype=wp.int32, device=d)
+        self._grow_fingers(int(fid.max()) + 1)
+        self._pin_speed = float(np.linalg.norm(velocity, axis=1).max())
+        self._col_version += 1
+        return n
+
+    def surface_points(self, indices: np.ndarray, normals: np.ndarray) -> np.ndarray:
+        """(P, 3) m: the surface points of particles ``indices`` along the unit ``normals`` (P, 3), centre + r n
+        with r = radius |F^T n| (radius half the particle's undeformed spacing), as the contact and pin kernels
+        measure them."""
+        idx = np.asarray(indices, np.int64).reshape(-1)
+        F = self.deformation_gradients()[idx].astype(np.float64)
+        radius = 0.5 * np.cbrt(self.volumes()[idx].astype(np.float64))
+        reach = radius * np.linalg.norm(np.einsum("pji,pj->pi", F, normals), axis=1)
+        return self.positions()[idx].astype(np.float64) + reach[:, None] * normals
+
+    def tracer_anchor_particles(self) -> np.ndarray:
+        """(T, TRACER_ANCHORS) the particles each tracer is embedded in, nearest first."""
+        return self._anchor[0].numpy().copy() if self._anchor is not None else np.zeros((0, TRACER_ANCHORS), np.int32)
+
     def table_plane_fields(self) -> Optional[int]:
         """Which particles the table (floor) acts on as a plane collider, where their surface touches it: every
         particle under ``mpm.contact = surface`` (-1), the released field's (1) under ``grid`` contact with two
@@ -1159,7 +1234,8 @@ class MPMSolver:
         accumulators (summed into the fingers' reactions and the boundary work at the frame's end)."""
         if sh["react"].shape[0] != self.n_fingers:
             sh["react"] = wp.zeros(self.n_fingers, dtype=wp.vec3, device=self.device)
-        for name in ("count", "fields", "kind", "a", "b", "radius", "vel", "mu", "finger", "field"):
+        for name in ("count", "fields", "kind", "a", "b", "radius", "vel", "mu", "finger", "field", "pins",
+                     "pin_slip", "pin_slot", "pin_y", "pin_v", "pin_n", "pin_finger"):
             setattr(sh["col"], name, getattr(self.col, name))
         sh["col"].impulse = sh["react"]
         sh["col"].work = sh["work"]
@@ -1281,7 +1357,8 @@ class MPMSolver:
                    forces: Optional[Union[ForcePatch, Sequence[ForcePatch]]] = None,
                    quasi_static: bool = True,
                    colliders: Optional[Union[Collider, Sequence[Collider]]] = None,
-                   probe: Optional[Callable[[float], None]] = None, probe_every: int = 1) -> FrameStats:
+                   probe: Optional[Callable[[float], None]] = None, probe_every: int = 1,
+                   pins: Optional[ParticlePins] = None) -> FrameStats:
         """Advance by ``frame_dt`` seconds with CFL-adaptive substeps; returns the frame statistics.
 
         ``dirichlet``: DirichletPoints / DirichletNodes (or a list), constant targets over the frame (points are
@@ -1293,18 +1370,21 @@ class MPMSolver:
         :class:`Collider` s (surface contact) at their positions at the frame start, moved with their velocities
         every substep; their reactions join ``FrameStats.reaction`` under their finger ids.  ``probe``: called
         with the time since the frame start (s) after every ``probe_every``-th substep's particle update inside the
-        frame (the particles, e.g. :meth:`positions`, are then at that time; the frame's end is not probed).  Raises
-        :class:`SimulationError` when a guard trips.
+        frame (the particles, e.g. :meth:`positions`, are then at that time; the frame's end is not probed).
+        ``pins``: :class:`ParticlePins`, particles whose surface points reach their targets at the frame's end; their
+        reactions join ``FrameStats.reaction`` under their finger ids.  Raises :class:`SimulationError` when a guard
+        trips.
         """
         if not frame_dt > 0:
             raise ValueError("frame_dt must be > 0")
         with _young_objects_collected():
-            return self._advance_frame(frame_dt, dirichlet, forces, quasi_static, colliders, probe, probe_every)
+            return self._advance_frame(frame_dt, dirichlet, forces, quasi_static, colliders, probe, probe_every, pins)
 
     def _advance_frame(self, frame_dt: float, dirichlet: BoundarySpec,
                        forces: Optional[Union[ForcePatch, Sequence[ForcePatch]]], quasi_static: bool,
                        colliders: Optional[Union[Collider, Sequence[Collider]]],
-                       probe: Optional[Callable[[float], None]], probe_every: int) -> FrameStats:
+                       probe: Optional[Callable[[float], None]], probe_every: int,
+                       pins: Optional[ParticlePins] = None) -> FrameStats:
         """The body of :meth:`step_frame`."""
         wall0 = time.perf_counter()
         self._resolve_auto_mass_scale(frame_dt)
@@ -1316,10 +1396,15 @@ class MPMSolver:
         bcs = self._upload_dirichlet(dirichlet(0.0, None) if bc_fn else dirichlet)
         fps = self._upload_forces(forces(0.0, None) if f_fn else forces)
         n_col = self._upload_colliders(colliders)
-        col_speed = self._collider_speed  # m/s: a moving collider bounds the step like a Dirichlet target's speed
+        self._frame_dt_now = frame_dt
+        n_pin = self._set_pins(pins)
+        # m/s: a moving collider or pin bounds the step like a Dirichlet target's speed
+        col_speed = max(self._collider_speed, self._pin_speed)
         self._record_bc(bcs, fps)
         col_advance = wp.launch(K.k_collider_advance, dim=n_col, device=d, record_cmd=True,
                                 inputs=[self.col, self._recorded()["gs"]]) if n_col else None
+        pin_advance = wp.launch(K.k_pin_advance, dim=n_pin, device=d, record_cmd=True,
+                                inputs=[self.col, self._recorded()["gs"]]) if n_pin else None
         self.finger_react.zero_()
         self.finger_applied.zero_()
         self.boundary_work.zero_()
@@ -1391,6 +1476,8 @@ class MPMSolver:
             dt_next = self._next_dt(remaining, max(vmax, bc_speed, col_speed))
             if col_advance is not None:  # the next P2G sees the colliders where they are at its time
                 self._replay(col_advance, gs)
+            if pin_advance is not None:  # and the pins' targets
+                self._replay(pin_advance, gs)
             self._reset_bbox()
             self._launch_fused(cur, dt, dt_next)
             box_prev, box_cur = box_cur, self._read_box()
