@@ -259,8 +259,8 @@ class SimulationConfig:
         (the paper's rule: the shell's yield stress tau_y (Pa) x the contact patch area A_k (m^2); the simulated
         |reaction| for a shell without a yield stress), ``reaction`` (the simulated |reaction| of the finger, N) or
         ``auto`` (default: ``reaction`` with ``mpm.fingers=collider``, whose reactions come from the fingertip
-        impulses at the surface, ``yield_area`` with the grid-node Dirichlet fingers, whose reactions are not
-        converged).
+        impulses at the surface, ``yield_area`` with the Dirichlet fingers, on grid nodes or on particles, whose
+        reactions are not converged).
     """
 
     fluid_reference_speed: float = 1.5
