@@ -88,5 +88,5 @@ def test_feedback_rule_auto_reaction_and_the_papers_yield_area():
 
 
 def test_bad_finger_mode_is_one_line():
-    with pytest.raises(MPMConfigError, match=r"^mpm\.fingers: 'glove' is not one of dirichlet, collider$"):
+    with pytest.raises(MPMConfigError, match=r"^mpm\.fingers: 'glove' is not one of dirichlet, particles, collider$"):
         mpm_config_from(dict(fingers="glove"))
