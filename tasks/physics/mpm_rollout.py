@@ -26,7 +26,8 @@ Particle fingers (``mpm.fingers = particles``, :func:`particle_pins`): the Diric
 particles the constrained surface points are embedded in (their surface points driven through the P2G momentum,
 :class:`ParticlePins`), with no grid node held, so no layer beside the finger is held rigid.  Not the default:
 Table 2 ties on BDC-T and SDC and loses on BDC-S and mIoU (the halo of the grid-node fingers widened the deformed
-region the metrics compare with the contact areas), and the can's and plush toy's contacts turn dynamic (README).
+region the metrics compare with the contact areas), although the squeeze stores 5-25x less elastic energy
+(README).
 
 Squeezing threshold (sec. 3.2): the squeeze strain of finger k is the indentation under the fingertip divided
 by the object's half extent along the squeeze direction, ``eps_k = mean(u . d_k) / h(d_k)``, the mean taken over
