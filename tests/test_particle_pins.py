@@ -87,17 +87,11 @@ def test_the_eq3_field_drives_the_pinned_particles_of_a_squeezed_clay(tmp_path):
     """``mpm.fingers=particles`` on the clay's default squeeze: the constrained points follow their eq. 3 targets
     within a quarter cell, the observed squeeze strain follows the prescribed one within 15 % while the fingers
     advance, and every finger that touches reads a reaction."""
-    from tests.test_mpm_rollout import _rollout
+    from tests.test_mpm_rollout import _rollout, assert_follows_the_field
 
     art = _rollout(tmp_path, "clay", "mpm.fingers=particles")
+    assert_follows_the_field(art)
     r = art["rollout"]
-    active = art["field"]["constrained"].any(axis=1)
-    assert active.sum() > 10
-    assert r["dirichlet_tracking_error"][active].max() < 0.25 * r.attrs["dx"]
-    pred, obs = r["predicted_squeeze_strain"].max(axis=1), r["squeeze_strain"].max(axis=1)
-    advancing = pred >= 0.99 * np.maximum.accumulate(pred)
-    big = advancing & (pred > 0.5 * pred.max())
-    np.testing.assert_allclose(obs[big], pred[big], rtol=0.15)
     touching = art["patches"]["patch_active"].any(axis=0)
     reaction = np.linalg.norm(np.asarray(r["reaction_force"]), axis=-1).max(axis=0)
     assert np.all(reaction[touching] > 0.1), reaction

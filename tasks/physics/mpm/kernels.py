@@ -508,6 +508,15 @@ class ContactResult:
 
 
 @wp.func
+def record_impulse(col: Colliders, finger: int, mass: float, dv: wp.vec3, v_new: wp.vec3):
+    """A collider's or pin's velocity change dv (m/s) of a particle of ``mass`` (kg): its impulse m dv (N s) joins
+    ``finger``'s reaction (none if < 0) and its work m dv . v_new (J) the boundary work."""
+    if finger >= 0:
+        wp.atomic_add(col.impulse, finger, mass * dv)
+    wp.atomic_add(col.work, 0, wp.float64(mass * wp.dot(dv, v_new)))
+
+
+@wp.func
 def contact_velocity(col: Colliders, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.mat33, tau: wp.mat33, vol: float,
                      radius: float, mass: float, dt: float, inv_dx: float, field: int) -> ContactResult:
     """Surface contact of one particle (centre x, m; velocity v, m/s; velocity gradient C, 1/s; deformation
@@ -559,10 +568,7 @@ def contact_velocity(col: Colliders, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.
             new = vn + dv
             vn = new
             A = A - (4.0 * inv_dx * inv_dx * mass * r) * wp.outer(dv, n)
-            k = col.finger[c]
-            if k >= 0:
-                wp.atomic_add(col.impulse, k, mass * dv)
-            wp.atomic_add(col.work, 0, wp.float64(mass * wp.dot(dv, new)))
+            record_impulse(col, col.finger[c], mass, dv, new)
     res = ContactResult()
     res.v = vn
     res.A = A
@@ -589,10 +595,7 @@ def pin_velocity(col: Colliders, slot: int, x: wp.vec3, v: wp.vec3, C: wp.mat33,
     if col.pin_slip != 0:
         du = wp.dot(du, n) * n
     new = v + du
-    k = col.pin_finger[slot]
-    if k >= 0:
-        wp.atomic_add(col.impulse, k, mass * du)
-    wp.atomic_add(col.work, 0, wp.float64(mass * wp.dot(du, new)))
+    record_impulse(col, col.pin_finger[slot], mass, du, new)
     res = ContactResult()
     res.v = new
     res.A = (4.0 * inv_dx * inv_dx * mass * r) * wp.outer(du, n)
