@@ -494,9 +494,10 @@ def dirichlet_points(scene: Scene, field: Mapping[str, np.ndarray], f: int, torn
 def particle_pins(scene: Scene, bc: Optional[DirichletPoints], idx: np.ndarray, target_x: np.ndarray, f: int,
                   field: Mapping[str, np.ndarray]) -> Optional[ParticlePins]:
     """``mpm.fingers = particles``: the Dirichlet conditions of frame f (:func:`dirichlet_points`: surface points
-    ``idx``, targets ``target_x``) on the particles instead of the grid nodes.  Each constrained point's particle
-    (the nearest it is embedded in) has its surface point, along the finger's outward patch normal, driven by the
-    mean displacement its points still need (target - where they are); the push acts on those particles only, at
+    ``idx``, targets ``target_x``) on the particles instead of the grid nodes.  Every particle a constrained point
+    is embedded in (its anchors) has its surface point, along the finger's outward patch normal, driven by the
+    mean displacement its points still need (target - where they are), so the points move by that much; the push
+    acts on those particles only, at
     their surface (no node is held, so no layer next to the finger is held rigid) and its impulses are the
     finger's reaction (:class:`ParticlePins`)."""
     if bc is None:

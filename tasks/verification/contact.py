@@ -125,9 +125,10 @@ def hertz_case(contact: str, cells_per_radius: int, depth: float = 0.004, load_t
     slip Dirichlet points read 12-15 points more force error at nu = 0.45 (3-4 at nu = 0, 13-26 at 0.49): the
     points hold a ~1-cell layer at zero axial strain, which cut the equator's Poisson expansion by 60-75 % like a
     stiff ring.  What remains against Hertz is the finite sphere at finite strain
-    (:mod:`tasks.verification.sphere_fe`).  Returns per frame ``depth`` (m, each flat's travel, frame ends), ``force`` (N, frame mean: the mean of the two flats'
-    reactions) and the bottom contact ``radius`` (m, from the number N of particles within h / 20 of the lowest
-    one, a = h sqrt(N / pi): the flattened patch, which a grid flat holds off itself, at the frame ends); at
+    (:mod:`tasks.verification.sphere_fe`).  Returns per frame ``depth`` (m, each flat's travel, frame ends),
+    ``force`` (N, frame mean: the mean of the two flats' reactions) and the bottom contact ``radius`` (m, from the
+    number N of particles within h / 20 of the lowest one, a = h sqrt(N / pi): the flattened patch, which a grid
+    flat holds off itself, at the frame ends); at
     ``depths``: ``at`` (m), ``force_at``, ``hertz_at`` (N), ``force_error``, ``radius_at``, ``radius_hertz`` (m),
     ``radius_error``; ``seconds``, ``particles``.
     """

@@ -168,9 +168,10 @@ def _newton_step(internal, u: np.ndarray, f: np.ndarray, free: np.ndarray, lu, t
     h = 1e-7 * max(np.abs(u).max(), 1e-12)
 
     def tangent(v: np.ndarray) -> np.ndarray:
+        size = max(np.abs(v).max(), 1e-300)  # the probe is h along v / size, so its step is h whatever v's size
         w = u.copy()
-        w[free] += h * v / max(np.abs(v).max(), 1e-300)
-        return (internal(w) - f)[free] * (max(np.abs(v).max(), 1e-300) / h)
+        w[free] += (h / size) * v
+        return (internal(w) - f)[free] * (size / h)
 
     n = len(free)
     J = spl.LinearOperator((n, n), matvec=tangent)
@@ -185,8 +186,9 @@ def sphere_between_flats(depths, R: float, E: float, nu: float, h_min: float | N
     frictionless flats each approach its centre by d, for each d in ``depths`` (m, increasing).  ``h_min`` (m;
     default a / 30 at the smallest depth, a = sqrt(R d)) and ``growth``: mesh spacing at the pole and its growth
     with distance.  ``model``: ``linear`` (small strain, one linear solve per contact set) or ``fixed_corotated``
-    (finite strain, the MPM solver's model: modified Newton iterations on the linear stiffness until the free
-    forces fall below ``tol`` x the contact force, starting from the previous depth's solution).  Contact by
+    (finite strain, the MPM solver's model: Newton-GMRES steps preconditioned by the linear stiffness,
+    :func:`_newton_step`, until the free forces fall below ``tol`` x the contact force, starting from the previous
+    depth's solution).  Contact by
     active sets: a sphere node is held at the flat (its height z + u_z = R - d, free to slide) while its reaction
     pushes, released when it pulls, and held when it would cross the flat.  Returns ``at``, ``force``, ``radius``
     (the reference radius of the outermost node in contact), ``nodes`` and ``iterations`` (Newton, all depths)."""

@@ -1001,14 +1001,15 @@ class MPMSolver:
         self.col.work = self.boundary_work
         self._col_version += 1
 
-    def _set_pins(self, pins: Optional[ParticlePins]) -> int:
+    def _set_pins(self, pins: Optional[ParticlePins], frame_dt: float = 0.0) -> int:
         """Upload the frame's :class:`ParticlePins` into ``self.col`` (none: ``pins = 0``); returns their number.
-        Each pin's path starts at its particle's surface point now and ends at its target at the frame's end."""
+        Each pin's path starts at its particle's surface point now and ends at its target at the frame's end,
+        ``frame_dt`` (s) later."""
         d, col = self.device, self.col
         n = 0 if pins is None else len(np.asarray(pins.indices).reshape(-1))
         self._pin_speed = 0.0
         if n == 0:
-            if getattr(col, "pins", None) != 0 or col.pin_slot is None:
+            if col.pins or col.pin_slot is None:
                 col.pins, col.pin_slip = 0, 0
                 col.pin_slot = wp.full(1, -1, dtype=wp.int32, device=d)
                 for name in ("pin_y", "pin_v", "pin_n"):
@@ -1031,7 +1032,7 @@ class MPMSolver:
             raise ValueError(f"ParticlePins at frame {self.frame}: NaN/inf targets or zero normals")
         normal = normal / length[:, None]
         start = self.surface_points(idx, normal)
-        velocity = (target - start) / self._frame_dt_now
+        velocity = (target - start) / frame_dt
         slot = np.full(self.n_particles, -1, np.int32)
         slot[idx] = np.arange(n, dtype=np.int32)
         col.pins, col.pin_slip = n, int(bool(pins.slip))
@@ -1384,7 +1385,7 @@ class MPMSolver:
                        forces: Optional[Union[ForcePatch, Sequence[ForcePatch]]], quasi_static: bool,
                        colliders: Optional[Union[Collider, Sequence[Collider]]],
                        probe: Optional[Callable[[float], None]], probe_every: int,
-                       pins: Optional[ParticlePins] = None) -> FrameStats:
+                       pins: Optional[ParticlePins]) -> FrameStats:
         """The body of :meth:`step_frame`."""
         wall0 = time.perf_counter()
         self._resolve_auto_mass_scale(frame_dt)
@@ -1396,8 +1397,7 @@ class MPMSolver:
         bcs = self._upload_dirichlet(dirichlet(0.0, None) if bc_fn else dirichlet)
         fps = self._upload_forces(forces(0.0, None) if f_fn else forces)
         n_col = self._upload_colliders(colliders)
-        self._frame_dt_now = frame_dt
-        n_pin = self._set_pins(pins)
+        n_pin = self._set_pins(pins, frame_dt)
         # m/s: a moving collider or pin bounds the step like a Dirichlet target's speed
         col_speed = max(self._collider_speed, self._pin_speed)
         self._record_bc(bcs, fps)
