@@ -3,6 +3,7 @@
     python -m flows.finger_study --objects rubber_ball clay rubber_duck
     python -m flows.finger_study --objects clay --modes surface_dirichlet surface_collider
     python -m flows.finger_study --objects clay --modes surface_collider --extra mpm.quasi_static_damping=0.8
+    python -m flows.finger_study --objects can clay --modes grid_dirichlet grid_particles --spacings 4 3 2.5
 
 Runs each object's chain through the cached pipeline steps up to the deformation metrics
 (:func:`flows.pipeline.run_object_local`, full variant, the default grid's config ``conf/evaluate.yaml`` with the
@@ -10,6 +11,13 @@ mode's overrides) and prints one row per object and mode: BDC-T, BDC-S, SDC, mIo
 seconds (its step's compute time on this shared machine), its substeps and the per-finger reaction (peak over
 frames and fingers of |reaction|, N; mean of the per-finger peaks).  Writes ``<out>/finger_study.md``.  No Prefect
 server: one process, one run after the other.
+
+``--spacings`` adds finer particle spacings (mm) beside the default: the grid refines with them (dx = 2 x spacing)
+and the substeps per frame rise as 800 / spacing, which keeps the mass scale (s ~ (dt / dx)^2) of the convergence
+study's reference (``conf/convergence.yaml``); the default (4 mm, 100 substeps) scales mass 4x more.  Then each
+object gets a second table: every run's surface distance (:func:`tasks.verification.convergence.position_error`,
+% of the bounding-box diagonal) from the finest run of each mode, so one sees whether a mode's Table 2 scores at
+the default spacing are what that mode converges to, and whether the two modes converge to the same motion.
 """
 from __future__ import annotations
 
@@ -27,8 +35,17 @@ MODES = {  # name -> config overrides
 METRICS = ("bdc_t", "bdc_s", "sdc", "miou")
 
 
+def spacing_overrides(spacing_mm: float | None) -> list[str]:
+    """The overrides of one particle spacing (mm) at the convergence study's mass scale; None: the default."""
+    if spacing_mm is None:
+        return []
+    return [f"sampling.particle_spacing={spacing_mm / 1000:g}", f"mpm.target_substeps_per_frame={round(800 / spacing_mm)}"]
+
+
 def run_case(obj: str, overrides: list[str], root: str) -> dict:
-    """One object's full-variant chain up to the deformation metrics; returns the row of the table."""
+    """One object's full-variant chain up to the deformation metrics; returns the row of the table (and, under
+    ``positions``, the surface Gaussians' trajectories (frame, point, xyz) m, under ``reactions`` the fingers'
+    |reaction| (frame, finger) N)."""
     import numpy as np
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
@@ -53,8 +70,30 @@ def run_case(obj: str, overrides: list[str], root: str) -> dict:
                feedback_rule=rollout.attrs["feedback_rule"],
                strain_peak=float(np.asarray(rollout["squeeze_strain"]).max()),
                predicted_peak=float(np.asarray(rollout["predicted_squeeze_strain"]).max()),
-               ke_ie=rollout.attrs["quasi_static"]["max_ke_ie_in_contact"])
+               ke_ie=rollout.attrs["quasi_static"]["max_ke_ie_in_contact"],
+               positions=np.asarray(rollout["gaussian_positions"], np.float64), reactions=reaction)
     return row
+
+
+def distance_table(obj: str, runs: dict[tuple[str, str], dict]) -> list[str]:
+    """Markdown rows: each run's surface distance (% of the bounding-box diagonal,
+    :func:`tasks.verification.convergence.distances_from`) and reaction error (relative L2 over frames and fingers,
+    :func:`~tasks.verification.convergence.reaction_force_error`) from each mode's finest run.  A failed case has
+    no run, so a mode's finest is its last that ran."""
+    from tasks.verification.convergence import distances_from, reaction_force_error
+
+    finest: dict[str, tuple[str, str]] = {}
+    for key in runs:  # coarse to fine: each mode's last run is its finest
+        finest[key[0]] = key
+    dist = distances_from({key: r["positions"] for key, r in runs.items()}, finest)
+
+    def cell(key: tuple[str, str], mode: str) -> str:
+        react = reaction_force_error(runs[key]["reactions"], runs[finest[mode]]["reactions"])
+        return f"{100 * dist[key][mode]:.3f} / {100 * react:.0f}"
+
+    rows = [f"| {obj} | {m} | {s} | " + " | ".join(cell((m, s), o) for o in finest) + " |" for m, s in runs]
+    head = " | ".join(f"from {o} at {finest[o][1]}" for o in finest)
+    return [f"| object | mode | spacing | {head} |", "|---|---|---|" + "---|" * len(finest), *rows]
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -62,9 +101,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--objects", nargs="*", default=["rubber_ball", "clay", "rubber_duck"])
     ap.add_argument("--modes", nargs="*", default=list(MODES), choices=list(MODES))
     ap.add_argument("--extra", nargs="*", default=[], help="config overrides added to every mode")
+    ap.add_argument("--spacings", nargs="*", type=float, default=[],
+                    help="finer particle spacings (mm) run beside the default, coarse to fine (module doc)")
     ap.add_argument("--artifacts", default="artifacts", help="artifact root (the cache the runs share)")
     ap.add_argument("--out", default="reports/fingers", help="folder of finger_study.md")
     args = ap.parse_args(argv)
+    from tasks.physics.mpm.solver import SimulationError
 
     fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
     lines = [f"# Finger modes on Table 2 ({datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, Warp CPU)", "",
@@ -73,17 +115,38 @@ def main(argv: list[str] | None = None) -> None:
              + (f"; every mode also {' '.join(args.extra)}" if args.extra else "") + ".  Seconds: the rollout step's "
              "wall time on this shared machine.  Reaction: |reaction| per finger (N), peak over frames and fingers "
              "/ mean of the touching fingers' peaks.  Strain: peak squeeze strain observed / prescribed (eq. 3).", "",
-             "| object | mode | BDC-T | BDC-S | SDC | mIoU | rollout s | substeps | reaction peak / mean (N) "
-             "| feedback peak (N, rule) | strain obs / pred | KE/IE |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| object | mode | spacing | BDC-T | BDC-S | SDC | mIoU | rollout s | substeps | reaction peak / mean (N) "
+             "| feedback peak (N, rule) | strain obs / pred | KE/IE |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for bad in (v for v in args.spacings if not v > 0):
+        ap.error(f"--spacings: a particle spacing must be > 0 mm, got {bad:g}")
+    spacings = [None, *sorted(args.spacings, reverse=True)]  # coarse to fine: each mode's finest run is its last
+    distances: list[str] = []
     for obj in args.objects:
-        for mode in args.modes:
-            r = run_case(obj, MODES[mode] + list(args.extra), args.artifacts)
-            line = (f"| {obj} | {mode} | {' | '.join(fmt(r[k]) for k in METRICS)} | {r['seconds']:.0f} | "
-                    f"{r['substeps']} | {r['reaction_peak']:.2f} / {r['reaction_mean_peak']:.2f} | "
-                    f"{r['feedback_peak']:.2f} ({r['feedback_rule'].replace('|', '')}) | {r['strain_peak']:.3f} / "
-                    f"{r['predicted_peak']:.3f} | {r['ke_ie']:.3f} |")
-            print(line, flush=True)
-            lines.append(line)
+        runs: dict[tuple[str, str], dict] = {}
+        for spacing in spacings:
+            for mode in args.modes:
+                label = "default" if spacing is None else f"{spacing:g} mm"
+                try:
+                    r = run_case(obj, MODES[mode] + spacing_overrides(spacing) + list(args.extra), args.artifacts)
+                except SimulationError as failed:  # a diverged case is a result of the study, not its end
+                    why = "; a pinned particle" if "it is pinned" in str(failed) else ""
+                    line = f"| {obj} | {mode} | {label} | failed: {str(failed).split('. ')[0]}{why} |"
+                    print(line, flush=True)
+                    lines.append(line)
+                    continue
+                runs[mode, label] = r
+                line = (f"| {obj} | {mode} | {label} | {' | '.join(fmt(r[k]) for k in METRICS)} | {r['seconds']:.0f} | "
+                        f"{r['substeps']} | {r['reaction_peak']:.2f} / {r['reaction_mean_peak']:.2f} | "
+                        f"{r['feedback_peak']:.2f} ({r['feedback_rule'].replace('|', '')}) | {r['strain_peak']:.3f} / "
+                        f"{r['predicted_peak']:.3f} | {r['ke_ie']:.3f} |")
+                print(line, flush=True)
+                lines.append(line)
+        if args.spacings and runs:
+            distances += ["", *distance_table(obj, runs)]
+    if distances:
+        lines += ["", "## Against resolution", "", "Surface distance (RMS over frames and Gaussians of |x - x_ref|, % "
+                  "of the bounding-box diagonal) / reaction error (relative L2 of the per-finger |reaction| over frames "
+                  "and fingers, %) of every run from each mode's finest run.", *distances]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "finger_study.md").write_text("\n".join(lines) + "\n")

@@ -12,6 +12,7 @@ from tasks.verification.convergence import (
     TABLE_COLUMNS,
     ConvergenceError,
     bbox_diagonal,
+    distances_from,
     observed_order,
     pareto_front,
     peak_strain_error,
@@ -49,6 +50,22 @@ def test_known_offset_gives_the_known_normalised_rms():
     # half of the frames off: RMS = sqrt(0.5) x 5 mm
     run[:2] = 0.0
     assert position_error(run, ref, size) == pytest.approx(math.sqrt(0.5) * 0.1)
+
+
+def test_distances_from_each_reference_use_the_first_runs_diagonal():
+    box = np.array([[0.0, 0.0, 0.0], [0.03, 0.04, 0.0]])  # diagonal 50 mm
+    coarse = np.repeat(box[None], 3, axis=0)
+    fine = coarse.copy()
+    fine[..., 0] += 0.005  # every point 5 mm off along x: 0.1 of the diagonal
+    other = coarse.copy()
+    other[1:, :, 2] += 0.005  # 2 of 3 frames 5 mm off along z: sqrt(2/3) x 0.1
+    d = distances_from({("grid", "4"): coarse, ("grid", "2"): fine, ("pins", "2"): other},
+                       {"grid": ("grid", "2"), "pins": ("pins", "2")})
+    assert d[("grid", "2")] == {"grid": 0.0, "pins": pytest.approx(math.sqrt(0.01 + 0.01 * 2 / 3))}
+    assert d[("grid", "4")]["grid"] == pytest.approx(0.1)
+    assert d[("grid", "4")]["pins"] == pytest.approx(math.sqrt(2 / 3) * 0.1)
+    with pytest.raises(ConvergenceError, match="every case failed"):
+        distances_from({}, {})
 
 
 def test_reaction_force_error_is_relative_l2_of_the_magnitudes():

@@ -4,12 +4,14 @@ the particles' surface points instead of the grid nodes of their stencils.  Know
   * uniaxial compression of a cube between two pinned slip layers (frictionless plates): F = E A eps within 5 % at
     nu = 0.3, 0.45, 0.49 with 8 cells across (grid-node plates: +30 % and more), the two plates' reactions equal
     and opposite, and the layer next to a plate strains like the middle (no held layer);
-  * a pinned layer dragged sideways (no slip) carries the block along its path: its surface points end on their
-    targets within a few per cent of the travel;
+  * a pinned layer dragged sideways (no slip) carries the block along its path: its surface points (or, with
+    arms 0, the pinned centres a wall thinner than the spacing gets) end on their targets within a few per cent of
+    the travel;
   * with nothing else acting, the pins' reactions integrated over the frames are the block's momentum change;
   * the eq. 3 field on a rollout (``mpm.fingers=particles``) pins the particles the constrained points are
     embedded in, and they follow the field (tracking within a quarter cell);
-  * bad input: one line naming ``ParticlePins``.
+  * bad input: one line naming ``ParticlePins``; a pinned particle crushed by its push: the volume guard's line
+    names its finger and the fix.
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ import numpy as np
 import pytest
 
 from tasks.physics.mpm import Material, MPMSolver, ParticlePins
+from tasks.physics.mpm.solver import SimulationError
 from tasks.verification.contact import block_particles, uniaxial_case
 
 
@@ -47,23 +50,27 @@ def _free_block(h: float = 0.0025, dx: float = 0.005) -> MPMSolver:
                                                  margin_cells=6, energy_guard_tolerance=0.0))
 
 
-def test_a_pinned_layer_drags_the_block_along_its_path_and_its_reactions_are_the_momentum_change():
-    """The top layer's surface points dragged 1 mm along x over each of 6 frames (no slip, nothing else acting):
-    at every frame's end they are on their targets within 5 % of a frame's travel, the block follows (its centre
-    of mass moves along x), and the pins' reactions x frame_dt sum to the block's momentum change within 1e-3 of
-    the impulse."""
+@pytest.mark.parametrize("arm", [1.0, 0.0])
+def test_a_pinned_layer_drags_the_block_along_its_path_and_its_reactions_are_the_momentum_change(arm):
+    """The top layer's surface points (arm 1; arm 0: its centres) dragged 1 mm along x over each of 6 frames (no
+    slip, nothing else acting): at every frame's end they are on their targets within 5 % of a frame's travel, the
+    block follows (its centre of mass moves along x), and the pins' reactions x frame_dt sum to the block's momentum
+    change within 1e-3 of the impulse."""
     s = _free_block()
     x0 = s.positions()
     top = np.flatnonzero(x0[:, 2] > x0[:, 2].max() - 1e-6)
     up = np.tile([0.0, 0.0, 1.0], (len(top), 1))
+    arms = np.full(len(top), arm)
     frame_dt, step = 0.004, np.array([0.001, 0.0, 0.0])
     impulse, m = np.zeros(3), s.masses()
     p0 = (m[:, None] * s.velocities()).sum(axis=0)
+    if arm == 0.0:
+        np.testing.assert_allclose(s.surface_points(top, up, arms), x0[top])
     for _ in range(6):
-        target = s.surface_points(top, up) + step
-        st = s.step_frame(frame_dt, pins=ParticlePins(top, target, up, np.zeros(len(top), int)))
+        target = s.surface_points(top, up, arms) + step
+        st = s.step_frame(frame_dt, pins=ParticlePins(top, target, up, np.zeros(len(top), int), arms=arms))
         impulse += np.asarray(st.reaction)[0] * frame_dt
-        miss = np.linalg.norm(s.surface_points(top, up) - target, axis=1)
+        miss = np.linalg.norm(s.surface_points(top, up, arms) - target, axis=1)
         assert miss.max() < 0.05 * np.linalg.norm(step), miss.max()
     assert (s.positions() - x0)[:, 0].mean() > 0.3 * 6 * step[0]  # the block came along
     momentum = (m[:, None] * s.velocities()).sum(axis=0) - p0
@@ -78,8 +85,33 @@ def test_bad_pins_are_one_line_errors():
         s.step_frame(0.004, pins=ParticlePins(np.arange(n), np.zeros((2, 3)), np.ones((n, 3))))
     with pytest.raises(ValueError, match="ParticlePins: indices must be distinct particles"):
         s.step_frame(0.004, pins=ParticlePins(np.array([0, 0, 1]), np.zeros((n, 3)), np.ones((n, 3))))
+    with pytest.raises(ValueError, match=r"arms must lie in \[0, 1\]"):
+        s.step_frame(0.004, pins=ParticlePins(np.arange(n), np.zeros((n, 3)), np.ones((n, 3)), arms=np.full(n, 2.0)))
+    with pytest.raises(ValueError, match="3 indices but 3 targets, 3 normals, 3 finger ids and 2 arms"):
+        s.step_frame(0.004, pins=ParticlePins(np.arange(n), np.zeros((n, 3)), np.ones((n, 3)), np.zeros(n, int),
+                                              arms=np.ones(2)))
     with pytest.raises(ValueError, match="NaN/inf targets or zero normals"):
         s.step_frame(0.004, pins=ParticlePins(np.arange(n), np.zeros((n, 3)), np.zeros((n, 3))))
+
+
+def test_a_crushed_pinned_particle_is_named_in_the_error():
+    """Top and bottom layers pinned, the top driven down 4 mm a frame into the block until it is crushed: the
+    volume guard stops the run with one line that names the pinned particle's finger and the grid-node fingers
+    as the fix, before any state goes non-finite."""
+    s = _free_block()
+    x0 = s.positions()
+    top = np.flatnonzero(x0[:, 2] > x0[:, 2].max() - 1e-6)
+    bottom = np.flatnonzero(x0[:, 2] < x0[:, 2].min() + 1e-6)
+    pinned = np.concatenate([top, bottom])
+    normals = np.concatenate([np.tile([0.0, 0.0, 1.0], (len(top), 1)), np.tile([0.0, 0.0, -1.0], (len(bottom), 1))])
+    fingers = np.concatenate([np.full(len(top), 3), np.full(len(bottom), 1)])
+    with pytest.raises(SimulationError, match=r"extreme volume change .* Likely cause: it is pinned \(ParticlePins, "
+                                              r"finger id (1|3)\).*mpm.fingers=dirichlet"):
+        for _ in range(20):
+            target = s.surface_points(pinned, normals)
+            target[: len(top), 2] -= 0.004
+            s.step_frame(0.004, pins=ParticlePins(pinned, target, normals, fingers))
+    assert np.isfinite(s.positions()).all()
 
 
 def test_the_eq3_field_drives_the_pinned_particles_of_a_squeezed_clay(tmp_path):
@@ -94,3 +126,15 @@ def test_the_eq3_field_drives_the_pinned_particles_of_a_squeezed_clay(tmp_path):
     touching = art["patches"]["patch_active"].any(axis=0)
     reaction = np.linalg.norm(np.asarray(r["reaction_force"]), axis=-1).max(axis=0)
     assert np.all(reaction[touching] > 0.1), reaction
+
+
+def test_a_one_layer_wall_is_pinned_at_its_particles_centres_and_follows_the_field(tmp_path):
+    """The rubber ball's 3 mm wall is one particle layer at the 4 mm spacing: ``mpm.fingers=particles`` pins those
+    particles at their centres (a push at a surface half a spacing out crushed the duck's wall particles at 3 mm
+    spacing), says so in the rollout's notes, and the constrained points still follow the field."""
+    from tests.test_mpm_rollout import _rollout, assert_follows_the_field
+
+    art = _rollout(tmp_path, "rubber_ball", "mpm.fingers=particles", "signal.session=ramp_hold_release")
+    assert art["object"].attrs["thin_wall"]
+    assert any("at their centres" in n for n in art["rollout"].attrs["notes"]), art["rollout"].attrs["notes"]
+    assert_follows_the_field(art)

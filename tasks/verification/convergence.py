@@ -76,6 +76,18 @@ def position_error(positions: np.ndarray, reference: np.ndarray, size: float) ->
     return float(np.sqrt(np.mean(np.sum((x - r) ** 2, axis=-1))) / size)
 
 
+def distances_from(positions: Mapping[Any, np.ndarray], references: Mapping[str, Any]) -> dict[Any, dict[str, float]]:
+    """Every run's :func:`position_error` from each named reference run, normalised by the bounding-box diagonal of
+    the first run's first frame.  ``positions``: run key -> surface trajectories (frame, point, xyz) m (one set of
+    points for all); ``references``: name -> key of ``positions``.  Returns run key -> {name: error (1)}."""
+    if not positions:
+        raise ConvergenceError("no runs to compare: every case failed or none was asked for")
+    x0 = np.asarray(next(iter(positions.values())), np.float64)[0]
+    diag = float(np.linalg.norm(x0.max(axis=0) - x0.min(axis=0)))
+    return {key: {name: position_error(x, positions[ref], diag) for name, ref in references.items()}
+            for key, x in positions.items()}
+
+
 def _magnitudes(force: np.ndarray) -> np.ndarray:
     f = np.asarray(force, np.float64)
     return np.linalg.norm(f, axis=-1) if f.ndim == 3 else f

@@ -213,6 +213,7 @@ class Colliders:
     pin_y: wp.array(dtype=wp.vec3)  # (pin,) where its surface point is to be now (m; advanced every substep)
     pin_v: wp.array(dtype=wp.vec3)  # (pin,) the path's velocity (m/s)
     pin_n: wp.array(dtype=wp.vec3)  # (pin,) outward unit normal of the surface at the particle
+    pin_arm: wp.array(dtype=float)  # (pin,) where along n it acts, in half spacings: 1 its surface, 0 its centre
     pin_finger: wp.array(dtype=wp.int32)  # (pin,) finger id whose reaction receives its impulses (< 0: none)
 
 
@@ -579,7 +580,8 @@ def contact_velocity(col: Colliders, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.
 def pin_velocity(col: Colliders, slot: int, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.mat33, radius: float,
                  mass: float, dt: float, inv_dx: float) -> ContactResult:
     """A pinned particle (``col.pin_slot``): its surface point x_s = x + r n (n the surface's outward normal, r =
-    radius |F^T n|, as in :func:`contact_velocity`) is driven along its prescribed path, which is at ``col.pin_y``
+    arm radius |F^T n|, as in :func:`contact_velocity`, arm = ``col.pin_arm``: 1, or 0 for a particle that is a whole
+    wall thinner than its spacing, whose centre is pinned) is driven along its prescribed path, which is at ``col.pin_y``
     now and moves at ``col.pin_v``: the point's velocity u = v + r C n becomes pin_v + (pin_y - x_s) / dt over the
     coming substep dt (the second term takes back what the grid's blend of the particle with its neighbours left of
     the last one), all of it or, with ``col.pin_slip``, its normal component.  The change du enters the P2G like a
@@ -588,7 +590,7 @@ def pin_velocity(col: Colliders, slot: int, x: wp.vec3, v: wp.vec3, C: wp.mat33,
     with its work J . v_new (J).  Unlike grid-node Dirichlet conditions, no node is held: the neighbours of a
     pinned particle move with the material, so no layer next to the boundary is held rigid."""
     n = col.pin_n[slot]
-    r = radius * wp.length(wp.transpose(F) @ n)
+    r = col.pin_arm[slot] * radius * wp.length(wp.transpose(F) @ n)
     xs = x + r * n
     u = v + r * (C @ n)
     du = col.pin_v[slot] + (col.pin_y[slot] - xs) / dt - u

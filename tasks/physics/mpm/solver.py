@@ -160,13 +160,18 @@ class ParticlePins:
     half its spacing stretched by F) is driven in a straight line from where it is at the frame start to
     ``targets`` (m) at the frame's end, all of its velocity or, with ``slip``, its normal component.  The push acts
     on those particles only, at their surface points (no grid node is held: no rigid layer next to the boundary);
-    its impulses are the reactions of ``finger_ids`` (< 0: not reported)."""
+    its impulses are the reactions of ``finger_ids`` (< 0: not reported).  ``arms`` (default 1) scale r: 0 pins
+    the particle's centre, for a particle that is a whole wall thinner than its spacing (one layer on the wall's
+    mid-surface): such a wall has no through-thickness compliance the particle resolves, and a push at its
+    fictitious surface half a spacing out crushes it against the wall's membrane stiffness (the hollow rubber
+    duck's pinned wall particles at 3 mm spacing: det F 1 -> 0.30 -> failure; pinned at their centres >= 0.49)."""
 
     indices: np.ndarray
     targets: np.ndarray
     normals: np.ndarray
     finger_ids: Optional[np.ndarray] = None
     slip: bool = False
+    arms: Optional[np.ndarray] = None  # (pin,) where along n the pin acts, in half spacings (default 1: the surface)
 
 
 BoundarySpec = Union[DirichletPoints, DirichletNodes, Sequence[Union[DirichletPoints, DirichletNodes]], None,
@@ -1008,12 +1013,14 @@ class MPMSolver:
         d, col = self.device, self.col
         n = 0 if pins is None else len(np.asarray(pins.indices).reshape(-1))
         self._pin_speed = 0.0
+        self._pinned_finger = {}  # particle -> finger id of this frame's pins (for the failure messages)
         if n == 0:
             if col.pins or col.pin_slot is None:
                 col.pins, col.pin_slip = 0, 0
                 col.pin_slot = wp.full(1, -1, dtype=wp.int32, device=d)
                 for name in ("pin_y", "pin_v", "pin_n"):
                     setattr(col, name, wp.zeros(1, dtype=wp.vec3, device=d))
+                col.pin_arm = wp.zeros(1, dtype=float, device=d)
                 col.pin_finger = wp.full(1, -1, dtype=wp.int32, device=d)
                 self._col_version += 1
             return 0
@@ -1022,16 +1029,19 @@ class MPMSolver:
         normal = np.asarray(pins.normals, np.float64).reshape(-1, 3)
         fid = (np.full(n, -1, np.int32) if pins.finger_ids is None
                else np.asarray(pins.finger_ids, np.int32).reshape(-1))
-        if not (len(target) == len(normal) == len(fid) == n):
-            raise ValueError(f"ParticlePins: {n} indices but {len(target)} targets, {len(normal)} normals and "
-                             f"{len(fid)} finger ids")
+        arm = np.ones(n) if pins.arms is None else np.asarray(pins.arms, np.float64).reshape(-1)
+        if not (len(target) == len(normal) == len(fid) == len(arm) == n):
+            raise ValueError(f"ParticlePins: {n} indices but {len(target)} targets, {len(normal)} normals, "
+                             f"{len(fid)} finger ids and {len(arm)} arms")
+        if not ((arm >= 0) & (arm <= 1)).all():
+            raise ValueError("ParticlePins: arms must lie in [0, 1] (0: the particle's centre, 1: its surface)")
         if idx.min() < 0 or idx.max() >= self.n_particles or len(np.unique(idx)) != n:
             raise ValueError(f"ParticlePins: indices must be distinct particles in [0, {self.n_particles})")
         length = np.linalg.norm(normal, axis=1)
         if not (np.isfinite(target).all() and np.isfinite(normal).all() and (length > 0).all()):
             raise ValueError(f"ParticlePins at frame {self.frame}: NaN/inf targets or zero normals")
         normal = normal / length[:, None]
-        start = self.surface_points(idx, normal)
+        start = self.surface_points(idx, normal, arm)
         velocity = (target - start) / frame_dt
         slot = np.full(self.n_particles, -1, np.int32)
         slot[idx] = np.arange(n, dtype=np.int32)
@@ -1040,19 +1050,24 @@ class MPMSolver:
         col.pin_y = wp.array(start.astype(np.float32), dtype=wp.vec3, device=d)
         col.pin_v = wp.array(velocity.astype(np.float32), dtype=wp.vec3, device=d)
         col.pin_n = wp.array(normal.astype(np.float32), dtype=wp.vec3, device=d)
+        col.pin_arm = wp.array(arm.astype(np.float32), dtype=float, device=d)
         col.pin_finger = wp.array(fid, dtype=wp.int32, device=d)
         self._grow_fingers(int(fid.max()) + 1)
         self._pin_speed = float(np.linalg.norm(velocity, axis=1).max())
+        self._pinned_finger = dict(zip(idx.tolist(), fid.tolist()))
         self._col_version += 1
         return n
 
-    def surface_points(self, indices: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    def surface_points(self, indices: np.ndarray, normals: np.ndarray, arms: Optional[np.ndarray] = None
+                       ) -> np.ndarray:
         """(P, 3) m: the surface points of particles ``indices`` along the unit ``normals`` (P, 3), centre + r n
-        with r = radius |F^T n| (radius half the particle's undeformed spacing), as the contact and pin kernels
-        measure them."""
+        with r = arm radius |F^T n| (radius half the particle's undeformed spacing; ``arms`` (P,) default 1, 0 the
+        centre: :class:`ParticlePins`), as the contact and pin kernels measure them."""
         idx = np.asarray(indices, np.int64).reshape(-1)
         F = self.deformation_gradients()[idx].astype(np.float64)
         radius = 0.5 * np.cbrt(self.volumes()[idx].astype(np.float64))
+        if arms is not None:
+            radius = radius * np.asarray(arms, np.float64).reshape(-1)
         reach = radius * np.linalg.norm(np.einsum("pji,pj->pi", F, normals), axis=1)
         return self.positions()[idx].astype(np.float64) + reach[:, None] * normals
 
@@ -1236,7 +1251,7 @@ class MPMSolver:
         if sh["react"].shape[0] != self.n_fingers:
             sh["react"] = wp.zeros(self.n_fingers, dtype=wp.vec3, device=self.device)
         for name in ("count", "fields", "kind", "a", "b", "radius", "vel", "mu", "finger", "field", "pins",
-                     "pin_slip", "pin_slot", "pin_y", "pin_v", "pin_n", "pin_finger"):
+                     "pin_slip", "pin_slot", "pin_y", "pin_v", "pin_n", "pin_arm", "pin_finger"):
             setattr(sh["col"], name, getattr(self.col, name))
         sh["col"].impulse = sh["react"]
         sh["col"].work = sh["work"]
@@ -1744,12 +1759,17 @@ class MPMSolver:
             dev[~np.isfinite(J) | (J <= 0)] = np.inf
             p = int(np.argmax(dev))
             sub = int(f[6])
+            pinned = self._pinned_finger.get(p)
+            cause = ("element inversion or over-stretch - the load or boundary velocity is too large for the material "
+                     f"stiffness, or the time step is too large ({hint_dt}); lower dt, raise E, or use a plastic/fluid "
+                     "model for this material") if pinned is None else (
+                f"it is pinned (ParticlePins, finger id {pinned}): the finger's whole push acts on the pinned "
+                "particles' surfaces and crushes them where the prescribed displacement meets a stiff response; "
+                "use grid-node Dirichlet fingers (mpm.fingers=dirichlet), which spread it over the grid")
             raise SimulationError(
                 f"extreme volume change det(F)={J[p]:.4g} outside [{self.cfg.j_min}, {self.cfg.j_max}] at substep "
                 f"{sub} (t={self._substep_time(sub):.6g} s, frame {self.frame}); {int(f[2])} offences; worst particle "
-                f"#{p} of material '{self._material_name(p)}'. Likely cause: element inversion or over-stretch - "
-                f"the load or boundary velocity is too large for the material stiffness, or the time step is too "
-                f"large ({hint_dt}); lower dt, raise E, or use a plastic/fluid model for this material")
+                f"#{p} of material '{self._material_name(p)}'. Likely cause: {cause}")
         if f[3]:
             sub = int(f[7])
             p = int(f[11])
