@@ -124,8 +124,8 @@ def main(argv: list[str] | None = None) -> None:
     for obj in args.objects:
         runs: dict[tuple[str, str], dict] = {}
         for spacing in spacings:
+            label = "default" if spacing is None else f"{spacing:g} mm"
             for mode in args.modes:
-                label = "default" if spacing is None else f"{spacing:g} mm"
                 try:
                     r = run_case(obj, MODES[mode] + spacing_overrides(spacing) + list(args.extra), args.artifacts)
                 except SimulationError as failed:  # a diverged case is a result of the study, not its end

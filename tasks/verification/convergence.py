@@ -83,7 +83,7 @@ def distances_from(positions: Mapping[Any, np.ndarray], references: Mapping[str,
     if not positions:
         raise ConvergenceError("no runs to compare: every case failed or none was asked for")
     x0 = np.asarray(next(iter(positions.values())), np.float64)[0]
-    diag = float(np.linalg.norm(x0.max(axis=0) - x0.min(axis=0)))
+    diag = bbox_diagonal(x0.min(axis=0), x0.max(axis=0))
     return {key: {name: position_error(x, positions[ref], diag) for name, ref in references.items()}
             for key, x in positions.items()}
 

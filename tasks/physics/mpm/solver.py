@@ -1013,7 +1013,6 @@ class MPMSolver:
         d, col = self.device, self.col
         n = 0 if pins is None else len(np.asarray(pins.indices).reshape(-1))
         self._pin_speed = 0.0
-        self._pinned_finger = {}  # particle -> finger id of this frame's pins (for the failure messages)
         if n == 0:
             if col.pins or col.pin_slot is None:
                 col.pins, col.pin_slip = 0, 0
@@ -1054,9 +1053,15 @@ class MPMSolver:
         col.pin_finger = wp.array(fid, dtype=wp.int32, device=d)
         self._grow_fingers(int(fid.max()) + 1)
         self._pin_speed = float(np.linalg.norm(velocity, axis=1).max())
-        self._pinned_finger = dict(zip(idx.tolist(), fid.tolist()))
         self._col_version += 1
         return n
+
+    def _pin_finger_of(self, particle: int) -> Optional[int]:
+        """The finger id of ``particle``'s pin in the frame's uploaded :class:`ParticlePins` (None: not pinned)."""
+        if not self.col.pins:
+            return None
+        slot = int(self.col.pin_slot.numpy()[particle])
+        return None if slot < 0 else int(self.col.pin_finger.numpy()[slot])
 
     def surface_points(self, indices: np.ndarray, normals: np.ndarray, arms: Optional[np.ndarray] = None
                        ) -> np.ndarray:
@@ -1759,7 +1764,7 @@ class MPMSolver:
             dev[~np.isfinite(J) | (J <= 0)] = np.inf
             p = int(np.argmax(dev))
             sub = int(f[6])
-            pinned = self._pinned_finger.get(p)
+            pinned = self._pin_finger_of(p)
             cause = ("element inversion or over-stretch - the load or boundary velocity is too large for the material "
                      f"stiffness, or the time step is too large ({hint_dt}); lower dt, raise E, or use a plastic/fluid "
                      "model for this material") if pinned is None else (
