@@ -64,6 +64,18 @@ class MPMConfig:
             particles it touches and never pulls; its impulses are the finger's reaction (N).  Meant for
             ``contact: surface`` (both act where the material touches).  Not the default: it lost Table 2 on the
             rubber ball, clay and rubber duck (README, known limits; ``python -m flows.finger_study``).
+        thin_walls: how a hollow object's wall thinner than the grid spacing ``dx`` (one particle layer on its
+            mid-surface below the particle spacing, one or two volume layers above it;
+            :mod:`tasks.control.object_model`) carries stress.  ``solid`` (default): full 3D stress; the grid, which
+            cannot resolve the thickness, holds it where a finger's nodes reach through the wall, and the wall's
+            volume locks as nu -> 0.5 (the rubber ball and duck, nu = 0.49: 570 and 3,100 N per finger at the
+            default spacing).  ``membrane``: its elastic particles (fixed-corotated, neo-Hookean) have no normal
+            stress on the wall, as a thin shell (plane stress; :func:`tasks.physics.mpm.constitutive.membrane_F`):
+            the wall thins as it stretches, and its in-plane wave speed sets its stable step (ball 50 N, duck
+            126 N, within 14 % between 4 and 3 mm).  Not the default: the walls carry no bending of their own, and
+            the locked volume was what made the rubber ball spring back (its dent keeps 37 % of its peak strain
+            0.3 s after the fingers let go, against 7 % as ``solid``; README, known limits).  Plastic walls (can,
+            paper cup; nu <= 0.33) stay 3D in both.
         finger_friction: Coulomb coefficient of the collider fingertips (0 = frictionless, < 0 = no slip while
             touching), dimensionless.
     Acceleration knobs (each changes the physics; reported in the frame statistics)
@@ -170,6 +182,7 @@ class MPMConfig:
     contact: str = "grid"
     fingers: str = "dirichlet"
     finger_friction: float = 0.0
+    thin_walls: str = "solid"
     mass_scaling: str = "off"
     multi_field: bool = True
     mass_scale: float = 1.0
@@ -193,6 +206,7 @@ class MPMConfig:
 MASS_SCALING_MODES = ("selective", "global", "manual", "off")
 CONTACT_MODES = ("grid", "surface")
 FINGER_MODES = ("dirichlet", "particles", "collider")
+WALL_MODES = ("membrane", "solid")
 
 
 class MPMConfigError(ValueError):
@@ -232,6 +246,8 @@ def validate_mpm_config(cfg: MPMConfig) -> MPMConfig:
         bad("contact", f"'{cfg.contact}' is not one of {', '.join(CONTACT_MODES)}")
     if cfg.fingers not in FINGER_MODES:
         bad("fingers", f"'{cfg.fingers}' is not one of {', '.join(FINGER_MODES)}")
+    if cfg.thin_walls not in WALL_MODES:
+        bad("thin_walls", f"'{cfg.thin_walls}' is not one of {', '.join(WALL_MODES)}")
     if cfg.mass_scaling not in MASS_SCALING_MODES:
         bad("mass_scaling", f"'{cfg.mass_scaling}' is not one of {', '.join(MASS_SCALING_MODES)}")
     if not cfg.mass_scale >= 1.0 and cfg.mass_scaling == "manual":

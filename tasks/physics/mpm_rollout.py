@@ -85,7 +85,7 @@ from tasks.physics.free_flight import (
     touches_table,
 )
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
-from tasks.physics.mpm.materials import Material, material_from_dict
+from tasks.physics.mpm.materials import MEMBRANE_MODELS, Material, material_from_dict
 from tasks.physics.mpm.solver import (
     Collider,
     DirichletPoints,
@@ -386,6 +386,22 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     spacing = float(obj_attrs["particle_spacing"])
     dx = cfg.dx or spacing * cfg.particles_per_cell ** (1.0 / 3.0)
     cfg = replace(cfg, dx=dx)  # the solver applies mpm.mass_scaling (per material; weights stay physical)
+    # a hollow object's wall thinner than the grid spacing is a shell the grid cannot resolve through its thickness:
+    # held in plane stress (mpm.thin_walls; elastic models only).  Its in-plane wave speed, not the 3D one,
+    # sets its stable step, hence the mass scale
+    thin_wall = bool(obj_attrs.get("thin_wall", False))
+    thickness = float(obj_attrs.get("wall_thickness", 0.0) or 0.0)
+    normals = None
+    if 0.0 < thickness < dx and cfg.thin_walls == "membrane" and by_label[SHELL].model in MEMBRANE_MODELS:
+        normals = np.zeros_like(x0)
+        normals[mid == SHELL] = obj["particle_normals"]  # the shell's particles come first (scene_particles)
+        for lab in (SHELL, RUPTURED):  # the torn skin is the shell's particles; as foam it stays 3D
+            if lab in by_label and by_label[lab].model in MEMBRANE_MODELS:
+                mat_list[slot[lab]] = replace(mat_list[slot[lab]], membrane=True)
+        shell = mat_list[slot[SHELL]]
+        notes.append(f"the {shell.name} wall ({1e3 * thickness:.3g} mm) is thinner than the {1e3 * dx:.3g} mm grid: "
+                     f"held in plane stress (mpm.thin_walls=membrane), in-plane wave speed "
+                     f"{shell.p_wave_speed():.3g} m/s instead of {replace(shell, membrane=False).p_wave_speed():.3g}")
     if with_interior:  # room for the spray to fly before a domain wall stops it (simulation.release_margin_cells)
         cfg = replace(cfg, margin_cells=max(cfg.margin_cells, int(sim["release_margin_cells"])))
     # the quasi-static bound of the mass scale (mpm.quasi_static_margin) for a force-driven squeeze only: a force
@@ -426,8 +442,8 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     #    the interior or the core, which a rupture releases (a Gaussian bound to pulp that burst into juice was
     #    dragged off the tomato with it, between its skin and juice anchors: 77 of 3000 ended > 2 cells off the fruit)
     solver = MPMSolver(x0, vol, mat_list, material_ids=slot[mid], config=cfg, tracers=obj["surface_points"],
-                       tracer_anchors=mid == SHELL, label=str(obj_attrs.get("name", "")), load=load)
-    thin_wall = bool(obj_attrs.get("thin_wall", False))
+                       tracer_anchors=mid == SHELL, label=str(obj_attrs.get("name", "")), load=load,
+                       membrane_normals=normals)
     if thin_wall and cfg.fingers == "particles":
         notes.append("particle fingers pin the wall's particles at their centres: one particle layer on a wall "
                      f"thinner than the {1e3 * spacing:.3g} mm spacing (ParticlePins arms 0)")

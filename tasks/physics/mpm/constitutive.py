@@ -56,6 +56,7 @@ MIN_SIGMA = wp.constant(1.0e-4)
 MIN_J = wp.constant(1.0e-6)
 EIGEN_MAX_SWEEPS = wp.constant(8)  # Jacobi sweeps of sym_eigen_warm (a cold start needs 3-4)
 EIGEN_TOL = wp.constant(1.0e-6)  # off-diagonal / diagonal norm at which sym_eigen_warm stops
+MEMBRANE_NEWTON = wp.constant(5)  # Newton steps of membrane_stretch_neo_hookean (float32 converged by 3 at A in [0.3, 3])
 
 
 # --------------------------------------------------------------------------------------------- helpers
@@ -187,6 +188,62 @@ def psi_neo_hookean(F: wp.mat33, mu: float, lam: float) -> float:
 
 
 # --------------------------------------------------------------------------------------------- StVK-Hencky
+# ---------------------------------------------------------------------------------- plane-stress membranes
+@wp.func
+def area_normal(F: wp.mat33, N: wp.vec3) -> wp.vec3:
+    """cof(F) N = det(F) F^-T N (Nanson): the deformed normal of the material plane with unit rest normal N, its
+    length the plane's area stretch.  Columns f_i of F: cof(F) = [f2 x f3, f3 x f1, f1 x f2]."""
+    f1 = col(F, 0)
+    f2 = col(F, 1)
+    f3 = col(F, 2)
+    return N[0] * wp.cross(f2, f3) + N[1] * wp.cross(f3, f1) + N[2] * wp.cross(f1, f2)
+
+
+@wp.func
+def membrane_stretch_corotated(A: float, r: float, mu: float, lam: float) -> float:
+    """Normal stretch g = n . F N of a fixed-corotated membrane at area stretch A with zero normal stress: with
+    F^T n = g N, n . tau n = 2 mu (g^2 - g r) + lam (J - 1) J, J = g A, r = n . R N (1 without transverse shear),
+    vanishes at g = (2 mu r + lam A) / (2 mu + lam A^2)."""
+    return (2.0 * mu * r + lam * A) / (2.0 * mu + lam * A * A)
+
+
+@wp.func
+def membrane_stretch_neo_hookean(A: float, mu: float, lam: float) -> float:
+    """Normal stretch g = n . F N of a neo-Hookean membrane at area stretch A with zero normal stress: the root of
+    n . tau n = mu (g^2 - 1) + lam ln(g A) (F^T n = g N), in s = ln g: h(s) = mu (e^2s - 1) + lam (s + ln A).  h is
+    convex and increasing, so Newton from its linearisation at s = 0, s0 = -lam ln A / (2 mu + lam), converges
+    monotonically after its first step."""
+    la = wp.log(A)
+    s = -lam * la / (2.0 * mu + lam)
+    for _ in range(MEMBRANE_NEWTON):
+        e2 = wp.exp(2.0 * s)
+        s = s - (mu * (e2 - 1.0) + lam * (s + la)) / (2.0 * mu * e2 + lam)
+    return wp.exp(s)
+
+
+@wp.func
+def membrane_F(F: wp.mat33, N: wp.vec3, R: wp.mat33, model: int, mu: float, lam: float) -> wp.mat33:
+    """Zero normal stress on a particle of a wall thinner than the grid (a shell's plane-stress condition): keep the in-plane columns
+    F T1, F T2 of its wall (unit rest normal N, T1 x T2 = N) and the transverse shear (the part of F N along the
+    wall), and set the normal stretch g = n . F N (n the deformed unit normal, :func:`area_normal`) to the value at
+    which n . tau n vanishes for the model (fixed-corotated with the rotation R of F, neo-Hookean; mu, lam in Pa):
+    F <- F + (g* - g) n N^T.  det F = g A (A the area stretch), so the wall thins as its area grows, as a thin shell
+    does, instead of locking its volume (nu -> 0.5) against a grid that holds its thickness; the transverse shear,
+    which the grid's smooth field gives a dented thin wall, keeps its stiffness.  A degenerate plane (area
+    stretch < 1e-6) is left as it is (the det guard reports it)."""
+    m = area_normal(F, N)
+    A = wp.length(m)
+    if A < 1.0e-6:
+        return F
+    n = m / A
+    g = float(1.0)
+    if model == MODEL_NEO_HOOKEAN:
+        g = membrane_stretch_neo_hookean(A, mu, lam)
+    else:
+        g = membrane_stretch_corotated(A, wp.dot(n, R @ N), mu, lam)
+    return F + wp.outer((g - wp.dot(n, F @ N)) * n, N)
+
+
 @wp.func
 def tau_hencky_principal(eps: wp.vec3, mu: float, lam: float) -> wp.vec3:
     """Principal Kirchhoff stresses of StVK-Hencky: 2 mu eps + lambda tr(eps)."""

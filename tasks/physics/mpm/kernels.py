@@ -49,6 +49,7 @@ from .constitutive import (
     MODEL_NEO_HOOKEAN,
     fluid_reset,
     hencky_plastic_return_warm,
+    membrane_F,
     polar_rotation_quat,
     polar_track_quat,
     psi_fixed_corotated,
@@ -112,6 +113,8 @@ class Particles:
     alpha: wp.array(dtype=float)  # equivalent plastic strain (von Mises, foam)
     vol: wp.array(dtype=float)  # initial volume, m^3
     mat_id: wp.array(dtype=wp.int32)  # row of the particle's material in the MaterialTable
+    normal: wp.array(dtype=wp.vec3)  # rest unit normal of a thin wall's particle (plane-stress membrane,
+    # :func:`membrane_state`), zero for a solid one; length 1 when no particle is a membrane
 
 
 @wp.struct
@@ -689,9 +692,26 @@ def local_damping(r: G2PResult, p: int, mid: int, ps: Particles, mats: MaterialT
 
 
 @wp.func
+def membrane_state(F: wp.mat33, p: int, model: int, ps: Particles, mu: float, lam: float) -> wp.mat33:
+    """The trial F_E of particle p with zero normal stress on its wall (:func:`membrane_F`; fixed-corotated with
+    its previous substep's rotation ``ps.q[p]``) when p is a thin wall's particle (a non-zero rest normal
+    ``ps.normal[p]``), else unchanged."""
+    if ps.normal.shape[0] > 1:
+        N = ps.normal[p]
+        if wp.dot(N, N) > 0.5:
+            R = wp.identity(n=3, dtype=float)
+            if model == MODEL_FIXED_COROTATED:
+                R = wp.quat_to_matrix(ps.q[p])
+            return membrane_F(F, N, R, model, mu, lam)
+    return F
+
+
+@wp.func
 def corotated_update(r: G2PResult, p: int, ps: Particles, sp: StepParams, mu: float, lam: float) -> G2PResult:
-    """Fixed-corotated part of the G2P: rotation of the trial F_E (warm-started from, and stored into, q[p]) and
-    the Kirchhoff stress (Pa; mu, lam in Pa)."""
+    """Fixed-corotated part of the G2P: the trial F_E of a membrane particle projected to plane stress
+    (:func:`membrane_state`), its rotation (warm-started from, and stored into, q[p]) and the Kirchhoff stress (Pa;
+    mu, lam in Pa)."""
+    r.F = membrane_state(r.F, p, MODEL_FIXED_COROTATED, ps, mu, lam)
     r.q = rotation_update(r.F, ps.q[p], sp)
     r.tau = tau_fixed_corotated(r.F, wp.quat_to_matrix(r.q), mu, lam)
     ps.q[p] = r.q
@@ -701,7 +721,8 @@ def corotated_update(r: G2PResult, p: int, ps: Particles, sp: StepParams, mu: fl
 @wp.func
 def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable, gi: GridInfo, sp: StepParams,
                grid: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32)) -> G2PResult:
-    """G2P of one particle, any model: gather v and C, F_E <- (I + dt C) F_E, return mapping (eq. 5), Kirchhoff
+    """G2P of one particle, any model: gather v and C, F_E <- (I + dt C) F_E (a membrane's projected to plane
+    stress, :func:`membrane_state`), return mapping (eq. 5), Kirchhoff
     stress of the new state (eq. 4), advection, guards, :func:`local_damping`; stores x, F_E and the model's state
     (rotation q of fixed-corotated, eigenbasis q and plastic strain alpha of von Mises / foam).  Velocity and C are returned, stored
     only for a damped particle's velocity."""
@@ -711,6 +732,7 @@ def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable,
     if model == MODEL_FIXED_COROTATED:
         r = corotated_update(r, p, ps, sp, mu, lam)
     elif model == MODEL_NEO_HOOKEAN:
+        r.F = membrane_state(r.F, p, MODEL_NEO_HOOKEAN, ps, mu, lam)
         r.tau = tau_neo_hookean(r.F, mu, lam)
     elif model == MODEL_FLUID:
         r.tau = fluid_stress(r.F, r.C, mid, mats)

@@ -219,6 +219,23 @@ class FrameStats:
 
 
 # ============================================================================================ helpers
+def membrane_normals_checked(normals: Optional[np.ndarray], n: int) -> Optional[np.ndarray]:
+    """The solver's ``membrane_normals`` as float32 (n, 3), or None; rows must be unit vectors (a membrane particle)
+    or zero (a solid one).  A bad array is one ValueError line naming what is wrong."""
+    if normals is None:
+        return None
+    a = np.asarray(normals, np.float32)
+    if a.shape != (n, 3):
+        raise ValueError(f"membrane_normals must have shape ({n}, 3), one row per particle; got {a.shape}")
+    norm = np.linalg.norm(a, axis=1)
+    bad = ~np.isfinite(norm) | ((norm > 0) & (np.abs(norm - 1.0) > 1e-3))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"membrane_normals: {int(bad.sum())} rows are neither unit vectors nor zero (row {i}: "
+                         f"{a[i].tolist()}); give the rest unit normal of a thin wall's particle, 0 elsewhere")
+    return np.ascontiguousarray(a)
+
+
 @dataclass
 class EnergyBudget:
     """Energy guard bookkeeping from a reference frame on (J; see :class:`MPMSolver`).
@@ -467,6 +484,11 @@ class MPMSolver:
         label: name of the simulated object, quoted by the energy guard's message.
         load: the time scale of the boundary load (:class:`QuasiStaticLoad`): with ``config.quasi_static_margin`` > 0
             it bounds the mass scale of ``global`` / ``selective`` scaling (:func:`mass_scale_for`).
+        membrane_normals: (N, 3) rest unit normals of the particles of a wall thinner than the grid spacing (a
+            shell the grid cannot resolve through its thickness), zero rows for the others: an elastic
+            (fixed-corotated, neo-Hookean) membrane particle has no normal stress on its wall (plane stress,
+            :func:`tasks.physics.mpm.constitutive.membrane_F`), so its wall thins as it stretches instead of
+            locking its volume.  Plastic and fluid models ignore it.
 
     Mass (time) scaling (``config.mass_scaling``; s from :func:`mass_scale_for`, fixed once: at construction, or for
     ``global``/``selective`` at the first :meth:`step_frame`): the densities of the scaled materials (all of them by
@@ -547,6 +569,7 @@ class MPMSolver:
         n_fingers: int = 5,
         label: str = "",
         load: Optional[QuasiStaticLoad] = None,
+        membrane_normals: Optional[np.ndarray] = None,
     ) -> None:
         self.cfg: MPMConfig = mpm_config_from(config)
         self.label = str(label)
@@ -572,6 +595,9 @@ class MPMSolver:
         if not np.all(np.isfinite(v)):  # stability suite guard: bad input is refused, not reported as a blow-up
             raise SimulationError(f"initial particle velocities contain NaN/inf ({int((~np.isfinite(v)).any(1).sum())} "
                                   "particles): the caller's input is corrupt")
+        normals = membrane_normals_checked(membrane_normals, n)
+        self._membrane_rows = np.zeros(n, bool) if normals is None else normals.any(axis=1)
+        self._check_membranes(mid)
         self._mid_host = mid
         self._warned_quasi_static = False
         self._loaded_frames = 0  # consecutive frames in which the boundary loaded the material (quasi-static check)
@@ -656,8 +682,10 @@ class MPMSolver:
         self.alpha = wp.zeros(n if self.has_plastic else 1, dtype=float, device=d)
         self.vol = wp.array(vol, dtype=float, device=d)
         self.mat_id = wp.array(mid, dtype=wp.int32, device=d)
+        self.n_membrane = 0 if normals is None else int(np.count_nonzero(normals.any(axis=1)))
+        self.normal = wp.array(normals if self.n_membrane else np.zeros((1, 3), np.float32), dtype=wp.vec3, device=d)
         self.particles = K.Particles()
-        for name in ("x", "v", "C", "F", "q", "alpha", "vol", "mat_id"):
+        for name in ("x", "v", "C", "F", "q", "alpha", "vol", "mat_id", "normal"):
             setattr(self.particles, name, getattr(self, name))
 
         # ---------------- grid (two buffers: the fused G2P/P2G reads one and fills the other)
@@ -1917,12 +1945,22 @@ class MPMSolver:
                 raise ValueError(f"material {mb.name} has another density than {ma.name}: mass would change")
             if (mb.code == FIXED_COROTATED and not self.has_corotated) or (mb.is_plastic and not self.has_plastic):
                 raise ValueError(f"material {mb.name} needs solver state that was not allocated")
+        self._check_membranes(ids)
         self._mid_host = ids.copy()
         self.mat_id.assign(ids)
         self._present = sorted(set(int(i) for i in np.unique(ids)))
         self.all_corotated = {self.materials[i].code for i in self._present} == {FIXED_COROTATED}
         self._upload_materials()
         self._update_fields()
+
+    def _check_membranes(self, ids: np.ndarray) -> None:
+        """Every particle of a ``membrane`` material needs a rest normal: its stable step is the plane-stress wave's,
+        which a particle in 3D stress would exceed (ValueError naming the material)."""
+        for i, m in enumerate(self.materials):
+            missing = int(np.count_nonzero((ids == i) & ~self._membrane_rows)) if m.membrane else 0
+            if missing:
+                raise ValueError(f"material '{m.name}' is a membrane but {missing} of its particles have no rest "
+                                 "normal (membrane_normals): give one per particle, or membrane=False")
 
     def affine_velocities(self) -> np.ndarray:
         """APIC affine velocity matrices C (N, 3, 3), 1/s (the particle's velocity gradient, stored at frame ends)."""

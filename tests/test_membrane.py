@@ -1,0 +1,210 @@
+"""Walls thinner than the grid as plane-stress membranes (``mpm.thin_walls``; :func:`tasks.physics.mpm.constitutive.membrane_F`).
+
+Known answers:
+  * the projected F_E carries no normal stress on its wall plane (n . tau n = 0) for any F and rest normal, and
+    keeps the in-plane columns F T1, F T2 and the transverse shear (F N along the wall); without shear its normal
+    stretch is the plane-stress one (an independent float64 bisection);
+  * small equibiaxial stretch eps: in-plane stress E eps / (1 - nu), thickness strain -2 nu / (1 - nu) eps;
+  * a one-layer sheet whose grid holds its thickness (every node a Dirichlet node of an in-plane stretch, as a
+    finger's nodes reach through a thin wall) stores the membrane energy of its stretch, V psi(diag(a, a, l3)),
+    while as a 3D solid it stores V psi(diag(a, a, 1)): 17x more at nu = 0.49 (volumetric locking).
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import warp as wp
+
+from conf.mpm_schema import MPMConfigError, mpm_config_from
+from tasks.physics.mpm import DirichletNodes, Material, MaterialError, MPMSolver
+from tasks.physics.mpm.constitutive import (
+    MODEL_FIXED_COROTATED,
+    MODEL_NEO_HOOKEAN,
+    membrane_F,
+    polar_rotation_quat,
+    tau_fixed_corotated,
+    tau_neo_hookean,
+)
+
+E, NU = 2.5e6, 0.49  # the rubber ball's wall (tasks/physics/oracle/materials.yaml)
+MU, LAM = E / (2 * (1 + NU)), E * NU / ((1 + NU) * (1 - 2 * NU))
+MODELS = {"neo_hookean": int(MODEL_NEO_HOOKEAN), "fixed_corotated": int(MODEL_FIXED_COROTATED)}
+
+
+@wp.kernel
+def _project(F: wp.array(dtype=wp.mat33), N: wp.array(dtype=wp.vec3), model: int, mu: float, lam: float,
+             iterations: int, F_out: wp.array(dtype=wp.mat33), tau_out: wp.array(dtype=wp.mat33)):
+    i = wp.tid()
+    # fixed-corotated: the normal stretch uses the rotation R of F, which the solver takes from the previous substep;
+    # here the fixed point G = membrane_F(F, N, R(G)) (R of the trial F first)
+    q = polar_rotation_quat(F[i], wp.quat_identity(), 40, 1.0e-7)
+    G = membrane_F(F[i], N[i], wp.quat_to_matrix(q), model, mu, lam)
+    for _ in range(iterations):
+        q = polar_rotation_quat(G, q, 40, 1.0e-7)
+        G = membrane_F(F[i], N[i], wp.quat_to_matrix(q), model, mu, lam)
+    F_out[i] = G
+    if model == MODEL_NEO_HOOKEAN:
+        tau_out[i] = tau_neo_hookean(G, mu, lam)
+    else:
+        tau_out[i] = tau_fixed_corotated(G, wp.quat_to_matrix(polar_rotation_quat(G, q, 40, 1.0e-7)), mu, lam)
+
+
+def project(F: np.ndarray, N: np.ndarray, model: str, iterations: int = 8) -> tuple[np.ndarray, np.ndarray]:
+    """(projected F, its Kirchhoff stress) of each F (n, 3, 3) with rest normal N (n, 3), float32 kernels
+    (fixed-corotated: ``iterations`` updates of the rotation R(G) the projection uses)."""
+    n = len(F)
+    Fo, T = wp.zeros(n, dtype=wp.mat33, device="cpu"), wp.zeros(n, dtype=wp.mat33, device="cpu")
+    wp.launch(_project, n, [wp.array(F.astype(np.float32), dtype=wp.mat33, device="cpu"),
+                            wp.array(N.astype(np.float32), dtype=wp.vec3, device="cpu"), MODELS[model], MU, LAM,
+                            iterations, Fo, T], device="cpu")
+    return Fo.numpy().astype(np.float64), T.numpy().astype(np.float64)
+
+
+def psi(F: np.ndarray, model: str) -> float:
+    """Elastic energy density (J/m^3) of one F, float64 (the models of tasks.physics.mpm.constitutive)."""
+    J = np.linalg.det(F)
+    if model == "neo_hookean":
+        return 0.5 * MU * (np.sum(F * F) - 3) - MU * np.log(J) + 0.5 * LAM * np.log(J) ** 2
+    sv = np.linalg.svd(F, compute_uv=False)
+    return MU * np.sum((sv - 1) ** 2) + 0.5 * LAM * (J - 1) ** 2
+
+
+def plane_stress_stretch(A: float, model: str) -> float:
+    """Thickness stretch l3 at area stretch A with zero normal stress, float64 bisection (independent of the kernel's
+    closed form / Newton)."""
+    def normal_stress(l3):
+        J = l3 * A
+        if model == "neo_hookean":
+            return MU * (l3 ** 2 - 1) + LAM * np.log(J)
+        return 2 * MU * l3 * (l3 - 1) + LAM * (J - 1) * J
+    lo, hi = 1e-3, 10.0
+    for _ in range(200):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if normal_stress(mid) < 0 else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+@pytest.mark.parametrize("model", list(MODELS))
+def test_projected_state_has_no_normal_stress_and_keeps_in_plane_stretch_and_transverse_shear(model):
+    rng = np.random.default_rng(3)
+    n = 300
+    F = np.eye(3) + 0.3 * rng.normal(size=(n, 3, 3))
+    F[np.linalg.det(F) < 0] *= -1
+    N = unit(rng.normal(size=(n, 3)))
+    G, tau = project(F, N, model)
+    cof = np.linalg.det(G)[:, None, None] * np.linalg.inv(G).transpose(0, 2, 1)
+    n_now = unit(np.einsum("nij,nj->ni", cof, N))  # the deformed wall normal
+    normal_stress = np.einsum("ni,nij,nj->n", n_now, tau, n_now)
+    assert np.max(np.abs(normal_stress) / np.linalg.norm(tau, axis=(1, 2))) < 5e-4  # float32 against lambda = 16 E
+    in_plane = np.eye(3) - np.einsum("ni,nj->nij", N, N)
+    np.testing.assert_allclose(G @ in_plane, F @ in_plane, atol=1e-6)  # F T1, F T2
+    FN, GN = np.einsum("nij,nj->ni", F, N), np.einsum("nij,nj->ni", G, N)
+    along = np.eye(3) - np.einsum("ni,nj->nij", n_now, n_now)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", along, GN), np.einsum("nij,nj->ni", along, FN), atol=1e-5)
+    assert np.all(np.linalg.det(G) > 0)
+    # without transverse shear (F N along n) the normal stretch is the plane-stress one (float64 bisection)
+    F0 = F @ in_plane + np.einsum("ni,nj->nij", unit(np.einsum("nij,nj->ni", np.linalg.det(F)[:, None, None]
+                                                                 * np.linalg.inv(F).transpose(0, 2, 1), N)), N)
+    G0, _ = project(F0[:20], N[:20], model)
+    A = np.linalg.norm(np.einsum("nij,nj->ni", np.linalg.det(F0)[:, None, None]
+                                 * np.linalg.inv(F0).transpose(0, 2, 1), N), axis=1)[:20]  # area stretch (Nanson)
+    l3 = np.array([plane_stress_stretch(a, model) for a in A])
+    np.testing.assert_allclose(np.linalg.norm(np.einsum("nij,nj->ni", G0, N[:20]), axis=1), l3, rtol=2e-4)
+    # the rest state is a fixed point
+    G1, tau1 = project(np.tile(np.eye(3), (2, 1, 1)), N[:2], model)
+    np.testing.assert_allclose(G1, np.tile(np.eye(3), (2, 1, 1)), atol=1e-6)
+    assert np.abs(tau1).max() < 1e-5 * E  # float32: lambda ln J with lambda = 16 E
+
+
+@pytest.mark.parametrize("model", list(MODELS))
+def test_small_equibiaxial_stretch_reads_the_plane_stress_modulus(model):
+    eps = 1e-3
+    N = unit(np.array([[1.0, 2.0, -0.5]]))
+    P = np.eye(3) - N.T @ N
+    G, tau = project((np.eye(3) + eps * P)[None], N, model)
+    # in-plane stress E eps / (1 - nu) (plane stress, equibiaxial), thickness strain -2 nu eps / (1 - nu)
+    t = unit(np.cross(N[0], [0.0, 0.0, 1.0]))
+    np.testing.assert_allclose(t @ tau[0] @ t, E * eps / (1 - NU), rtol=0.01)
+    np.testing.assert_allclose(N[0] @ G[0] @ N[0] - 1, -2 * NU / (1 - NU) * eps, rtol=0.01)
+
+
+def sheet(normal: np.ndarray, side: float, h: float, centre: np.ndarray) -> np.ndarray:
+    """One particle layer (spacing h, m) on a square of ``side`` m in the plane through ``centre`` with ``normal``."""
+    t1 = unit(np.cross(normal, [0.3, 0.1, 1.0]))
+    t2 = np.cross(normal, t1)
+    u = (np.arange(round(side / h)) + 0.5) * h - 0.5 * side
+    uu, vv = np.meshgrid(u, u, indexing="ij")
+    return centre + uu.reshape(-1, 1) * t1 + vv.reshape(-1, 1) * t2
+
+
+@pytest.mark.parametrize("model", list(MODELS))
+def test_one_layer_sheet_held_by_its_grid_stores_membrane_energy_not_locked_volume(model):
+    dx, h, thickness, rate, T = 0.005, 0.0025, 0.001, 0.6, 1.0 / 30.0  # m, m, m, 1/s, s: ~2 % stretch
+    normal = unit(np.array([0.2, -0.3, 1.0]))
+    centre = np.full(3, 0.05)
+    X = sheet(normal, 0.02, h, centre)
+    vol = h * h * thickness
+    rubber = Material(name="wall", model=model, youngs_modulus=E, poisson_ratio=NU, density=1100.0)
+    energy, stretch = {}, {}
+    for mode, normals in (("membrane", np.tile(normal, (len(X), 1))), ("solid", None)):
+        s = MPMSolver(X, vol, rubber, config=dict(device="cpu", dx=dx, gravity=[0, 0, 0], floor=False),
+                      membrane_normals=normals)
+        # every node within the particles' reach moves with the in-plane stretch v = rate P (x - centre): the
+        # grid holds the layer's thickness, as a finger's nodes reach through a wall thinner than dx
+        idx = np.argwhere(np.ones(s.dims, bool)).astype(np.int32)
+        pos = s.node_position(idx)
+        near = np.abs((pos - centre) @ normal) < 2.5 * dx
+        P = np.eye(3) - np.outer(normal, normal)
+        st = s.step_frame(T, dirichlet=DirichletNodes(idx[near], (rate * (pos[near] - centre) @ P).astype(np.float32)))
+        x = s.positions()
+        far = np.argmax(np.linalg.norm(X - X[0], axis=1))
+        a = np.linalg.norm(x[far] - x[0]) / np.linalg.norm(X[far] - X[0])  # in-plane stretch from the positions
+        stretch[mode], energy[mode] = a, st.internal_energy
+    assert stretch["membrane"] == pytest.approx(np.exp(rate * T), rel=2e-3)
+    l3 = plane_stress_stretch(stretch["membrane"] ** 2, model)
+    V = len(X) * vol
+    expect_membrane = V * psi(np.diag([stretch["membrane"]] * 2 + [l3]), model)
+    expect_solid = V * psi(np.diag([stretch["solid"]] * 2 + [1.0]), model)
+    assert energy["membrane"] == pytest.approx(expect_membrane, rel=0.03)
+    assert energy["solid"] == pytest.approx(expect_solid, rel=0.03)
+    assert expect_solid > 15 * expect_membrane  # the locking the membrane removes
+    eps = stretch["membrane"] - 1
+    assert energy["membrane"] == pytest.approx(V * E * eps ** 2 / (1 - NU), rel=0.05)  # small-strain closed form
+
+
+def test_bad_membrane_normals_and_wall_mode_are_one_line_errors():
+    X = sheet(np.array([0.0, 0.0, 1.0]), 0.01, 0.0025, np.full(3, 0.05))
+    rubber = Material(name="wall", model="neo_hookean", youngs_modulus=E, poisson_ratio=NU, density=1100.0)
+    cfg = dict(device="cpu", dx=0.005, gravity=[0, 0, 0], floor=False)
+    with pytest.raises(ValueError, match=r"membrane_normals must have shape \(16, 3\)"):
+        MPMSolver(X, 1e-9, rubber, config=cfg, membrane_normals=np.zeros((3, 3)))
+    bad = np.tile([0.0, 0.0, 1.0], (len(X), 1))
+    bad[5] = [0.0, 0.0, 2.0]
+    with pytest.raises(ValueError, match="1 rows are neither unit vectors nor zero \\(row 5"):
+        MPMSolver(X, 1e-9, rubber, config=cfg, membrane_normals=bad)
+    with pytest.raises(MPMConfigError, match="mpm.thin_walls: 'shell' is not one of membrane, solid"):
+        mpm_config_from(dict(thin_walls="shell"))
+    # a membrane material: elastic models only, every particle with a normal (its stable step is the in-plane one)
+    with pytest.raises(MaterialError, match="a membrane must be one of fixed_corotated, neo_hookean"):
+        Material(name="tin", model="von_mises", yield_stress=1e6, membrane=True)
+    wall = replace(rubber, membrane=True)
+    half = np.tile([0.0, 0.0, 1.0], (len(X), 1))
+    half[::2] = 0.0
+    with pytest.raises(ValueError, match="material 'wall' is a membrane but 8 of its particles have no rest normal"):
+        MPMSolver(X, 1e-9, wall, config=cfg, membrane_normals=half)
+    s = MPMSolver(X, 1e-9, [rubber, wall], material_ids=np.arange(len(X)) % 2, config=cfg, membrane_normals=half)
+    with pytest.raises(ValueError, match="material 'wall' is a membrane but 8 of its particles"):
+        s.set_material_ids(np.ones(len(X), int))
+
+
+def test_membrane_wave_speed_is_the_plane_stress_one():
+    rubber = Material(name="wall", model="neo_hookean", youngs_modulus=E, poisson_ratio=NU, density=1100.0)
+    assert replace(rubber, membrane=True).p_wave_speed() == pytest.approx(np.sqrt(E / (1100.0 * (1 - NU ** 2))))
+    assert rubber.p_wave_speed() == pytest.approx(np.sqrt((LAM + 2 * MU) / 1100.0))
+    assert rubber.p_wave_speed() / replace(rubber, membrane=True).p_wave_speed() == pytest.approx(3.6, abs=0.05)
