@@ -72,10 +72,11 @@ class MPMConfig:
             default spacing).  ``membrane``: its elastic particles (fixed-corotated, neo-Hookean) have no normal
             stress on the wall, as a thin shell (plane stress; :func:`tasks.physics.mpm.constitutive.membrane_F`):
             the wall thins as it stretches, and its in-plane wave speed sets its stable step (ball 50 N, duck
-            126 N, within 14 % between 4 and 3 mm).  Not the default: the walls carry no bending of their own, and
-            the locked volume was what made the rubber ball spring back (its dent keeps 37 % of its peak strain
-            0.3 s after the fingers let go, against 7 % as ``solid``; README, known limits).  Plastic walls (can,
-            paper cup; nu <= 0.33) stay 3D in both.
+            126 N, within 14 % between 4 and 3 mm).  One layer carries no bending of its own, and the locked volume
+            was what made the rubber ball spring back (one layer keeps 37 % of its dent 0.3 s after the fingers let
+            go, 7 % as ``solid``); with ``sampling.thin_wall_layers: 2`` (two layers at the thickness's Gauss
+            points) it keeps 20 % and Table 2 ties the default (README, known limits).  Not yet the default: the
+            convergence study is not re-run with it.  Plastic walls (can, paper cup; nu <= 0.33) stay 3D in both.
         finger_friction: Coulomb coefficient of the collider fingertips (0 = frictionless, < 0 = no slip while
             touching), dimensionless.
     Acceleration knobs (each changes the physics; reported in the frame statistics)

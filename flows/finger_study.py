@@ -4,7 +4,8 @@
     python -m flows.finger_study --objects clay --modes surface_dirichlet surface_collider
     python -m flows.finger_study --objects clay --modes surface_collider --extra mpm.quasi_static_damping=0.8
     python -m flows.finger_study --objects can clay --modes grid_dirichlet grid_particles --spacings 4 3 2.5
-    python -m flows.finger_study --objects rubber_ball rubber_duck --modes grid_dirichlet --extra mpm.thin_walls=membrane
+    python -m flows.finger_study --objects rubber_ball rubber_duck --modes grid_dirichlet \
+        --extra mpm.thin_walls=membrane sampling.thin_wall_layers=2
 
 Runs each object's chain through the cached pipeline steps up to the deformation metrics
 (:func:`flows.pipeline.run_object_local`, full variant, the default grid's config ``conf/evaluate.yaml`` with the

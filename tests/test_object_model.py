@@ -270,6 +270,32 @@ def test_particles_come_from_the_content_and_seed_not_the_name(tmp_path):
         assert built_mesh[0][k].data.tobytes() == built_mesh[1][k].data.tobytes(), k
 
 
+def test_thin_wall_in_two_layers_at_the_thickness_gauss_points(built):
+    """``sampling.thin_wall_layers: 2``: the ball's one layer (3 mm wall, 4 mm spacing) split into two at
+    +-t / (2 sqrt 3) along the normal, each particle with half the volume; the wall's volume and everything else
+    the same."""
+    one, attrs1, _ = built["rubber_ball"]
+    two, attrs2 = build_object_model(catalogue("rubber_ball"), OmegaConf.merge(SAMPLING, {"thin_wall_layers": 2}))
+    t = catalogue("rubber_ball").geometry.wall_thickness
+    p1, n1 = one["particle_positions"].data.astype(float), one["particle_normals"].data.astype(float)
+    p2, n2 = two["particle_positions"].data.astype(float), two["particle_normals"].data.astype(float)
+    m = len(p1)
+    assert attrs2["n_particles"] == 2 * m and attrs2["thin_wall"] is True
+    off = t / (2 * np.sqrt(3))
+    np.testing.assert_allclose(p2[:m], p1 + off * n1, atol=1e-6)
+    np.testing.assert_allclose(p2[m:], p1 - off * n1, atol=1e-6)
+    np.testing.assert_array_equal(n2, np.concatenate([n1, n1]))
+    v1, v2 = one["particle_volumes"].data.astype(float), two["particle_volumes"].data.astype(float)
+    np.testing.assert_allclose(v2, np.concatenate([v1, v1]) / 2, rtol=1e-6)
+    assert v2.sum() == pytest.approx(v1.sum(), rel=1e-6) and attrs2["wall_volume"] == attrs1["wall_volume"]
+    np.testing.assert_array_equal(two["surface_points"].data, one["surface_points"].data)
+    # two-point Gauss rule: a strain linear through the thickness, e(z) = kappa z, integrates exactly
+    z = np.array([off, -off])
+    assert np.sum(0.5 * t * z ** 2) == pytest.approx(t ** 3 / 12)
+    with pytest.raises(ObjectModelError, match="sampling.thin_wall_layers must be 1 or 2, got 3"):
+        build_object_model(catalogue("rubber_ball"), OmegaConf.merge(SAMPLING, {"thin_wall_layers": 3}))
+
+
 def test_config_errors_are_one_line():
     cases = [
         (make_obj(geometry={"kind": "sphere", "wall_thickness": 0.0}, filled=False), "wall_thickness is 0"),

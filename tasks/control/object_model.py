@@ -48,7 +48,12 @@ Discretisation choices (documented here because downstream steps rely on them):
     wall volume ``V(sdf < 0) - V(sdf < -t)``;
   - hollow with ``t < s`` (``thin_wall``): one layer of Poisson-disk particles (spacing ~ s) on the wall's
     mid-surface (``t/2`` inside the outer surface; on the sheet itself for the open cup), each with volume =
-    its Voronoi area share x t, so the total is ``area x t`` and the wall mass is physical;
+    its Voronoi area share x t, so the total is ``area x t`` and the wall mass is physical; with
+    ``sampling.thin_wall_layers: 2`` that layer is split into two at the thickness's Gauss points, ``+-t / (2 sqrt
+    3)`` along the normal, each particle with half the volume: the two-point rule integrates a strain linear through
+    the thickness exactly, so a plane-stress wall (``mpm.thin_walls: membrane``) carries the bending energy
+    ``E t^3 / (12 (1 - nu^2)) kappa^2 / 2`` per area of a curvature kappa of the grid's field (two layers at +-t/2
+    would carry 3x);
   - ``interior`` set: grid points with ``sdf < -max(t, s/2)`` (half a spacing clear of the wall layer), volumes
     rescaled to the cavity volume ``V(sdf < 0) - wall volume``.  These cavity particles are the object's geometry
     only: the rollout fills them with the oracle's ``core`` (fruit flesh, stuffing: part of the body) or, without
@@ -810,12 +815,15 @@ def _validate(obj: Any, sampling: Any) -> tuple[str, np.ndarray, float, float, i
     s = float(_get(sampling, "particle_spacing"))
     n_surf = int(_get(sampling, "surface_points"))
     seed = int(_get(sampling, "seed", 0) or 0)
+    layers = int(_get(sampling, "thin_wall_layers", 1) or 1)
     filled = bool(_get(obj, "filled", False))
     interior = _get(obj, "interior")
     if not (s > 0 and math.isfinite(s)):
         raise ObjectModelError(f"sampling.particle_spacing must be > 0 m, got {s}")
     if n_surf < 10:
         raise ObjectModelError(f"sampling.surface_points must be >= 10, got {n_surf}")
+    if layers not in (1, 2):
+        raise ObjectModelError(f"sampling.thin_wall_layers must be 1 or 2, got {layers}")
     if t < 0 or not math.isfinite(t):
         raise ObjectModelError(f"object {name}: geometry.wall_thickness must be >= 0 m, got {t}")
     if not filled and t <= 0:
@@ -854,7 +862,7 @@ def build_object_model(obj: Any, sampling: Any) -> tuple[dict[str, Array], dict[
 
     Args:
         obj: an ``ObjectConfig`` (dataclass or OmegaConf node; read by attribute).
-        sampling: a ``SamplingConfig`` (``surface_points``, ``particle_spacing`` m, ``seed``).
+        sampling: a ``SamplingConfig`` (``surface_points``, ``particle_spacing`` m, ``seed``, ``thin_wall_layers``).
     Returns:
         ``(arrays, attrs)``: the arrays named in the module doc as :class:`tasks.core.artifacts.Array`, and JSON
         attrs ``bbox_min``/``bbox_max`` (m), ``surface_area_total`` (m^2), ``enclosed_volume`` (m^3),
@@ -864,6 +872,7 @@ def build_object_model(obj: Any, sampling: Any) -> tuple[dict[str, Array], dict[
         ObjectModelError: one line naming the input and the fix.
     """
     kind, size, t, s, n_surf, seed = _validate(obj, sampling)
+    layers = int(_get(sampling, "thin_wall_layers", 1) or 1)  # particle layers of a wall thinner than s
     name = str(_get(obj, "name", "object"))
     geom, app = _get(obj, "geometry"), _get(obj, "appearance")
     filled = bool(_get(obj, "filled", False))
@@ -928,6 +937,11 @@ def build_object_model(obj: Any, sampling: Any) -> tuple[dict[str, Array], dict[
         pvol = parea * t
         if not src.open_top:
             ppos = ppos - 0.5 * t * pnrm
+        if layers == 2:  # the thickness's two Gauss points
+            off = t / (2.0 * math.sqrt(3.0))
+            ppos = np.concatenate([ppos + off * pnrm, ppos - off * pnrm])
+            pnrm = np.concatenate([pnrm, pnrm])
+            pvol = np.concatenate([0.5 * pvol, 0.5 * pvol])
     else:
         grid = _grid_points(src.bbox_min, src.bbox_max, s, rng_grid)
         d = src.sdf(grid)
