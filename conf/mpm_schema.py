@@ -64,19 +64,16 @@ class MPMConfig:
             particles it touches and never pulls; its impulses are the finger's reaction (N).  Meant for
             ``contact: surface`` (both act where the material touches).  Not the default: it lost Table 2 on the
             rubber ball, clay and rubber duck (README, known limits; ``python -m flows.finger_study``).
-        thin_walls: how a hollow object's wall thinner than the grid spacing ``dx`` (one particle layer on its
-            mid-surface below the particle spacing, one or two volume layers above it;
-            :mod:`tasks.control.object_model`) carries stress.  ``solid`` (default): full 3D stress; the grid, which
-            cannot resolve the thickness, holds it where a finger's nodes reach through the wall, and the wall's
-            volume locks as nu -> 0.5 (the rubber ball and duck, nu = 0.49: 570 and 3,100 N per finger at the
-            default spacing).  ``membrane``: its elastic particles (fixed-corotated, neo-Hookean) have no normal
-            stress on the wall, as a thin shell (plane stress; :func:`tasks.physics.mpm.constitutive.membrane_F`):
-            the wall thins as it stretches, and its in-plane wave speed sets its stable step (ball 50 N, duck
-            126 N, within 14 % between 4 and 3 mm).  One layer carries no bending of its own, and the locked volume
-            was what made the rubber ball spring back (one layer keeps 37 % of its dent 0.3 s after the fingers let
-            go, 7 % as ``solid``); with ``sampling.thin_wall_layers: 2`` (two layers at the thickness's Gauss
-            points) it keeps 20 % and Table 2 ties the default (README, known limits).  Not yet the default: the
-            convergence study is not re-run with it.  Plastic walls (can, paper cup; nu <= 0.33) stay 3D in both.
+        thin_walls: how a hollow object's wall thinner than the grid spacing ``dx`` (one or two particle layers
+            below the particle spacing, ``sampling.thin_wall_layers``, one or two volume layers above it;
+            :mod:`tasks.control.object_model`) carries stress.  ``membrane`` (default): its elastic particles
+            (fixed-corotated, neo-Hookean) have no normal stress on the wall, as a thin shell (plane stress;
+            :func:`tasks.physics.mpm.constitutive.membrane_F`): the wall thins as it stretches, and its in-plane wave
+            speed sets its stable step; in two layers at the thickness's Gauss points it also carries its bending
+            (ball 50 N per finger, rubber springs back with 20 % of its dent left).  ``solid``: full 3D stress; the
+            grid, which cannot resolve the thickness, holds it where a finger's nodes reach through the wall, and
+            the wall's volume locks as nu -> 0.5 (the rubber ball and duck, nu = 0.49: 570 and 3,100 N per finger;
+            README, known limits).  Plastic walls (can, paper cup; nu <= 0.33) stay 3D in both.
         finger_friction: Coulomb coefficient of the collider fingertips (0 = frictionless, < 0 = no slip while
             touching), dimensionless.
     Acceleration knobs (each changes the physics; reported in the frame statistics)
@@ -183,7 +180,7 @@ class MPMConfig:
     contact: str = "grid"
     fingers: str = "dirichlet"
     finger_friction: float = 0.0
-    thin_walls: str = "solid"
+    thin_walls: str = "membrane"
     mass_scaling: str = "off"
     multi_field: bool = True
     mass_scale: float = 1.0

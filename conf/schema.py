@@ -158,10 +158,10 @@ class SamplingConfig:
     surface_points: int = 3000  # surface samples = 3D Gaussians
     particle_spacing: float = 0.004  # m, volume particle spacing (MPM issue derives it from the grid)
     seed: int = 0
-    # a hollow wall thinner than the spacing: 1 = one particle layer on its mid-surface; 2 = two layers at the
-    # thickness's Gauss points +-t / (2 sqrt 3), half the volume each, so that with mpm.thin_walls=membrane the wall
-    # carries bending (tasks/control/object_model.py)
-    thin_wall_layers: int = 1
+    # a hollow wall thinner than the spacing: 1 = one particle layer on its mid-surface; 2 (default) = two layers at
+    # the thickness's Gauss points +-t / (2 sqrt 3), half the volume each, so that with mpm.thin_walls=membrane the
+    # wall carries bending (tasks/control/object_model.py)
+    thin_wall_layers: int = 2
 
 
 # ----------------------------------------------------------------------------------------------- simulation

@@ -49,7 +49,7 @@ Discretisation choices (documented here because downstream steps rely on them):
   - hollow with ``t < s`` (``thin_wall``): one layer of Poisson-disk particles (spacing ~ s) on the wall's
     mid-surface (``t/2`` inside the outer surface; on the sheet itself for the open cup), each with volume =
     its Voronoi area share x t, so the total is ``area x t`` and the wall mass is physical; with
-    ``sampling.thin_wall_layers: 2`` that layer is split into two at the thickness's Gauss points, ``+-t / (2 sqrt
+    ``sampling.thin_wall_layers: 2`` (the default) that layer is split into two at the thickness's Gauss points, ``+-t / (2 sqrt
     3)`` along the normal, each particle with half the volume: the two-point rule integrates a strain linear through
     the thickness exactly, so a plane-stress wall (``mpm.thin_walls: membrane``) carries the bending energy
     ``E t^3 / (12 (1 - nu^2)) kappa^2 / 2`` per area of a curvature kappa of the grid's field (two layers at +-t/2
@@ -815,7 +815,7 @@ def _validate(obj: Any, sampling: Any) -> tuple[str, np.ndarray, float, float, i
     s = float(_get(sampling, "particle_spacing"))
     n_surf = int(_get(sampling, "surface_points"))
     seed = int(_get(sampling, "seed", 0) or 0)
-    layers = int(_get(sampling, "thin_wall_layers", 1) or 1)
+    layers = int(_get(sampling, "thin_wall_layers", 2) or 2)
     filled = bool(_get(obj, "filled", False))
     interior = _get(obj, "interior")
     if not (s > 0 and math.isfinite(s)):
@@ -872,7 +872,7 @@ def build_object_model(obj: Any, sampling: Any) -> tuple[dict[str, Array], dict[
         ObjectModelError: one line naming the input and the fix.
     """
     kind, size, t, s, n_surf, seed = _validate(obj, sampling)
-    layers = int(_get(sampling, "thin_wall_layers", 1) or 1)  # particle layers of a wall thinner than s
+    layers = int(_get(sampling, "thin_wall_layers", 2) or 2)  # particle layers of a wall thinner than s
     name = str(_get(obj, "name", "object"))
     geom, app = _get(obj, "geometry"), _get(obj, "appearance")
     filled = bool(_get(obj, "filled", False))

@@ -1,10 +1,12 @@
 """Can the MPM grid resolve an object's wall?  A pure check of wall thickness against the grid spacing.
 
-A hollow object whose wall is thinner than the particle spacing ``s`` is sampled as ONE particle layer on the
-wall's mid-surface, each particle carrying area x thickness of volume (:mod:`tasks.control.object_model`), so its mass and
-membrane stiffness E t are physical.  What such a wall cannot carry is its bending: a single layer of particles
-sits on the neutral surface, where bending strain is zero, and the quadratic B-spline grid smears the wall over
-~3 dx, so the dent/buckle shape a finger makes is whatever the grid can represent, not what the wall would do.
+A hollow object whose wall is thinner than the particle spacing ``s`` is sampled on the wall's mid-surface, the
+particles carrying area x thickness of volume (:mod:`tasks.control.object_model`), so its mass and membrane stiffness
+E t are physical: by default in two layers at the thickness's Gauss points, which in plane stress
+(``mpm.thin_walls: membrane``) carry its bending for the curvatures the grid's field represents; with
+``sampling.thin_wall_layers: 1`` in ONE layer on the neutral surface, where bending strain is zero.  Either way the
+quadratic B-spline grid smears the wall over ~3 dx, so a dent or buckle shorter than the grid can represent is not
+what the wall would do.
 
 Criterion (classical shell buckling; Timoshenko & Gere, Theory of Elastic Stability, ch. 11; Zoelly for the
 sphere): a thin cylinder (axial load) or sphere (external pressure) of radius R and thickness t buckles with the
