@@ -801,7 +801,7 @@ def _grid_points(lo: np.ndarray, hi: np.ndarray, s: float, rng: np.random.Genera
     return pts + rng.uniform(-_JITTER, _JITTER, size=pts.shape) * s
 
 
-def _validate(obj: Any, sampling: Any) -> tuple[str, np.ndarray, float, float, int, int]:
+def _validate(obj: Any, sampling: Any) -> tuple[str, np.ndarray, float, float, int, int, int]:
     name = str(_get(obj, "name", "object"))
     geom = _get(obj, "geometry")
     kind = str(_get(geom, "kind"))
@@ -838,7 +838,7 @@ def _validate(obj: Any, sampling: Any) -> tuple[str, np.ndarray, float, float, i
     if kind not in SHAPE_KINDS + ("ply", "mesh"):
         raise ObjectModelError(f"object {name}: geometry.kind {kind!r} is unknown: use one of "
                                f"{list(SHAPE_KINDS) + ['ply', 'mesh']}")
-    return kind, size, t, s, n_surf, seed
+    return kind, size, t, s, n_surf, seed, layers
 
 
 def sampling_seed(obj: Any, seed: int) -> np.random.SeedSequence:
@@ -871,8 +871,7 @@ def build_object_model(obj: Any, sampling: Any) -> tuple[dict[str, Array], dict[
     Raises:
         ObjectModelError: one line naming the input and the fix.
     """
-    kind, size, t, s, n_surf, seed = _validate(obj, sampling)
-    layers = int(_get(sampling, "thin_wall_layers", 2) or 2)  # particle layers of a wall thinner than s
+    kind, size, t, s, n_surf, seed, layers = _validate(obj, sampling)  # layers: of a wall thinner than s
     name = str(_get(obj, "name", "object"))
     geom, app = _get(obj, "geometry"), _get(obj, "appearance")
     filled = bool(_get(obj, "filled", False))

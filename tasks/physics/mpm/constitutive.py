@@ -187,7 +187,6 @@ def psi_neo_hookean(F: wp.mat33, mu: float, lam: float) -> float:
     return 0.5 * mu * (wp.ddot(F, F) - 3.0) - mu * lj + 0.5 * lam * lj * lj
 
 
-# --------------------------------------------------------------------------------------------- StVK-Hencky
 # ---------------------------------------------------------------------------------- plane-stress membranes
 @wp.func
 def area_normal(F: wp.mat33, N: wp.vec3) -> wp.vec3:
@@ -244,6 +243,7 @@ def membrane_F(F: wp.mat33, N: wp.vec3, R: wp.mat33, model: int, mu: float, lam:
     return F + wp.outer((g - wp.dot(n, F @ N)) * n, N)
 
 
+# --------------------------------------------------------------------------------------------- StVK-Hencky
 @wp.func
 def tau_hencky_principal(eps: wp.vec3, mu: float, lam: float) -> wp.vec3:
     """Principal Kirchhoff stresses of StVK-Hencky: 2 mu eps + lambda tr(eps)."""

@@ -682,7 +682,7 @@ class MPMSolver:
         self.alpha = wp.zeros(n if self.has_plastic else 1, dtype=float, device=d)
         self.vol = wp.array(vol, dtype=float, device=d)
         self.mat_id = wp.array(mid, dtype=wp.int32, device=d)
-        self.n_membrane = 0 if normals is None else int(np.count_nonzero(normals.any(axis=1)))
+        self.n_membrane = int(np.count_nonzero(self._membrane_rows))
         self.normal = wp.array(normals if self.n_membrane else np.zeros((1, 3), np.float32), dtype=wp.vec3, device=d)
         self.particles = K.Particles()
         for name in ("x", "v", "C", "F", "q", "alpha", "vol", "mat_id", "normal"):
