@@ -68,12 +68,14 @@ class MPMConfig:
             below the particle spacing, ``sampling.thin_wall_layers``, one or two volume layers above it;
             :mod:`tasks.control.object_model`) carries stress.  ``membrane`` (default): its elastic particles
             (fixed-corotated, neo-Hookean) have no normal stress on the wall, as a thin shell (plane stress;
-            :func:`tasks.physics.mpm.constitutive.membrane_F`): the wall thins as it stretches, and its in-plane wave
+            :func:`tasks.physics.mpm.constitutive.membrane_F`), and its von Mises particles return-map in plane
+            stress (:func:`tasks.physics.mpm.constitutive.membrane_plastic_return`; can 6,900 -> 1,600 N, paper cup
+            950 -> 350 N per finger): the wall thins as it stretches, and its in-plane wave
             speed sets its stable step; in two layers at the thickness's Gauss points it also carries its bending
             (ball 50 N per finger, rubber springs back with 20 % of its dent left).  ``solid``: full 3D stress; the
             grid, which cannot resolve the thickness, holds it where a finger's nodes reach through the wall, and
             the wall's volume locks as nu -> 0.5 (the rubber ball and duck, nu = 0.49: 570 and 3,100 N per finger;
-            README, known limits).  Plastic walls (can, paper cup; nu <= 0.33) stay 3D in both.
+            README, known limits).
         finger_friction: Coulomb coefficient of the collider fingertips (0 = frictionless, < 0 = no slip while
             touching), dimensionless.
     Acceleration knobs (each changes the physics; reported in the frame statistics)

@@ -387,7 +387,7 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     dx = cfg.dx or spacing * cfg.particles_per_cell ** (1.0 / 3.0)
     cfg = replace(cfg, dx=dx)  # the solver applies mpm.mass_scaling (per material; weights stay physical)
     # a hollow object's wall thinner than the grid spacing is a shell the grid cannot resolve through its thickness:
-    # held in plane stress (mpm.thin_walls; elastic models only).  Its in-plane wave speed, not the 3D one,
+    # held in plane stress (mpm.thin_walls; elastic and von Mises models).  Its in-plane wave speed, not the 3D one,
     # sets its stable step, hence the mass scale
     thin_wall = bool(obj_attrs.get("thin_wall", False))
     thickness = float(obj_attrs.get("wall_thickness", 0.0) or 0.0)

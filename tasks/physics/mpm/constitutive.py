@@ -57,6 +57,8 @@ MIN_J = wp.constant(1.0e-6)
 EIGEN_MAX_SWEEPS = wp.constant(8)  # Jacobi sweeps of sym_eigen_warm (a cold start needs 3-4)
 EIGEN_TOL = wp.constant(1.0e-6)  # off-diagonal / diagonal norm at which sym_eigen_warm stops
 MEMBRANE_NEWTON = wp.constant(5)  # Newton steps of membrane_stretch_neo_hookean (float32 converged by 3 at A in [0.3, 3])
+MEMBRANE_PLASTIC_ITERS = wp.constant(6)  # secant steps of membrane_plastic_return (at most; most stop after 1-3)
+MEMBRANE_PLASTIC_TOL = wp.constant(1.0e-6)  # |n . tau n| / (lambda + 2 mu) at which membrane_plastic_return stops
 
 
 # --------------------------------------------------------------------------------------------- helpers
@@ -460,6 +462,60 @@ def hencky_plastic_return_warm(
         res.F = F
     t = tau_hencky_principal(eps, mu, lam)
     res.tau = U @ diag3(t[0], t[1], t[2]) @ wp.transpose(U)
+    return res
+
+
+@wp.func
+def membrane_plastic_return(
+    F: wp.mat33,
+    n: wp.vec3,
+    q0: wp.quat,
+    mu: float,
+    lam: float,
+    tau_y: float,
+    hardening: float,
+    alpha: float,
+) -> PlasticResult:
+    """Plane-stress return mapping of a von Mises particle of a wall thinner than the grid, n the wall's current unit
+    normal (tracked by the caller: plastic flow moves F_E's reference configuration, so the rest normal no longer
+    tells where the wall lies in it).  The grid does not resolve the wall's thickness, so the trial F_E's stretch
+    across the wall is free: with N = F^T n / |F^T n| the wall's normal in F_E's reference (then cof(F) N = A n, A
+    the area stretch) and g0 = n . F N, the state is the 3D return (:func:`hencky_plastic_return_warm`) of
+    F(s) = F + (e^s - g0) n N^T, which keeps F on the wall's plane, at the s = ln g where the returned stress has no
+    normal component, h(s) = n . tau(s) n = 0.  Without it a plastic wall's volume is locked twice: elastically
+    (lambda) and plastically (von Mises flow keeps the volume, so a wall that cannot thin cannot stretch either).
+
+    Root of h: from the elastic plane-stress strain s0 = -lam ln A / (lam + 2 mu) (exact for an elastic state
+    without transverse shear), secant steps whose slope starts at the elastic dh/ds = lam + 2 mu and is kept within
+    [0.9 K, 1.1 (lam + 2 mu)] (K = lam + 2 mu / 3, the slope of a perfectly plastic state), until
+    |h| <= MEMBRANE_PLASTIC_TOL (lam + 2 mu).  Each step is one warm-started eigen-solve; every step's plastic
+    strain is measured from the substep's ``alpha``.  A degenerate F (|F^T n| or A < 1e-6) takes the 3D return."""
+    Nf = wp.transpose(F) @ n
+    g0 = wp.length(Nf)
+    A = float(0.0)
+    if g0 >= 1.0e-6:
+        A = wp.length(area_normal(F, Nf / g0))
+    if A < 1.0e-6:
+        return hencky_plastic_return_warm(F, q0, mu, lam, tau_y, hardening, alpha, 0.0, 0.0, 0.0, 0, 1.0)
+    N = Nf / g0
+    k_el = lam + 2.0 * mu
+    k_lo = 0.9 * (lam + 2.0 * mu / 3.0)
+    k_hi = 1.1 * k_el
+    s = -lam * wp.log(A) / k_el
+    res = hencky_plastic_return_warm(F + wp.outer((wp.exp(s) - g0) * n, N), q0, mu, lam, tau_y, hardening, alpha,
+                                     0.0, 0.0, 0.0, 0, 1.0)
+    h = wp.dot(n, res.tau @ n)
+    k = k_el
+    for _ in range(MEMBRANE_PLASTIC_ITERS):
+        if wp.abs(h) <= MEMBRANE_PLASTIC_TOL * k_el:
+            break
+        s_new = s - h / k
+        res = hencky_plastic_return_warm(F + wp.outer((wp.exp(s_new) - g0) * n, N), res.q, mu, lam, tau_y,
+                                         hardening, alpha, 0.0, 0.0, 0.0, 0, 1.0)
+        h_new = wp.dot(n, res.tau @ n)
+        k = wp.clamp((h_new - h) / (s_new - s), k_lo, k_hi)
+        s = s_new
+        h = h_new
     return res
 
 

@@ -47,9 +47,13 @@ from .constitutive import (
     MODEL_FLUID,
     MODEL_FOAM,
     MODEL_NEO_HOOKEAN,
+    MODEL_VON_MISES,
+    PlasticResult,
+    area_normal,
     fluid_reset,
     hencky_plastic_return_warm,
     membrane_F,
+    membrane_plastic_return,
     polar_rotation_quat,
     polar_track_quat,
     psi_fixed_corotated,
@@ -113,8 +117,10 @@ class Particles:
     alpha: wp.array(dtype=float)  # equivalent plastic strain (von Mises, foam)
     vol: wp.array(dtype=float)  # initial volume, m^3
     mat_id: wp.array(dtype=wp.int32)  # row of the particle's material in the MaterialTable
-    normal: wp.array(dtype=wp.vec3)  # rest unit normal of a thin wall's particle (plane-stress membrane,
-    # :func:`membrane_state`), zero for a solid one; length 1 when no particle is a membrane
+    normal: wp.array(dtype=wp.vec3)  # unit normal of a thin wall's particle (plane-stress membrane), zero for a
+    # solid one; length 1 when no particle is a membrane.  Elastic models: the rest normal (:func:`membrane_state`;
+    # F_E is the whole deformation); von Mises: the current one, updated every substep (plastic flow moves F_E's
+    # reference, :func:`membrane_plastic_return`)
 
 
 @wp.struct
@@ -692,17 +698,25 @@ def local_damping(r: G2PResult, p: int, mid: int, ps: Particles, mats: MaterialT
 
 
 @wp.func
-def membrane_state(F: wp.mat33, p: int, model: int, ps: Particles, mu: float, lam: float) -> wp.mat33:
-    """The trial F_E of particle p with zero normal stress on its wall (:func:`membrane_F`; fixed-corotated with
-    its previous substep's rotation ``ps.q[p]``) when p is a thin wall's particle (a non-zero rest normal
-    ``ps.normal[p]``), else unchanged."""
+def membrane_particle(p: int, ps: Particles) -> bool:
+    """Whether particle p belongs to a wall thinner than the grid, held in plane stress (a non-zero rest normal
+    ``ps.normal[p]``; the array has length 1 when no particle does)."""
     if ps.normal.shape[0] > 1:
         N = ps.normal[p]
-        if wp.dot(N, N) > 0.5:
-            R = wp.identity(n=3, dtype=float)
-            if model == MODEL_FIXED_COROTATED:
-                R = wp.quat_to_matrix(ps.q[p])
-            return membrane_F(F, N, R, model, mu, lam)
+        return wp.dot(N, N) > 0.5
+    return False
+
+
+@wp.func
+def membrane_state(F: wp.mat33, p: int, model: int, ps: Particles, mu: float, lam: float) -> wp.mat33:
+    """The elastic trial F_E of particle p with zero normal stress on its wall (:func:`membrane_F`; fixed-corotated
+    with its previous substep's rotation ``ps.q[p]``) when p is a thin wall's particle
+    (:func:`membrane_particle`), else unchanged."""
+    if membrane_particle(p, ps):
+        R = wp.identity(n=3, dtype=float)
+        if model == MODEL_FIXED_COROTATED:
+            R = wp.quat_to_matrix(ps.q[p])
+        return membrane_F(F, ps.normal[p], R, model, mu, lam)
     return F
 
 
@@ -738,11 +752,19 @@ def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable,
         r.tau = fluid_stress(r.F, r.C, mid, mats)
         r.F = fluid_reset(r.F)
     else:
-        pr = hencky_plastic_return_warm(
-            r.F, ps.q[p], mu, lam, mats.par[mid, C_YIELD], mats.par[mid, C_HARDENING], ps.alpha[p],
-            mats.par[mid, C_VISCOSITY], mats.par[mid, C_CRUSH], mats.par[mid, C_DILATION], int(model == MODEL_FOAM),
-            sp.dt_g2p,
-        )
+        pr = PlasticResult()
+        if model == MODEL_VON_MISES and membrane_particle(p, ps):
+            # the wall's current normal, carried by this substep's velocity gradient (Nanson: cof(I + dt C) n)
+            n = wp.normalize(area_normal(wp.identity(n=3, dtype=float) + sp.dt_g2p * r.C, ps.normal[p]))
+            ps.normal[p] = n
+            pr = membrane_plastic_return(r.F, n, ps.q[p], mu, lam, mats.par[mid, C_YIELD],
+                                         mats.par[mid, C_HARDENING], ps.alpha[p])
+        else:
+            pr = hencky_plastic_return_warm(
+                r.F, ps.q[p], mu, lam, mats.par[mid, C_YIELD], mats.par[mid, C_HARDENING], ps.alpha[p],
+                mats.par[mid, C_VISCOSITY], mats.par[mid, C_CRUSH], mats.par[mid, C_DILATION],
+                int(model == MODEL_FOAM), sp.dt_g2p,
+            )
         r.F = pr.F
         r.tau = pr.tau
         r.alpha = pr.alpha

@@ -55,7 +55,7 @@ MODEL_ALIASES: dict[str, str] = {
     "water": "fluid",
 }
 PLASTIC_MODELS = (MODEL_CODES["von_mises"], MODEL_CODES["foam"])
-MEMBRANE_MODELS = ("fixed_corotated", "neo_hookean")  # the elastic models held in plane stress on thin walls
+MEMBRANE_MODELS = ("fixed_corotated", "neo_hookean", "von_mises")  # the models held in plane stress on thin walls
 
 # column layout of the packed material table (float32, one row per material)
 COL_MU = 0
@@ -105,9 +105,10 @@ class Material:
             density (True: a solid that only deforms quasi-statically, e.g. a shell under the fingers) or leaves
             it physical (False: released or flying material, fluids).  None = every model but ``fluid``.  The
             other scaling modes ignore it.
-        membrane: the material's particles are a wall thinner than the grid spacing, held in plane stress (``fixed_corotated``
-            and ``neo_hookean`` only; the solver's ``membrane_normals`` give each particle its rest normal, and
-            every particle of the material needs one).  No stress acts across the wall, so its fastest wave is the
+        membrane: the material's particles are a wall thinner than the grid spacing, held in plane stress
+            (``fixed_corotated``, ``neo_hookean``, and ``von_mises`` with its return mapping in plane stress; the
+            solver's ``membrane_normals`` give each particle its rest normal, and every particle of the material
+            needs one).  No stress acts across the wall, so its fastest wave is the
             in-plane one, sqrt(E / (rho (1 - nu^2))), which sets its stable step (:meth:`p_wave_speed`).
     """
 

@@ -1984,7 +1984,7 @@ class MPMSolver:
     def state_nbytes(self) -> dict[str, int]:
         """Bytes of the per-particle state arrays (allocated only for the models present)."""
         arrs = dict(x=self.x, v=self.v, C=self.C, F=self.F, q=self.q, alpha=self.alpha, vol=self.vol,
-                    mat_id=self.mat_id)
+                    mat_id=self.mat_id, normal=self.normal)
         return {k: int(a.size * wp.types.type_size_in_bytes(a.dtype)) for k, a in arrs.items()}
 
     def bytes_per_particle(self) -> float:
