@@ -55,10 +55,10 @@ class MPMConfig:
             instead (``ParticlePins``): the particles each constrained point is embedded in have their surface
             points driven by the displacement the point still needs, through the P2G momentum, with no node held
             (a cube between two pinned layers reads E A eps within 5 % at nu = 0.3-0.49, grid-node plates +30 % and
-            more); on a wall thinner than the particle spacing (one particle layer) the particles are pinned at their
-            centres.  The squeeze stores 2-28x less elastic energy than through the held nodes; not the default: on
-            Table 2 it ties BDC-T and SDC but loses BDC-S and mIoU at the default spacing, a gap that halves with
-            each refinement (README, known limits).  ``collider``: each active finger is a rigid
+            more); on a wall thinner than the particle spacing the particles are pinned at their centres.  Not the
+            default: on Table 2 it ties BDC-T, SDC and mIoU but loses 0.044 on BDC-S at the default spacing (with
+            the former one-layer solid walls a gap that halved with each refinement), and its reactions are not
+            uniformly smaller (README, known limits).  ``collider``: each active finger is a rigid
             sphere ``Collider`` of the fingertip pad radius (10 mm, the pad of the contact patches), its lowest point
             at the patch centre displaced by the eq. 3 amplitude eta c_k,t, moved there every frame: it pushes the
             particles it touches and never pulls; its impulses are the finger's reaction (N).  Meant for

@@ -39,7 +39,7 @@ ARRAYS = {
     "interior_volumes": (("interior_particle",), "m^3"),
 }
 ATTRS = {"bbox_min", "bbox_max", "surface_area_total", "enclosed_volume", "wall_thickness", "particle_spacing",
-         "thin_wall", "n_particles", "n_interior"}
+         "thin_wall", "thin_wall_layers", "n_particles", "n_interior"}
 # 3000 surface points, 4 mm particles, a wall thinner than the spacing in one layer on its mid-surface (the tests
 # below check that sampling; the default two-layer split has its own test)
 SAMPLING = OmegaConf.merge(OmegaConf.structured(SamplingConfig), {"thin_wall_layers": 1})
@@ -189,7 +189,7 @@ def test_thick_wall_and_solid_particles(built):
     arrays, attrs, _ = built["orange"]  # 4 mm peel = spacing: grid points inside the wall
     obj = catalogue("orange")
     t = obj.geometry.wall_thickness
-    assert attrs["thin_wall"] is False
+    assert attrs["thin_wall"] is False and attrs["thin_wall_layers"] == 0
     shape = make_shape("sphere", obj.geometry.size)
     d = shape.sdf(arrays["particle_positions"].data.astype(float))
     assert d.max() < 0 and d.min() > -t
@@ -283,6 +283,7 @@ def test_thin_wall_in_two_layers_at_the_thickness_gauss_points(built):
     p2, n2 = two["particle_positions"].data.astype(float), two["particle_normals"].data.astype(float)
     m = len(p1)
     assert attrs2["n_particles"] == 2 * m and attrs2["thin_wall"] is True
+    assert attrs1["thin_wall_layers"] == 1 and attrs2["thin_wall_layers"] == 2
     off = t / (2 * np.sqrt(3))
     np.testing.assert_allclose(p2[:m], p1 + off * n1, atol=1e-6)
     np.testing.assert_allclose(p2[m:], p1 - off * n1, atol=1e-6)

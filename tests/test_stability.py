@@ -121,9 +121,11 @@ def test_thin_walls_of_the_real_objects(ctx):
     for o in ("can", "paper_cup"):
         assert rows[o].outcome == "flagged", rows[o].reason
         assert rows[o].reason.startswith(f"FLAGGED {o} wall")
-        assert "< dx 8 mm: one particle layer" in rows[o].reason and "< 2 dx = 16 mm" in rows[o].reason
+        # sampled in the default sampling.thin_wall_layers = 2
+        assert "< dx 8 mm: two particle layers at the thickness's Gauss points" in rows[o].reason
+        assert "< 2 dx = 16 mm" in rows[o].reason
     assert rows["rubber_ball"].outcome == "resolved", rows["rubber_ball"].reason
-    assert "one particle layer" in rows["rubber_ball"].reason  # sampled as one layer, yet its buckles span 2+ cells
+    assert "two particle layers" in rows["rubber_ball"].reason  # thinner than the spacing, yet its buckles span 2+ cells
 
     def wavelength(R, t, nu):
         return 2 * math.pi * math.sqrt(R * t) / (12 * (1 - nu ** 2)) ** 0.25
@@ -133,6 +135,10 @@ def test_thin_walls_of_the_real_objects(ctx):
                              "bbox_max": [0.033, 0.033, 0.0575]}, dx=0.008, poisson_ratio=0.33, name="can")
     assert can.buckle_wavelength == pytest.approx(wavelength(0.033, 1e-4, 0.33)) == pytest.approx(6.3e-3, rel=0.01)
     assert can.flagged and can.under_resolution == pytest.approx(0.016 / can.buckle_wavelength)
+    assert can.particle_layers == 1 and "one particle layer (membrane-like" in can.message  # no layer count: one
+    two = thin_wall_finding({**base, "thin_wall_layers": 2, "wall_thickness": 1e-4, "bbox_min": [-0.033] * 3,
+                             "bbox_max": [0.033] * 3}, dx=0.008, poisson_ratio=0.33, name="can")
+    assert two.particle_layers == 2 and "two particle layers at the thickness's Gauss points" in two.message
     ball = thin_wall_finding({**base, "wall_thickness": 3e-3, "bbox_min": [-0.0325] * 3, "bbox_max": [0.0325] * 3},
                              dx=0.008, poisson_ratio=0.49, name="ball")
     assert not ball.flagged and ball.buckle_wavelength == pytest.approx(0.0357, rel=0.01)

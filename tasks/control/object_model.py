@@ -1008,6 +1008,7 @@ def build_object_model(obj: Any, sampling: Any) -> tuple[dict[str, Array], dict[
         "wall_thickness": float(t),
         "particle_spacing": float(s),
         "thin_wall": bool(thin),
+        "thin_wall_layers": int(layers) if thin else 0,
         "n_particles": int(len(ppos)),
         "n_interior": int(len(ipos)),
         "wall_volume": float(pvol.sum()),

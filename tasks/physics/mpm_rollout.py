@@ -25,10 +25,10 @@ rubber ball's shell buckles in, so Table 2 gets worse; not the default.
 Particle fingers (``mpm.fingers = particles``, :func:`particle_pins`): the Dirichlet targets of eq. 3 on the
 particles the constrained surface points are embedded in (their surface points driven through the P2G momentum,
 :class:`ParticlePins`), with no grid node held, so no layer beside the finger is held rigid; a wall thinner than
-the spacing (one particle layer) is pinned at its particles' centres.  Not the default: at the default spacing
-Table 2 ties on BDC-T and SDC and loses on BDC-S and mIoU (the halo of the grid-node fingers widened the deformed
-region the metrics compare with the contact areas; the gap halves with each refinement), although the squeeze
-stores 2-28x less elastic energy (README).
+the spacing is pinned at its particles' centres.  Not the default: at the default spacing Table 2 ties on BDC-T,
+SDC and mIoU and loses 0.044 on BDC-S (the halo of the grid-node fingers widens the deformed region the metric
+compares with the contact areas; with the former one-layer solid walls the gap halved with each refinement), and
+the reactions are not uniformly smaller (README, known limits).
 
 Squeezing threshold (sec. 3.2): the squeeze strain of finger k is the indentation under the fingertip divided
 by the object's half extent along the squeeze direction, ``eps_k = mean(u . d_k) / h(d_k)``, the mean taken over
@@ -177,7 +177,7 @@ class Scene:
     surface0: np.ndarray
     regions: SqueezeRegions
     notes: list[str]
-    thin_wall: bool = False  # the shell is one particle layer on a wall thinner than the spacing (object model)
+    thin_wall: bool = False  # the shell is a wall thinner than the spacing (object model; sampling.thin_wall_layers)
 
 
 @dataclass
@@ -445,8 +445,8 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
                        tracer_anchors=mid == SHELL, label=str(obj_attrs.get("name", "")), load=load,
                        membrane_normals=normals)
     if thin_wall and cfg.fingers == "particles":
-        notes.append("particle fingers pin the wall's particles at their centres: one particle layer on a wall "
-                     f"thinner than the {1e3 * spacing:.3g} mm spacing (ParticlePins arms 0)")
+        notes.append("particle fingers pin the wall's particles at their centres: a wall thinner than the "
+                     f"{1e3 * spacing:.3g} mm spacing (ParticlePins arms 0)")
     return Scene(oracle=mats, solver=solver, materials=mat_list, slot=slot, labels=mid, with_interior=with_interior,
                  dx=dx, config=cfg, frame_dt=frame_dt, surface0=obj["surface_points"].astype(np.float64),
                  regions=regions, notes=notes, thin_wall=thin_wall)
@@ -520,7 +520,7 @@ def particle_pins(scene: Scene, bc: Optional[DirichletPoints], idx: np.ndarray, 
     is embedded in (its anchors) has its surface point, along the finger's outward patch normal, driven by the
     mean displacement its points still need (target - where they are), so the points move by that much; the push
     acts on those particles only, at their surface (no node is held, so no layer next to the finger is held rigid)
-    or, on a wall thinner than the spacing (``scene.thin_wall``: one particle layer on its mid-surface), at their
+    or, on a wall thinner than the spacing (``scene.thin_wall``: ``sampling.thin_wall_layers`` particle layers within it), at their
     centres (:class:`ParticlePins` ``arms``), and its impulses are the finger's reaction."""
     if bc is None:
         return None

@@ -43,7 +43,7 @@ class WallFinding:
     wall_thickness: float  # m
     particle_spacing: float  # m
     dx: float  # m, grid spacing
-    particle_layers: float  # particle layers across the wall (1 for a thin wall sampled on its mid-surface)
+    particle_layers: float  # particle layers across the wall (a thin wall: sampling.thin_wall_layers, 1 or 2)
     radius: float  # m, R used for the bending length
     bending_length: float  # m, l_b = sqrt(R t) / (3 (1 - nu^2))^(1/4), decay length of a dent
     buckle_wavelength: float  # m, lambda = 2 pi sqrt(R t) / (12 (1 - nu^2))^(1/4)
@@ -83,14 +83,18 @@ def thin_wall_finding(attrs: Mapping[str, Any], dx: float, poisson_ratio: float 
     if t <= 0.0:
         return WallFinding(obj, False, f"{obj}: solid body (no wall), nothing to resolve", 0.0, s, dx, nan, R, nan,
                            nan, 0.0, nan)
-    one_layer = bool(attrs.get("thin_wall", t < s))
-    layers = 1.0 if one_layer else t / s
+    sampled_thin = bool(attrs.get("thin_wall", t < s))
+    layers = float(attrs.get("thin_wall_layers", 1)) if sampled_thin else t / s
     l_b = math.sqrt(R * t) / (3.0 * (1.0 - nu * nu)) ** 0.25
     lam = 2.0 * math.pi * math.sqrt(R * t) / (12.0 * (1.0 - nu * nu)) ** 0.25
     ratio = 2.0 * dx / lam
     D = nan if youngs_modulus is None else float(youngs_modulus) * t ** 3 / (12.0 * (1.0 - nu * nu))
-    layer_txt = ("one particle layer (membrane-like: mid-surface particles carry no bending strain)" if one_layer
-                 else f"{layers:.1f} particle layers")
+    if not sampled_thin:
+        layer_txt = f"{layers:.1f} particle layers"
+    elif layers == 1:
+        layer_txt = "one particle layer (membrane-like: mid-surface particles carry no bending strain)"
+    else:
+        layer_txt = "two particle layers at the thickness's Gauss points (bending from their difference)"
     head = (f"{obj} wall {_mm(t)} {'<' if t < dx else '>='} dx {_mm(dx)}: {layer_txt}; buckle wavelength "
             f"2 pi sqrt(R t)/(12(1-nu^2))^(1/4) = {_mm(lam)} (R {_mm(R)}, nu {nu:g})")
     if ratio > 1.0:
