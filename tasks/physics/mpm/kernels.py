@@ -754,8 +754,13 @@ def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable,
     else:
         pr = PlasticResult()
         if model == MODEL_VON_MISES and membrane_particle(p, ps):
-            # the wall's current normal, carried by this substep's velocity gradient (Nanson: cof(I + dt C) n)
-            n = wp.normalize(area_normal(wp.identity(n=3, dtype=float) + sp.dt_g2p * r.C, ps.normal[p]))
+            # the wall's current normal, carried by this substep's velocity gradient (Nanson: cof(I + dt C) n); a
+            # degenerate or non-finite update keeps the last one (the particle stays a membrane)
+            n = ps.normal[p]
+            carried = area_normal(wp.identity(n=3, dtype=float) + sp.dt_g2p * r.C, n)
+            size = wp.length(carried)
+            if size > 1.0e-6:
+                n = carried / size
             ps.normal[p] = n
             pr = membrane_plastic_return(r.F, n, ps.q[p], mu, lam, mats.par[mid, C_YIELD],
                                          mats.par[mid, C_HARDENING], ps.alpha[p])

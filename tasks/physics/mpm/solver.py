@@ -56,6 +56,7 @@ from .materials import (
 )
 
 FIXED_COROTATED = MODEL_CODES["fixed_corotated"]
+VON_MISES = MODEL_CODES["von_mises"]
 # Loaded frames at the start of every contact that the quasi-static check skips: where a finger first touches, the
 # material under it is brought to the finger's speed while its strain energy is still that of its weight, so the
 # kinetic/internal ratio is large however slowly the finger moves (first frame: orange 0.33, tomato 1.5 at the
@@ -488,7 +489,12 @@ class MPMSolver:
             shell the grid cannot resolve through its thickness), zero rows for the others: an elastic
             (fixed-corotated, neo-Hookean) membrane particle has no normal stress on its wall (plane stress,
             :func:`tasks.physics.mpm.constitutive.membrane_F`), so its wall thins as it stretches instead of
-            locking its volume.  Plastic and fluid models ignore it.
+            locking its volume.  A von Mises membrane particle returns in plane stress
+            (:func:`tasks.physics.mpm.constitutive.membrane_plastic_return`) and its row becomes the wall's current
+            normal, carried by the flow every substep (plastic flow moves F_E's reference, so the rest normal no
+            longer tells where the wall lies in it); :meth:`set_material_ids` converts a row between the two when a
+            particle changes between an elastic and a von Mises material.  Whether a particle is a membrane is its
+            row (non-zero), whatever its material's ``membrane`` flag.  Foam and fluid models ignore it.
 
     Mass (time) scaling (``config.mass_scaling``; s from :func:`mass_scale_for`, fixed once: at construction, or for
     ``global``/``selective`` at the first :meth:`step_frame`): the densities of the scaled materials (all of them by
@@ -1946,12 +1952,34 @@ class MPMSolver:
             if (mb.code == FIXED_COROTATED and not self.has_corotated) or (mb.is_plastic and not self.has_plastic):
                 raise ValueError(f"material {mb.name} needs solver state that was not allocated")
         self._check_membranes(ids)
+        self._convert_membrane_normals(ids)
         self._mid_host = ids.copy()
         self.mat_id.assign(ids)
         self._present = sorted(set(int(i) for i in np.unique(ids)))
         self.all_corotated = {self.materials[i].code for i in self._present} == {FIXED_COROTATED}
         self._upload_materials()
         self._update_fields()
+
+    def _convert_membrane_normals(self, ids: np.ndarray) -> None:
+        """A membrane particle's normal row is its rest normal N under an elastic model and its current normal n
+        under von Mises (``membrane_normals``); one changing between the two gets the other, through its stored F:
+        n = cof(F) N / |cof(F) N| (Nanson), N = F^T n / |F^T n|."""
+        codes = np.array([m.code for m in self.materials])
+        was, now = codes[self._mid_host] == VON_MISES, codes[ids] == VON_MISES
+        rows = np.flatnonzero(self._membrane_rows & (was != now))
+        if not len(rows):
+            return
+        F = self.F.numpy()[rows].astype(np.float64)
+        normals = self.normal.numpy()
+        given = normals[rows].astype(np.float64)
+        to_current = now[rows]
+        c1, c2, c3 = F[:, :, 0], F[:, :, 1], F[:, :, 2]
+        cof = np.stack([np.cross(c2, c3), np.cross(c3, c1), np.cross(c1, c2)], axis=2)  # columns: det(F) F^-T
+        moved = np.where(to_current[:, None], np.einsum("nij,nj->ni", cof, given),
+                         np.einsum("nji,nj->ni", F, given))
+        size = np.linalg.norm(moved, axis=1, keepdims=True)
+        normals[rows] = np.where(size > 1e-6, moved / np.maximum(size, 1e-12), given).astype(np.float32)
+        self.normal.assign(normals)
 
     def _check_membranes(self, ids: np.ndarray) -> None:
         """Every particle of a ``membrane`` material needs a rest normal: its stable step is the plane-stress wave's,
