@@ -251,7 +251,8 @@ def test_equibiaxial_plastic_membrane_reads_the_plane_stress_closed_form(hardeni
 
 def von_mises_return64(F: np.ndarray, mu: float, lam: float, tau_y: float, hardening: float):
     """(Kirchhoff stress, plastic strain) of the StVK-Hencky + von Mises radial return of trial F (3, 3) from no
-    plastic strain, float64: Hencky strains 1/2 ln eig(F F^T), dev part returned onto sqrt(2/3) (tau_y + H alpha) / (2 mu)."""
+    plastic strain, float64: Hencky strains 1/2 ln eig(F F^T), the deviatoric part returned onto the radius
+    sqrt(2/3) (tau_y + H alpha) / (2 mu)."""
     d, U = np.linalg.eigh(F @ F.T)
     eps = 0.5 * np.log(d)
     dev = eps - eps.mean()

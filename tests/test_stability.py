@@ -125,7 +125,8 @@ def test_thin_walls_of_the_real_objects(ctx):
         assert "< dx 8 mm: two particle layers at the thickness's Gauss points" in rows[o].reason
         assert "< 2 dx = 16 mm" in rows[o].reason
     assert rows["rubber_ball"].outcome == "resolved", rows["rubber_ball"].reason
-    assert "two particle layers" in rows["rubber_ball"].reason  # thinner than the spacing, yet its buckles span 2+ cells
+    # thinner than the spacing, yet its buckles span 2+ cells
+    assert "two particle layers" in rows["rubber_ball"].reason
 
     def wavelength(R, t, nu):
         return 2 * math.pi * math.sqrt(R * t) / (12 * (1 - nu ** 2)) ** 0.25

@@ -49,11 +49,11 @@ Discretisation choices (documented here because downstream steps rely on them):
   - hollow with ``t < s`` (``thin_wall``): one layer of Poisson-disk particles (spacing ~ s) on the wall's
     mid-surface (``t/2`` inside the outer surface; on the sheet itself for the open cup), each with volume =
     its Voronoi area share x t, so the total is ``area x t`` and the wall mass is physical; with
-    ``sampling.thin_wall_layers: 2`` (the default) that layer is split into two at the thickness's Gauss points, ``+-t / (2 sqrt
-    3)`` along the normal, each particle with half the volume: the two-point rule integrates a strain linear through
-    the thickness exactly, so a plane-stress wall (``mpm.thin_walls: membrane``) carries the bending energy
-    ``E t^3 / (12 (1 - nu^2)) kappa^2 / 2`` per area of a curvature kappa of the grid's field (two layers at +-t/2
-    would carry 3x);
+    ``sampling.thin_wall_layers: 2`` (the default) that layer is split into two at the thickness's Gauss points,
+    ``+-t / (2 sqrt 3)`` along the normal, each particle with half the volume: the two-point rule integrates a
+    strain linear through the thickness exactly, so a plane-stress wall (``mpm.thin_walls: membrane``) carries the
+    bending energy ``E t^3 / (12 (1 - nu^2)) kappa^2 / 2`` per area of a curvature kappa of the grid's field (two
+    layers at +-t/2 would carry 3x);
   - ``interior`` set: grid points with ``sdf < -max(t, s/2)`` (half a spacing clear of the wall layer), volumes
     rescaled to the cavity volume ``V(sdf < 0) - wall volume``.  These cavity particles are the object's geometry
     only: the rollout fills them with the oracle's ``core`` (fruit flesh, stuffing: part of the body) or, without

@@ -520,8 +520,8 @@ def particle_pins(scene: Scene, bc: Optional[DirichletPoints], idx: np.ndarray, 
     is embedded in (its anchors) has its surface point, along the finger's outward patch normal, driven by the
     mean displacement its points still need (target - where they are), so the points move by that much; the push
     acts on those particles only, at their surface (no node is held, so no layer next to the finger is held rigid)
-    or, on a wall thinner than the spacing (``scene.thin_wall``: ``sampling.thin_wall_layers`` particle layers within it), at their
-    centres (:class:`ParticlePins` ``arms``), and its impulses are the finger's reaction."""
+    or, on a wall thinner than the spacing (``scene.thin_wall``: ``sampling.thin_wall_layers`` particle layers
+    within it), at their centres (:class:`ParticlePins` ``arms``), and its impulses are the finger's reaction."""
     if bc is None:
         return None
     anchors = scene.solver.tracer_anchor_particles()[idx]  # (point, anchor)

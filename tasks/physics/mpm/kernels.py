@@ -699,8 +699,8 @@ def local_damping(r: G2PResult, p: int, mid: int, ps: Particles, mats: MaterialT
 
 @wp.func
 def membrane_particle(p: int, ps: Particles) -> bool:
-    """Whether particle p belongs to a wall thinner than the grid, held in plane stress (a non-zero rest normal
-    ``ps.normal[p]``; the array has length 1 when no particle does)."""
+    """Whether particle p belongs to a wall thinner than the grid, held in plane stress (a non-zero normal row
+    ``ps.normal[p]``: rest or current, :class:`Particles`; the array has length 1 when no particle does)."""
     if ps.normal.shape[0] > 1:
         N = ps.normal[p]
         return wp.dot(N, N) > 0.5

@@ -107,9 +107,10 @@ class Material:
             other scaling modes ignore it.
         membrane: the material's particles are a wall thinner than the grid spacing, held in plane stress
             (``fixed_corotated``, ``neo_hookean``, and ``von_mises`` with its return mapping in plane stress; the
-            solver's ``membrane_normals`` give each particle its rest normal, and every particle of the material
-            needs one).  No stress acts across the wall, so its fastest wave is the
-            in-plane one, sqrt(E / (rho (1 - nu^2))), which sets its stable step (:meth:`p_wave_speed`).
+            solver's ``membrane_normals`` give each particle its rest normal, which von Mises then carries as the
+            wall's current normal; every particle of the material needs one).  No stress acts across the wall, so
+            its fastest wave is the in-plane one, sqrt(E / (rho (1 - nu^2))), which sets its stable step
+            (:meth:`p_wave_speed`).
     """
 
     name: str = "material"
