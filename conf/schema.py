@@ -210,6 +210,15 @@ class SimulationConfig:
         ``wrench``: the net force and moment are removed only as far as no finger's tangential force exceeds this
         times its normal push (the rest is left for the table).  1: a fingertip on rubber or fabric; the default
         grasps' force balance needs <= 0.74.
+    torn_finger_push: where the force mode puts the share of a finger's force whose patch tore (its torn /
+        constrained points; ``tasks.physics.mpm_rollout.force_patch``): ``beneath`` (default) on the core (stuffing,
+        pulp) chosen at the rupture within 2 grid cells of its opening (its torn skin and the interior released under
+        it) and still within ``release_radius`` + 2 cells of it, as much of the share as closes the grip (the least
+        net force of the fingers' push; the crushable stuffing offers only that reaction), the finger pressing on
+        through the hole; ``none`` drops it (the released material offers no support; a hollow can's cola, a fluid,
+        never carries it).  Dropped, the force-driven plush toy's torn thumb left its four fingers side by side,
+        unable to close the grip within their friction cones, and they shoved the toy over in two of three sampling
+        seeds; pushed beneath, all three end upright (README, "Balanced force-driven push").
     release_radius: m; interior particles this close to a finger's patch centre are released at the
         threshold crossing (for an object with a solid core: the core particles there, which become the interior
         material), and shell particles this close rupture (become ``ruptured_softening`` x softer).  Keep it
@@ -273,6 +282,7 @@ class SimulationConfig:
     force_per_coefficient: float = 8.0
     force_balance: str = "wrench"
     force_balance_friction: float = 1.0
+    torn_finger_push: str = "beneath"
     release_radius: float = 0.02
     release_margin_cells: int = 8
     max_release_speed: float = 1.5
@@ -287,6 +297,7 @@ class SimulationConfig:
 # ----------------------------------------------------------------------------------------------- runner
 RUNNER_KINDS = ("sequential", "threads", "dask")
 FORCE_BALANCES = ("wrench", "fingers", "none")  # simulation.force_balance
+TORN_FINGER_PUSHES = ("beneath", "none")  # simulation.torn_finger_push
 
 
 @dataclass
@@ -432,6 +443,9 @@ def validate_simulation(cfg: Any, objects: list[tuple[str, Any]]) -> None:
     need(sim.force_balance in FORCE_BALANCES, "simulation.force_balance",
          f"must be wrench (the fingers' forces and moments sum to zero), fingers (their forces) or none, "
          f"got {sim.force_balance!r}")
+    need(sim.torn_finger_push in TORN_FINGER_PUSHES, "simulation.torn_finger_push",
+         f"must be beneath (a torn finger presses on the core under its opening) or none, "
+         f"got {sim.torn_finger_push!r}")
     need(sim.force_balance_friction > 0, "simulation.force_balance_friction",
          f"must be > 0 (a Coulomb coefficient, e.g. 1), got {sim.force_balance_friction}")
     need(sim.feedback_rule in ("auto", "reaction", "yield_area"), "simulation.feedback_rule",

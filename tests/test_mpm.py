@@ -1471,11 +1471,13 @@ def test_apic_affine_setter_keeps_an_initial_spin_energy():
         s.set_affine_velocities(np.full((len(X), 3, 3), np.nan))
 
 
-def test_force_patch_on_tracers_follows_moving_material():
-    """A free block gliding 2.5 block sides in the frame, pushed along its motion through tracers on its top layer:
-    the push follows it (closed form P = M v0 + F T; every particle near v0 + F T / M).  (The same points fixed in
-    space: the block slid out from under them at t = 55 ms, the force went to the fringe mass left under them and
-    the step collapsed, dt 1.5e-9 s at 1.7e6 m/s.)"""
+@pytest.mark.parametrize("follow", ["tracers", "particles"])
+def test_force_patch_follows_moving_material(follow):
+    """A free block gliding 2.5 block sides in the frame, pushed along its motion through its top layer, as tracers
+    (the skin's points) or as the particles themselves (the stuffing beneath a torn finger): the push follows it
+    (closed form P = M v0 + F T; every particle near v0 + F T / M).  (The same points fixed in space: the block
+    slid out from under them at t = 55 ms, the force went to the fringe mass left under them and the step
+    collapsed, dt 1.5e-9 s at 1.7e6 m/s.)"""
     side, h, v0, fdt = 0.02, DX / 2, 0.5, 1 / 10  # m, m, m/s, s: 5 cm in the frame = 10 cells
     X = lattice([0, 0, 0], [side, side, side], h)
     top = np.flatnonzero(X[:, 2] > side - h)
@@ -1483,7 +1485,13 @@ def test_force_patch_on_tracers_follows_moving_material():
                    floor=False, tracers=X[top], margin_cells=40)
     m = s.masses().astype(np.float64)
     F = np.array([[0.2 * m.sum(), 0.0, 0.0]])  # N: 0.2 m/s^2
-    st = s.step_frame(fdt, forces=ForcePatch(X[top], np.zeros(len(top), int), F, tracers=np.arange(len(top))))
+    points = {"tracers": np.arange(len(top))} if follow == "tracers" else {"particles": top}
+    with pytest.raises(ValueError, match="tracers or particles, not both"):
+        s.step_frame(fdt, forces=ForcePatch(X[top], np.zeros(len(top), int), F, tracers=points.get("tracers", top),
+                                            particles=top))
+    with pytest.raises(ValueError, match="one index"):
+        s.step_frame(fdt, forces=ForcePatch(X[top], np.zeros(len(top), int), F, particles=top + len(X)))
+    st = s.step_frame(fdt, forces=ForcePatch(X[top], np.zeros(len(top), int), F, **points))
     v = s.velocities().astype(np.float64)
     np.testing.assert_allclose(st.applied_force[0], F[0], rtol=1e-4)
     np.testing.assert_allclose((m[:, None] * v).sum(0), m.sum() * np.array([v0, 0, 0]) + F[0] * fdt, rtol=1e-3,

@@ -627,13 +627,15 @@ def test_wrench_balance_closes_force_then_moment_within_the_friction_cones():
 
 
 def test_force_push_keeps_the_finger_pressure_when_its_patch_tears():
-    """Force mode: a finger presses with c_k * force_per_coefficient N over its untorn patch; when half of its
-    patch points are torn, it presses with half the force (same pressure), not the whole force on half the
-    points.  Two fingers pressing against each other (2 N and 1.5 N) are balanced while the shell is whole (12/7 N
-    each: 2 F1 F2 / (F1 + F2)), and still once it has torn (1 N against 1.5 N: 1.2 N each): the hand keeps
-    closing its grip on a torn object.  Once finger 2's whole patch has torn, finger 1 alone is left of a grasp, not a
-    poke: balanced, it pushes nothing (what it pushed against went through the opening); a finger alone that never
-    had another against it (a poke) pushes as given."""
+    """Force mode: a finger presses with c_k * force_per_coefficient N over its patch.  While the shell is whole two
+    fingers pressing against each other (2 N and 1.5 N) are balanced (12/7 N each: 2 F1 F2 / (F1 + F2)).  When
+    half of finger 1's patch points are torn: with nothing beneath its opening (``torn_finger_push=none``) it
+    presses with half its force on the untorn half (same pressure; balanced: 1 N against 1.5 N, 1.2 N each); with
+    stuffing beneath, as much of the torn half's share goes to it as closes the grip (0.5 of its 1 N: 1 N on the
+    skin and 0.5 N on the stuffing against finger 2's 1.5 N, nothing left to balance), on the chosen core still
+    within release_radius + 2 dx of the torn points.  Once finger 2's whole patch has torn with nothing beneath,
+    finger 1 alone is left of a grasp, not a poke: balanced, it pushes nothing; a finger alone that never had
+    another against it (a poke) pushes as given."""
     from types import SimpleNamespace
 
     from conf.hand import N_FINGERS
@@ -649,20 +651,68 @@ def test_force_push_keeps_the_finger_pressure_when_its_patch_tears():
     patches = {"patch_active": np.ones((1, N_FINGERS), bool), "patch_normals": normals}
     forces = np.full((1, N_FINGERS), 0.5)
     forces[0, 2] = 0.375
-    scene = SimpleNamespace(solver=SimpleNamespace(tracer_positions=lambda: np.zeros((n, 3), np.float32)))
-    sim = {"force_per_coefficient": 4.0, "force_balance": "fingers", "force_balance_friction": 1.0}
+    particles = np.array([[0.0, 0.0, 0.01], [0.0, 0.0, 0.02], [0.0, 0.0, 0.03]], np.float32)
+    scene = SimpleNamespace(dx=0.004, solver=SimpleNamespace(tracer_positions=lambda: np.zeros((n, 3), np.float32),
+                                                             positions=lambda: particles))
+    sim = {"force_per_coefficient": 4.0, "force_balance": "fingers", "force_balance_friction": 1.0,
+           "release_radius": 0.02}
     torn = np.zeros(n, bool)
-    whole = force_patch(scene, field, forces, patches, 0, torn, sim)
+    (whole,) = force_patch(scene, field, forces, patches, 0, torn, sim)
     np.testing.assert_allclose(whole.forces[1:3], [[0.0, 0.0, -12 / 7], [0.0, 0.0, 12 / 7]], rtol=1e-12)
     torn[:2] = True  # half of finger 1's patch
-    push = force_patch(scene, field, forces, patches, 0, torn, sim)
+    (push,) = force_patch(scene, field, forces, patches, 0, torn, sim)
     # finger 1: 4 N/coefficient x 0.5 x 2/4 untorn = 1 N, finger 2 its whole 1.5 N; balanced: 2 x 1 x 1.5 / 2.5
     np.testing.assert_allclose(push.forces[1:3], [[0.0, 0.0, -1.2], [0.0, 0.0, 1.2]], rtol=1e-12)
+    assert push.forces[0].tolist() == [0.0, 0.0, 0.0] and len(push.positions) == 6 and push.particles is None
+    # the core chosen under finger 1's opening (torn points 0-1 at the origin): particles 0 and 2; particle 2 is
+    # now 30 mm away, beyond release_radius + 2 dx = 28 mm: only particle 0 is pushed
+    openings, beneath = (np.array([0, 1]), np.array([1, 1])), np.array([1, -1, 1], np.int32)
+    skin, deep = force_patch(scene, field, forces, patches, 0, torn, sim, openings, beneath)
+    np.testing.assert_allclose(skin.forces[1:3], [[0.0, 0.0, -1.0], [0.0, 0.0, 1.5]], rtol=1e-12)
+    np.testing.assert_allclose(deep.forces[1:3], [[0.0, 0.0, -0.5], [0.0, 0.0, 0.0]], atol=1e-15, rtol=1e-12)
+    assert deep.particles.tolist() == [0] and deep.finger_ids.tolist() == [1] and deep.tracers is None
+    np.testing.assert_allclose(deep.positions, particles[[0]])
     torn[4:] = True  # finger 2's whole patch: finger 1 is left of the grasp
-    np.testing.assert_allclose(force_patch(scene, field, forces, patches, 0, torn, sim).forces, 0.0, atol=1e-12)
+    (alone,) = force_patch(scene, field, forces, patches, 0, torn, sim)
+    np.testing.assert_allclose(alone.forces, 0.0, atol=1e-12)
     poke = dict(patches, patch_active=np.eye(1, N_FINGERS, 1, dtype=bool))  # finger 1 alone, from the start
-    assert force_patch(scene, field, forces, poke, 0, torn, sim).forces[1].tolist() == [0.0, 0.0, -1.0]
-    assert push.forces[0].tolist() == [0.0, 0.0, 0.0] and len(push.positions) == 6
+    assert force_patch(scene, field, forces, poke, 0, torn, sim)[0].forces[1].tolist() == [0.0, 0.0, -1.0]
+    torn[:] = True  # every point torn, nothing beneath: no push at all
+    assert force_patch(scene, field, forces, patches, 0, torn, sim) is None
+
+
+def test_the_stuffing_under_an_opening_carries_what_closes_the_grip():
+    """grip_closing_share: the share s of the push through the openings that leaves the least net force,
+    clip(-N_skin . N_b / |N_b|^2, 0, 1).  Known answers: four fingers on one side pushing 4 x (0.3, 0, -1) N and a
+    thumb through its opening able to push (0, 0, 8) N: s = 1/2 (its 4 N close the grip along z; the 1.2 N across
+    it is the least residual); able to push only 2 N: s = 1 (all of it, 2 N are left); a grip already closed on the
+    skin: s = 0; nothing beneath: 0."""
+    from tasks.physics.mpm_rollout import grip_closing_share
+
+    skin = np.array([[0.0, 0, 0], [0.3, 0, -1], [0.3, 0, -1], [0.3, 0, -1], [0.3, 0, -1]])
+    thumb = np.zeros((5, 3))
+    thumb[0] = [0.0, 0.0, 8.0]
+    assert grip_closing_share(skin, thumb) == pytest.approx(0.5, rel=1e-12)
+    assert grip_closing_share(skin, thumb / 4) == 1.0
+    closed = skin.copy()
+    closed[0] = [-1.2, 0.0, 4.0]
+    assert grip_closing_share(closed, thumb) == 0.0
+    assert grip_closing_share(skin, np.zeros((5, 3))) == 0.0
+
+
+def test_stuffing_beneath_a_torn_finger_is_the_core_near_its_opening():
+    """stuffing_beneath: the core particles within ``depth`` of a finger's opening points, owned by the nearest
+    opening point's finger; shell, torn skin and released interior are never pushed, and nothing is farther than
+    ``depth`` (known answers on a line of particles)."""
+    from tasks.physics.mpm_rollout import stuffing_beneath
+
+    x = np.array([[0.0, 0, 0], [0.005, 0, 0], [0.012, 0, 0], [0.03, 0, 0], [0.045, 0, 0], [0.05, 0, 0], [0.1, 0, 0]])
+    labels = np.array([CORE, CORE, CORE, CORE, CORE, INTERIOR, CORE])
+    opening = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]])
+    out = stuffing_beneath(x, labels, opening, np.array([0, 3]), depth=0.01)
+    assert out.tolist() == [0, 0, -1, -1, 3, -1, -1]
+    assert stuffing_beneath(x, np.full(len(x), SHELL), opening, np.array([0, 3]), 0.01).tolist() == [-1] * len(x)
+    assert stuffing_beneath(x, labels, np.zeros((0, 3)), np.zeros(0, int), 0.01).tolist() == [-1] * len(x)
 
 
 def test_torn_skin_peels_back_along_the_surface_away_from_the_opening():

@@ -69,6 +69,7 @@ from dataclasses import dataclass, replace
 from typing import Any, Mapping, Optional
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from conf.hand import FINGERTIP_PAD_RADIUS, N_FINGERS
 from conf.mpm_schema import MPMConfig, mpm_config_from
@@ -203,6 +204,8 @@ class FrameRecord:
     released: Optional[np.ndarray]
     event: dict[str, Any]
     flight: Optional[FlightRecord] = None
+    openings: Optional[tuple[np.ndarray, np.ndarray]] = None  # torn surface points (point,), their finger (point,)
+    beneath: Optional[np.ndarray] = None  # (particle,) int32: the finger pushing it through its opening, -1 none
 
 
 @dataclass
@@ -259,12 +262,12 @@ class FlightRecord:
                 "released_flight_physical_mass": self.physical_mass[kept].astype(np.float64)}
 
 
-def boundary_points(bc: Optional[DirichletPoints], push: Optional[ForcePatch], t: float) -> Optional[np.ndarray]:
-    """(n, xyz) m: where the frame's Dirichlet points (advected with their velocities) or force points are ``t`` s
-    after the frame start (None: neither)."""
+def boundary_points(bc: Optional[DirichletPoints], push: Optional[list[ForcePatch]], t: float) -> Optional[np.ndarray]:
+    """(n, xyz) m: where the frame's Dirichlet points (advected with their velocities) or force points (at the
+    frame start) are ``t`` s after the frame start (None: neither)."""
     if bc is not None:
         return np.asarray(bc.positions) + (t * np.asarray(bc.velocities) if bc.advect else 0.0)
-    return None if push is None else np.asarray(push.positions)
+    return None if not push else np.concatenate([np.asarray(p.positions).reshape(-1, 3) for p in push])
 
 
 def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], field: Mapping[str, np.ndarray],
@@ -605,44 +608,122 @@ def _touching(x: np.ndarray, half: np.ndarray, centre: np.ndarray, outward: np.n
 
 
 def force_patch(scene: Scene, field: Mapping[str, np.ndarray], forces: np.ndarray,
-                patches: Mapping[str, np.ndarray], f: int, torn: np.ndarray,
-                sim: Mapping[str, Any]) -> Optional[ForcePatch]:
+                patches: Mapping[str, np.ndarray], f: int, torn: np.ndarray, sim: Mapping[str, Any],
+                openings: Optional[tuple[np.ndarray, np.ndarray]] = None,
+                beneath: Optional[np.ndarray] = None) -> Optional[list[ForcePatch]]:
     """The force-mode push of frame f (the no_dirichlet ablation): a total force ``force_per_coefficient *
-    c_k,t`` N per active finger along its inward patch normal, spread over its constrained, untorn points (a
-    finger that punctured the skin no longer presses on the torn part, as in dirichlet mode).  The push keeps the
-    finger's pressure, not its total force: a finger whose patch is partly torn presses with the untorn share of
-    its force (the rest goes through the opening, where the released material offers no support).  Concentrating
-    the whole force on the few points left beside an opening crushed the loose stuffing there to det F = 3e-4.
-    The points are the surface tracers, re-placed every substep (``ForcePatch.tracers``): the push follows the
-    skin.  (Fixed for a frame, they were left behind by a torn arm moving at 3 m/s, 10 cm per frame, and the
-    finger's whole force went to the fringe mass still under them, 2.3 N on 4e-5 kg: the divergence, dt 1e-9 s,
-    of the plush toy pushed with balanced fingers after its rupture.)  The fingers' forces are then balanced
-    (``simulation.force_balance``, :func:`balanced_push`; each finger's moment arm from the centre of its points),
-    before and after a rupture: the hand still closes its grip on a torn toy.  Whether the push is a grasp (two
-    fingers against each other) or a poke is read from the fingers' intended push, torn patches included: a finger
-    that punctured the skin still closes the grip through the opening, though the released material there carries
-    none of its force, so the fingers left are balanced among themselves (four fingers on one side, their thumb
-    through the hole, balance to what they push against each other).  (Unbalanced after its rupture, the
-    force-driven plush toy's index pushed 5.8 N against the pinky's 1.7 N and toppled it; balanced, both push
-    1.8 N and it stays upright.  Left as a poke once its thumb's patch had torn, its four fingers shoved it over,
-    11.7 cm across the table at up to 3 m/s, in two of three sampling seeds.)"""
-    finger_of = field["finger"]
+    c_k,t`` N per active finger along its inward patch normal, spread over its constrained, untorn points.
+
+    1. The skin: the points are the surface tracers, re-placed every substep (``ForcePatch.tracers``): the push
+    follows the skin.  (Fixed for a frame, they were left behind by a torn arm moving at 3 m/s, 10 cm per frame, and
+    the finger's whole force went to the fringe mass still under them, 2.3 N on 4e-5 kg: the divergence, dt 1e-9 s,
+    of the plush toy pushed with balanced fingers after its rupture.)  A finger that punctured the skin no longer
+    presses on its torn points: their share of its force (torn / constrained points of its patch) goes 2. to the
+    stuffing or pulp beneath its opening (``simulation.torn_finger_push=beneath``), as far as the grip needs it
+    (:func:`grip_closing_share`): the core particles (CORE) chosen at the rupture within two grid cells of the
+    finger's torn points and of the interior released under it (``beneath`` (particle,) the finger pushing each,
+    -1 none; :func:`stuffing_beneath`), of which those still within ``release_radius`` + two cells of the torn
+    points where they are now (``openings``: the torn surface points and their fingers) are pushed, on their own
+    positions (``ForcePatch.particles``).  The finger presses on through the hole onto what lies under it; what it
+    pushed deep leaves its reach (the whole set pushed with the whole share carried particles out of the plush
+    toy's far side, 8 cm from its centre at 1.9 m/s, J guard at frame 63 of seed 0).  Without such particles
+    (``torn_finger_push=none``, or a hollow can whose cola is a fluid) that share is dropped: the released material
+    offers no support.  (Concentrating the whole force on the few skin points left beside an opening crushed the
+    loose stuffing there to det F = 3e-4; spread over the torn skin too, it followed the flaps as they folded away
+    and flung 7.4 % of the plush toy's torn skin off the toy.)  3. The fingers' forces are then
+    balanced (``simulation.force_balance``, :func:`balanced_push`; each finger's moment arm from the centre of its
+    points, skin and beneath weighted by their shares), before and after a rupture: the hand still closes its grip
+    on a torn toy.  Whether the push is a grasp (two fingers against each other) or a poke is read from the
+    fingers' intended push, torn patches included: a finger that punctured the skin still closes the grip.
+    (Unbalanced after its rupture, the force-driven plush toy's index pushed 5.8 N against the pinky's 1.7 N and
+    toppled it; balanced, both push 1.8 N.  With the torn thumb's share dropped, its four fingers left side by
+    side cannot close the grip within their friction cones and shoved it over in two of three sampling seeds.)"""
+    finger_of = field["finger"][f]
     constrained = field["constrained"][f]
     idx = np.flatnonzero(constrained & ~torn)
-    if not len(idx):
-        return None
-    total, intended = np.zeros((N_FINGERS, 3)), np.zeros((N_FINGERS, 3))
+    surface = scene.solver.tracer_positions()
+    deep, x = np.zeros(0, np.int64), None
+    if beneath is not None and openings is not None and len(openings[0]):
+        x = scene.solver.positions()
+        chosen = np.where(beneath >= 0, CORE, SHELL)
+        reach = float(sim["release_radius"]) + 2.0 * scene.dx
+        deep = np.flatnonzero(stuffing_beneath(x, chosen, surface[openings[0]], openings[1], reach) >= 0)
+    # 1.-2. each finger's intended force and the shares with a point of application (skin, beneath)
+    intended, on_skin, below = np.zeros((N_FINGERS, 3)), np.zeros(N_FINGERS), np.zeros(N_FINGERS)
     for k in range(N_FINGERS):
-        patch = int((constrained & (finger_of[f] == k)).sum())
+        patch = int((constrained & (finger_of == k)).sum())
         if patches["patch_active"][f, k] and patch:
             intended[k] = float(sim["force_per_coefficient"]) * forces[f, k] * -patches["patch_normals"][f, k]
-            total[k] = intended[k] * int((finger_of[f, idx] == k).sum()) / patch
-    positions, fingers = scene.solver.tracer_positions()[idx], finger_of[f, idx].astype(np.int32)
-    centres = np.array([positions[fingers == k].mean(axis=0) if (fingers == k).any() else np.zeros(3)
-                        for k in range(N_FINGERS)])
-    return ForcePatch(positions=positions, finger_ids=fingers, tracers=idx,
-                      forces=balanced_push(total, str(sim["force_balance"]), float(sim["force_balance_friction"]),
-                                           centres, grasp=bool((intended @ intended.T < 0.0).any())))
+            on_skin[k] = int((finger_of[idx] == k).sum()) / patch
+            below[k] = (1.0 - on_skin[k]) * bool((beneath[deep] == k).any()) if len(deep) else 0.0
+    grasp = bool((intended @ intended.T < 0.0).any())
+    below *= grip_closing_share(intended * on_skin[:, None], intended * below[:, None])
+    applied = on_skin + below
+    if not (applied > 0).any():
+        return None
+    skin_x, skin_k = surface[idx], finger_of[idx].astype(np.int32)
+    deep_x, deep_k = (x[deep], beneath[deep].astype(np.int32)) if len(deep) else (None, None)
+    centres = np.zeros((N_FINGERS, 3))
+    for k in np.flatnonzero(applied > 0):
+        if on_skin[k]:
+            centres[k] += on_skin[k] * skin_x[skin_k == k].mean(axis=0)
+        if below[k]:
+            centres[k] += below[k] * deep_x[deep_k == k].mean(axis=0)
+        centres[k] /= applied[k]
+    # 3. the balance of the whole push, then each finger's force split between its skin and what lies beneath
+    push = balanced_push(intended * applied[:, None], str(sim["force_balance"]), float(sim["force_balance_friction"]),
+                         centres, grasp=grasp)
+    part = np.divide(1.0, applied, out=np.zeros(N_FINGERS), where=applied > 0)[:, None] * push
+    out = []
+    if len(idx):
+        out.append(ForcePatch(positions=skin_x, finger_ids=skin_k, tracers=idx, forces=on_skin[:, None] * part))
+    if below.any():
+        out.append(ForcePatch(positions=deep_x, finger_ids=deep_k, particles=deep, forces=below[:, None] * part))
+    return out
+
+
+def grip_closing_share(skin: np.ndarray, beneath: np.ndarray) -> float:
+    """The share s in [0, 1] of the push through the openings ``beneath`` (finger, xyz) N that leaves the fingers'
+    push ``skin + s beneath`` (N) the least net force, s = clip(-N_skin . N_b / |N_b|^2, 0, 1) (N the sums over
+    the fingers): the stuffing under an opening carries what closes the grip, no more.  It is crushable (the plush
+    toy's yields at 1 kPa: 0.4 N under a 4 cm^2 fingertip) and offers a finger pressing into it only the reaction
+    the hand's closed force loop asks of it.  (Pushed with their whole force, the three fingers through their
+    openings of seed 0 of the force-driven plush toy tore its head off, J guard at frame 54.)"""
+    net = np.asarray(beneath).sum(axis=0)
+    size = float(net @ net)
+    return float(np.clip(-np.asarray(skin).sum(axis=0) @ net / size, 0.0, 1.0)) if size > 0 else 0.0
+
+
+def _beneath_openings(x: np.ndarray, labels: np.ndarray, released: np.ndarray, surface: np.ndarray,
+                      openings: tuple[np.ndarray, np.ndarray], centers: np.ndarray, fingers: list[int],
+                      radius: float, depth: float) -> np.ndarray:
+    """:func:`stuffing_beneath` at the rupture: each finger's opening is its torn surface points (``openings``:
+    indices into ``surface`` (point, xyz) m, where the skin was as it tore, and their fingers) and, for the fingers
+    that punctured it (``fingers``, patch centres ``centers`` m), the interior released within ``radius`` m of its
+    centre (particles ``x`` m, ``released`` bool)."""
+    points, owner = [surface[openings[0]]], [openings[1]]
+    for k in fingers:
+        out = released & (np.linalg.norm(x - centers[k], axis=1) <= radius)
+        points.append(x[out])
+        owner.append(np.full(int(out.sum()), k))
+    return stuffing_beneath(x, labels, np.concatenate(points), np.concatenate(owner).astype(np.int32), depth)
+
+
+def stuffing_beneath(x: np.ndarray, labels: np.ndarray, opening: np.ndarray, fingers: np.ndarray,
+                     depth: float) -> np.ndarray:
+    """(particle,) int32: the finger (0..4) that presses through its opening on each particle, -1 none: the core
+    particles (label CORE: the stuffing or pulp that stays part of the body) within ``depth`` m of the finger's
+    ``opening`` points (n, xyz) m, its torn skin (``fingers`` (n,) the finger of each); the nearest finger where
+    two reach.  ``x`` (particle, xyz) m, ``labels`` their labels.  The released interior itself is not pushed: it
+    leaves through the opening (the stuffing's bulge, the juice)."""
+    out = np.full(len(x), -1, np.int32)
+    core = np.flatnonzero(labels == CORE)
+    if not len(core) or not len(opening):
+        return out
+    dist, nearest = cKDTree(np.asarray(opening, np.float64)).query(x[core], distance_upper_bound=depth)
+    hit = np.isfinite(dist)
+    out[core[hit]] = np.asarray(fingers)[nearest[hit]]
+    return out
 
 
 def balanced_push(total: np.ndarray, balance: str, friction: float,
@@ -757,7 +838,7 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
                 bc, tips = None, finger_colliders(solver, scene.surface0, field, patches, f, torn, scene.frame_dt,
                                                   scene.config.finger_friction)
         else:
-            push = force_patch(scene, field, forces, patches, f, torn, sim)
+            push = force_patch(scene, field, forces, patches, f, torn, sim, rec.openings, rec.beneath)
         # 2. one output frame of the solver (KE/IE per frame: summarised in the attrs)
         # (after the rupture the motion is dynamic by design: no quasi-static check)
         flying = rec.flight is not None and f <= rec.event["frame"] + FLIGHT_FRAMES
@@ -797,6 +878,12 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
                 torn |= reg.region[f, k] | (np.linalg.norm(tx - centers[k], axis=1) <= opening)
             mid = rec.event.pop("labels")
             mu_phys = np.array([m.mu for m in scene.materials])[slot[mid]]
+            if boundary == "force" and sim["torn_finger_push"] == "beneath":  # each finger's torn points
+                opened = np.flatnonzero(torn & field["constrained"][f])
+                rec.openings = (opened, field["finger"][f][opened].astype(np.int32))
+                rec.beneath = _beneath_openings(solver.positions(), mid, rec.released, tx, rec.openings, centers,
+                                                rec.event["fingers"], float(sim["release_radius"]), 2.0 * scene.dx)
+                rec.event["pushed_beneath"] = int((rec.beneath >= 0).sum())
             rec.flight = FlightRecord.start(solver, mid)
             rec.flight.sample(solver, float(times[f]), boundary_points(bc, push, scene.frame_dt))
     solver.close_quasi_static_contact()  # the run ends: a contact still loaded is judged too

@@ -122,12 +122,15 @@ class ForcePatch:
     start): they are re-placed from their anchors every substep, so the push follows the material it acts on.
     Points fixed in space for a frame are left behind by material moving more than a cell in it (3 m/s for
     33 ms: 10 cm); the finger's whole force then goes to the little mass still under them, F / W without bound
-    (the torn plush toy's finger 4: 2.3 N on 4e-5 kg, dt 3e-5 s and falling)."""
+    (the torn plush toy's finger 4: 2.3 N on 4e-5 kg, dt 3e-5 s and falling).  ``particles``: instead, the solver's
+    particle indices the points are (each substep at the particles' own positions), e.g. the stuffing beneath a
+    finger that tore through the skin (at most one of ``tracers`` and ``particles``)."""
 
     positions: np.ndarray
     finger_ids: np.ndarray
     forces: np.ndarray
     tracers: Optional[np.ndarray] = None
+    particles: Optional[np.ndarray] = None
 
 
 @dataclass
@@ -1013,16 +1016,26 @@ class MPMSolver:
             ff = np.zeros((self.n_fingers, 3), np.float32)
             ff[: len(forces)] = forces
             x, follow = wp.array(pos, dtype=wp.vec3, device=d), it.tracers is not None
+            if follow and it.particles is not None:
+                raise ValueError("ForcePatch: give tracers or particles, not both")
             if follow:  # every tracer is a point; those not in the patch have finger -1 (no push)
-                tr = np.asarray(it.tracers, np.int64).reshape(-1)
-                if len(tr) != len(pos) or tr.min() < 0 or tr.max() >= self.n_tracers:
-                    raise ValueError(f"ForcePatch.tracers must give one tracer index (< {self.n_tracers}) per point")
-                full = np.full(len(self.tx), -1, np.int32)
-                full[tr] = fid
-                x, fid = self.tx, full
+                x, fid = self.tx, self._points_on(it.tracers, fid, self.n_tracers, len(self.tx), "tracers")
+            elif it.particles is not None:  # every particle is a point, at its own position
+                x, fid = self.x, self._points_on(it.particles, fid, self.n_particles, self.n_particles, "particles")
             out.append(dict(x=x, f=wp.array(fid, dtype=wp.int32, device=d), F=wp.array(ff, dtype=wp.vec3, device=d),
                             w=wp.zeros(len(ff), dtype=float, device=d), count=len(fid), follow=follow))
         return out
+
+    @staticmethod
+    def _points_on(index: np.ndarray, fid: np.ndarray, n: int, size: int, name: str) -> np.ndarray:
+        """The finger id per entry of a solver array of ``size`` entries (-1: not pushed) for a patch whose points
+        are its entries ``index`` (< n, one per point of finger ``fid``)."""
+        index = np.asarray(index, np.int64).reshape(-1)
+        if len(index) != len(fid) or index.min() < 0 or index.max() >= n:
+            raise ValueError(f"ForcePatch.{name} must give one index (< {n}) per point")
+        full = np.full(size, -1, np.int32)
+        full[index] = fid
+        return full
 
     def _set_colliders(self, rows: list[tuple[int, np.ndarray, np.ndarray, float, np.ndarray, float, int, int]]) -> None:
         """Upload collider rows (kind code, a, b, radius, velocity, friction, finger id, field) into ``self.col``."""
