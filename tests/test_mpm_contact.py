@@ -54,6 +54,25 @@ def test_uniaxial_compression_between_surface_plates_matches_E_A_eps(nu):
     assert np.abs(per_layer / r["strain"][-1] - 1.0).max() < 0.07, per_layer  # no held layer at the plates
 
 
+def test_a_body_between_two_flats_is_squeezed_from_both_sides():
+    """body_between_flats (the ball study's press, here on a 40 mm cube, 8 cells across, surface contact): two
+    flats start at the body's particle surfaces and each moves 0.2 mm towards the other, a nominal strain of 1 %:
+    the force per flat is E A eps within 5 %, and the body's centre stays put (the squeeze is symmetric)."""
+    from tasks.verification.contact import DENSITY, body_between_flats
+
+    L, E = 0.04, 1.0e5
+    h = L / 16
+    g = (np.arange(16) + 0.5) * h - L / 2
+    X = np.stack(np.meshgrid(g, g, g + L / 2, indexing="ij"), -1).reshape(-1, 3)
+    mat = Material(name="cube", model="fixed_corotated", youngs_modulus=E, poisson_ratio=0.3, density=DENSITY)
+    s = MPMSolver(X, h ** 3, mat, config=dict(device="cpu", dx=2 * h, gravity=[0.0, 0.0, 0.0], floor=False,
+                                              margin_cells=3, contact="surface", energy_guard_tolerance=0.0))
+    r = body_between_flats(s, "surface", 0.005 * L, 20 * L / mat.bar_wave_speed(), 30)
+    eps = 2 * r["depth"][-4:].mean() / L
+    assert abs(r["force"][-4:].mean() / (E * L * L * eps) - 1.0) < 0.05, r["force"][-4:]
+    assert abs(s.positions()[:, 2].mean() - L / 2) < 1e-3 * L
+
+
 def test_uniaxial_compression_grid_plates_are_too_stiff():
     """The same cube between grid-node slip plates (``DirichletPoints``): the held layers make it stiffer."""
     r = uniaxial_case("grid", 0.3, cells_across=8)
@@ -111,6 +130,29 @@ def test_finite_strain_sphere_fe_meets_the_linear_one_at_small_d_and_is_mesh_con
     assert abs(nl["force"][0] / hertz[0] - 1.0) < 0.025
     assert nl["force"][2] < lin["force"][2] * (0.99 if nu > 0 else 0.95)
     assert np.all(np.abs(nl["force"][1:] / fine["force"] - 1.0) < 0.01)
+
+
+def test_hollow_sphere_fe_tends_to_reissners_thin_shell_stiffness():
+    """The FE of a hollow sphere (``wall`` = t; the rubber ball's reference, ``python -m flows.ball_study``): the
+    meshed quarter annulus revolves into the half shell's volume 2/3 pi (R^3 - (R - t)^3) (within 1e-5), and between
+    two flats at a small approach (d = t / 50) its force tends to Reissner's point-load stiffness of a thin
+    spherical shell, k = 4 E t^2 / (R sqrt(3 (1 - nu^2))), as the wall thins: F / (k d) = 0.66, 0.82, 0.90 at
+    R / t = 10, 25, 50 (measured; the rest is the thick shell's through-thickness compliance, which vanishes with
+    t / R), within 0.2 % on a mesh with 2.3x the nodes."""
+    R, E, nu = 0.035, 2.5e6, 0.3
+    X, T = quarter_disk_mesh(R, 0.0005, inner=R - 0.0035, h_max=0.001)
+    assert abs(quadrature(X, T).dV.sum() / (2 / 3 * np.pi * (R ** 3 - (R - 0.0035) ** 3)) - 1.0) < 1e-5
+    assert np.hypot(X[:, 0], X[:, 1]).min() >= R - 0.0035 - 1e-12
+    ratio = []
+    for t in (R / 10, R / 25, R / 50):
+        k = 4 * E * t ** 2 / (R * np.sqrt(3 * (1 - nu ** 2)))
+        r = sphere_between_flats([t / 50], R, E, nu, h_min=t / 6, h_max=t / 3, wall=t)
+        ratio.append(float(r["force"][0] / (k * t / 50)))
+    print("hollow sphere F / (k d) at R/t = 10, 25, 50:", np.round(ratio, 4))
+    assert 0.60 < ratio[0] < ratio[1] < ratio[2] < 1.0 and ratio[2] > 0.85, ratio
+    fine = sphere_between_flats([R / 25 / 50], R, E, nu, h_min=R / 25 / 10, h_max=R / 25 / 5, wall=R / 25)
+    assert abs(fine["force"][0] / (ratio[1] * 4 * E * (R / 25) ** 2 / (R * np.sqrt(3 * (1 - nu ** 2))) * R / 25 / 50)
+               - 1.0) < 0.002
 
 
 def test_finite_strain_forces_are_the_gradient_of_the_corotated_energy():

@@ -166,6 +166,32 @@ def hertz_case(contact: str, cells_per_radius: int, depth: float = 0.004, load_t
     return out
 
 
+def body_between_flats(solver: MPMSolver, plate: str, travel: float, duration: float, n_frames: int) -> dict:
+    """A body already in ``solver`` (e.g. the default grid's hollow rubber ball, its walls in plane stress) squeezed
+    between two frictionless flats starting at its particles' top and bottom surfaces (centre +- half their
+    spacing), each moving towards the other by ``travel`` (m) over ``duration`` (s) in ``n_frames`` frames
+    (``plate``: ``grid`` slip Dirichlet points, as the default fingers act, or ``surface`` plane colliders, with
+    the solver's matching ``mpm.contact``).  Compared with :func:`tasks.verification.sphere_fe.sphere_between_flats`
+    (``wall``: the hollow sphere's FE reference).  Returns per frame ``depth`` (m, each flat's travel, frame ends)
+    and ``force`` (N, frame mean of the two flats' reactions), ``seconds`` and ``substeps``."""
+    x = solver.positions()
+    half = 0.5 * np.cbrt(solver.volumes().astype(np.float64))
+    top, bottom = float((x[:, 2] + half).max()), float((x[:, 2] - half).min())
+    width = 0.5 * float(np.ptp(x[:, :2], axis=0).max()) + 2.0 * solver.dx
+    rec: dict[str, list] = {"depth": [], "force": [], "substeps": []}
+
+    def on_frame(f, d, st):
+        r = np.asarray(st.reaction)
+        rec["depth"].append(d)
+        rec["force"].append(0.5 * float(r[0, 2] - r[1, 2]))
+        rec["substeps"].append(int(st.substeps))
+
+    t0 = time.perf_counter()
+    _press(solver, plate, top, width, travel, duration, n_frames, on_frame, mirror_z=bottom)
+    return {"depth": np.asarray(rec["depth"]), "force": np.asarray(rec["force"]),
+            "seconds": time.perf_counter() - t0, "substeps": int(sum(rec["substeps"]))}
+
+
 def _joined(a: ParticlePins, b: Optional[ParticlePins]) -> ParticlePins:
     """Two pin sets of one slip kind as one."""
     if b is None:

@@ -32,37 +32,53 @@ _GP = np.array([[1 / 3, 1 / 3], [_A1, _B1], [_B1, _A1], [_B1, _B1], [_A2, _B2], 
 _GW = np.array([0.225] + [0.1323941527] * 3 + [0.1259391805] * 3) / 2
 
 
-def quarter_disk_mesh(R: float, h_min: float, growth: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
-    """6-node triangles on the quarter disk of radius R (m), graded from the pole (0, R): nodes on arcs about the
-    pole with spacing max(h_min, growth * distance) (m), plus the matching boundary nodes on the sphere, the axis
-    and the equator; curved-edge midside nodes lie on the sphere.  Returns nodes (n, 2: r, z) and elements (e, 6:
+def quarter_disk_mesh(R: float, h_min: float, growth: float = 0.05, inner: float = 0.0,
+                      h_max: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    """6-node triangles on the quarter disk of radius R (m), or with ``inner`` > 0 on the quarter annulus inner <=
+    |x| <= R (a hollow sphere's wall), graded from the pole (0, R): nodes on arcs about the pole with spacing
+    min(h_max, max(h_min, growth * distance)) (m), plus the matching boundary nodes on the sphere(s), the axis and
+    the equator; curved-edge midside nodes lie on the sphere(s).  Returns nodes (n, 2: r, z) and elements (e, 6:
     corners, then the midsides of edges 01, 12, 20)."""
+    if not 0.0 <= inner < R:
+        raise ValueError(f"quarter_disk_mesh: inner radius must be in [0, R = {R}), got {inner}")
     pole = np.array([0.0, R])
-    pts = [pole[None], np.array([[R, 0.0], [0.0, 0.0]])]
+    pts = [pole[None], np.array([[R, 0.0], [inner, 0.0] if inner > 0 else [0.0, 0.0]])]
+    if inner > 0:
+        pts.append(np.array([[0.0, inner]]))
     rho = 0.0
     while rho < 2 * R:
-        step = max(h_min, growth * rho)
+        step = min(h_max, max(h_min, growth * rho))
         rho += step
         th = np.linspace(0.0, np.pi, max(4, int(np.ceil(np.pi * rho / step))) + 1)
         P = pole + rho * np.stack([np.sin(th), -np.cos(th)], 1)
-        inside = (P[:, 0] > 0.3 * step) & (P[:, 1] > 0.3 * step) & (np.hypot(P[:, 0], P[:, 1]) < R - 0.3 * step)
+        radius = np.hypot(P[:, 0], P[:, 1])
+        inside = (P[:, 0] > 0.3 * step) & (P[:, 1] > 0.3 * step) & (radius < R - 0.3 * step) & (
+            radius > inner + 0.3 * step if inner > 0 else True)
         pts.append(P[inside])
         phi = 2.0 * np.arcsin(min(rho / (2 * R), 1.0))  # the sphere's point at chord rho from the pole
         if phi <= np.pi / 2:
             pts.append(np.array([[R * np.sin(phi), R * np.cos(phi)]]))
-        if rho <= R:
+        if inner > 0:  # the inner sphere's point at distance rho from the pole
+            c = (inner * inner + R * R - rho * rho) / (2 * R * inner)
+            if 0.0 <= c <= 1.0:
+                pts.append(np.array([[inner * np.sqrt(1 - c * c), inner * c]]))
+        if rho <= R - inner:
             pts.append(np.array([[0.0, R - rho]]))
-        if R <= rho <= np.sqrt(2.0) * R:
+        if np.hypot(inner, R) <= rho <= np.sqrt(2.0) * R:
             pts.append(np.array([[np.sqrt(rho * rho - R * R), 0.0]]))
     P = np.unique(np.round(np.concatenate(pts), 12), axis=0)
     tri = Delaunay(P).simplices
-    tri = tri[np.hypot(*P[tri].mean(1).T) < R]
-    on_sphere = np.abs(np.hypot(P[:, 0], P[:, 1]) - R) < 1e-9 * R
+    centre = np.hypot(*P[tri].mean(1).T)
+    tri = tri[(centre < R) & (centre > inner)]
+    size = np.hypot(P[:, 0], P[:, 1])
+    on_sphere = np.abs(size - R) < 1e-9 * R
+    on_inner = (np.abs(size - inner) < 1e-9 * R) if inner > 0 else np.zeros(len(P), bool)
     edges = np.sort(np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]]), 1)
     unique, inverse = np.unique(edges, axis=0, return_inverse=True)
     mid = P[unique].mean(1)
-    curved = on_sphere[unique[:, 0]] & on_sphere[unique[:, 1]]
-    mid[curved] *= R / np.hypot(mid[curved, 0], mid[curved, 1])[:, None]
+    for on, radius in ((on_sphere, R), (on_inner, inner)):
+        curved = on[unique[:, 0]] & on[unique[:, 1]]
+        mid[curved] *= radius / np.hypot(mid[curved, 0], mid[curved, 1])[:, None]
     elements = np.concatenate([tri, inverse.reshape(3, len(tri)).T + len(P)], 1)
     return np.concatenate([P, mid]), elements
 
@@ -181,7 +197,8 @@ def _newton_step(internal, u: np.ndarray, f: np.ndarray, free: np.ndarray, lu, t
 
 
 def sphere_between_flats(depths, R: float, E: float, nu: float, h_min: float | None = None,
-                         growth: float = 0.05, model: str = "linear", tol: float = 1e-9) -> dict:
+                         growth: float = 0.05, model: str = "linear", tol: float = 1e-9, wall: float = 0.0,
+                         h_max: float = np.inf) -> dict:
     """Force (N) on each flat and contact radius (m) of an elastic sphere (radius R, m; E, Pa; nu) whose two
     frictionless flats each approach its centre by d, for each d in ``depths`` (m, increasing).  ``h_min`` (m;
     default a / 30 at the smallest depth, a = sqrt(R d)) and ``growth``: mesh spacing at the pole and its growth
@@ -190,12 +207,15 @@ def sphere_between_flats(depths, R: float, E: float, nu: float, h_min: float | N
     :func:`_newton_step`, until the free forces fall below ``tol`` x the contact force, starting from the previous
     depth's solution).  Contact by
     active sets: a sphere node is held at the flat (its height z + u_z = R - d, free to slide) while its reaction
-    pushes, released when it pulls, and held when it would cross the flat.  Returns ``at``, ``force``, ``radius``
-    (the reference radius of the outermost node in contact), ``nodes`` and ``iterations`` (Newton, all depths)."""
+    pushes, released when it pulls, and held when it would cross the flat.  ``wall`` (m, > 0): a hollow sphere of
+    that wall thickness (the rubber ball's shell; no air inside), meshed with at most ``h_max`` (m) between nodes.
+    Returns ``at``, ``force``, ``radius`` (the reference radius of the outermost node in contact), ``nodes`` and
+    ``iterations`` (Newton, all depths)."""
     if model not in ("linear", "fixed_corotated"):
         raise ValueError(f"sphere_between_flats: model must be linear or fixed_corotated, got {model!r}")
     at = np.atleast_1d(np.asarray(depths, float))
-    X, T = quarter_disk_mesh(R, h_min or np.sqrt(R * at.min()) / 30, growth)
+    X, T = quarter_disk_mesh(R, h_min or np.sqrt(R * at.min()) / 30, growth, inner=R - wall if wall > 0 else 0.0,
+                             h_max=h_max)
     n_dofs = 2 * len(X)
     K = axisymmetric_stiffness(X, T, E, nu)
     q, (mu, lam) = quadrature(X, T), _lame(E, nu)

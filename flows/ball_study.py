@@ -1,0 +1,100 @@
+"""The rubber ball's wall force against a finite-element reference:  ``python -m flows.ball_study``.
+
+    python -m flows.ball_study                         # default grid and 3, 2 mm particles; flats to 6 mm
+    python -m flows.ball_study --spacings --travel 4   # the default grid alone, 4 mm
+
+The default grid's hollow rubber ball (its own particles and materials: the object model and material oracle steps
+of :func:`flows.pipeline.run_object_local`, the rollout's scene :func:`tasks.physics.mpm_rollout.build_scene`, no
+gravity) squeezed between two frictionless flats (:func:`tasks.verification.contact.body_between_flats`), each
+moving ``--travel`` mm towards the other, against the axisymmetric finite-strain FE of the same hollow sphere
+between flats (:func:`tasks.verification.sphere_fe.sphere_between_flats` with ``wall``, fixed-corotated: the wall's
+radius, thickness, E and nu from the scene; no air inside in either).  ``--spacings`` (mm) refine the particles,
+the grid with them (dx = 2 x spacing, substeps 800 / spacing per frame as in ``flows.finger_study``).  Prints the
+force per flat at each whole millimetre of travel and writes ``<out>/ball_study.md``.  No Prefect: one process.
+"""
+from __future__ import annotations
+
+import argparse
+import platform
+from datetime import datetime
+from pathlib import Path
+
+import numpy as np
+
+FE_STEP = 0.25e-3  # m: the FE's depth increment (Newton from the previous depth's state; 0.5 mm steps fail to converge)
+
+
+def ball_scene(overrides: list[str], root: str, obj: str = "rubber_ball"):
+    """The rollout's scene of ``obj`` (full variant, no gravity) on the default grid config plus ``overrides``."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from conf.schema import register_configs
+    from flows.pipeline import run_object_local, step_params
+    from tasks.core.artifacts import read_artifact
+    from tasks.physics.mpm_rollout import build_scene, mpm_rollout_step
+
+    register_configs()
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
+        cfg = compose(config_name="evaluate", overrides=[f"object={obj}", "variant=full", "mpm.gravity=[0,0,0]",
+                                                         "mpm.energy_guard_tolerance=0", *overrides])
+    refs = run_object_local(cfg, cfg.object, cfg.variant, root, until="material_oracle")
+    a = {k: read_artifact(v) for k, v in refs.items()}
+    params = step_params(mpm_rollout_step, cfg, cfg.object, cfg.variant)
+    model = a["object_model"]
+    return build_scene(model.arrays, {**model.attrs, "name": model.ref.scope}, a["dirichlet_field"].arrays,
+                       a["contact_patches"].arrays, a["signal_smoothing"]["time"], a["material_oracle"].attrs["materials"],
+                       params["mpm"], params["simulation"], a["force_coefficients"]["force_coefficients"], "dirichlet"), cfg
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--spacings", nargs="*", type=float, default=[3.0, 2.0], help="finer particle spacings (mm)")
+    ap.add_argument("--travel", type=float, default=6.0, help="each flat's travel (mm)")
+    ap.add_argument("--frames", type=int, default=60, help="output frames of the squeeze (1/30 s each)")
+    ap.add_argument("--artifacts", default="artifacts", help="artifact root of the object model steps")
+    ap.add_argument("--out", default="reports/ball", help="folder of ball_study.md")
+    args = ap.parse_args(argv)
+    if not args.travel > 0 or any(not v > 0 for v in args.spacings):
+        ap.error("--travel and --spacings must be > 0 mm")
+    from tasks.physics.labels import SHELL
+    from tasks.verification.contact import body_between_flats
+    from tasks.verification.sphere_fe import sphere_between_flats
+
+    travel = 1e-3 * args.travel
+    marks = np.arange(1, int(np.floor(args.travel)) + 1) * 1e-3
+    rows, wall = [], None
+    for spacing in [None, *sorted(args.spacings, reverse=True)]:
+        over = [] if spacing is None else [f"sampling.particle_spacing={spacing / 1000:g}",
+                                           f"mpm.target_substeps_per_frame={round(800 / spacing)}"]
+        scene, cfg = ball_scene(over, args.artifacts)
+        shell = scene.materials[int(scene.slot[SHELL])]
+        wall = wall or dict(R=0.5 * float(cfg.object.geometry.size[0]), t=float(cfg.object.geometry.wall_thickness),
+                            E=float(shell.youngs_modulus), nu=float(shell.poisson_ratio))
+        r = body_between_flats(scene.solver, "grid", travel, args.frames * scene.frame_dt, args.frames)
+        force = np.interp(marks, r["depth"], r["force"])
+        rows.append((f"MPM, dx {1e3 * scene.dx:g} mm" + (" (default)" if spacing is None else ""), force,
+                     f"{len(scene.solver.positions())} particles, {r['substeps']} substeps, {r['seconds']:.0f} s"))
+        print(f"| {rows[-1][0]} | " + " | ".join(f"{v:.2f}" for v in force) + f" | {rows[-1][2]} |", flush=True)
+    fe = sphere_between_flats(np.arange(FE_STEP, travel + 1e-9, FE_STEP), wall["R"], wall["E"], wall["nu"],
+                              h_min=wall["t"] / 6, h_max=wall["t"] / 3, model="fixed_corotated", wall=wall["t"],
+                              tol=1e-7)
+    rows.append(("FE, finite strain (fixed-corotated)", np.interp(marks, fe["at"], fe["force"]),
+                 f"{fe['nodes']} nodes, 3 across the wall"))
+    print(f"| {rows[-1][0]} | " + " | ".join(f"{v:.2f}" for v in rows[-1][1]) + f" | {rows[-1][2]} |", flush=True)
+    lines = [f"# Rubber ball between two flats ({datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, Warp CPU)", "",
+             f"Hollow sphere R = {1e3 * wall['R']:g} mm, wall {1e3 * wall['t']:g} mm, E = {wall['E']:.3g} Pa, "
+             f"nu = {wall['nu']:g}, no air inside; frictionless flats (grid-node slip points in MPM), each moving "
+             "towards the other.  Force per flat (N) at each flat's travel:", "",
+             "| run | " + " | ".join(f"{1e3 * m:g} mm" for m in marks) + " | |",
+             "|---|" + "---|" * len(marks) + "---|",
+             *[f"| {name} | " + " | ".join(f"{v:.2f}" for v in force) + f" | {note} |" for name, force, note in rows]]
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "ball_study.md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {out / 'ball_study.md'}")
+
+
+if __name__ == "__main__":
+    main()
