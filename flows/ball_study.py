@@ -26,19 +26,12 @@ FE_STEP = 0.25e-3  # m: the FE's depth increment (Newton from the previous depth
 
 def ball_scene(overrides: list[str], root: str, obj: str = "rubber_ball"):
     """The rollout's scene of ``obj`` (full variant, no gravity) on the default grid config plus ``overrides``."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    from conf.schema import register_configs
-    from flows.pipeline import run_object_local, step_params
+    from flows.pipeline import evaluate_config, run_object_local, step_params
     from tasks.core.artifacts import read_artifact
     from tasks.physics.mpm_rollout import build_scene, mpm_rollout_step
 
-    register_configs()
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
-        cfg = compose(config_name="evaluate", overrides=[f"object={obj}", "variant=full", "mpm.gravity=[0,0,0]",
-                                                         "mpm.energy_guard_tolerance=0", *overrides])
+    cfg = evaluate_config([f"object={obj}", "variant=full", "mpm.gravity=[0,0,0]", "mpm.energy_guard_tolerance=0",
+                           *overrides])
     refs = run_object_local(cfg, cfg.object, cfg.variant, root, until="material_oracle")
     a = {k: read_artifact(v) for k, v in refs.items()}
     params = step_params(mpm_rollout_step, cfg, cfg.object, cfg.variant)

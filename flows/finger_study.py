@@ -49,17 +49,11 @@ def run_case(obj: str, overrides: list[str], root: str) -> dict:
     ``positions``, the surface Gaussians' trajectories (frame, point, xyz) m, under ``reactions`` the fingers'
     |reaction| (frame, finger) N)."""
     import numpy as np
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
 
-    from conf.schema import register_configs
-    from flows.pipeline import run_object_local
+    from flows.pipeline import evaluate_config, run_object_local
     from tasks.core.artifacts import read_artifact
 
-    register_configs()
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
-        cfg = compose(config_name="evaluate", overrides=[f"object={obj}", "variant=full", *overrides])
+    cfg = evaluate_config([f"object={obj}", "variant=full", *overrides])
     refs = run_object_local(cfg, cfg.object, cfg.variant, root, until="deformation_metrics")
     rollout, metrics = read_artifact(refs["mpm_rollout"]), read_artifact(refs["deformation_metrics"])
     reaction = np.linalg.norm(np.asarray(rollout["reaction_force"]), axis=-1)  # (frame, finger) N

@@ -239,6 +239,20 @@ def submit_scene_media(cfg: DictConfig, scope: str, futures: dict[tuple[str, str
             for k, (variant, refs) in enumerate(shown.get("variants", {}).items())]
 
 
+def evaluate_config(overrides: list[str]) -> DictConfig:
+    """The evaluation grid's config (``conf/evaluate.yaml``) with ``overrides``, composed outside Hydra's main (the
+    study flows, notebooks; pair it with :func:`run_object_local`)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from conf.schema import register_configs
+
+    register_configs()
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=str(Path(__file__).resolve().parents[1] / "conf"), version_base="1.3"):
+        return compose(config_name="evaluate", overrides=list(overrides))
+
+
 def run_object_local(cfg: DictConfig, obj: DictConfig, variant: DictConfig | None, root: str | Path,
                      until: str | None = None) -> dict[str, ArtifactRef]:
     """Run one object's chain (and one variant's, when given) without Prefect, up to step ``until`` (tests,

@@ -702,17 +702,17 @@ def test_the_stuffing_under_an_opening_carries_what_closes_the_grip():
 
 def test_stuffing_beneath_a_torn_finger_is_the_core_near_its_opening():
     """stuffing_beneath: the core particles within ``depth`` of a finger's opening points, owned by the nearest
-    opening point's finger; shell, torn skin and released interior are never pushed, and nothing is farther than
-    ``depth`` (known answers on a line of particles)."""
+    opening point's finger; only the candidates (the core) are pushed, never shell, torn skin or released interior,
+    and nothing farther than ``depth`` (known answers on a line of particles)."""
     from tasks.physics.mpm_rollout import stuffing_beneath
 
     x = np.array([[0.0, 0, 0], [0.005, 0, 0], [0.012, 0, 0], [0.03, 0, 0], [0.045, 0, 0], [0.05, 0, 0], [0.1, 0, 0]])
     labels = np.array([CORE, CORE, CORE, CORE, CORE, INTERIOR, CORE])
     opening = np.array([[0.0, 0.0, 0.0], [0.05, 0.0, 0.0]])
-    out = stuffing_beneath(x, labels, opening, np.array([0, 3]), depth=0.01)
+    out = stuffing_beneath(x, labels == CORE, opening, np.array([0, 3]), depth=0.01)
     assert out.tolist() == [0, 0, -1, -1, 3, -1, -1]
-    assert stuffing_beneath(x, np.full(len(x), SHELL), opening, np.array([0, 3]), 0.01).tolist() == [-1] * len(x)
-    assert stuffing_beneath(x, labels, np.zeros((0, 3)), np.zeros(0, int), 0.01).tolist() == [-1] * len(x)
+    assert stuffing_beneath(x, np.zeros(len(x), bool), opening, np.array([0, 3]), 0.01).tolist() == [-1] * len(x)
+    assert stuffing_beneath(x, labels == CORE, np.zeros((0, 3)), np.zeros(0, int), 0.01).tolist() == [-1] * len(x)
 
 
 def test_torn_skin_peels_back_along_the_surface_away_from_the_opening():

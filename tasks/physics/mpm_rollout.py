@@ -645,9 +645,8 @@ def force_patch(scene: Scene, field: Mapping[str, np.ndarray], forces: np.ndarra
     deep, x = np.zeros(0, np.int64), None
     if beneath is not None and openings is not None and len(openings[0]):
         x = scene.solver.positions()
-        chosen = np.where(beneath >= 0, CORE, SHELL)
         reach = float(sim["release_radius"]) + 2.0 * scene.dx
-        deep = np.flatnonzero(stuffing_beneath(x, chosen, surface[openings[0]], openings[1], reach) >= 0)
+        deep = np.flatnonzero(stuffing_beneath(x, beneath >= 0, surface[openings[0]], openings[1], reach) >= 0)
     # 1.-2. each finger's intended force and the shares with a point of application (skin, beneath)
     intended, on_skin, below = np.zeros((N_FINGERS, 3)), np.zeros(N_FINGERS), np.zeros(N_FINGERS)
     for k in range(N_FINGERS):
@@ -706,18 +705,19 @@ def _beneath_openings(x: np.ndarray, labels: np.ndarray, released: np.ndarray, s
         out = released & (np.linalg.norm(x - centers[k], axis=1) <= radius)
         points.append(x[out])
         owner.append(np.full(int(out.sum()), k))
-    return stuffing_beneath(x, labels, np.concatenate(points), np.concatenate(owner).astype(np.int32), depth)
+    return stuffing_beneath(x, labels == CORE, np.concatenate(points), np.concatenate(owner).astype(np.int32),
+                            depth)
 
 
-def stuffing_beneath(x: np.ndarray, labels: np.ndarray, opening: np.ndarray, fingers: np.ndarray,
+def stuffing_beneath(x: np.ndarray, candidates: np.ndarray, opening: np.ndarray, fingers: np.ndarray,
                      depth: float) -> np.ndarray:
-    """(particle,) int32: the finger (0..4) that presses through its opening on each particle, -1 none: the core
-    particles (label CORE: the stuffing or pulp that stays part of the body) within ``depth`` m of the finger's
-    ``opening`` points (n, xyz) m, its torn skin (``fingers`` (n,) the finger of each); the nearest finger where
-    two reach.  ``x`` (particle, xyz) m, ``labels`` their labels.  The released interior itself is not pushed: it
-    leaves through the opening (the stuffing's bulge, the juice)."""
+    """(particle,) int32: the finger (0..4) that presses through its opening on each particle, -1 none: the
+    ``candidates`` (particle,) bool - at the rupture the core (label CORE: the stuffing or pulp that stays part of
+    the body), later the core chosen then - within ``depth`` m of the finger's ``opening`` points (n, xyz) m
+    (``fingers`` (n,) the finger of each); the nearest finger where two reach.  ``x`` (particle, xyz) m.  The
+    released interior itself is not pushed: it leaves through the opening (the stuffing's bulge, the juice)."""
     out = np.full(len(x), -1, np.int32)
-    core = np.flatnonzero(labels == CORE)
+    core = np.flatnonzero(candidates)
     if not len(core) or not len(opening):
         return out
     dist, nearest = cKDTree(np.asarray(opening, np.float64)).query(x[core], distance_upper_bound=depth)
