@@ -104,7 +104,8 @@ class MPMConfig:
             2000) whenever they share the scene with the body: their nodal velocity is no longer the (heavier,
             mass-scaled) body's, and the two fields meet only through a
             frictionless, non-sticking contact at the nodes both carry mass on (normal from the body's mass
-            gradient; approaching normal velocities become the centre-of-mass one, momentum-conserving; see
+            gradient; approaching normal velocities become the centre-of-mass one, momentum-conserving; a released
+            material with a ``cohesion``, the torn-out stuffing, also holds a separation up to it in tension; see
             :func:`tasks.physics.mpm.kernels.k_field_contact`).  Fingers (Dirichlet, force patches) act on the body
             field.  False: one shared field (the former behaviour).
         mass_scale: the factor s of ``manual`` (>= 1, dimensionless).

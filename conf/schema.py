@@ -257,9 +257,11 @@ class SimulationConfig:
         oracle's ``foam`` interior, loose fibrefill): released stuffing leaves at this J (F = J^(1/3) I) and expands
         out of the opening as a cohesive bulge (a fluid interior, juice and cola, is released at its rest volume
         whatever this is).  0.5 (default; the oracle's loose fibrefill is the packed stuffing's modulus and yield x
-        0.5^3, van Wyk's cube law): the full plush toy's stuffing ends 41 % outside the rest surface (max 11.6 mm, a
-        dome over the opening), in one piece (99 %); measured at E = yield = 1 kPa: 0.6 29 %, max 10 mm, 1 (no
-        packing) 24 %, max 6 mm.  A fluid stuffing released at 0.5 flew apart (43 pieces).
+        0.5^3, van Wyk's cube law): the full plush toy's stuffing (seed 0, whose tear is 2.4 cm above the table) ends
+        41 % outside the rest surface with a free contact (max 11.6 mm, spread over the toy's foot), 3 % (max 3.3
+        mm, in the opening) with the default ``stuffing_cohesion``, in one piece (99 %); measured at E = yield = 1 kPa
+        with the free contact: 0.6 29 %, max 10 mm, 1 (no packing) 24 %, max 6 mm.  A fluid stuffing released at 0.5
+        flew apart (43 pieces).
     seam_opening: where the interior is packed stuffing, the torn fabric opens at the release as a hole of this
         fraction of ``release_radius`` (the fabric folded into the ring around it,
         ``tasks.physics.mpm_rollout.seam_opening``) instead of the torn patch staying as a lid over the opening
@@ -267,6 +269,17 @@ class SimulationConfig:
         stuffing's outward reach by < 1 mm).  0: the torn patch, one continuum in the grid, stays a lid over the opening and the stuffing stops
         under it within ~8 ms (5 mm).  The full plush toy's substeps 10,403 -> 9,004 with both (the loose foam's
         stable step is longer than the former viscous fluid's); Table 2 within 0.02.
+    stuffing_cohesion: the released stuffing's entanglement with the stuffing it tore from, as a fraction of the
+        loose stuffing's own yield stress (dimensionless): the tensile strength (Pa) of the contact between the
+        released velocity field and the body (``Material.cohesion``; the tangential contact stays frictionless).
+        Released stuffing has its own field (its physical inertia against the mass-scaled toy) and met the toy only
+        through a frictionless, non-sticking contact: pushed out of the tear it slid off (seeds 1-2 and every
+        force-driven seed: on the table 4-7 cm from the toy).  1 (default: the fibre mass holds across the tear's
+        inner face what it holds within itself, 125 Pa for the oracle's loose fibrefill; its bulge's weight is
+        ~7 Pa of that face): in all six plush runs (seeds 0-2, both variants) the stuffing stays on the toy (median
+        2-5 mm from it, none > 3 cells), in one piece per opening, at the same substeps; outside the rest surface at
+        the end, full variant, seeds 0 / 1 / 2: 3 / 29 / 14 % (max 3.3 / 13.2 / 10.3 mm).  0.25 (31 Pa) holds it
+        too and lets it bulge further (seeds 1 / 2 full: 45 / 31 %, max 17 / 13 mm).  0: the former free contact.
     feedback_max_force: N, the glove's per-finger force-feedback range (resistive force is clipped to it).
     feedback_rule: the resistive force per finger (sec. 3.2), clipped to ``feedback_max_force``: ``yield_area``
         (the paper's rule: the shell's yield stress tau_y (Pa) x the contact patch area A_k (m^2); the simulated
@@ -290,6 +303,7 @@ class SimulationConfig:
     ruptured_softening: float = 1.0e-2
     stuffing_packing: float = 0.5
     seam_opening: float = 0.6
+    stuffing_cohesion: float = 1.0
     feedback_max_force: float = 20.0
     feedback_rule: str = "auto"
 
@@ -440,6 +454,8 @@ def validate_simulation(cfg: Any, objects: list[tuple[str, Any]]) -> None:
          f"must be in [0.2, 1] (packed / relaxed volume of the stuffing; 1 = not packed), got {sim.stuffing_packing}")
     need(0 <= sim.seam_opening < 1, "simulation.seam_opening",
          f"must be in [0, 1) (the hole's radius over release_radius; 0 = no opening), got {sim.seam_opening}")
+    need(sim.stuffing_cohesion >= 0, "simulation.stuffing_cohesion",
+         f"must be >= 0 (a fraction of the loose stuffing's yield stress; 0 = no cohesion), got {sim.stuffing_cohesion}")
     need(sim.force_balance in FORCE_BALANCES, "simulation.force_balance",
          f"must be wrench (the fingers' forces and moments sum to zero), fingers (their forces) or none, "
          f"got {sim.force_balance!r}")

@@ -96,6 +96,10 @@ def test_material_validation_and_wave_speed():
             Material(**bad)
     with pytest.raises(MaterialError, match="yield_stress"):
         Material(model="metal")
+    with pytest.raises(MaterialError, match="cohesion must be >= 0"):
+        Material(cohesion=-1.0, mass_scaled=False)
+    with pytest.raises(MaterialError, match="give it mass_scaled=False"):  # the body's own field has no such contact
+        Material(cohesion=100.0)
     m = Material(youngs_modulus=1e6, poisson_ratio=0.3, density=1000.0)
     E, nu, rho = 1e6, 0.3, 1000.0
     assert m.p_wave_speed() == pytest.approx(math.sqrt(E * (1 - nu) / (rho * (1 + nu) * (1 - 2 * nu))))

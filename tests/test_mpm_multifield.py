@@ -1,8 +1,9 @@
 """Two velocity fields on the grid (multi-field MPM, Bardenhagen et al. 2000): released material and fluids move
 with their own nodal velocities, coupled to the (mass-scaled) body only by a frictionless, non-sticking contact
-(:func:`tasks.physics.mpm.kernels.k_field_contact`).  Known answers: free fall at g next to a scaled body, a blob
-thrown at a heavy wall keeps its tangential velocity and loses its normal one without passing through, separating
-fields do not stick, the contact conserves momentum node by node."""
+(:func:`tasks.physics.mpm.kernels.k_field_contact`), or holding in tension up to the released material's
+``cohesion``.  Known answers: free fall at g next to a scaled body, a blob thrown at a heavy wall keeps its
+tangential velocity and loses its normal one without passing through, separating fields do not stick, the contact
+conserves momentum node by node, a cohesive blob stays on the wall below its strength and leaves above it."""
 from __future__ import annotations
 
 import warnings
@@ -102,32 +103,37 @@ def test_separating_fields_do_not_stick():
     assert kept[False] < 0.5
 
 
-def test_field_contact_kernel_conserves_momentum_and_keeps_tangential_velocity():
+@pytest.mark.parametrize("vx,cohesion,expect_b,expect_f", [
+    (-1.0, 0.0, -1.0 / 9.0, -1.0 / 9.0), (1.0, 0.0, 0.0, 1.0),  # approaching; separating freely
+    (1.0, 1000.0, 1.0 / 9.0, 1.0 / 9.0), (1.0, 300.0, 0.0375, 0.7),  # separating from a cohesive contact
+    (-1.0, 300.0, -1.0 / 9.0, -1.0 / 9.0)])  # approaching a cohesive one
+def test_field_contact_kernel_conserves_momentum_and_keeps_tangential_velocity(vx, cohesion, expect_b, expect_f):
     """The contact kernel on a 5x5x5 grid: the body fills the nodes x <= 2 with mass 8 kg, the released field the
-    nodes x >= 2 with 1 kg (contact normal +x at node (2, 2, 2)).  Known answers at (2, 2, 2): approaching
-    (body (0, 0, 0), released (-1, 0.5, 0) m/s) -> both normal components become the centre-of-mass one,
-    8 * 0 + 1 * (-1) / 9 = -1/9 m/s, the tangential ones stay (0 and 0.5), and the node's momentum is unchanged;
-    separating (released (+1, 0.5, 0)) -> nothing changes."""
-    for vx, expect_b, expect_f in ((-1.0, -1.0 / 9.0, -1.0 / 9.0), (1.0, 0.0, 1.0)):
-        body = np.zeros((5, 5, 5, 4), np.float32)
-        body[:3, :, :, 3] = 8.0
-        free = np.zeros((5, 5, 5, 4), np.float32)
-        free[2:, :, :, 3] = 1.0
-        free[2, 2, 2, :3] = (vx, 0.5, 0.0)
-        gb = wp.array(body, dtype=wp.vec4, device="cpu")
-        gf = wp.array(free, dtype=wp.vec4, device="cpu")
-        gs = K.GridStep()
-        gs.origin = wp.vec3i(1, 1, 1)
-        gs.dt = 1e-3
-        gs.has_bc = 0
-        cond = K.GridConditions()
-        cond.gravity = wp.vec3(0.0, 0.0, 0.0)
-        cond.pad = 0
-        wp.launch(K.k_field_contact, dim=(3, 3, 3), inputs=[gs, cond, cond, gb, gf], device="cpu")
-        b, f = gb.numpy()[2, 2, 2], gf.numpy()[2, 2, 2]
-        np.testing.assert_allclose(b[:3], [expect_b, 0.0, 0.0], atol=1e-6)
-        np.testing.assert_allclose(f[:3], [expect_f, 0.5, 0.0], atol=1e-6)
-        np.testing.assert_allclose(8.0 * b[:3] + 1.0 * f[:3], [vx, 0.5, 0.0], atol=1e-6)
+    nodes x >= 2 with 1 kg (contact normal +x at node (2, 2, 2); there the released field's mass difference
+    m(3) - m(1) = 1 kg), dt = 1 ms.  Known answers at (2, 2, 2): approaching (body (0, 0, 0), released (-1, 0.5, 0)
+    m/s) -> both normal components become the centre-of-mass one, 8 * 0 + 1 * (-1) / 9 = -1/9 m/s, whatever the
+    cohesion; separating (released (+1, 0.5, 0)) -> nothing changes without cohesion (field_cohesion k = 0).  With
+    it, the impulse that stops the separation, the reduced mass x the normal speed = 8 / 9 x 1 = 0.889 N s, is
+    applied up to k x 1 kg x dt: k = 1000 N/kg (1 N s) -> both normal velocities the centre-of-mass one, 1/9 m/s;
+    k = 300 (0.3 N s) -> the released field's drops by 0.3 / 1 to 0.7 m/s and the body's rises by 0.3 / 8 to
+    0.0375 m/s.  Always: the tangential components stay (frictionless) and the node's momentum is unchanged."""
+    body = np.zeros((5, 5, 5, 4), np.float32)
+    body[:3, :, :, 3] = 8.0
+    free = np.zeros((5, 5, 5, 4), np.float32)
+    free[2:, :, :, 3] = 1.0
+    free[2, 2, 2, :3] = (vx, 0.5, 0.0)
+    gb = wp.array(body, dtype=wp.vec4, device="cpu")
+    gf = wp.array(free, dtype=wp.vec4, device="cpu")
+    gs = K.GridStep()
+    gs.origin = wp.vec3i(1, 1, 1)
+    gs.dt = 1e-3
+    cond, cond_free = K.GridConditions(), K.GridConditions()
+    cond_free.field_cohesion = cohesion
+    wp.launch(K.k_field_contact, dim=(3, 3, 3), inputs=[gs, cond, cond_free, gb, gf], device="cpu")
+    b, f = gb.numpy()[2, 2, 2], gf.numpy()[2, 2, 2]
+    np.testing.assert_allclose(b[:3], [expect_b, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(f[:3], [expect_f, 0.5, 0.0], atol=1e-6)
+    np.testing.assert_allclose(8.0 * b[:3] + 1.0 * f[:3], [vx, 0.5, 0.0], atol=1e-6)
 
 
 def test_second_field_is_used_only_while_both_fields_have_particles():
@@ -173,3 +179,36 @@ def test_released_blob_falls_at_g_onto_the_table_surface_and_pools_on_it():
     assert z.min() - r > -0.02 * r
     v1 = (s.volumes() * np.linalg.det(s.deformation_gradients()))[blob].sum()
     assert v1 == pytest.approx(v0, rel=0.03)
+
+
+def _blob_pulled_off_the_wall(cohesion: float, frames: int = 6) -> np.ndarray:
+    """An elastic blob (field 1, 1 cm thick along x, 1000 kg/m^3) touching the heavy wall's face, pulled off it by
+    gravity along +x (its weight per contact area rho g h = 98.1 Pa); returns its centroid's x (m) every 5 ms."""
+    blob = Material(name="blob", model="fixed_corotated", youngs_modulus=5e4, poisson_ratio=0.3, density=1000.0,
+                    mass_scaled=False, cohesion=cohesion)
+    Xw = lattice([0.0, 0.0, 0.0], [0.02, 0.08, 0.06], DX / 2)
+    Xb = lattice([0.0205, 0.02, 0.02], [0.0305, 0.05, 0.05], DX / 2)
+    ids = np.repeat([0, 1], [len(Xw), len(Xb)])
+    s = MPMSolver(np.concatenate([Xw, Xb]), (DX / 2) ** 3, [WALL, blob], material_ids=ids,
+                  config=dict(device="cpu", dx=DX, mass_scaling="selective", target_substeps_per_frame=10,
+                              floor_height=0.0, floor_sticky=True, gravity=[9.81, 0.0, 0.0],
+                              domain_lo=[-0.04, -0.02, -0.02], domain_hi=[0.12, 0.1, 0.1]))
+    assert s.two_fields and s.field_cohesion == pytest.approx(cohesion / (2 * 1000.0 * DX))
+    xs, _ = run(s, frames, 0.005)
+    return xs[:, ids == 1, 0].mean(axis=1) - xs[0, ids == 1, 0].mean()
+
+
+def test_cohesive_blob_stays_on_the_wall_below_its_strength_and_leaves_above_it():
+    """The blob's contact with the wall holds ``Material.cohesion`` per unit area in tension.  Known answers over
+    30 ms: without cohesion it leaves at g (x = g t^2 / 2 = 4.41 mm within 5 %; measured 4.44); at twice its weight
+    per area (196 Pa) it stays (< 0.1 mm: elastic sag only; measured 0.04); at half its weight per area (49 Pa) the
+    contact holds half the weight while the two touch, so it leaves at about g / 2 (2.21 mm within 25 %; measured
+    1.81: the interface's share is spread over the nodes of its stencil, a little more than the blob's contact
+    area)."""
+    g, t = 9.81, 0.03
+    free = _blob_pulled_off_the_wall(0.0)
+    assert free[-1] == pytest.approx(0.5 * g * t ** 2, rel=0.05)
+    held = _blob_pulled_off_the_wall(2 * 98.1)
+    assert np.abs(held).max() < 1e-4, held
+    half = _blob_pulled_off_the_wall(0.5 * 98.1)
+    assert half[-1] == pytest.approx(0.25 * g * t ** 2, rel=0.25), half

@@ -480,6 +480,7 @@ def _check_release(art, min_outward: float) -> dict:
     # body, tasks.physics.attachment); launched with the interior, a flake of the tomato's was carried off
     attached = r.attrs["skin_attachment"]
     assert attached["ruptured_detached"] == 0.0 and attached["shell_detached"] == 0.0, attached
+    assert "stuffing_detached" not in attached  # juice leaves the fruit: only a cohesive interior is held to it
     # and the surface Gaussians drawing it are bound to the skin, not to flesh that burst into juice: all of them end
     # within 2 cells of the body (bound to pulp too, the tomato's were dragged up to 5.5 cells off with the juice)
     body = np.isin(mat, [SHELL, RUPTURED, CORE])
@@ -830,6 +831,24 @@ def test_packed_stuffing_leaves_compressed_through_a_seam_that_opens():
     assert np.all(alpha[released] == 0.0) and np.all(alpha[~released] == np.float32(0.3))
     with pytest.raises(ValueError, match="alpha must be finite and >= 0"):
         s.set_plastic_strain(np.full(len(x), -0.1))
+
+
+def test_released_stuffing_holds_to_the_toy_and_juice_does_not():
+    """The released material of the table's interiors (``_released_material``): the loose fibrefill keeps its own
+    velocity field (physical inertia, mass_scaled False) and its contact with the toy holds its yield stress x
+    simulation.stuffing_cohesion in tension (125 Pa at the default 1; 0 gives the free contact); a liquid (juice)
+    gets no cohesion: it separates freely from the fruit."""
+    from tasks.physics.mpm_rollout import _released_material
+    from tasks.physics.oracle.table import INTERIORS
+
+    sim = dict(OmegaConf.to_container(OmegaConf.structured(SimulationConfig())))
+    fibre = INTERIORS["polyester_fibrefill"].material
+    loose = _released_material(fibre, sim)
+    assert loose.cohesion == pytest.approx(fibre.yield_stress) == pytest.approx(125.0)
+    assert not loose.is_mass_scaled
+    assert _released_material(fibre, {**sim, "stuffing_cohesion": 0.0}).cohesion == 0.0
+    assert _released_material(fibre, {**sim, "stuffing_cohesion": 0.4}).cohesion == pytest.approx(50.0)
+    assert _released_material(INTERIORS["tomato_juice"].material, sim).cohesion == 0.0
 
 
 def test_seam_opening_folds_the_torn_patch_into_a_ring():

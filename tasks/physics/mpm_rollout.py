@@ -977,9 +977,19 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
         "energy_guard": {"tolerance": float(scene.config.energy_guard_tolerance),
                          "max_energy_growth": float(rec.stats["energy_growth"].max())},
         "skin_attachment": detached_summary(rec.particle_positions[-1], mid, (SHELL, RUPTURED, CORE),
-                                            {"shell": SHELL, "ruptured": RUPTURED}, scene.dx),
+                                            _held_labels(scene), scene.dx),
     }
     return arrays, attrs
+
+
+def _held_labels(scene: Scene) -> dict[str, int]:
+    """The particles that must stay on the object (name -> label; ``skin_attachment``): the shell and its torn skin,
+    and the released interior where its contact holds it to the body (``Material.cohesion``: torn-out stuffing),
+    not juice or cola, which are meant to leave."""
+    held = {"shell": SHELL, "ruptured": RUPTURED}
+    if scene.with_interior and scene.materials[int(scene.slot[INTERIOR])].cohesion > 0:
+        held["stuffing"] = INTERIOR
+    return held
 
 
 FLIGHT_ARRAYS = {  # name: (axes, unit, description) of the flight recorder's arrays in the rollout artifact
@@ -1041,14 +1051,17 @@ def _released_material(interior: Any, sim: Mapping[str, Any]) -> Material:
     A fluid (juice, cola) gets the Tait exponent ``simulation.fluid_tait_exponent`` (its bulk modulus is set with
     the mass scale).  A ``foam`` (the table's loose fibrefill stuffing: a cohesive, crushable fibre mass) is used as
     stated, the torn-out fibre mass itself, with a crush cap that admits the packed state it is released at
-    (``simulation.stuffing_packing``, :func:`_release`): compression up to it is elastic, beyond it permanent.  Any
+    (``simulation.stuffing_packing``, :func:`_release`): compression up to it is elastic, beyond it permanent; its
+    contact with the toy holds its yield stress x ``simulation.stuffing_cohesion`` in tension (``Material.cohesion``:
+    its fibres stay entangled with the stuffing it tore from).  Any
     other solid interior (an LLM's answer may give one) is ``ruptured_softening`` times softer than stated: torn
     loose, it no longer carries load."""
     m = material_from_dict(mpm_material_kwargs(interior, "interior"))
     if m.model == "fluid":
         return replace(m, fluid_gamma=float(sim["fluid_tait_exponent"]))
     if m.model == "foam":
-        return replace(m, crush_strain=max(m.crush_strain, -math.log(float(sim["stuffing_packing"]))))
+        return replace(m, crush_strain=max(m.crush_strain, -math.log(float(sim["stuffing_packing"]))),
+                       cohesion=m.yield_stress * float(sim["stuffing_cohesion"]), mass_scaled=False)
     soft = float(sim["ruptured_softening"])
     return replace(m, name="released_interior", youngs_modulus=m.youngs_modulus * soft,
                    yield_stress=m.yield_stress * soft)

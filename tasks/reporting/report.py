@@ -260,6 +260,8 @@ def rollout_summary(refs: Mapping[str, Mapping[str, Any]]) -> Optional[str]:
         if attached.get("ruptured_detached") is not None:  # the skin stays on the object (tasks.physics.attachment)
             event += (f"; torn skin > 3 cells off the object {attached['ruptured_detached']:.0%} "
                       f"(intact shell {attached['shell_detached']:.0%})")
+        if attached.get("stuffing_detached") is not None:  # torn-out stuffing held by its contact (Material.cohesion)
+            event += f", stuffing {attached['stuffing_detached']:.0%}"
         eps = r["squeeze_strain"].max(axis=1)
         qs = a.get("quasi_static", {})
         tracking = (f"{1e3 * r['dirichlet_tracking_error'].max():.2f}" if a["boundary"] == "dirichlet" else "-")

@@ -24,7 +24,8 @@ field 1 (released material, fluids; ``MaterialTable.field``).  Field-1 particles
 second pair of grid buffers (``grid2_*``), updated by the same grid kernel (gravity, walls; the floor, the
 Dirichlet constraints and the force patches act on the body field only: the table acts on the released field's
 particles as a plane collider where their surface touches it, :func:`contact_velocity`) and coupled to the body
-only by the frictionless contact of :func:`k_field_contact`.  While no particle is in field 1 the second grid is
+only by the frictionless contact of :func:`k_field_contact` (which also holds a separation in tension for a
+released material with a ``Material.cohesion``, the torn-out stuffing).  While no particle is in field 1 the second grid is
 never touched (the solver passes a one-node placeholder, skips its launches and runs the single-field fused
 kernel), so the single-field path is unchanged.
 
@@ -170,6 +171,7 @@ class GridConditions:
     floor_g: float  # floor height in grid units
     floor_mu: float  # Coulomb friction coefficient of the floor (0: frictionless slip)
     floor_sticky: int
+    field_cohesion: float  # N/kg, the released field's only: cohesion / (2 rho dx) (k_field_contact; 0 = none)
 
 
 @wp.struct
@@ -1045,7 +1047,12 @@ def k_field_contact(gs: GridStep, cond: GridConditions, cond_free: GridCondition
     wall they are ~90 degrees apart and the wall's normal must stay, or the sheet's own edge would brake it).  If the fields approach, (v_free - v_body) . n < 0, both normal components
     become the centre-of-mass normal velocity (m_b v_b + m_f v_f) . n / (m_b + m_f), which conserves the node's
     momentum and stops the interpenetration while the tangential components stay free (no friction); separating
-    fields are left independent (no sticking).  Each field's fixed boundaries are applied again to its corrected
+    fields are left independent (no sticking) unless the released field is cohesive (``cond_free.field_cohesion`` =
+    c / (2 rho dx) > 0, ``Material.cohesion`` c in Pa, rho its density): then the normal impulse that would stop the
+    separation, m_b m_f / (m_b + m_f) (v_free - v_body) . n, is applied up to c A dt, A = |grad m_free| / (2 rho dx)
+    being the node's share of the interface (m^2: the central difference of a sharp interface's nodal masses sums
+    to 2 rho dx^3 across it, so the shares along a line through it add up to dx^2); both fields' momenta change by
+    opposite amounts.  Each field's fixed boundaries are applied again to its corrected
     velocity: ``cond`` the body's (walls, floor), ``cond_free`` the released field's (walls; the table acts on
     that field's particles as a plane collider, see the solver's ``_upload_colliders``)."""
     ti, tj, tk = wp.tid()
@@ -1071,14 +1078,20 @@ def k_field_contact(gs: GridStep, cond: GridConditions, cond_free: GridCondition
         n = gf / lf
     vb = wp.vec3(a[0], a[1], a[2])
     vf = wp.vec3(b[0], b[1], b[2])
-    if wp.dot(vf - vb, n) >= 0.0:
+    w = wp.dot(vf - vb, n)  # m/s, > 0: separating
+    if w >= 0.0 and cond_free.field_cohesion <= 0.0:
         return
-    vn = (mb * wp.dot(vb, n) + mf * wp.dot(vf, n)) / (mb + mf)
     nx = body.shape[0]
     ny = body.shape[1]
     nz = body.shape[2]
-    vb = fixed_boundaries(vb + (vn - wp.dot(vb, n)) * n, i, j, k, cond, nx, ny, nz)
-    vf = fixed_boundaries(vf + (vn - wp.dot(vf, n)) * n, i, j, k, cond_free, nx, ny, nz)
+    if w < 0.0:  # approaching: both normal components become the centre-of-mass one
+        vn = (mb * wp.dot(vb, n) + mf * wp.dot(vf, n)) / (mb + mf)
+        vb = fixed_boundaries(vb + (vn - wp.dot(vb, n)) * n, i, j, k, cond, nx, ny, nz)
+        vf = fixed_boundaries(vf + (vn - wp.dot(vf, n)) * n, i, j, k, cond_free, nx, ny, nz)
+    else:  # separating from a cohesive contact: the impulse (N s) that would stop it, up to the cohesion's
+        impulse = wp.min(mb * mf / (mb + mf) * w, cond_free.field_cohesion * wp.length(gf) * gs.dt)
+        vb = fixed_boundaries(vb + (impulse / mb) * n, i, j, k, cond, nx, ny, nz)
+        vf = fixed_boundaries(vf - (impulse / mf) * n, i, j, k, cond_free, nx, ny, nz)
     body[i, j, k] = wp.vec4(vb[0], vb[1], vb[2], mb)
     free[i, j, k] = wp.vec4(vf[0], vf[1], vf[2], mf)
 

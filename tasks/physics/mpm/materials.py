@@ -105,6 +105,13 @@ class Material:
             density (True: a solid that only deforms quasi-statically, e.g. a shell under the fingers) or leaves
             it physical (False: released or flying material, fluids).  None = every model but ``fluid``.  The
             other scaling modes ignore it.
+        cohesion: Pa, a material of the released velocity field (``mass_scaled`` False under
+            ``mpm.multi_field``) only: the tensile strength of its contact with the body.  Where the two fields
+            separate at a node, the impulse that would stop the separation is applied up to cohesion x the node's
+            share of the interface (from the released field's mass gradient) x dt, so a blob pulled off the body
+            at more than this stress per unit contact area leaves and one pulled less stays; the tangential
+            contact stays frictionless (:func:`tasks.physics.mpm.kernels.k_field_contact`).  0 (default): the
+            fields separate freely.  Torn-out stuffing: its fibres stay entangled with the stuffing it tore from.
         membrane: the material's particles are a wall thinner than the grid spacing, held in plane stress
             (``fixed_corotated``, ``neo_hookean``, and ``von_mises`` with its return mapping in plane stress; the
             solver's ``membrane_normals`` give each particle its rest normal, which von Mises then carries as the
@@ -126,6 +133,7 @@ class Material:
     crush_strain: float = 0.05
     dilation_strain: float = 10.0
     mass_scaled: Optional[bool] = None
+    cohesion: float = 0.0
     membrane: bool = False
 
     def __post_init__(self) -> None:
@@ -150,10 +158,13 @@ class Material:
             raise MaterialError(
                 f"material '{self.name}': model '{self.model}' needs yield_stress > 0 Pa (uniaxial yield stress)"
             )
-        for attr in ("yield_stress", "hardening", "viscosity", "crush_strain", "dilation_strain"):
+        for attr in ("yield_stress", "hardening", "viscosity", "crush_strain", "dilation_strain", "cohesion"):
             val = float(getattr(self, attr))
             if not math.isfinite(val) or val < 0.0:
                 raise MaterialError(f"material '{self.name}': {attr} must be >= 0 (got {val})")
+        if self.cohesion > 0.0 and self.is_mass_scaled:
+            raise MaterialError(f"material '{self.name}': cohesion is the strength of a released-field material's "
+                                f"contact with the body; give it mass_scaled=False or cohesion 0")
         if self.bulk_modulus is not None and not self.bulk_modulus > 0.0:
             raise MaterialError(f"material '{self.name}': bulk_modulus must be > 0 Pa (got {self.bulk_modulus})")
         if self.membrane and self.model not in MEMBRANE_MODELS:

@@ -705,6 +705,7 @@ class MPMSolver:
         # the released field's grid buffer paired with each body buffer (a one-node placeholder while unused)
         self._field2 = {id(self.grid_a): dummy3, id(self.grid_b): dummy3}
         self.two_fields = False
+        self.field_cohesion = 0.0
         self._update_fields()
         self.bc_grid = K.DirichletGrid()
         self.bc_grid.target = self.bc_grid.reaction = dummy3
@@ -813,6 +814,13 @@ class MPMSolver:
         present[self._present] = True
         two = bool((released & present).any() and (~released & present).any())
         field = (released & two).astype(np.int32)
+        # N/kg: the cohesion of the released field's contact with the body (kernels.k_field_contact), the largest
+        # Material.cohesion / (2 rho dx) of its materials present
+        cohesion = max([m.cohesion / (2.0 * m.density * self.dx)
+                        for m, on in zip(self.materials, released & present & two) if on], default=0.0)
+        if cohesion != self.field_cohesion:
+            self._cmds = None  # the recorded launches hold the grid conditions
+        self.field_cohesion = cohesion
         self.mat_field.assign(field)
         if two and self._field2[id(self.grid_a)].shape != self.grid_a.shape:
             self._field2 = {id(g): wp.zeros(self.dims, dtype=wp.vec4, device=self.device)
@@ -1205,7 +1213,8 @@ class MPMSolver:
     def _grid_conditions(self, released: bool = False) -> K.GridConditions:
         """Gravity (m/s^2: g / s under a uniform mass scale s, else zero: the P2G adds the weight), domain walls
         and floor of the grid update of the body's field, or with ``released`` of the released field (no floor:
-        the table acts on its particles as a plane collider, :meth:`table_plane_fields`)."""
+        the table acts on its particles as a plane collider, :meth:`table_plane_fields`; and the cohesion of its
+        contact with the body, :attr:`field_cohesion`)."""
         cfg = self.cfg
         gc = K.GridConditions()
         gc.gravity = wp.vec3(*self._grid_gravity)
@@ -1216,6 +1225,7 @@ class MPMSolver:
         gc.floor_g = float(self.floor_g)
         gc.floor_mu = float(cfg.floor_friction)
         gc.floor_sticky = int(cfg.floor_sticky)
+        gc.field_cohesion = self.field_cohesion if released else 0.0
         return gc
 
     def _recorded(self) -> dict:
