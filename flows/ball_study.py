@@ -2,6 +2,7 @@
 
     python -m flows.ball_study                         # default grid and 3, 2 mm particles; flats to 6 mm
     python -m flows.ball_study --spacings --travel 4   # the default grid alone, 4 mm
+    python -m flows.ball_study --plates grid surface   # grid-node flats and surface flats, each grid
 
 The default grid's hollow rubber ball (its own particles and materials: the object model and material oracle steps
 of :func:`flows.pipeline.run_object_local`, the rollout's scene :func:`tasks.physics.mpm_rollout.build_scene`, no
@@ -9,7 +10,10 @@ gravity) squeezed between two frictionless flats (:func:`tasks.verification.cont
 moving ``--travel`` mm towards the other, against the axisymmetric finite-strain FE of the same hollow sphere
 between flats (:func:`tasks.verification.sphere_fe.sphere_between_flats` with ``wall``, fixed-corotated: the wall's
 radius, thickness, E and nu from the scene; no air inside in either).  ``--spacings`` (mm) refine the particles,
-the grid with them (dx = 2 x spacing, substeps 800 / spacing per frame as in ``flows.finger_study``).  Prints the
+the grid with them (dx = 2 x spacing, substeps 800 / spacing per frame as in ``flows.finger_study``).  ``--plates``:
+``grid`` (default) flats of grid-node slip points, as the default fingers act (their ~1.5-cell halo holds the wall
+before it touches), ``surface`` plane colliders with ``mpm.contact=surface`` (acting where the particles touch):
+the difference is the halo's share of the error, the rest the grid's resolution of the wall's bending.  Prints the
 force per flat at each whole millimetre of travel and writes ``<out>/ball_study.md``.  No Prefect: one process.
 """
 from __future__ import annotations
@@ -46,6 +50,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--spacings", nargs="*", type=float, default=[3.0, 2.0], help="finer particle spacings (mm)")
     ap.add_argument("--travel", type=float, default=6.0, help="each flat's travel (mm)")
     ap.add_argument("--frames", type=int, default=60, help="output frames of the squeeze (1/30 s each)")
+    ap.add_argument("--plates", nargs="+", choices=["grid", "surface"], default=["grid"],
+                    help="the flats: grid-node slip points and/or surface plane colliders")
     ap.add_argument("--artifacts", default="artifacts", help="artifact root of the object model steps")
     ap.add_argument("--out", default="reports/ball", help="folder of ball_study.md")
     args = ap.parse_args(argv)
@@ -59,17 +65,20 @@ def main(argv: list[str] | None = None) -> None:
     marks = np.arange(1, int(np.floor(args.travel)) + 1) * 1e-3
     rows, wall = [], None
     for spacing in [None, *sorted(args.spacings, reverse=True)]:
-        over = [] if spacing is None else [f"sampling.particle_spacing={spacing / 1000:g}",
-                                           f"mpm.target_substeps_per_frame={round(800 / spacing)}"]
-        scene, cfg = ball_scene(over, args.artifacts)
-        shell = scene.materials[int(scene.slot[SHELL])]
-        wall = wall or dict(R=0.5 * float(cfg.object.geometry.size[0]), t=float(cfg.object.geometry.wall_thickness),
-                            E=float(shell.youngs_modulus), nu=float(shell.poisson_ratio))
-        r = body_between_flats(scene.solver, "grid", travel, args.frames * scene.frame_dt, args.frames)
-        force = np.interp(marks, r["depth"], r["force"])
-        rows.append((f"MPM, dx {1e3 * scene.dx:g} mm" + (" (default)" if spacing is None else ""), force,
-                     f"{len(scene.solver.positions())} particles, {r['substeps']} substeps, {r['seconds']:.0f} s"))
-        print(f"| {rows[-1][0]} | " + " | ".join(f"{v:.2f}" for v in force) + f" | {rows[-1][2]} |", flush=True)
+        for plate in args.plates:
+            over = [] if spacing is None else [f"sampling.particle_spacing={spacing / 1000:g}",
+                                               f"mpm.target_substeps_per_frame={round(800 / spacing)}"]
+            scene, cfg = ball_scene([*over, f"mpm.contact={'grid' if plate == 'grid' else 'surface'}"], args.artifacts)
+            shell = scene.materials[int(scene.slot[SHELL])]
+            wall = wall or dict(R=0.5 * float(cfg.object.geometry.size[0]),
+                                t=float(cfg.object.geometry.wall_thickness),
+                                E=float(shell.youngs_modulus), nu=float(shell.poisson_ratio))
+            r = body_between_flats(scene.solver, plate, travel, args.frames * scene.frame_dt, args.frames)
+            force = np.interp(marks, r["depth"], r["force"])
+            rows.append((f"MPM, dx {1e3 * scene.dx:g} mm" + (" (default)" if spacing is None else "")
+                         + f", {plate} flats", force,
+                         f"{len(scene.solver.positions())} particles, {r['substeps']} substeps, {r['seconds']:.0f} s"))
+            print(f"| {rows[-1][0]} | " + " | ".join(f"{v:.2f}" for v in force) + f" | {rows[-1][2]} |", flush=True)
     fe = sphere_between_flats(np.arange(FE_STEP, travel + 1e-9, FE_STEP), wall["R"], wall["E"], wall["nu"],
                               h_min=wall["t"] / 6, h_max=wall["t"] / 3, model="fixed_corotated", wall=wall["t"],
                               tol=1e-7)
@@ -78,8 +87,8 @@ def main(argv: list[str] | None = None) -> None:
     print(f"| {rows[-1][0]} | " + " | ".join(f"{v:.2f}" for v in rows[-1][1]) + f" | {rows[-1][2]} |", flush=True)
     lines = [f"# Rubber ball between two flats ({datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, Warp CPU)", "",
              f"Hollow sphere R = {1e3 * wall['R']:g} mm, wall {1e3 * wall['t']:g} mm, E = {wall['E']:.3g} Pa, "
-             f"nu = {wall['nu']:g}, no air inside; frictionless flats (grid-node slip points in MPM), each moving "
-             "towards the other.  Force per flat (N) at each flat's travel:", "",
+             f"nu = {wall['nu']:g}, no air inside; frictionless flats (MPM: grid-node slip points or surface plane "
+             "colliders), each moving towards the other.  Force per flat (N) at each flat's travel:", "",
              "| run | " + " | ".join(f"{1e3 * m:g} mm" for m in marks) + " | |",
              "|---|" + "---|" * len(marks) + "---|",
              *[f"| {name} | " + " | ".join(f"{v:.2f}" for v in force) + f" | {note} |" for name, force, note in rows]]
