@@ -147,6 +147,28 @@ def test_eight_objects_are_fast(built):
     assert sum(t for *_, t in built.values()) < 15.0  # ~3 s on a laptop core; generous for shared CI
 
 
+def test_a_wall_thinner_than_the_grid_is_sampled_in_gauss_layers_even_when_not_thinner_than_the_particles():
+    """The orange's 4 mm peel at 4 mm particles: judged against the particle spacing alone it is a volume layer of
+    the spacing (one particle through the thickness); judged against the 8 mm grid the solver holds it on (it is
+    held in plane stress there) it is a thin wall, sampled in the two Gauss layers at +-t / (2 sqrt 3) of its
+    mid-surface, half the wall's volume each, the wall volume area x t as for every thin wall (known answers)."""
+    obj = catalogue("orange")
+    t, s = obj.geometry.wall_thickness, 0.004
+    sampling = OmegaConf.merge(OmegaConf.structured(SamplingConfig), {"particle_spacing": s})
+    _, by_spacing = build_object_model(obj, sampling)
+    arrays, by_grid = build_object_model(obj, sampling, grid_spacing=2 * s)
+    assert t == pytest.approx(s) and not by_spacing["thin_wall"] and by_spacing["thin_wall_layers"] == 0
+    assert by_grid["thin_wall"] and by_grid["thin_wall_layers"] == 2
+    shape = make_shape(obj.geometry.kind, obj.geometry.size)
+    depth = -shape.sdf(arrays["particle_positions"].data.astype(float))  # below the outer surface, m (the wall's)
+    gauss = t / (2 * np.sqrt(3))
+    assert np.abs(np.minimum(np.abs(depth - (t / 2 - gauss)), np.abs(depth - (t / 2 + gauss)))).max() < 2e-4
+    assert by_grid["wall_volume"] == pytest.approx(by_grid["surface_area_total"] * t, rel=0.02)
+    # the volume layer's is the exact shell's, V(sdf < 0) - V(sdf < -t): area x t of the outer surface is 11 % more
+    # at t / R = 0.1 (1 - t / R + t^2 / (3 R^2) = 0.903)
+    assert by_spacing["wall_volume"] == pytest.approx(0.903 * by_grid["wall_volume"], rel=0.01)
+
+
 def test_thin_wall_can_is_one_layer_with_physical_mass(built):
     arrays, attrs, _ = built["can"]
     obj = catalogue("can")

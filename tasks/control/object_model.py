@@ -44,9 +44,12 @@ Discretisation choices (documented here because downstream steps rely on them):
 * Volume particles on a cell-centred grid of spacing ``s = sampling.particle_spacing`` jittered by +-0.2 s
   (deterministic from ``sampling.seed`` and the object's geometry, not its name: :func:`sampling_seed`):
   - ``filled: true``: every grid point inside the body; volumes = ``s^3`` rescaled to the enclosed volume;
-  - hollow with ``wall_thickness t >= s``: grid points with ``-t < sdf < 0`` (the wall), volumes rescaled to the
-    wall volume ``V(sdf < 0) - V(sdf < -t)``;
-  - hollow with ``t < s`` (``thin_wall``): one layer of Poisson-disk particles (spacing ~ s) on the wall's
+  - hollow with ``wall_thickness t`` at least the grid spacing dx (``mpm.dx``, or ``s x cbrt(mpm.particles_per_cell)``
+    as the rollout chooses it): grid points with ``-t < sdf < 0`` (the wall), volumes rescaled to the wall volume
+    ``V(sdf < 0) - V(sdf < -t)``;
+  - hollow with ``t < dx`` (``thin_wall``: the solver holds such a wall in plane stress, ``mpm.thin_walls``, and the
+    grid cannot resolve its thickness; before 2026-12-03 only ``t < s``, which left the orange's 4 mm peel on the
+    default 8 mm grid a one-layer membrane with no bending): one layer of Poisson-disk particles (spacing ~ s) on the wall's
     mid-surface (``t/2`` inside the outer surface; on the sheet itself for the open cup), each with volume =
     its Voronoi area share x t, so the total is ``area x t`` and the wall mass is physical; with
     ``sampling.thin_wall_layers: 2`` (the default) that layer is split into two at the thickness's Gauss points,
@@ -89,6 +92,7 @@ from tasks.core.artifacts import Array
 from tasks.core.excerpt import one_line
 from tasks.core.params import file_sha256
 from tasks.core.step import artifact_step
+from tasks.physics.wall_resolution import grid_spacing
 
 __all__ = [
     "ObjectModelError", "build_object_model", "poisson_disk", "quadric_curvature", "matrix_to_quaternion",
@@ -857,12 +861,14 @@ def sampling_seed(obj: Any, seed: int) -> np.random.SeedSequence:
     return np.random.SeedSequence([int(seed), *np.frombuffer(digest[:16], dtype=np.uint32).tolist()])
 
 
-def build_object_model(obj: Any, sampling: Any) -> tuple[dict[str, Array], dict[str, Any]]:
+def build_object_model(obj: Any, sampling: Any, grid_spacing: float | None = None) -> tuple[dict[str, Array],
+                                                                                        dict[str, Any]]:
     """Surface Gaussians and MPM particles of one object (see the module doc for every choice).
 
     Args:
         obj: an ``ObjectConfig`` (dataclass or OmegaConf node; read by attribute).
         sampling: a ``SamplingConfig`` (``surface_points``, ``particle_spacing`` m, ``seed``, ``thin_wall_layers``).
+        grid_spacing: the MPM grid's dx (m) the wall is judged against (thin below it); None: the particle spacing.
     Returns:
         ``(arrays, attrs)``: the arrays named in the module doc as :class:`tasks.core.artifacts.Array`, and JSON
         attrs ``bbox_min``/``bbox_max`` (m), ``surface_area_total`` (m^2), ``enclosed_volume`` (m^3),
@@ -871,7 +877,7 @@ def build_object_model(obj: Any, sampling: Any) -> tuple[dict[str, Array], dict[
     Raises:
         ObjectModelError: one line naming the input and the fix.
     """
-    kind, size, t, s, n_surf, seed, layers = _validate(obj, sampling)  # layers: of a wall thinner than s
+    kind, size, t, s, n_surf, seed, layers = _validate(obj, sampling)  # layers: of a thin wall
     name = str(_get(obj, "name", "object"))
     geom, app = _get(obj, "geometry"), _get(obj, "appearance")
     filled = bool(_get(obj, "filled", False))
@@ -921,7 +927,7 @@ def build_object_model(obj: Any, sampling: Any) -> tuple[dict[str, Array], dict[
 
     # ---------------------------------------------------------------- volume particles
     V_body = float(src.enclosed_volume)
-    thin = (not filled) and t < s
+    thin = (not filled) and t < max(s, grid_spacing or s)
     grid = None
     if thin:
         if isinstance(src, _PlySource):
@@ -1046,11 +1052,12 @@ OBJECT_OUTPUTS = ("surface_points", "surface_normals", "surface_area", "surface_
 
 @artifact_step("object_model",
                reads=("object.name", "object.geometry", "object.appearance", "object.filled", "object.interior",
-                      "sampling"),
+                      "sampling", "mpm.dx", "mpm.particles_per_cell"),
                files=("object.geometry.path",),
                outputs=OBJECT_OUTPUTS)
 def object_model_step(inputs, params):
     """The object model of one object: surface 3D Gaussians and MPM volume particles (no inputs; a ply/mesh file
     is read from ``object.geometry.path``, whose content digest is in the key)."""
     obj = {key: params[f"object.{key}"] for key in ("name", "geometry", "appearance", "filled", "interior")}
-    return build_object_model(obj, params["sampling"])
+    mpm = {"dx": params["mpm.dx"], "particles_per_cell": params["mpm.particles_per_cell"]}
+    return build_object_model(obj, params["sampling"], grid_spacing(mpm, float(params["sampling"]["particle_spacing"])))
