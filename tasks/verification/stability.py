@@ -606,7 +606,8 @@ def run_squeeze(case: Case, ctx: SuiteContext, progress: _Progress | None = None
 
     p = case.params
     obj = dict(ctx.catalog[p["object"]])
-    o_arr, o_attrs = build_object_model(_Attr(obj), _Attr(ctx.sampling))
+    o_arr, o_attrs = build_object_model(_Attr(obj), _Attr(ctx.sampling),
+                                        grid_spacing(ctx.mpm, float(ctx.sampling["particle_spacing"])))
     o = _plain_arrays(o_arr)
     half = 0.5 * (np.asarray(o_attrs["bbox_max"]) - np.asarray(o_attrs["bbox_min"]))
     sig = ctx.signal
@@ -771,9 +772,9 @@ def run_thin_wall(case: Case, ctx: SuiteContext, progress: _Progress | None = No
 
     name = case.params["object"]
     obj = ctx.catalog[name]
-    _, attrs = build_object_model(_Attr(obj), _Attr(ctx.sampling))
+    dx = grid_spacing(ctx.mpm, float(ctx.sampling["particle_spacing"]))
+    _, attrs = build_object_model(_Attr(obj), _Attr(ctx.sampling), dx)
     mat = _material(f"oracle:{name}", ctx)
-    dx = grid_spacing(ctx.mpm, float(attrs["particle_spacing"]))
     fnd = thin_wall_finding(attrs, dx, mat.poisson_ratio, mat.youngs_modulus, name=name)
     row = Row(case.name, case.category, outcome="flagged" if fnd.flagged else "resolved", reason=fnd.message)
     row.notes = (f"{attrs['n_particles']} wall particles; bending length {fnd.bending_length * 1e3:.3g} mm; "
