@@ -13,7 +13,7 @@ radius, thickness, E and nu from the scene; no air inside in either).  ``--spaci
 the grid with them (dx = 2 x spacing, substeps 800 / spacing per frame as in ``flows.finger_study``).  ``--plates``:
 ``grid`` (default) flats of grid-node slip points, as the default fingers act (their ~1.5-cell halo holds the wall
 before it touches), ``surface`` plane colliders with ``mpm.contact=surface`` (acting where the particles touch):
-the difference is the halo's share of the error, the rest the grid's resolution of the wall's bending.  Prints the
+the difference is the halo's share of the error, the rest the MPM shell's own (README, known limits).  Prints the
 force per flat at each whole millimetre of travel and writes ``<out>/ball_study.md``.  No Prefect: one process.
 """
 from __future__ import annotations
@@ -45,6 +45,11 @@ def ball_scene(overrides: list[str], root: str, obj: str = "rubber_ball"):
                        params["mpm"], params["simulation"], a["force_coefficients"]["force_coefficients"], "dirichlet"), cfg
 
 
+def _row(name: str, force: np.ndarray, note: str) -> str:
+    """One markdown table row: the run, its force per flat (N) at each mark, a note."""
+    return f"| {name} | " + " | ".join(f"{v:.2f}" for v in force) + f" | {note} |"
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--spacings", nargs="*", type=float, default=[3.0, 2.0], help="finer particle spacings (mm)")
@@ -68,7 +73,7 @@ def main(argv: list[str] | None = None) -> None:
         for plate in args.plates:
             over = [] if spacing is None else [f"sampling.particle_spacing={spacing / 1000:g}",
                                                f"mpm.target_substeps_per_frame={round(800 / spacing)}"]
-            scene, cfg = ball_scene([*over, f"mpm.contact={'grid' if plate == 'grid' else 'surface'}"], args.artifacts)
+            scene, cfg = ball_scene([*over, f"mpm.contact={plate}"], args.artifacts)
             shell = scene.materials[int(scene.slot[SHELL])]
             wall = wall or dict(R=0.5 * float(cfg.object.geometry.size[0]),
                                 t=float(cfg.object.geometry.wall_thickness),
@@ -78,20 +83,20 @@ def main(argv: list[str] | None = None) -> None:
             rows.append((f"MPM, dx {1e3 * scene.dx:g} mm" + (" (default)" if spacing is None else "")
                          + f", {plate} flats", force,
                          f"{len(scene.solver.positions())} particles, {r['substeps']} substeps, {r['seconds']:.0f} s"))
-            print(f"| {rows[-1][0]} | " + " | ".join(f"{v:.2f}" for v in force) + f" | {rows[-1][2]} |", flush=True)
+            print(_row(*rows[-1]), flush=True)
     fe = sphere_between_flats(np.arange(FE_STEP, travel + 1e-9, FE_STEP), wall["R"], wall["E"], wall["nu"],
                               h_min=wall["t"] / 6, h_max=wall["t"] / 3, model="fixed_corotated", wall=wall["t"],
                               tol=1e-7)
     rows.append(("FE, finite strain (fixed-corotated)", np.interp(marks, fe["at"], fe["force"]),
                  f"{fe['nodes']} nodes, 3 across the wall"))
-    print(f"| {rows[-1][0]} | " + " | ".join(f"{v:.2f}" for v in rows[-1][1]) + f" | {rows[-1][2]} |", flush=True)
+    print(_row(*rows[-1]), flush=True)
     lines = [f"# Rubber ball between two flats ({datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, Warp CPU)", "",
              f"Hollow sphere R = {1e3 * wall['R']:g} mm, wall {1e3 * wall['t']:g} mm, E = {wall['E']:.3g} Pa, "
              f"nu = {wall['nu']:g}, no air inside; frictionless flats (MPM: grid-node slip points or surface plane "
              "colliders), each moving towards the other.  Force per flat (N) at each flat's travel:", "",
              "| run | " + " | ".join(f"{1e3 * m:g} mm" for m in marks) + " | |",
              "|---|" + "---|" * len(marks) + "---|",
-             *[f"| {name} | " + " | ".join(f"{v:.2f}" for v in force) + f" | {note} |" for name, force, note in rows]]
+             *[_row(*row) for row in rows]]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "ball_study.md").write_text("\n".join(lines) + "\n")
