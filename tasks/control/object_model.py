@@ -51,7 +51,10 @@ Discretisation choices (documented here because downstream steps rely on them):
     grid cannot resolve its thickness; before 2026-12-03 only ``t < s``, which left the orange's 4 mm peel on the
     default 8 mm grid a one-layer membrane with no bending): one layer of Poisson-disk particles (spacing ~ s) on the wall's
     mid-surface (``t/2`` inside the outer surface; on the sheet itself for the open cup), each with volume =
-    its Voronoi area share x t, so the total is ``area x t`` and the wall mass is physical; with
+    its Voronoi area share x the depth volume of Steiner's formula, ``t - (k1 + k2) t^2 / 2 + k1 k2 t^3 / 3`` at its
+    principal curvatures (:func:`shell_depth_volume`), so the total is the exact shell's and the wall mass is
+    physical (before 2026-12-04 area x t, 11 % heavy on the orange's peel, 9 % on the ball's wall); on the open cup's
+    sheet, its own mid-surface, area x t; with
     ``sampling.thin_wall_layers: 2`` (the default) that layer is split into two at the thickness's Gauss points,
     ``+-t / (2 sqrt 3)`` along the normal, each particle with half the volume: the two-point rule integrates a
     strain linear through the thickness exactly, so a plane-stress wall (``mpm.thin_walls: membrane``) carries the
@@ -191,6 +194,20 @@ def _blue_noise(points: np.ndarray, n: int, area: float, rng: np.random.Generato
     # not enough with any radius tried (tiny candidate set): random extra candidates
     rest = np.setdiff1d(np.arange(len(points)), idx)
     return np.sort(np.concatenate([idx, rng.choice(rest, n - len(idx), replace=False)]))
+
+
+def shell_depth_volume(curvature: np.ndarray, t: float, area: np.ndarray) -> np.ndarray:
+    """Volume (m^3) per m^2 of outer surface of a wall of thickness ``t`` (m) below a surface patch of principal
+    curvatures ``curvature`` (1/m, shape (n, 2), convex positive): Steiner's formula for the inward parallel surfaces,
+    int_0^t (1 - k1 d)(1 - k2 d) dd = t - (k1 + k2) t^2 / 2 + k1 k2 t^3 / 3 (a sphere's shell: 4 pi (R^3 - (R - t)^3)
+    / 3 exactly; area x t overstates the orange's peel by 11 % at t / R = 0.1).  Curvatures are clamped to
+    ``2 / sqrt(area)`` (m^2 per sample: the representation resolves no sharper feature) and the depth to the centre of
+    curvature ``1 / k``, so a crease sharper than the wall keeps a positive volume."""
+    kmax = 2.0 / np.sqrt(np.maximum(area, 1e-30))
+    k = np.clip(curvature, -kmax[:, None], kmax[:, None])
+    k1, k2 = k[:, 0], k[:, 1]
+    d = np.minimum(t, 1.0 / np.maximum(np.maximum(k1, k2), 1e-30))  # no parallel surface past a focal point
+    return d - (k1 + k2) * d ** 2 / 2 + k1 * k2 * d ** 3 / 3
 
 
 def _voronoi_area(sites: np.ndarray, measure_pts: np.ndarray, measure_w: np.ndarray, floor: float = 0.25) -> np.ndarray:
@@ -938,10 +955,11 @@ def build_object_model(obj: Any, sampling: Any, grid_spacing: float | None = Non
         ppos, pnrm = src.finalize(cand_p[idx]) if not isinstance(src, _PlySource) else (cand_p[idx], src.mean_normals[idx])
         mpts, mw = src.area_measure(rng_area)
         parea = _voronoi_area(ppos, mpts, mw)
-        V_wall = float(parea.sum() * t)
-        pvol = parea * t
+        pvol = parea * t  # the open sheet: its own area is the mid-surface's
         if not src.open_top:
+            pvol = parea * shell_depth_volume(src.curvature(ppos, pnrm)[0], t, parea)
             ppos = ppos - 0.5 * t * pnrm
+        V_wall = float(pvol.sum())
         if layers == 2:  # the thickness's two Gauss points
             off = t / (2.0 * math.sqrt(3.0))
             ppos = np.concatenate([ppos + off * pnrm, ppos - off * pnrm])
