@@ -240,6 +240,32 @@ def membrane_normals_checked(normals: Optional[np.ndarray], n: int) -> Optional[
     return np.ascontiguousarray(a)
 
 
+def membrane_pairs_checked(pairs: Optional[np.ndarray], membrane_rows: np.ndarray, x: np.ndarray
+                           ) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The solver's ``membrane_pairs`` as (first, second) int32 indices and their rest distances (m, float32), or
+    None; each pair joins two membrane particles (the two Gauss layers of a thin wall), no particle is in two pairs
+    and no pair is a point.  A bad array is one ValueError line naming what is wrong."""
+    if pairs is None or len(pairs) == 0:
+        return None
+    a = np.asarray(pairs)
+    n = len(membrane_rows)
+    if a.ndim != 2 or a.shape[1] != 2 or not np.issubdtype(a.dtype, np.integer):
+        raise ValueError(f"membrane_pairs must be integer particle indices of shape (P, 2); got {a.dtype} {a.shape}")
+    if a.min() < 0 or a.max() >= n:
+        raise ValueError(f"membrane_pairs: indices must lie in [0, {n}); got {int(a.min())}..{int(a.max())}")
+    if len(np.unique(a)) != a.size:
+        raise ValueError("membrane_pairs: a particle is in two pairs (or paired with itself); each wall particle has "
+                         "one partner, its other Gauss layer")
+    if not membrane_rows[a].all():
+        raise ValueError(f"membrane_pairs: {int((~membrane_rows[a]).any(axis=1).sum())} pairs join a particle without "
+                         "a membrane normal; pair only the two layers of a thin wall (membrane_normals)")
+    rest = np.linalg.norm(x[a[:, 0]].astype(np.float64) - x[a[:, 1]], axis=1)
+    if not rest.min() > 0:
+        raise ValueError(f"membrane_pairs: pair {int(np.argmin(rest))} joins two particles at the same position")
+    return (np.ascontiguousarray(a[:, 0], np.int32), np.ascontiguousarray(a[:, 1], np.int32),
+            rest.astype(np.float32))
+
+
 @dataclass
 class EnergyBudget:
     """Energy guard bookkeeping from a reference frame on (J; see :class:`MPMSolver`).
@@ -498,6 +524,11 @@ class MPMSolver:
             longer tells where the wall lies in it); :meth:`set_material_ids` converts a row between the two when a
             particle changes between an elastic and a von Mises material.  Whether a particle is a membrane is its
             row (non-zero), whatever its material's ``membrane`` flag.  Foam and fluid models ignore it.
+        membrane_pairs: (P, 2) particle indices, the two Gauss layers of a thin wall at each point of it (membrane
+            particles; ``config.wall_fibres``): after every substep's advection each pair is put back at its rest
+            distance about its centre of mass (:func:`tasks.physics.mpm.kernels.k_wall_fibres`, Kirchhoff-Love's
+            inextensible normal fibre), which nothing else holds on a grid coarser than the wall.  A pair whose
+            particles come to differ in material is left alone.
 
     Mass (time) scaling (``config.mass_scaling``; s from :func:`mass_scale_for`, fixed once: at construction, or for
     ``global``/``selective`` at the first :meth:`step_frame`): the densities of the scaled materials (all of them by
@@ -579,6 +610,7 @@ class MPMSolver:
         label: str = "",
         load: Optional[QuasiStaticLoad] = None,
         membrane_normals: Optional[np.ndarray] = None,
+        membrane_pairs: Optional[np.ndarray] = None,
     ) -> None:
         self.cfg: MPMConfig = mpm_config_from(config)
         self.label = str(label)
@@ -696,6 +728,12 @@ class MPMSolver:
         self.particles = K.Particles()
         for name in ("x", "v", "C", "F", "q", "alpha", "vol", "mat_id", "normal"):
             setattr(self.particles, name, getattr(self, name))
+        fibres = membrane_pairs_checked(membrane_pairs, self._membrane_rows, x) if cfg.wall_fibres else None
+        self.n_fibres = 0 if fibres is None else len(fibres[2])
+        self._fibre_arrays = [] if fibres is None else [wp.array(f, device=d) for f in fibres]  # first, second, rest
+        self._fibres = None if fibres is None else wp.launch(
+            K.k_wall_fibres, dim=self.n_fibres, device=d, record_cmd=True,
+            inputs=[self.x, self.vol, self.mat_id, *self._fibre_arrays])
 
         # ---------------- grid (two buffers: the fused G2P/P2G reads one and fills the other)
         self.grid_a = wp.zeros(self.dims, dtype=wp.vec4, device=d)
@@ -1543,6 +1581,8 @@ class MPMSolver:
                 wp.launch(K.k_g2p, dim=n, device=d, inputs=[
                     self.gi, self._step_params(dt, 0.0, restart=True), self.particles, self.mat_table, cur,
                     self._field2[id(cur)], self.flags, self.sums, self.ext, wp.vec3(*self.cfg.gravity), self.mat_energy])
+                if self._fibres is not None:
+                    self._fibres.launch()
                 self.substep += 1
                 self._times.append((self.substep, self.time + t))
                 self._last_box = box_cur
@@ -1557,6 +1597,8 @@ class MPMSolver:
                 self._replay(pin_advance, gs)
             self._reset_bbox()
             self._launch_fused(cur, dt, dt_next)
+            if self._fibres is not None:  # the next G2P advects the restored layers (their P2G is a substep behind)
+                self._fibres.launch()
             box_prev, box_cur = box_cur, self._read_box()
             cur, other = other, cur
             dt = dt_next
