@@ -76,17 +76,14 @@ class MPMConfig:
             grid, which cannot resolve the thickness, holds it where a finger's nodes reach through the wall, and
             the wall's volume locks as nu -> 0.5 (the rubber ball and duck, nu = 0.49: 570 and 3,100 N per finger;
             README, known limits).
-        wall_fibres: a membrane wall sampled in two Gauss layers (``sampling.thin_wall_layers: 2``) keeps, at each
-            point, the fibre joining its layers as Kirchhoff-Love's director: after every substep's advection the
-            pair is put at its rest distance along the wall's normal (the least-spread direction of its 8 nearest
-            fibres' midpoints) about its centre of mass, and both particles' F_E are turned onto that normal
-            (:func:`tasks.physics.mpm.kernels.k_fibre_normals`, :func:`~tasks.physics.mpm.kernels.k_wall_fibres`).
-            The grid cannot resolve the wall's thickness and its plane-stress particles carry no normal stress, so
-            nothing else holds the fibre: the rubber ball between two flats had its layers closed to 11 % of their
-            distance under the flats at 4 mm, the layers slid over each other and their F_E turned apart (the fibres
-            under the flats tilted 24 -> 51 degrees and the F_E normals 34 -> 70 degrees off them while held 10 s),
-            and its held force crept away (-40 % over 18 s at 3 mm; with the fibres +1 %).  False: the layers move
-            with the grid alone (the former behaviour).
+        wall_fibres: a membrane wall sampled in two Gauss layers (``sampling.thin_wall_layers: 2``) keeps the
+            distance between its layers at each point, Kirchhoff-Love's inextensible normal fibre
+            (:func:`tasks.physics.mpm.kernels.k_wall_fibres`, after every substep's advection).  The grid cannot
+            resolve the wall's thickness and its plane-stress particles carry no normal stress, so nothing else keeps
+            it: the rubber ball between two flats had its layers closed to 11 % of their distance under the flats at
+            4 mm, its bending lever arm with them, and read 0.35-0.56x the FE of the hollow sphere at dx 4 mm (with
+            the fibres 0.70-1.02x; ``python -m flows.ball_study --plates surface``).  False: the layers move with
+            the grid alone (the former behaviour).
         finger_friction: Coulomb coefficient of the collider fingertips (0 = frictionless, < 0 = no slip while
             touching), dimensionless.
     Acceleration knobs (each changes the physics; reported in the frame statistics)

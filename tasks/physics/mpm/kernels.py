@@ -899,119 +899,28 @@ def k_g2p(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid
 
 
 @wp.kernel
-def k_fibre_normals(x: wp.array(dtype=wp.vec3), mat_id: wp.array(dtype=wp.int32), first: wp.array(dtype=wp.int32),
-                    second: wp.array(dtype=wp.int32), neighbours: wp.array2d(dtype=wp.int32),
-                    normal: wp.array(dtype=wp.vec3)):
-    """The current normal of a thin wall at each fibre ``k`` (the pair ``first[k]``, ``second[k]`` of its two Gauss
-    layers): the direction of least spread of the fibres' midpoints around it (its own and those of its rest
-    ``neighbours[k]``, -1 = none, of its material: a torn neighbour does not count), oriented as the fibre
-    (``first`` - ``second``), i.e. the normal of the wall's mid-surface as its particles draw it.  Fewer than three
-    neighbours, or a neighbourhood without a clear plane (least spread above a quarter of the middle one: a strip's
-    edge): the fibre's own direction."""
+def k_wall_fibres(x: wp.array(dtype=wp.vec3), vol: wp.array(dtype=float), mat_id: wp.array(dtype=wp.int32),
+                  first: wp.array(dtype=wp.int32), second: wp.array(dtype=wp.int32), rest: wp.array(dtype=float)):
+    """The normal fibre of a wall thinner than the grid (Kirchhoff-Love's inextensible director): the particles of
+    its two Gauss layers, ``first[k]`` and ``second[k]``, are put back at their rest distance ``rest[k]`` (m) along
+    the line joining them, about their common centre of mass (same material: their volumes weigh them), so
+    momentum and angular momentum are unchanged.  The grid cannot resolve the wall's thickness, so nothing else
+    keeps it: its plane-stress particles carry no normal stress, and a contact on one face closes the layers, and
+    with them the wall's bending lever arm (the ball between two flats: 11 % of it left under the flats at 4 mm).
+    A pair whose particles no longer share a material (one released) is left alone."""
     k = wp.tid()
     i = first[k]
     j = second[k]
+    if mat_id[i] != mat_id[j]:
+        return
     d = x[i] - x[j]
     length = wp.length(d)
-    n = wp.vec3(0.0, 0.0, 0.0)
-    if length > 1.0e-12:
-        n = d / length
-    m = mat_id[i]
-    c0 = 0.5 * (x[i] + x[j])
-    total = wp.vec3(0.0, 0.0, 0.0)
-    count = int(0)
-    for a in range(neighbours.shape[1]):
-        q = neighbours[k, a]
-        if q >= 0:
-            if mat_id[first[q]] == m and mat_id[second[q]] == m:
-                total += 0.5 * (x[first[q]] + x[second[q]]) - c0
-                count += 1
-    if count >= 3:
-        mean = total / float(count + 1)
-        cov = wp.outer(mean, mean)  # the fibre's own midpoint, at -mean from the centroid
-        for a in range(neighbours.shape[1]):
-            q = neighbours[k, a]
-            if q >= 0:
-                if mat_id[first[q]] == m and mat_id[second[q]] == m:
-                    e = 0.5 * (x[first[q]] + x[second[q]]) - c0 - mean
-                    cov += wp.outer(e, e)
-        Q, ev = wp.eig3(cov)
-        lo = int(0)
-        mid = float(0.0)
-        if ev[1] < ev[lo]:
-            lo = 1
-        if ev[2] < ev[lo]:
-            lo = 2
-        if lo == 0:
-            mid = wp.min(ev[1], ev[2])
-        elif lo == 1:
-            mid = wp.min(ev[0], ev[2])
-        else:
-            mid = wp.min(ev[0], ev[1])
-        if ev[lo] < 0.25 * mid:
-            c = wp.vec3(Q[0, lo], Q[1, lo], Q[2, lo])
-            c = wp.normalize(c)
-            if wp.dot(c, n) < 0.0:
-                c = -c
-            n = c
-    normal[k] = n
-
-
-@wp.func
-def align_to_wall(p: int, n: wp.vec3, ps: Particles, model: int):
-    """Turn particle p's elastic F_E by the smallest rotation Q that takes the normal its F_E gives its wall (cof(F) N
-    of its rest normal N; a von Mises wall's stored current normal) onto the wall's normal ``n`` (unit):
-    F_E <- Q F_E, and Q applied to the rotation warm start of fixed-corotated and to a von Mises wall's normal.
-    The energy is unchanged (every model is isotropic); the stress turns with the wall.  Other models: no change."""
-    if model != MODEL_FIXED_COROTATED and model != MODEL_NEO_HOOKEAN and model != MODEL_VON_MISES:
+    if length < 1.0e-12:
         return
-    F = ps.F[p]
-    nf = ps.normal[p]
-    if model != MODEL_VON_MISES:
-        nf = area_normal(F, nf)
-    size = wp.length(nf)
-    if size < 1.0e-6:
-        return
-    nf = nf / size
-    if wp.dot(nf, n) < 0.5:  # more than 60 degrees apart: not the same wall side (left alone)
-        return
-    Q = wp.quat_between_vectors(nf, n)
-    ps.F[p] = wp.quat_to_matrix(Q) @ F
-    if model == MODEL_VON_MISES:
-        ps.normal[p] = n
-    if ps.q.shape[0] > p and model == MODEL_FIXED_COROTATED:
-        ps.q[p] = wp.normalize(Q * ps.q[p])
-
-
-@wp.kernel
-def k_wall_fibres(ps: Particles, mats: MaterialTable, first: wp.array(dtype=wp.int32),
-                  second: wp.array(dtype=wp.int32), rest: wp.array(dtype=float), normal: wp.array(dtype=wp.vec3)):
-    """The normal fibre of a wall thinner than the grid (Kirchhoff-Love's inextensible director, normal to the
-    mid-surface): the particles of its two Gauss layers, ``first[k]`` and ``second[k]``, are put at their rest
-    distance ``rest[k]`` (m) along the wall's current normal ``normal[k]`` (:func:`k_fibre_normals`), about their
-    common centre of mass (same material: their volumes weigh them), so momentum is unchanged, and their F_E are
-    turned onto that normal (:func:`align_to_wall`).  The grid cannot resolve the wall's thickness, so nothing else
-    keeps it: its plane-stress particles carry no normal stress, a contact on one face closed the layers (the ball
-    between two flats: to 11 % of their distance under the flats at 4 mm) and took the wall's bending lever arm
-    with them, the layers slid over each other (the fibres under the flats tilted 24 -> 51 degrees while held
-    10 s) and the two layers' F_E turned apart (13 -> 27 degrees), each relaxing the wall's bending.  A pair whose
-    particles no longer share a material (one released) is left alone."""
-    k = wp.tid()
-    i = first[k]
-    j = second[k]
-    mid = ps.mat_id[i]
-    if mid != ps.mat_id[j]:
-        return
-    n = normal[k]
-    if wp.length(n) < 0.5:
-        return
-    wi = ps.vol[j] / (ps.vol[i] + ps.vol[j])
-    c = (1.0 - wi) * ps.x[i] + wi * ps.x[j]
-    ps.x[i] = c + (wi * rest[k]) * n
-    ps.x[j] = c - ((1.0 - wi) * rest[k]) * n
-    model = mats.model[mid]
-    align_to_wall(i, n, ps, model)
-    align_to_wall(j, n, ps, model)
+    corr = d * ((rest[k] - length) / length)
+    wi = vol[j] / (vol[i] + vol[j])
+    x[i] = x[i] + wi * corr
+    x[j] = x[j] - (1.0 - wi) * corr
 
 
 @wp.kernel

@@ -266,28 +266,6 @@ def membrane_pairs_checked(pairs: Optional[np.ndarray], membrane_rows: np.ndarra
             rest.astype(np.float32))
 
 
-FIBRE_NEIGHBOURS = 8  # rest neighbours of a wall fibre whose midpoints draw the wall's normal (k_fibre_normals)
-
-
-def fibre_neighbours(x: np.ndarray, first: np.ndarray, second: np.ndarray, k: int = FIBRE_NEIGHBOURS) -> np.ndarray:
-    """(P, k) int32: for each wall fibre (pair ``first``, ``second`` of particle indices into positions ``x``, m) the
-    fibres whose rest midpoints are its k nearest within 2.5x the median nearest-midpoint distance (its neighbours
-    in the wall's plane, a few particle spacings), -1 where fewer."""
-    from scipy.spatial import cKDTree
-
-    mid = 0.5 * (x[first].astype(np.float64) + x[second])
-    if len(mid) < 2:
-        return np.full((len(mid), k), -1, np.int32)
-    kk = min(k + 1, len(mid))
-    dist, idx = cKDTree(mid).query(mid, k=kk)
-    dist, idx = dist[:, 1:], idx[:, 1:]  # not itself
-    cut = 2.5 * float(np.median(dist[:, 0]))
-    out = np.where(dist <= cut, idx, -1).astype(np.int32)
-    if out.shape[1] < k:
-        out = np.concatenate([out, np.full((len(mid), k - out.shape[1]), -1, np.int32)], axis=1)
-    return np.ascontiguousarray(out)
-
-
 @dataclass
 class EnergyBudget:
     """Energy guard bookkeeping from a reference frame on (J; see :class:`MPMSolver`).
@@ -752,17 +730,10 @@ class MPMSolver:
             setattr(self.particles, name, getattr(self, name))
         fibres = membrane_pairs_checked(membrane_pairs, self._membrane_rows, x) if cfg.wall_fibres else None
         self.n_fibres = 0 if fibres is None else len(fibres[2])
-        self._fibres: list = []  # the recorded launches: the wall's normals, then the fibres along them
-        if fibres is not None:
-            first, second, rest = (wp.array(f, device=d) for f in fibres)
-            nbr = wp.array(fibre_neighbours(x, fibres[0], fibres[1]), dtype=wp.int32, device=d)
-            self.fibre_normals = wp.zeros(self.n_fibres, dtype=wp.vec3, device=d)
-            self._fibre_arrays = [first, second, rest, nbr]
-            self._fibres = [
-                wp.launch(K.k_fibre_normals, dim=self.n_fibres, device=d, record_cmd=True,
-                          inputs=[self.x, self.mat_id, first, second, nbr, self.fibre_normals]),
-                wp.launch(K.k_wall_fibres, dim=self.n_fibres, device=d, record_cmd=True,
-                          inputs=[self.particles, self.mat_table, first, second, rest, self.fibre_normals])]
+        self._fibre_arrays = [] if fibres is None else [wp.array(f, device=d) for f in fibres]  # first, second, rest
+        self._fibres = None if fibres is None else wp.launch(
+            K.k_wall_fibres, dim=self.n_fibres, device=d, record_cmd=True,
+            inputs=[self.x, self.vol, self.mat_id, *self._fibre_arrays])
 
         # ---------------- grid (two buffers: the fused G2P/P2G reads one and fills the other)
         self.grid_a = wp.zeros(self.dims, dtype=wp.vec4, device=d)
@@ -1610,8 +1581,8 @@ class MPMSolver:
                 wp.launch(K.k_g2p, dim=n, device=d, inputs=[
                     self.gi, self._step_params(dt, 0.0, restart=True), self.particles, self.mat_table, cur,
                     self._field2[id(cur)], self.flags, self.sums, self.ext, wp.vec3(*self.cfg.gravity), self.mat_energy])
-                for launch in self._fibres:
-                    launch.launch()
+                if self._fibres is not None:
+                    self._fibres.launch()
                 self.substep += 1
                 self._times.append((self.substep, self.time + t))
                 self._last_box = box_cur
@@ -1626,8 +1597,8 @@ class MPMSolver:
                 self._replay(pin_advance, gs)
             self._reset_bbox()
             self._launch_fused(cur, dt, dt_next)
-            for launch in self._fibres:  # the next G2P advects the restored layers (their P2G is a substep behind)
-                launch.launch()
+            if self._fibres is not None:  # the next G2P advects the restored layers (their P2G is a substep behind)
+                self._fibres.launch()
             box_prev, box_cur = box_cur, self._read_box()
             cur, other = other, cur
             dt = dt_next
