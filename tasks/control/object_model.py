@@ -196,15 +196,21 @@ def _blue_noise(points: np.ndarray, n: int, area: float, rng: np.random.Generato
     return np.sort(np.concatenate([idx, rng.choice(rest, n - len(idx), replace=False)]))
 
 
+def resolved_curvature(curvature: np.ndarray, area: np.ndarray) -> np.ndarray:
+    """Principal curvatures (1/m, shape (n, 2)) clamped to +-2 / sqrt(area) (area m^2 per sample: the representation
+    resolves no sharper feature, e.g. the cup's bottom crease)."""
+    kmax = 2.0 / np.sqrt(np.maximum(area, 1e-30))
+    return np.clip(curvature, -kmax[:, None], kmax[:, None])
+
+
 def shell_depth_volume(curvature: np.ndarray, t: float, area: np.ndarray) -> np.ndarray:
     """Volume (m^3) per m^2 of outer surface of a wall of thickness ``t`` (m) below a surface patch of principal
     curvatures ``curvature`` (1/m, shape (n, 2), convex positive): Steiner's formula for the inward parallel surfaces,
     int_0^t (1 - k1 d)(1 - k2 d) dd = t - (k1 + k2) t^2 / 2 + k1 k2 t^3 / 3 (a sphere's shell: 4 pi (R^3 - (R - t)^3)
     / 3 exactly; area x t overstates the orange's peel by 11 % at t / R = 0.1).  Curvatures are clamped to
-    ``2 / sqrt(area)`` (m^2 per sample: the representation resolves no sharper feature) and the depth to the centre of
-    curvature ``1 / k``, so a crease sharper than the wall keeps a positive volume."""
-    kmax = 2.0 / np.sqrt(np.maximum(area, 1e-30))
-    k = np.clip(curvature, -kmax[:, None], kmax[:, None])
+    ``2 / sqrt(area)`` (:func:`resolved_curvature`) and the depth to the centre of curvature ``1 / k``, so a crease
+    sharper than the wall keeps a positive volume."""
+    k = resolved_curvature(curvature, area)
     k1, k2 = k[:, 0], k[:, 1]
     d = np.minimum(t, 1.0 / np.maximum(np.maximum(k1, k2), 1e-30))  # no parallel surface past a focal point
     return d - (k1 + k2) * d ** 2 / 2 + k1 * k2 * d ** 3 / 3
@@ -938,8 +944,7 @@ def build_object_model(obj: Any, sampling: Any, grid_spacing: float | None = Non
             rgb = surface_colors(str(_get(app, "pattern", "solid")), kind, pts, nrm, src.bbox_min, src.bbox_max,
                                  list(_get(app, "base_color", [0.8, 0.8, 0.8])),
                                  list(_get(app, "accent_color", [0.2, 0.2, 0.2])), src.regions(pts), seed)
-    kmax = 2.0 / np.sqrt(np.maximum(area, 1e-30))
-    kcurv = np.clip(kcurv, -kmax[:, None], kmax[:, None])
+    kcurv = resolved_curvature(kcurv, area)
     kcurv = -np.sort(-kcurv, axis=1)
 
     # ---------------------------------------------------------------- volume particles
