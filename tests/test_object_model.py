@@ -35,6 +35,7 @@ ARRAYS = {
     "particle_positions": (("particle", "xyz"), "m"),
     "particle_volumes": (("particle",), "m^3"),
     "particle_normals": (("particle", "xyz"), "1"),
+    "wall_fibres": (("fibre", "layer"), "1"),
     "interior_positions": (("interior_particle", "xyz"), "m"),
     "interior_volumes": (("interior_particle",), "m^3"),
 }
@@ -116,7 +117,7 @@ def test_all_eight_build_with_the_contract(built):
         for key, (dims, units) in ARRAYS.items():
             arr = arrays[key]
             assert tuple(arr.dims) == dims and arr.units == units, (name, key)
-            assert arr.data.dtype == np.float32, (name, key)
+            assert arr.data.dtype == (np.int32 if key == "wall_fibres" else np.float32), (name, key)
             assert np.all(np.isfinite(arr.data)), (name, key)
         assert ATTRS <= set(attrs), name
         n = arrays["surface_points"].data.shape[0]
@@ -331,6 +332,11 @@ def test_thin_wall_in_two_layers_at_the_thickness_gauss_points(built):
     np.testing.assert_allclose(p2[:m], p1 + off * n1, atol=1e-6)
     np.testing.assert_allclose(p2[m:], p1 - off * n1, atol=1e-6)
     np.testing.assert_array_equal(n2, np.concatenate([n1, n1]))
+    # each normal fibre joins an outer particle to its inner twin, t / sqrt 3 apart along the wall's normal, once
+    fib = two["wall_fibres"].data
+    assert one["wall_fibres"].data.shape == (0, 2) and fib.shape == (m, 2) and fib.dtype == np.int32
+    assert np.array_equal(np.sort(fib.ravel()), np.arange(2 * m))
+    np.testing.assert_allclose(p2[fib[:, 0]] - p2[fib[:, 1]], 2 * off * n1, atol=1e-6)
     v1, v2 = one["particle_volumes"].data.astype(float), two["particle_volumes"].data.astype(float)
     np.testing.assert_allclose(v2, np.concatenate([v1, v1]) / 2, rtol=1e-6)
     assert v2.sum() == pytest.approx(v1.sum(), rel=1e-6) and attrs2["wall_volume"] == attrs1["wall_volume"]

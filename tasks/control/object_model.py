@@ -59,7 +59,8 @@ Discretisation choices (documented here because downstream steps rely on them):
     ``+-t / (2 sqrt 3)`` along the normal, each particle with half the volume: the two-point rule integrates a
     strain linear through the thickness exactly, so a plane-stress wall (``mpm.thin_walls: membrane``) carries the
     bending energy ``E t^3 / (12 (1 - nu^2)) kappa^2 / 2`` per area of a curvature kappa of the grid's field (two
-    layers at +-t/2 would carry 3x);
+    layers at +-t/2 would carry 3x); ``wall_fibres`` (fibre, layer) pairs each outer particle with its inner twin,
+    the wall's normal fibre, which the solver keeps at its rest length (``mpm.wall_fibres``); empty otherwise;
   - ``interior`` set: grid points with ``sdf < -max(t, s/2)`` (half a spacing clear of the wall layer), volumes
     rescaled to the cavity volume ``V(sdf < 0) - wall volume``.  These cavity particles are the object's geometry
     only: the rollout fills them with the oracle's ``core`` (fruit flesh, stuffing: part of the body) or, without
@@ -951,6 +952,7 @@ def build_object_model(obj: Any, sampling: Any, grid_spacing: float | None = Non
     V_body = float(src.enclosed_volume)
     thin = (not filled) and t < max(s, grid_spacing or s)
     grid = None
+    fibres = np.zeros((0, 2), np.int64)  # a thin wall's normal fibres (pairs of its two Gauss layers' particles)
     if thin:
         if isinstance(src, _PlySource):
             cand_p = src.means
@@ -965,8 +967,9 @@ def build_object_model(obj: Any, sampling: Any, grid_spacing: float | None = Non
             pvol = parea * shell_depth_volume(src.curvature(ppos, pnrm)[0], t, parea)
             ppos = ppos - 0.5 * t * pnrm
         V_wall = float(pvol.sum())
-        if layers == 2:  # the thickness's two Gauss points
+        if layers == 2:  # the thickness's two Gauss points; fibre k joins particle k (outer) to its inner twin
             off = t / (2.0 * math.sqrt(3.0))
+            fibres = np.stack([np.arange(len(ppos)), np.arange(len(ppos), 2 * len(ppos))], axis=1)
             ppos = np.concatenate([ppos + off * pnrm, ppos - off * pnrm])
             pnrm = np.concatenate([pnrm, pnrm])
             pvol = np.concatenate([0.5 * pvol, 0.5 * pvol])
@@ -1024,6 +1027,9 @@ def build_object_model(obj: Any, sampling: Any, grid_spacing: float | None = Non
         "particle_volumes": Array(pvol.astype(f32), ("particle",), "m^3", "real material volume per particle"),
         "particle_normals": Array(_unit(pnrm).astype(f32), ("particle", "xyz"), "1",
                                   "outward normal of the nearest outer surface"),
+        "wall_fibres": Array(fibres.astype(np.int32), ("fibre", "layer"), "1",
+                             "particle indices of each normal fibre of a wall in two Gauss layers: outer, inner "
+                             "(the solver keeps each at its rest length, mpm.wall_fibres); none otherwise"),
         "interior_positions": Array(ipos.astype(f32), ("interior_particle", "xyz"), "m",
                                     "MPM particles of the interior material (cavity)"),
         "interior_volumes": Array(ivol.astype(f32), ("interior_particle",), "m^3", "volume per interior particle"),
@@ -1069,7 +1075,7 @@ def check_geometry_file(kind: str, path: str | None, size: Any = None) -> str | 
 
 OBJECT_OUTPUTS = ("surface_points", "surface_normals", "surface_area", "surface_curvature", "surface_principal_dirs",
                   "gaussian_scales", "gaussian_rotations", "gaussian_colors", "gaussian_opacities",
-                  "particle_positions", "particle_volumes", "particle_normals", "interior_positions",
+                  "particle_positions", "particle_volumes", "particle_normals", "wall_fibres", "interior_positions",
                   "interior_volumes")
 
 

@@ -398,9 +398,8 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     if 0.0 < thickness < dx and cfg.thin_walls == "membrane" and by_label[SHELL].model in MEMBRANE_MODELS:
         normals = np.zeros_like(x0)
         normals[mid == SHELL] = obj["particle_normals"]  # the shell's particles come first (scene_particles)
-        if int(obj_attrs.get("thin_wall_layers", 0)) == 2:  # the object model stores the outer layer, then the inner
-            half = len(obj["particle_normals"]) // 2
-            pairs = np.stack([np.arange(half), np.arange(half, 2 * half)], axis=1)
+        if len(obj["wall_fibres"]):  # the two Gauss layers' pairs (the shell's particles come first)
+            pairs = np.asarray(obj["wall_fibres"], np.int64)
         for lab in (SHELL, RUPTURED):  # the torn skin is the shell's particles; as foam it stays 3D
             if lab in by_label and by_label[lab].model in MEMBRANE_MODELS:
                 mat_list[slot[lab]] = replace(mat_list[slot[lab]], membrane=True)
