@@ -3,6 +3,7 @@
     python -m flows.ball_study                         # default grid and 3, 2 mm particles; flats to 6 mm
     python -m flows.ball_study --spacings --travel 4   # the default grid alone, 4 mm
     python -m flows.ball_study --plates grid surface   # grid-node flats and surface flats, each grid
+    python -m flows.ball_study --spacings --travel 3 --hold 20 --plates grid surface   # then held 20 s: creep?
 
 The default grid's hollow rubber ball (its own particles and materials: the object model and material oracle steps
 of :func:`flows.pipeline.run_object_local`, the rollout's scene :func:`tasks.physics.mpm_rollout.build_scene`, no
@@ -14,7 +15,9 @@ the grid with them (dx = 2 x spacing, substeps 800 / spacing per frame as in ``f
 ``grid`` (default) flats of grid-node slip points, as the default fingers act (their ~1.5-cell halo holds the wall
 before it touches), ``surface`` plane colliders with ``mpm.contact=surface`` (acting where the particles touch):
 the difference is the halo's share of the error, the rest the MPM shell's own (README, known limits).  Prints the
-force per flat at each whole millimetre of travel and writes ``<out>/ball_study.md``.  No Prefect: one process.
+force per flat at each whole millimetre of travel and writes ``<out>/ball_study.md``.  ``--hold`` (s) then keeps the
+flats still that long and adds a table of the held force (an elastic wall's stays; the thin wall's creeps, README,
+known limits).  No Prefect: one process.
 """
 from __future__ import annotations
 
@@ -25,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+HOLD_MARKS = (1.0, 2.0, 5.0, 10.0, 20.0, 40.0)  # s: when the held force is reported (those within --hold)
 FE_STEP = 0.25e-3  # m: the FE's depth increment (Newton from the previous depth's state; 0.5 mm steps fail to converge)
 
 
@@ -57,18 +61,23 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--frames", type=int, default=60, help="output frames of the squeeze (1/30 s each)")
     ap.add_argument("--plates", nargs="+", choices=["grid", "surface"], default=["grid"],
                     help="the flats: grid-node slip points and/or surface plane colliders")
+    ap.add_argument("--hold", type=float, default=0.0, help="then hold the flats still this long (s)")
     ap.add_argument("--artifacts", default="artifacts", help="artifact root of the object model steps")
     ap.add_argument("--out", default="reports/ball", help="folder of ball_study.md")
     args = ap.parse_args(argv)
     if not args.travel > 0 or any(not v > 0 for v in args.spacings):
         ap.error("--travel and --spacings must be > 0 mm")
+    if not args.hold >= 0:
+        ap.error("--hold must be >= 0 s")
     from tasks.physics.labels import SHELL
     from tasks.verification.contact import body_between_flats
     from tasks.verification.sphere_fe import sphere_between_flats
 
     travel = 1e-3 * args.travel
     marks = np.arange(1, int(np.floor(args.travel)) + 1) * 1e-3
-    rows, wall = [], None
+    rows, held_rows, wall = [], [], None
+    hold_marks = np.array([t for t in HOLD_MARKS if t <= args.hold] + ([args.hold] if args.hold not in HOLD_MARKS
+                                                                        and args.hold > 0 else []))
     for spacing in [None, *sorted(args.spacings, reverse=True)]:
         for plate in args.plates:
             over = [] if spacing is None else [f"sampling.particle_spacing={spacing / 1000:g}",
@@ -78,12 +87,18 @@ def main(argv: list[str] | None = None) -> None:
             wall = wall or dict(R=0.5 * float(cfg.object.geometry.size[0]),
                                 t=float(cfg.object.geometry.wall_thickness),
                                 E=float(shell.youngs_modulus), nu=float(shell.poisson_ratio))
-            r = body_between_flats(scene.solver, plate, travel, args.frames * scene.frame_dt, args.frames)
+            n_hold = int(round(args.hold / scene.frame_dt))
+            r = body_between_flats(scene.solver, plate, travel, args.frames * scene.frame_dt, args.frames, n_hold)
             force = np.interp(marks, r["depth"], r["force"])
-            rows.append((f"MPM, dx {1e3 * scene.dx:g} mm" + (" (default)" if spacing is None else "")
-                         + f", {plate} flats", force,
+            name = f"MPM, dx {1e3 * scene.dx:g} mm" + (" (default)" if spacing is None else "") + f", {plate} flats"
+            rows.append((name, force,
                          f"{len(scene.solver.positions())} particles, {r['substeps']} substeps, {r['seconds']:.0f} s"))
             print(_row(*rows[-1]), flush=True)
+            if n_hold:
+                at = np.clip(np.round(hold_marks / scene.frame_dt).astype(int) - 1, 0, n_hold - 1)
+                held_rows.append((name, np.array([r["force"][-1], *r["held"][at]]),
+                                  f"{100 * (r['held'][-1] / r['force'][-1] - 1):+.1f} % over {args.hold:g} s"))
+                print(_row(*held_rows[-1]), flush=True)
     fe = sphere_between_flats(np.arange(FE_STEP, travel + 1e-9, FE_STEP), wall["R"], wall["E"], wall["nu"],
                               h_min=wall["t"] / 6, h_max=wall["t"] / 3, model="fixed_corotated", wall=wall["t"],
                               tol=1e-7)
@@ -97,6 +112,11 @@ def main(argv: list[str] | None = None) -> None:
              "| run | " + " | ".join(f"{1e3 * m:g} mm" for m in marks) + " | |",
              "|---|" + "---|" * len(marks) + "---|",
              *[_row(*row) for row in rows]]
+    if held_rows:
+        lines += ["", f"Held at {args.travel:g} mm: force per flat (N) at the end of the press and after each time "
+                  "(s) of the hold (an elastic wall's force stays):", "",
+                  "| run | press end | " + " | ".join(f"{t:g} s" for t in hold_marks) + " | change |",
+                  "|---|---|" + "---|" * len(hold_marks) + "---|", *[_row(*row) for row in held_rows]]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "ball_study.md").write_text("\n".join(lines) + "\n")

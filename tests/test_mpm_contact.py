@@ -57,7 +57,8 @@ def test_uniaxial_compression_between_surface_plates_matches_E_A_eps(nu):
 def test_a_body_between_two_flats_is_squeezed_from_both_sides():
     """body_between_flats (the ball study's press, here on a 40 mm cube, 8 cells across, surface contact): two
     flats start at the body's particle surfaces and each moves 0.2 mm towards the other, a nominal strain of 1 %:
-    the force per flat is E A eps within 5 %, and the body's centre stays put (the squeeze is symmetric)."""
+    the force per flat is E A eps within 5 %, and the body's centre stays put (the squeeze is symmetric).  Held
+    there (as the ball study's ``--hold``), the solid's force is E A eps within 5 % and does not drift (0.5 %)."""
     from tasks.verification.contact import DENSITY, body_between_flats
 
     L, E = 0.04, 1.0e5
@@ -67,9 +68,12 @@ def test_a_body_between_two_flats_is_squeezed_from_both_sides():
     mat = Material(name="cube", model="fixed_corotated", youngs_modulus=E, poisson_ratio=0.3, density=DENSITY)
     s = MPMSolver(X, h ** 3, mat, config=dict(device="cpu", dx=2 * h, gravity=[0.0, 0.0, 0.0], floor=False,
                                               margin_cells=3, contact="surface", energy_guard_tolerance=0.0))
-    r = body_between_flats(s, "surface", 0.005 * L, 20 * L / mat.bar_wave_speed(), 30)
+    r = body_between_flats(s, "surface", 0.005 * L, 20 * L / mat.bar_wave_speed(), 30, hold_frames=30)
     eps = 2 * r["depth"][-4:].mean() / L
+    assert len(r["depth"]) == len(r["force"]) == 30 and len(r["held"]) == 30
     assert abs(r["force"][-4:].mean() / (E * L * L * eps) - 1.0) < 0.05, r["force"][-4:]
+    held = r["held"] / (E * L * L * 2 * r["depth"][-1] / L)  # against E A eps at the final travel
+    assert np.abs(held - 1.0).max() < 0.05 and abs(held[-10:].mean() / held[:10].mean() - 1.0) < 0.005, held
     assert abs(s.positions()[:, 2].mean() - L / 2) < 1e-3 * L
 
 

@@ -73,19 +73,21 @@ def _ramped_speed(t: float, total: float, travel: float, ramp: float = 0.2) -> f
 
 
 def _press(solver: MPMSolver, plate: str, plate_z: float, half_width: float, travel: float, total: float,
-           n_frames: int, on_frame, fixed: Optional[object] = None, mirror_z: Optional[float] = None) -> None:
+           n_frames: int, on_frame, fixed: Optional[object] = None, mirror_z: Optional[float] = None,
+           hold_frames: int = 0) -> None:
     """Move a frictionless plate (normal -z, finger 1) down by ``travel`` (m) over ``total`` (s), starting at
     ``plate_z``: a plane collider (``plate = surface``) or slip Dirichlet points (``grid``), next to the static
     boundary ``fixed`` (a Collider, DirichletPoints or None) or, with ``mirror_z`` (m), a second plate of the same
-    kind (normal +z, finger 0) starting there and moving up as the first moves down (a symmetric squeeze);
-    ``on_frame(f, travel_now, stats)`` after every frame (travel of each plate)."""
+    kind (normal +z, finger 0) starting there and moving up as the first moves down (a symmetric squeeze), then
+    hold the plates still for ``hold_frames`` more frames of the same length; ``on_frame(f, travel_now, stats)``
+    after every frame (travel of each plate)."""
     fdt = total / n_frames
     z, zm = plate_z, mirror_z
     h = np.cbrt(float(solver.volumes()[0]))
     down = np.array([0.0, 0.0, 1.0])
     plates = [(-down, 1)] + ([(down, 0)] if mirror_z is not None else [])
-    for f in range(n_frames):
-        vz = -_ramped_speed((f + 0.5) * fdt, total, travel)
+    for f in range(n_frames + hold_frames):
+        vz = -_ramped_speed((f + 0.5) * fdt, total, travel) if f < n_frames else 0.0
         coll = [fixed] if isinstance(fixed, Collider) else []
         bcs = [fixed] if isinstance(fixed, DirichletPoints) else []
         pins = None
@@ -166,14 +168,17 @@ def hertz_case(contact: str, cells_per_radius: int, depth: float = 0.004, load_t
     return out
 
 
-def body_between_flats(solver: MPMSolver, plate: str, travel: float, duration: float, n_frames: int) -> dict:
+def body_between_flats(solver: MPMSolver, plate: str, travel: float, duration: float, n_frames: int,
+                       hold_frames: int = 0) -> dict:
     """A body already in ``solver`` (e.g. the default grid's hollow rubber ball, its walls in plane stress) squeezed
     between two frictionless flats starting at its particles' top and bottom surfaces (centre +- half their
     spacing), each moving towards the other by ``travel`` (m) over ``duration`` (s) in ``n_frames`` frames
     (``plate``: ``grid`` slip Dirichlet points, as the default fingers act, or ``surface`` plane colliders, with
-    the solver's matching ``mpm.contact``).  Compared with :func:`tasks.verification.sphere_fe.sphere_between_flats`
-    (``wall``: the hollow sphere's FE reference).  Returns per frame ``depth`` (m, each flat's travel, frame ends)
-    and ``force`` (N, frame mean of the two flats' reactions), ``seconds`` and ``substeps``."""
+    the solver's matching ``mpm.contact``), then held there for ``hold_frames`` frames (an elastic body's force
+    stays; a drop is creep).  Compared with :func:`tasks.verification.sphere_fe.sphere_between_flats` (``wall``:
+    the hollow sphere's FE reference).  Returns per frame of the press ``depth`` (m, each flat's travel, frame
+    ends) and ``force`` (N, frame mean of the two flats' reactions), ``held`` (N, the same per frame of the hold),
+    ``seconds`` and ``substeps`` (of the press)."""
     x = solver.positions()
     half = 0.5 * np.cbrt(solver.volumes().astype(np.float64))
     top, bottom = float((x[:, 2] + half).max()), float((x[:, 2] - half).min())
@@ -187,9 +192,10 @@ def body_between_flats(solver: MPMSolver, plate: str, travel: float, duration: f
         rec["substeps"].append(int(st.substeps))
 
     t0 = time.perf_counter()
-    _press(solver, plate, top, width, travel, duration, n_frames, on_frame, mirror_z=bottom)
-    return {"depth": np.asarray(rec["depth"]), "force": np.asarray(rec["force"]),
-            "seconds": time.perf_counter() - t0, "substeps": int(sum(rec["substeps"]))}
+    _press(solver, plate, top, width, travel, duration, n_frames, on_frame, mirror_z=bottom, hold_frames=hold_frames)
+    return {"depth": np.asarray(rec["depth"][:n_frames]), "force": np.asarray(rec["force"][:n_frames]),
+            "held": np.asarray(rec["force"][n_frames:]), "seconds": time.perf_counter() - t0,
+            "substeps": int(sum(rec["substeps"][:n_frames]))}
 
 
 def _joined(a: ParticlePins, b: Optional[ParticlePins]) -> ParticlePins:
