@@ -71,6 +71,18 @@ def run_case(obj: str, overrides: list[str], root: str) -> dict:
     return row
 
 
+def table_row(obj: str, mode: str, label: str, r: dict) -> str:
+    """One markdown row of the study's table from :func:`run_case`'s row ``r``: a metric the run has not is ``-``,
+    a quasi-static measure the rollout stored as None (kinetic energy without internal energy in a contact, or no
+    contact judged) is ``inf / none``."""
+    fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
+    ke_ie = "inf / none" if r["ke_ie"] is None else f"{r['ke_ie']:.3f}"
+    return (f"| {obj} | {mode} | {label} | {' | '.join(fmt(r[k]) for k in METRICS)} | {r['seconds']:.0f} | "
+            f"{r['substeps']} | {r['reaction_peak']:.2f} / {r['reaction_mean_peak']:.2f} | "
+            f"{r['feedback_peak']:.2f} ({r['feedback_rule'].replace('|', '')}) | {r['strain_peak']:.3f} / "
+            f"{r['predicted_peak']:.3f} | {ke_ie} |")
+
+
 def distance_table(obj: str, runs: dict[tuple[str, str], dict]) -> list[str]:
     """Markdown rows: each run's surface distance (% of the bounding-box diagonal,
     :func:`tasks.verification.convergence.distances_from`) and reaction error (relative L2 over frames and fingers,
@@ -104,7 +116,6 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     from tasks.physics.mpm.solver import SimulationError
 
-    fmt = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
     lines = [f"# Finger modes on Table 2 ({datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, Warp CPU)", "",
              "Full variant, default grid config (`conf/evaluate.yaml`) plus the mode's overrides: "
              + "; ".join(f"`{m}`: {' '.join(MODES[m])}" for m in args.modes)
@@ -131,10 +142,7 @@ def main(argv: list[str] | None = None) -> None:
                     lines.append(line)
                     continue
                 runs[mode, label] = r
-                line = (f"| {obj} | {mode} | {label} | {' | '.join(fmt(r[k]) for k in METRICS)} | {r['seconds']:.0f} | "
-                        f"{r['substeps']} | {r['reaction_peak']:.2f} / {r['reaction_mean_peak']:.2f} | "
-                        f"{r['feedback_peak']:.2f} ({r['feedback_rule'].replace('|', '')}) | {r['strain_peak']:.3f} / "
-                        f"{r['predicted_peak']:.3f} | {r['ke_ie']:.3f} |")
+                line = table_row(obj, mode, label, r)
                 print(line, flush=True)
                 lines.append(line)
         if args.spacings and runs:

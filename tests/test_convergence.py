@@ -158,3 +158,18 @@ def test_two_setting_sweep_writes_the_table(prefect_server, tmp_path, compose_cf
     df2 = pd.read_csv(tmp_path / "reports" / "convergence" / "tiny" / "convergence.csv")
     pd.testing.assert_series_equal(df["rollout_s"], df2["rollout_s"])
     assert out["report"] == again["report"]
+
+
+def test_finger_study_row_writes_a_missing_quasi_static_measure():
+    """The finger study's table row (flows.finger_study.table_row): the numbers at their precision, a metric the
+    run has not as '-', and a quasi-static measure stored as None (kinetic energy without internal energy in a
+    contact) as 'inf / none' instead of stopping the study (it did, on the plush toy with surface contact)."""
+    from flows.finger_study import table_row
+
+    r = dict(bdc_t=0.5, bdc_s=None, sdc=0.25, miou=0.125, seconds=61.2, substeps=9220, reaction_peak=10.109,
+             reaction_mean_peak=5.655, feedback_peak=10.109, feedback_rule="|contact force| (no yield stress)",
+             strain_peak=0.249, predicted_peak=0.155, ke_ie=None)
+    assert table_row("plush_toy", "surface_dirichlet", "default", r) == (
+        "| plush_toy | surface_dirichlet | default | 0.500 | - | 0.250 | 0.125 | 61 | 9220 | 10.11 / 5.66 | "
+        "10.11 (contact force (no yield stress)) | 0.249 / 0.155 | inf / none |")
+    assert table_row("clay", "grid_dirichlet", "3 mm", {**r, "ke_ie": 0.0123}).endswith("| 0.012 |")
