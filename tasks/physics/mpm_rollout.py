@@ -110,10 +110,10 @@ from tasks.physics.regions import finger_regions, region_weights, squeeze_strain
 FLIGHT_FRAMES = 10
 FLIGHT_SAMPLE_SUBSTEPS = 5
 STATS_KEYS = ("substeps", "dt_min", "courant", "max_speed", "j_min", "j_max", "kinetic_energy", "internal_energy",
-              "ke_ie_ratio", "ke_ie_contact", "energy_growth")  # per-frame ``MPMSolver.step_frame`` statistics
+              "plastic_dissipation", "ke_ie_ratio", "ke_ie_contact", "energy_growth")  # per-frame step_frame statistics
 STATS_UNITS = {"dt_min": "s", "courant": "1", "max_speed": "m/s", "j_min": "1", "j_max": "1", "kinetic_energy": "J",
-               "internal_energy": "J", "ke_ie_ratio": "1", "substeps": "1", "ke_ie_contact": "1",
-               "energy_growth": "1"}
+               "internal_energy": "J", "plastic_dissipation": "J", "ke_ie_ratio": "1", "substeps": "1",
+               "ke_ie_contact": "1", "energy_growth": "1"}
 
 
 def cauchy_free_measures(F: np.ndarray, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -1220,7 +1220,8 @@ ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_
                    "gaussian_positions", "gaussian_covariances", "gaussian_rotations", "reaction_force",
                    "applied_force", "feedback_force", "squeeze_strain", "dirichlet_tracking_error",
                    "predicted_squeeze_strain", "substeps", "dt_min", "courant", "max_speed", "j_min", "j_max",
-                   "kinetic_energy", "internal_energy", "ke_ie_ratio", "ke_ie_contact", "energy_growth",
+                   "kinetic_energy", "internal_energy", "plastic_dissipation", "ke_ie_ratio", "ke_ie_contact",
+                   "energy_growth",
                    "plastic_strain?", "released?",
                    *(f"{k}?" for k in FLIGHT_ARRAYS))
 

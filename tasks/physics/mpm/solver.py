@@ -47,7 +47,9 @@ from . import kernels as K
 from .materials import (
     COL_DAMPING,
     COL_DENSITY,
+    COL_HARDENING,
     COL_PHYSICAL_DENSITY,
+    COL_YIELD,
     MODEL_CODES,
     N_COLS,
     PLASTIC_MODELS,
@@ -198,7 +200,7 @@ class FrameStats:
     j_max: float
     kinetic_energy: float  # J
     internal_energy: float  # J (elastic stored energy)
-    ke_ie_ratio: float
+    ke_ie_ratio: float  # KE / (IE + plastic dissipation) of the quasi-static check's materials (MPMSolver)
     momentum: np.ndarray  # kg m/s
     mass: float  # kg
     reaction: np.ndarray  # (n_fingers, 3) N, mean force the Dirichlet constraint of each finger applied
@@ -210,9 +212,10 @@ class FrameStats:
     gravitational_energy: float  # J, -sum m_phys g . x (physical weights), end of frame
     boundary_work: float  # J, work the Dirichlet nodes and force patches did on the material during the frame
     quasi_static_checked: bool = False  # the quasi-static check applied to this frame (see MPMSolver)
-    ke_ie_contact: float = math.nan  # checked frames: sum KE / sum IE of the measured materials over the contact
+    ke_ie_contact: float = math.nan  # checked frames: sum KE / sum (IE + plastic work) of the measured materials
     energy_growth: float = 0.0  # energy guard measure: unexplained energy growth / energy scale (EnergyBudget)
     local_damping: float = 0.0  # local damping coefficient of the measured materials during the frame (class doc)
+    plastic_dissipation: float = 0.0  # J, plastic work the measured materials dissipated so far (plastic_dissipation)
 
     def as_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -333,6 +336,19 @@ def _num(x: float) -> str:
 def _ratio(kinetic: float, internal: float) -> float:
     """KE / IE (inf: kinetic energy without internal energy, 0: neither)."""
     return kinetic / internal if internal > 1e-30 else (math.inf if kinetic > 0 else 0.0)
+
+
+def plastic_dissipation(alpha: np.ndarray, volume: np.ndarray, yield_stress: np.ndarray,
+                        hardening: np.ndarray) -> float:
+    """The plastic work (J) dissipated so far by particles of the von Mises return mapping
+    (:func:`tasks.physics.mpm.constitutive.hencky_return_principal`): with the equivalent plastic strain ``alpha``
+    (1) that it accumulates, the yield stress ``tau_y + H alpha`` (Pa, uniaxial, linear hardening H) is the
+    Kirchhoff stress conjugate to it, so the work per unit of reference volume is int (tau_y + H a) da =
+    tau_y alpha + H alpha^2 / 2, times the particle's reference ``volume`` (m^3).  A foam's Perzyna overstress and
+    volumetric crush dissipate more than this: for it the sum is a lower bound."""
+    a = np.asarray(alpha, np.float64)
+    return float(np.sum(np.asarray(volume, np.float64) * (np.asarray(yield_stress, np.float64) * a
+                                                           + 0.5 * np.asarray(hardening, np.float64) * a * a)))
 
 
 def kinetic_energy_split(x: np.ndarray, v: np.ndarray, m: np.ndarray,
@@ -549,7 +565,10 @@ class MPMSolver:
     judges a quasi-static analysis: "the kinetic energy of the deforming material should not exceed a small
     fraction (typically 5 % to 10 %) of its internal energy throughout the majority of the process" (Getting
     Started with Abaqus, "Quasi-static analysis with Abaqus/Explicit", energy balance; the limit is
-    ``config.quasi_static_ke_ie_max``).  Exclusions, each for a physical reason: released material and fluids keep their physical mass (their motion is real
+    ``config.quasi_static_ke_ie_max``), with the internal energy as Abaqus counts it, ALLIE: the stored strain energy
+    plus the plastic work dissipated so far (:func:`plastic_dissipation`; before 2026-12-04 the strain energy
+    alone, which a yielding wall keeps small whatever it has absorbed: the default can warned at 0.47, 0.015 with
+    its plastic work).  Exclusions, each for a physical reason: released material and fluids keep their physical mass (their motion is real
     dynamics, not a mass-scaling artefact); frames without boundary load (the start-up sag of a body under its
     suddenly applied weight, KE/IE ~ 1, and free flight are dynamic in any case, and nothing distorts a
     deformation that no finger imposes); the first ``QUASI_STATIC_ONSET_FRAMES`` loaded frames of every contact
@@ -1664,7 +1683,8 @@ class MPMSolver:
         per = self.mat_energy.numpy()  # (material, [KE, IE, PE]) J
         work = float(self.boundary_work.numpy()[0])
         measured = self._quasi_static_materials()
-        ke_s, ie_s = float(per[measured, 0].sum()), float(per[measured, 1].sum())
+        dissipated = self._plastic_dissipation(measured)
+        ke_s, ie_s = float(per[measured, 0].sum()), float(per[measured, 1].sum()) + dissipated
         local_damping = float(self._damping[measured].max(initial=0.0))
         ratio = _ratio(ke_s, ie_s)
         reaction = self.finger_react.numpy().astype(np.float64) / frame_dt
@@ -1692,7 +1712,22 @@ class MPMSolver:
             mass_scale=self.mass_scale, stiffness_scale=self.stiffness_scale, quasi_static_ok=qs_ok,
             wall_seconds=time.perf_counter() - wall0, gravitational_energy=float(per[:, 2].sum()),
             boundary_work=work, quasi_static_checked=checked, ke_ie_contact=process, local_damping=local_damping,
+            plastic_dissipation=dissipated,
         )
+
+    def _plastic_dissipation(self, measured: np.ndarray) -> float:
+        """The plastic work (J) the particles of the ``measured`` materials (material,) bool have dissipated so far
+        (:func:`plastic_dissipation`, at the material table's yield stress and hardening: scaled as the kernels use
+        them); 0 without a plastic material."""
+        if not self.has_plastic:
+            return 0.0
+        rows = measured & np.isin(self.mat_model.numpy(), PLASTIC_MODELS)
+        on = rows[self._mid_host]
+        if not on.any():
+            return 0.0
+        par, mid = self.mat_par.numpy(), self._mid_host[on]
+        return plastic_dissipation(self.alpha.numpy()[on], self.vol.numpy()[on], par[mid, COL_YIELD],
+                                   par[mid, COL_HARDENING])
 
     def close_quasi_static_contact(self) -> bool:
         """Judge the open contact of the quasi-static check (class doc): the solver calls it in the first frame after
