@@ -1024,8 +1024,8 @@ def _flight_summary(flight: dict[str, np.ndarray], solver: MPMSolver) -> dict[st
 def _quasi_static_summary(contacts: list[dict], ke_ie_contact: np.ndarray, contact: np.ndarray, mass_scale: float,
                           limit: float) -> dict:
     """How well the mass-scaled run stayed quasi-static: the solver's judged ``contacts`` (``first_frame``,
-    ``last_frame``, ``ke_ie`` = sum KE / sum IE of the mass-scaled material over the contact's checked frames, see
-    :class:`MPMSolver`), the largest of them and how many exceed ``limit``; ``ke_ie_contact`` (frame,) finite in
+    ``last_frame``, ``ke_ie`` = sum KE / sum (IE + plastic work) of the mass-scaled material over the contact's
+    checked frames, see :class:`MPMSolver`), the largest of them and how many exceed ``limit``; ``ke_ie_contact`` (frame,) finite in
     the checked frames; ``contact`` (frame, finger, xyz) N the boundary's force.  The max is None (JSON for NaN)
     when no contact was judged."""
     in_contact = np.linalg.norm(contact, axis=-1).max(axis=1) > 0

@@ -278,8 +278,9 @@ def rollout_summary(refs: Mapping[str, Mapping[str, Any]]) -> Optional[str]:
 
 def quasi_static_cell(qs: Mapping[str, Any]) -> str:
     """The rollout's quasi-static check (its ``quasi_static`` attrs) as the solver applied it: the largest value of
-    its measure (sum KE / sum IE of the mass-scaled material over a contact) over the contacts it judged, its limit
-    ``mpm.quasi_static_ke_ie_max``, whether it warned, and how many contacts and frames it checked."""
+    its measure (sum KE / sum (IE + plastic work) of the mass-scaled material over a contact) over the contacts it
+    judged, its limit ``mpm.quasi_static_ke_ie_max``, whether it warned, and how many contacts and frames it
+    checked."""
     n = int(qs.get("contacts_checked", 0))
     if not n:
         return "not checked (no mass scaling or no loaded frame)"
