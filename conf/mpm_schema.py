@@ -82,7 +82,8 @@ class MPMConfig:
             resolve the wall's thickness and its plane-stress particles carry no normal stress, so nothing else keeps
             it: the rubber ball between two flats had its layers closed to 11 % of their distance under the flats at
             4 mm, its bending lever arm with them, and read 0.35-0.56x the FE of the hollow sphere at dx 4 mm (with
-            the fibres 0.70-1.02x; ``python -m flows.ball_study --plates surface``).  False: the layers move with
+            the fibres 0.70-1.02x, 0.70-0.95x with the contact at the wall's face; ``python -m flows.ball_study
+            --plates surface``).  False: the layers move with
             the grid alone (the former behaviour).
         finger_friction: Coulomb coefficient of the collider fingertips (0 = frictionless, < 0 = no slip while
             touching), dimensionless.

@@ -474,9 +474,10 @@ def test_the_balls_wall_keeps_its_thickness_under_a_flat_and_carries_its_shell_f
     finite-strain FE of the same shell reads 3.26 N per flat at 2 mm (``tasks.verification.sphere_fe``, checked
     against Reissner's thin-shell stiffness in ``tests/test_mpm_contact.py``; ``python -m flows.ball_study``).
     With the wall's normal fibres (``mpm.wall_fibres``, the default) every pair of layers keeps its rest distance
-    and the force is within -20/+40 % of the FE (measured 4.36 N: the fibre is rigid through the thickness and the
-    grid coarse; 2.72 N at dx 4 mm); without them the flats close the layers under them (measured to 51 % of
-    their distance at 1.8 mm, 11 % at 4 mm), the wall loses its bending lever arm there and reads 2.50 N."""
+    and the force is within -20/+40 % of the FE (measured 3.61 N with the flats at the wall's faces, 4.36 N when the
+    particles reached 0.74 mm beyond them: the fibre is rigid through the thickness and the grid coarse; 2.72 N at
+    dx 4 mm); without them the flats close the layers under them (measured to 51 % of their distance at 1.8 mm,
+    11 % at 4 mm), the wall loses its bending lever arm there and reads 2.39 N."""
     from flows.ball_study import ball_scene
     from tasks.verification.contact import body_between_flats
 
@@ -485,6 +486,9 @@ def test_the_balls_wall_keeps_its_thickness_under_a_flat_and_carries_its_shell_f
     x0 = s.positions().astype(np.float64)
     n = len(x0) // 2
     rest = np.linalg.norm(x0[:n] - x0[n:], axis=1)
+    # each layer reaches a flat at its own face, t / 2 - t / (2 sqrt 3) = 0.634 mm (contact_reach), not at half
+    # its spacing (1.38 mm: the outer layer touched 0.74 mm early, the inner never), with or without the fibres
+    assert s.contact_radii() == pytest.approx(np.full(2 * n, 0.0015 - 0.0015 / np.sqrt(3)), rel=1e-3)
     r = body_between_flats(s, "surface", 0.002, 20 * scene.frame_dt, 20)
     x = s.positions().astype(np.float64)
     sep = np.linalg.norm(x[:n] - x[n:], axis=1) / rest

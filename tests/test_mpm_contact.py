@@ -292,3 +292,16 @@ def test_bad_contact_mode_and_collider_are_one_line_errors():
         s.step_frame(1e-3, colliders=[Collider("plane", (0, 0, 0)), Collider("sphere", (0, 0, 0.1))])
     with pytest.raises(ValueError, match=r"^collider 0 \(plane\): field 2 is not a velocity field; use 0"):
         s.step_frame(1e-3, colliders=Collider("plane", (0, 0, 0), field=2))
+
+
+def test_contact_reach_is_half_the_spacing_or_a_gauss_layers_distance_to_its_face():
+    """contact_reach by hand: particles of 8 and 27 mm^3 reach 1 and 1.5 mm (cbrt(V0) / 2); the two Gauss layers
+    of a 3 mm wall (rest distance t / sqrt 3 = 1.732 mm) reach t / 2 - t / (2 sqrt 3) = 0.634 mm, their own faces,
+    whatever their volume; without pairs nothing changes."""
+    from tasks.physics.mpm.solver import contact_reach
+
+    vol = np.array([8e-9, 27e-9, 21e-9, 21e-9])
+    assert contact_reach(vol) == pytest.approx([1e-3, 1.5e-3, 1.379e-3, 1.379e-3], rel=1e-3)
+    t = 0.003
+    got = contact_reach(vol, (np.array([2]), np.array([3]), np.array([t / np.sqrt(3)])))
+    assert got == pytest.approx([1e-3, 1.5e-3, t / 2 - t / (2 * np.sqrt(3)), t / 2 - t / (2 * np.sqrt(3))], rel=1e-5)

@@ -122,6 +122,7 @@ class Particles:
     # solid one; length 1 when no particle is a membrane.  Elastic models: the rest normal (:func:`membrane_state`;
     # F_E is the whole deformation); von Mises: the current one, updated every substep (plastic flow moves F_E's
     # reference, :func:`membrane_plastic_return`)
+    reach: wp.array(dtype=float)  # radius (m) with which the particle's surface reaches a collider (contact_reach)
 
 
 @wp.struct
@@ -532,7 +533,8 @@ def record_impulse(col: Colliders, finger: int, mass: float, dv: wp.vec3, v_new:
 def contact_velocity(col: Colliders, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.mat33, tau: wp.mat33, vol: float,
                      radius: float, mass: float, dt: float, inv_dx: float, field: int) -> ContactResult:
     """Surface contact of one particle (centre x, m; velocity v, m/s; velocity gradient C, 1/s; deformation
-    gradient F; radius = half its undeformed spacing, m; mass, kg; velocity field ``field``) with the colliders
+    gradient F; radius = its reach, half its undeformed spacing or a thin wall's face, m, ``contact_reach``; mass,
+    kg; velocity field ``field``) with the colliders
     that act on its field (``col.field``: that field or < 0, all), before its P2G over the coming substep dt (s).
 
     The particle is the ellipsoid x + F X, |X| <= radius: towards collider c (normal n at the closest surface point,
@@ -639,8 +641,7 @@ def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles
             mv = mass * v
             A = A + pr.A
     if col.count > 0 and ((col.fields >> field) & 1) != 0:
-        cr = contact_velocity(col, r.x, v, r.C, r.F, r.tau, vol, 0.5 * wp.pow(vol, 1.0 / 3.0), mass, sp.dt_p2g,
-                              gi.inv_dx, field)
+        cr = contact_velocity(col, r.x, v, r.C, r.F, r.tau, vol, ps.reach[p], mass, sp.dt_p2g, gi.inv_dx, field)
         mv = mass * cr.v
         A = A + cr.A
     if sp.weight_in_p2g != 0:
