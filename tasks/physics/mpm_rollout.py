@@ -1025,9 +1025,9 @@ def _quasi_static_summary(contacts: list[dict], ke_ie_contact: np.ndarray, conta
                           limit: float) -> dict:
     """How well the mass-scaled run stayed quasi-static: the solver's judged ``contacts`` (``first_frame``,
     ``last_frame``, ``ke_ie`` = sum KE / sum (IE + plastic work) of the mass-scaled material over the contact's
-    checked frames, see :class:`MPMSolver`), the largest of them and how many exceed ``limit``; ``ke_ie_contact`` (frame,) finite in
-    the checked frames; ``contact`` (frame, finger, xyz) N the boundary's force.  The max is None (JSON for NaN)
-    when no contact was judged."""
+    checked frames, see :class:`MPMSolver`), the largest of them and how many exceed ``limit``; ``ke_ie_contact``
+    (frame,) finite in the checked frames; ``contact`` (frame, finger, xyz) N the boundary's force.  The max is
+    None (JSON for NaN) when no contact was judged."""
     in_contact = np.linalg.norm(contact, axis=-1).max(axis=1) > 0
     ratios = [float(c["ke_ie"]) for c in contacts]
     finite = lambda r: r if math.isfinite(r) else None  # noqa: E731  (JSON: inf, KE without IE, as None)

@@ -171,14 +171,14 @@ def hertz_case(contact: str, cells_per_radius: int, depth: float = 0.004, load_t
 def body_between_flats(solver: MPMSolver, plate: str, travel: float, duration: float, n_frames: int,
                        hold_frames: int = 0) -> dict:
     """A body already in ``solver`` (e.g. the default grid's hollow rubber ball, its walls in plane stress) squeezed
-    between two frictionless flats starting at its particles' top and bottom surfaces (centre +- their contact
-    reach, :meth:`MPMSolver.contact_radii`), each moving towards the other by ``travel`` (m) over ``duration`` (s) in ``n_frames`` frames
-    (``plate``: ``grid`` slip Dirichlet points, as the default fingers act, or ``surface`` plane colliders, with
-    the solver's matching ``mpm.contact``), then held there for ``hold_frames`` frames (an elastic body's force
-    stays; a drop is creep).  Compared with :func:`tasks.verification.sphere_fe.sphere_between_flats` (``wall``:
-    the hollow sphere's FE reference).  Returns per frame of the press ``depth`` (m, each flat's travel, frame
-    ends) and ``force`` (N, frame mean of the two flats' reactions), ``held`` (N, the same per frame of the hold),
-    ``seconds`` and ``substeps`` (of the press)."""
+    between two frictionless flats starting at its particles' top and bottom surfaces (centre +- their contact reach,
+    :meth:`MPMSolver.contact_radii`), each moving towards the other by ``travel`` (m) over ``duration`` (s) in
+    ``n_frames`` frames (``plate``: ``grid`` slip Dirichlet points, as the default fingers act, or ``surface`` plane
+    colliders, with the solver's matching ``mpm.contact``), then held there for ``hold_frames`` frames (an elastic
+    body's force stays; a drop is creep).  Compared with :func:`tasks.verification.sphere_fe.sphere_between_flats`
+    (``wall``: the hollow sphere's FE reference).  Returns per frame of the press ``depth`` (m, each flat's travel,
+    frame ends) and ``force`` (N, frame mean of the two flats' reactions), ``held`` (N, the same per frame of the
+    hold), ``seconds`` and ``substeps`` (of the press)."""
     x = solver.positions()
     half = solver.contact_radii()  # where each particle's surface reaches a flat (a thin wall's: its face)
     top, bottom = float((x[:, 2] + half).max()), float((x[:, 2] - half).min())

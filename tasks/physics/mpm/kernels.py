@@ -534,8 +534,8 @@ def contact_velocity(col: Colliders, x: wp.vec3, v: wp.vec3, C: wp.mat33, F: wp.
                      radius: float, mass: float, dt: float, inv_dx: float, field: int) -> ContactResult:
     """Surface contact of one particle (centre x, m; velocity v, m/s; velocity gradient C, 1/s; deformation
     gradient F; radius = its reach, half its undeformed spacing or a thin wall's face, m, ``contact_reach``; mass,
-    kg; velocity field ``field``) with the colliders
-    that act on its field (``col.field``: that field or < 0, all), before its P2G over the coming substep dt (s).
+    kg; velocity field ``field``) with the colliders that act on its field (``col.field``: that field or < 0,
+    all), before its P2G over the coming substep dt (s).
 
     The particle is the ellipsoid x + F X, |X| <= radius: towards collider c (normal n at the closest surface point,
     signed distance phi_c(x)) it reaches r = radius |F^T n|, so its surface point x - r n has the gap
