@@ -17,7 +17,8 @@ before it touches), ``surface`` plane colliders with ``mpm.contact=surface`` (ac
 the difference is the halo's share of the error, the rest the MPM shell's own (README, known limits).  Prints the
 force per flat at each whole millimetre of travel and writes ``<out>/ball_study.md``.  ``--hold`` (s) then keeps the
 flats still that long and adds a table of the held force (an elastic wall's stays; the thin wall's creeps, README,
-known limits).  No Prefect: one process.
+known limits) and the pole gap (the wall under a flat's centre sinking away from it as the cap dimples).  No
+Prefect: one process.
 """
 from __future__ import annotations
 
@@ -96,8 +97,10 @@ def main(argv: list[str] | None = None) -> None:
             print(_row(*rows[-1]), flush=True)
             if n_hold:
                 at = np.clip(np.round(hold_marks / scene.frame_dt).astype(int) - 1, 0, n_hold - 1)
+                gap = 1e3 * r["pole_gap"][[args.frames - 1, -1]]
                 held_rows.append((name, np.array([r["force"][-1], *r["held"][at]]),
-                                  f"{100 * (r['held'][-1] / r['force'][-1] - 1):+.1f} % over {args.hold:g} s"))
+                                  f"{100 * (r['held'][-1] / r['force'][-1] - 1):+.1f} % over {args.hold:g} s | "
+                                  f"{gap[0]:.2f} -> {gap[1]:.2f}"))
                 print(_row(*held_rows[-1]), flush=True)
     fe = sphere_between_flats(np.arange(FE_STEP, travel + 1e-9, FE_STEP), wall["R"], wall["E"], wall["nu"],
                               h_min=wall["t"] / 6, h_max=wall["t"] / 3, model="fixed_corotated", wall=wall["t"],
@@ -114,9 +117,11 @@ def main(argv: list[str] | None = None) -> None:
              *[_row(*row) for row in rows]]
     if held_rows:
         lines += ["", f"Held at {args.travel:g} mm: force per flat (N) at the end of the press and after each time "
-                  "(s) of the hold (an elastic wall's force stays):", "",
-                  "| run | press end | " + " | ".join(f"{t:g} s" for t in hold_marks) + " | change |",
-                  "|---|---|" + "---|" * len(hold_marks) + "---|", *[_row(*row) for row in held_rows]]
+                  "(s) of the hold (an elastic wall's force stays), and the pole gap (mm): how far the wall under each "
+                  "flat's centre has left it, press end -> hold end (the FE keeps the whole flattened disc in contact, "
+                  "0; > 0: the cap dimples away from the flat):", "",
+                  "| run | press end | " + " | ".join(f"{t:g} s" for t in hold_marks) + " | change | pole gap |",
+                  "|---|---|" + "---|" * len(hold_marks) + "---|---|", *[_row(*row) for row in held_rows]]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "ball_study.md").write_text("\n".join(lines) + "\n")

@@ -220,6 +220,34 @@ def test_cube_at_rest_without_gravity_stays_exactly():
     assert st.j_min == 1.0 and st.j_max == 1.0 and st.kinetic_energy == 0.0
 
 
+def test_motion_below_float32_resolution_per_substep_still_adds_up():
+    """A position near 0.1 m resolves 7.5e-9 m and an F_E entry near 1 resolves 1.2e-7, so a substep that moves a
+    particle by less than half of that (here 2.5e-9 m: 1e-5 m/s on 0.25 ms steps) or strains it by less than 6e-8
+    (here 2.5e-8: 1e-4 /s) changed nothing at all: a slowly drifting body stood still and a slowly stretching one
+    kept F_E = I.  With the round-off carried into the next substep (``advection_round_off``,
+    ``update_round_off``) they follow their closed forms over 1 s (4,000 substeps): the drift moves the block
+    v t = 1e-5 m (within 2 %), and a free stretch (E = 1 uPa, no force worth the name: every particle keeps its
+    velocity, v = e (x - c)) gives F_xx = 1 + e t = 1.0001 (within 1 %; without the carries 0 and 0)."""
+    soft = Material(name="soft", model="fixed_corotated", youngs_modulus=1e-6, poisson_ratio=0.3, density=1000.0)
+    X, vol = cube(0.02, z0=0.1)
+    drift = solver_for(X, vol, soft, velocities=np.tile([0.0, 0.0, 1e-5], (len(X), 1)), gravity=[0, 0, 0],
+                       floor=False, dt=2.5e-4)
+    c = X.mean(0)
+    rate = 1e-4
+    V = np.zeros_like(X)
+    V[:, 0] = rate * (X[:, 0] - c[0])
+    stretch = solver_for(X, vol, soft, velocities=V, gravity=[0, 0, 0], floor=False, dt=2.5e-4)
+    stretch.set_affine_velocities(np.tile(np.diag([rate, 0.0, 0.0]), (len(X), 1, 1)))
+    z0 = drift.positions()[:, 2].astype(np.float64)
+    for _ in range(50):
+        drift.step_frame(0.02)
+        stretch.step_frame(0.02)
+    moved = drift.positions()[:, 2].astype(np.float64) - z0
+    assert abs(moved.mean() / 1e-5 - 1.0) < 0.02, moved.mean()
+    Fxx = stretch.deformation_gradients()[:, 0, 0].astype(np.float64)
+    assert np.abs((Fxx - 1.0) / (rate * 1.0) - 1.0).max() < 0.01, (Fxx.min() - 1, Fxx.max() - 1)
+
+
 def test_resting_cube_on_floor_under_gravity():
     side = 0.04
     X, vol = cube(side)
@@ -520,10 +548,10 @@ def test_warm_started_hencky_return_matches_the_float64_closed_form():
 
 
 @wp.kernel
-def _k_polar(F: wp.array(dtype=wp.mat33), q: wp.array(dtype=wp.quat), newton: int, iters: int):
+def _k_polar(F: wp.array(dtype=wp.mat33), q: wp.array(dtype=wp.quat), newton: int, iters: int, tol: float):
     p = wp.tid()
     if newton != 0:
-        q[p] = polar_rotation_quat(F[p], q[p], iters, 1.0e-7)
+        q[p] = polar_rotation_quat(F[p], q[p], iters, tol)
     else:
         q[p] = polar_track_quat(F[p], q[p], iters)
 
@@ -542,7 +570,7 @@ def test_polar_rotation_tracking_accuracy():
     F0 = R0 @ (np.eye(3) + 0.2 * np.eye(3) * rng.uniform(-1, 1, (n, 1, 3)))
     q = wp.array(np.tile([0, 0, 0, 1.0], (n, 1)).astype(np.float32), dtype=wp.quat, device="cpu")
     wp.launch(_k_polar, n, device="cpu", inputs=[wp.array(F0.astype(np.float32), dtype=wp.mat33, device="cpu"),
-                                                q, 1, 16])
+                                                q, 1, 16, 1.0e-7])
     Rq = Rotation.from_quat(q.numpy()).as_matrix()
     assert np.abs(Rq - polar_rotation(F0)).max() < 1e-5
     errs = {}
@@ -554,13 +582,32 @@ def test_polar_rotation_tracking_accuracy():
             S = np.eye(3)[None] + np.eye(3)[None] * (strains * np.sin(0.01 * step))[:, None, :]
             Ft = Rt @ S
             wp.launch(_k_polar, n, device="cpu", inputs=[wp.array(Ft.astype(np.float32), dtype=wp.mat33,
-                                                                  device="cpu"), q, newton, 1])
+                                                                  device="cpu"), q, newton, 1, 1.0e-7])
             if step > 10:
                 err = max(err, np.abs(Rotation.from_quat(q.numpy()).as_matrix() - Rt).max())
         errs[newton] = err
     print("polar tracking max error (newton, track):", errs[1], errs[0])
     assert errs[1] < 2e-6, errs
     assert errs[0] < 1e-3, errs
+
+
+def test_polar_newton_takes_rotation_increments_below_its_tolerance():
+    """A slow rotation, 1e-7 rad per substep about a fixed axis, tracked by one Newton iteration per substep with the
+    default tolerance 1e-6 rad: a step below the tolerance ends the iteration but is taken, so after 1,000 substeps R
+    is the rotation by 1e-4 rad within 5e-8 rad.  Discarding such steps (as before) left R behind by up to the
+    tolerance for good (measured 1e-6 rad): a lagging R gives the corotated stress 2 mu (F - R) F^T a skew part, a
+    torque with no energy behind it, which made a stiff clamped strip on micro-second steps read no sag at all and a
+    slowly loaded one creep (tests/test_membrane.py, the cantilever)."""
+    from scipy.spatial.transform import Rotation
+
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    q = wp.array(np.array([[0, 0, 0, 1.0]], np.float32), dtype=wp.quat, device="cpu")
+    for step in range(1, 1001):
+        F = Rotation.from_rotvec(axis * 1e-7 * step).as_matrix() @ np.diag([1.001, 0.999, 1.0])
+        wp.launch(_k_polar, 1, device="cpu", inputs=[wp.array(F[None].astype(np.float32), dtype=wp.mat33,
+                                                              device="cpu"), q, 1, 1, 1.0e-6])
+    lag = np.linalg.norm((Rotation.from_quat(q.numpy()[0]) * Rotation.from_rotvec(-axis * 1e-4)).as_rotvec())
+    assert lag < 5e-8, lag
 
 
 def test_floor_slip_friction_and_sticky():

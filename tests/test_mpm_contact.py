@@ -58,7 +58,9 @@ def test_a_body_between_two_flats_is_squeezed_from_both_sides():
     """body_between_flats (the ball study's press, here on a 40 mm cube, 8 cells across, surface contact): two
     flats start at the body's particle surfaces and each moves 0.2 mm towards the other, a nominal strain of 1 %:
     the force per flat is E A eps within 5 %, and the body's centre stays put (the squeeze is symmetric).  Held
-    there (as the ball study's ``--hold``), the solid's force is E A eps within 5 % and does not drift (0.5 %)."""
+    there (as the ball study's ``--hold``), the solid's force is E A eps within 5 % and does not drift (0.5 %), and
+    its face on the flats' axis stays on them (pole gap within 0.02 h, a quarter of the travel; measured -0.005 h:
+    the flat's reach sinks a hair into the face)."""
     from tasks.verification.contact import DENSITY, body_between_flats
 
     L, E = 0.04, 1.0e5
@@ -75,6 +77,7 @@ def test_a_body_between_two_flats_is_squeezed_from_both_sides():
     held = r["held"] / (E * L * L * 2 * r["depth"][-1] / L)  # against E A eps at the final travel
     assert np.abs(held - 1.0).max() < 0.05 and abs(held[-10:].mean() / held[:10].mean() - 1.0) < 0.005, held
     assert abs(s.positions()[:, 2].mean() - L / 2) < 1e-3 * L
+    assert len(r["pole_gap"]) == 60 and np.abs(r["pole_gap"]).max() < 0.02 * h, r["pole_gap"] / h
 
 
 def test_uniaxial_compression_grid_plates_are_too_stiff():

@@ -178,23 +178,33 @@ def body_between_flats(solver: MPMSolver, plate: str, travel: float, duration: f
     body's force stays; a drop is creep).  Compared with :func:`tasks.verification.sphere_fe.sphere_between_flats`
     (``wall``: the hollow sphere's FE reference).  Returns per frame of the press ``depth`` (m, each flat's travel,
     frame ends) and ``force`` (N, frame mean of the two flats' reactions), ``held`` (N, the same per frame of the
-    hold), ``seconds`` and ``substeps`` (of the press)."""
+    hold), ``pole_gap`` (m, per frame of the press and the hold: how far the body's face on the flats' axis, the
+    particles within dx / 2 of it, has left each flat, mean of the two; ~0 while the flat presses it, > 0 where the
+    face under the flat's centre has sunk away from it, as a shell dimpling under the flat), ``seconds`` and
+    ``substeps`` (of the press)."""
     x = solver.positions()
     half = solver.contact_radii()  # where each particle's surface reaches a flat (a thin wall's: its face)
     top, bottom = float((x[:, 2] + half).max()), float((x[:, 2] - half).min())
     width = 0.5 * float(np.ptp(x[:, :2], axis=0).max()) + 2.0 * solver.dx
-    rec: dict[str, list] = {"depth": [], "force": [], "substeps": []}
+    centre = x.astype(np.float64).mean(axis=0)
+    on_axis = np.hypot(*(x[:, :2] - centre[:2]).T) < 0.5 * solver.dx
+    upper, lower = on_axis & (x[:, 2] > centre[2]), on_axis & (x[:, 2] < centre[2])
+    rec: dict[str, list] = {"depth": [], "force": [], "substeps": [], "pole_gap": []}
 
     def on_frame(f, d, st):
         r = np.asarray(st.reaction)
         rec["depth"].append(d)
         rec["force"].append(0.5 * float(r[0, 2] - r[1, 2]))
         rec["substeps"].append(int(st.substeps))
+        z = solver.positions()[:, 2].astype(np.float64)
+        gaps = [top - d - float((z[upper] + half[upper]).max()), float((z[lower] - half[lower]).min()) - bottom - d]
+        rec["pole_gap"].append(0.5 * sum(gaps))
 
     t0 = time.perf_counter()
     _press(solver, plate, top, width, travel, duration, n_frames, on_frame, mirror_z=bottom, hold_frames=hold_frames)
     return {"depth": np.asarray(rec["depth"][:n_frames]), "force": np.asarray(rec["force"][:n_frames]),
-            "held": np.asarray(rec["force"][n_frames:]), "seconds": time.perf_counter() - t0,
+            "held": np.asarray(rec["force"][n_frames:]), "pole_gap": np.asarray(rec["pole_gap"]),
+            "seconds": time.perf_counter() - t0,
             "substeps": int(sum(rec["substeps"][:n_frames]))}
 
 

@@ -78,7 +78,12 @@ def polar_rotation_quat(A: wp.mat33, q0: wp.quat, max_iter: int, tol: float) -> 
     R <- R exp([w]).  Quadratic convergence: one iteration per substep tracks the rotation to O(dt^2).
     When H is not positive definite (far from the optimum, e.g. a cold start on a large rotation) the step
     falls back to the gradient step w = g / |tr B| of Mueller et al. 2016, which always ascends.
-    """
+
+    A step below ``tol`` (rad) ends the iteration but is still taken: discarded, as it was before, every substep's
+    rotation increment below tol was lost, so under a slow load R lagged F's rotation by up to tol for good and the
+    stress 2 mu (F - R) F^T kept a skew part 2 mu tol, a torque no energy pays for (a cantilever of the plane-stress
+    wall under its weight, 2 mu tol = 67 Pa against its 63 kPa bending stress, crept on: 0.92 -> 1.75x its
+    Euler-Bernoulli sag over 0.25 -> 1.5 s instead of settling at 1.10x)."""
     q = q0
     for _it in range(max_iter):
         R = wp.quat_to_matrix(q)
@@ -109,13 +114,13 @@ def polar_rotation_quat(A: wp.mat33, q0: wp.quat, max_iter: int, tol: float) -> 
         else:
             w = g / (wp.abs(tr) + 1.0e-20)
         w2 = wp.dot(w, w)
-        if w2 < tol * tol:
-            break
         if w2 > 1.0:
             w = w / wp.sqrt(w2)  # trust region: at most 1 rad per iteration
         # q <- q * exp(w/2) (body-frame increment), exp approximated by normalise(w/2, 1)
         dq = wp.quat(0.5 * w[0], 0.5 * w[1], 0.5 * w[2], 1.0)
         q = wp.normalize(q * dq)
+        if w2 < tol * tol:  # converged: the step just taken was below tol (taken all the same, see the doc)
+            break
     return q
 
 

@@ -123,6 +123,9 @@ class Particles:
     # F_E is the whole deformation); von Mises: the current one, updated every substep (plastic flow moves F_E's
     # reference, :func:`membrane_plastic_return`)
     reach: wp.array(dtype=float)  # radius (m) with which the particle's surface reaches a collider (contact_reach)
+    x_carry: wp.array(dtype=wp.vec3)  # m: the advection's round-off, the part of dt v that the float32 position could
+    # not take, carried into the next substep's step (compensated summation, :func:`advection_round_off`)
+    F_carry: wp.array(dtype=wp.mat33)  # the same for F_E's update F_E + dt C F_E (:func:`update_round_off`)
 
 
 @wp.struct
@@ -249,6 +252,8 @@ class G2PResult:
     q: wp.quat
     alpha: float
     tau: wp.mat33
+    carry: wp.vec3  # m, the advection's round-off after this substep (Particles.x_carry)
+    F_carry: wp.mat33  # F_E's update's round-off after this substep (Particles.F_carry)
 
 
 # ============================================================================================ helpers
@@ -451,6 +456,8 @@ def stored_state(p: int, mid: int, model: int, ps: Particles, mats: MaterialTabl
     return-mapped F_E (used by the frame's first P2G; fixed-corotated refines q by Newton iteration)."""
     r = G2PResult()
     r.x = ps.x[p]
+    r.carry = ps.x_carry[p]
+    r.F_carry = ps.F_carry[p]
     r.v = ps.v[p]
     r.C = ps.C[p]
     r.F = ps.F[p]
@@ -650,6 +657,27 @@ def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles
 
 
 @wp.func
+def advection_round_off(x: wp.vec3, step: wp.vec3, x_new: wp.vec3) -> wp.vec3:
+    """The part of ``step`` (m) that the float32 sum x_new = x + step lost to rounding, exactly (Knuth's TwoSum, per
+    component: no multiplication, so no contraction into a fused multiply-add changes it).  A position near 0.1 m
+    resolves 7.5e-9 m, so a substep that should move a particle less than half that moves it not at all: on the
+    default grid's ~0.33 ms substeps anything slower than ~1.1e-5 m/s stood still (a block drifting at 1e-5 m/s on
+    0.25 ms steps did not move, ``tests/test_mpm.py``).  Carried into the next step, the lost parts add up."""
+    bb = x_new - x
+    return (x - (x_new - bb)) + (step - bb)
+
+
+@wp.func
+def update_round_off(F: wp.mat33, dF: wp.mat33, F_new: wp.mat33) -> wp.mat33:
+    """:func:`advection_round_off` for F_E's update F_new = F + dF, per entry.  An entry near 1 resolves 1.2e-7, so
+    strain increments below 6e-8 per substep were lost, not integrated (a free stretch at 1e-4 /s on 0.25 ms steps
+    kept F_E = I); carried, they add up.  A model that then projects F_E (a return mapping, a plane-stress wall's
+    normal stretch, a fluid's reset) keeps a round-off of at most half a unit per entry, so it stays bounded."""
+    bb = F_new - F
+    return (F - (F_new - bb)) + (dF - bb)
+
+
+@wp.func
 def g2p_begin(p: int, ps: Particles, gi: GridInfo, sp: StepParams, grid: wp.array3d(dtype=wp.vec4),
               flags: wp.array(dtype=wp.int32)) -> G2PResult:
     """First part of the G2P of particle p, common to every model: gather v (m/s) and C (1/s) from its velocity
@@ -658,8 +686,13 @@ def g2p_begin(p: int, ps: Particles, gi: GridInfo, sp: StepParams, grid: wp.arra
     xp = ps.x[p]
     g = checked_grid_coord(xp, gi, flags, OUT_OF_GRID, sp.substep, p)
     r = gather_apic(grid, stencil_at(g), gi.inv_dx)
-    r.F = (wp.identity(n=3, dtype=float) + sp.dt_g2p * r.C) @ ps.F[p]
-    r.x = xp + sp.dt_g2p * r.v
+    F0 = ps.F[p]
+    dF = sp.dt_g2p * (r.C @ F0) + ps.F_carry[p]
+    r.F = F0 + dF
+    r.F_carry = update_round_off(F0, dF, r.F)
+    step = sp.dt_g2p * r.v + ps.x_carry[p]
+    r.x = xp + step
+    r.carry = advection_round_off(xp, step, r.x)
     r.q = wp.quat_identity()
     r.alpha = 0.0
     return r
@@ -670,7 +703,9 @@ def g2p_end(r: G2PResult, p: int, ps: Particles, sp: StepParams, flags: wp.array
     """Last part of the G2P of particle p: guards on the new state, then store x and F_E."""
     check_particle(r, p, sp, flags)
     ps.x[p] = r.x
+    ps.x_carry[p] = r.carry
     ps.F[p] = r.F
+    ps.F_carry[p] = r.F_carry
 
 
 @wp.func

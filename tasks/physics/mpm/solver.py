@@ -751,9 +751,11 @@ class MPMSolver:
 
         # ---------------- particle state (allocate only what the present models need)
         self.x = wp.array(x, dtype=wp.vec3, device=d)
+        self.x_carry = wp.zeros(n, dtype=wp.vec3, device=d)  # the advection's round-off (kernels.advection_round_off)
         self.v = wp.array(v, dtype=wp.vec3, device=d)
         self.C = wp.zeros(n, dtype=wp.mat33, device=d)
         self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33, device=d)
+        self.F_carry = wp.zeros(n, dtype=wp.mat33, device=d)  # F_E's update's round-off (kernels.update_round_off)
         self.has_corotated = FIXED_COROTATED in codes_present
         self.has_plastic = any(m.code in PLASTIC_MODELS for m in self.materials)  # also one assigned mid-run
         qn = n if self.has_corotated or self.has_plastic else 1  # rotation / eigenbasis warm starts
@@ -766,7 +768,7 @@ class MPMSolver:
         self.particles = K.Particles()
         pairs = membrane_pairs_checked(membrane_pairs, self._membrane_rows, x)
         self.reach = wp.array(contact_reach(vol, pairs), dtype=float, device=d)
-        for name in ("x", "v", "C", "F", "q", "alpha", "vol", "mat_id", "normal", "reach"):
+        for name in ("x", "v", "C", "F", "q", "alpha", "vol", "mat_id", "normal", "reach", "x_carry", "F_carry"):
             setattr(self.particles, name, getattr(self, name))
         fibres = pairs if cfg.wall_fibres else None
         self.n_fibres = 0 if fibres is None else len(fibres[2])
@@ -2053,6 +2055,7 @@ class MPMSolver:
     def set_positions(self, x: np.ndarray) -> None:
         self._energy_state_changed()
         self.x.assign(np.asarray(x, np.float32).reshape(-1, 3))
+        self.x_carry.zero_()  # a round-off belongs to the positions it was lost from
 
     def set_material_ids(self, ids: np.ndarray) -> None:
         """Re-assign particle materials (e.g. a ruptured shell).  The new materials must use models whose state
@@ -2129,11 +2132,12 @@ class MPMSolver:
         self._energy_initial = False
         self._energy_ref = EnergyBudget.rebase(self._energy_ref)
         self.F.assign(np.asarray(F, np.float32).reshape(-1, 3, 3))
+        self.F_carry.zero_()
 
     def state_nbytes(self) -> dict[str, int]:
         """Bytes of the per-particle state arrays (allocated only for the models present)."""
-        arrs = dict(x=self.x, v=self.v, C=self.C, F=self.F, q=self.q, alpha=self.alpha, vol=self.vol,
-                    mat_id=self.mat_id, normal=self.normal)
+        arrs = dict(x=self.x, x_carry=self.x_carry, v=self.v, C=self.C, F=self.F, F_carry=self.F_carry, q=self.q,
+                    alpha=self.alpha, vol=self.vol, mat_id=self.mat_id, normal=self.normal)
         return {k: int(a.size * wp.types.type_size_in_bytes(a.dtype)) for k, a in arrs.items()}
 
     def bytes_per_particle(self) -> float:
