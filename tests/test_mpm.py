@@ -224,10 +224,10 @@ def test_motion_below_float32_resolution_per_substep_still_adds_up():
     """A position near 0.1 m resolves 7.5e-9 m and an F_E entry near 1 resolves 1.2e-7, so a substep that moves a
     particle by less than half of that (here 2.5e-9 m: 1e-5 m/s on 0.25 ms steps) or strains it by less than 6e-8
     (here 2.5e-8: 1e-4 /s) changed nothing at all: a slowly drifting body stood still and a slowly stretching one
-    kept F_E = I.  With the round-off carried into the next substep (``advection_round_off``,
-    ``update_round_off``) they follow their closed forms over 1 s (4,000 substeps): the drift moves the block
-    v t = 1e-5 m (within 2 %), and a free stretch (E = 1 uPa, no force worth the name: every particle keeps its
-    velocity, v = e (x - c)) gives F_xx = 1 + e t = 1.0001 (within 1 %; without the carries 0 and 0)."""
+    kept F_E = I.  With the round-off carried into the next substep (``round_off``) they follow their closed forms
+    over 1 s (4,000 substeps): the drift moves the block v t = 1e-5 m (within 2 %), and a free stretch (E = 1 uPa,
+    no force worth the name: every particle keeps its velocity, v = e (x - c)) gives F_xx = 1 + e t = 1.0001
+    (within 1 %; without the carries 0 and 0)."""
     soft = Material(name="soft", model="fixed_corotated", youngs_modulus=1e-6, poisson_ratio=0.3, density=1000.0)
     X, vol = cube(0.02, z0=0.1)
     drift = solver_for(X, vol, soft, velocities=np.tile([0.0, 0.0, 1e-5], (len(X), 1)), gravity=[0, 0, 0],

@@ -40,6 +40,8 @@ POINT_OUT): ``flags[c]`` = number of offences, ``flags[4 + c]`` = first substep 
 """
 from __future__ import annotations
 
+from typing import Any
+
 import warp as wp
 
 from . import materials as M
@@ -124,8 +126,8 @@ class Particles:
     # reference, :func:`membrane_plastic_return`)
     reach: wp.array(dtype=float)  # radius (m) with which the particle's surface reaches a collider (contact_reach)
     x_carry: wp.array(dtype=wp.vec3)  # m: the advection's round-off, the part of dt v that the float32 position could
-    # not take, carried into the next substep's step (compensated summation, :func:`advection_round_off`)
-    F_carry: wp.array(dtype=wp.mat33)  # the same for F_E's update F_E + dt C F_E (:func:`update_round_off`)
+    # not take, carried into the next substep's step (compensated summation, :func:`round_off`)
+    F_carry: wp.array(dtype=wp.mat33)  # the same for F_E's update F_E + dt C F_E (:func:`round_off`)
 
 
 @wp.struct
@@ -456,8 +458,6 @@ def stored_state(p: int, mid: int, model: int, ps: Particles, mats: MaterialTabl
     return-mapped F_E (used by the frame's first P2G; fixed-corotated refines q by Newton iteration)."""
     r = G2PResult()
     r.x = ps.x[p]
-    r.carry = ps.x_carry[p]
-    r.F_carry = ps.F_carry[p]
     r.v = ps.v[p]
     r.C = ps.C[p]
     r.F = ps.F[p]
@@ -657,24 +657,18 @@ def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles
 
 
 @wp.func
-def advection_round_off(x: wp.vec3, step: wp.vec3, x_new: wp.vec3) -> wp.vec3:
-    """The part of ``step`` (m) that the float32 sum x_new = x + step lost to rounding, exactly (Knuth's TwoSum, per
-    component: no multiplication, so no contraction into a fused multiply-add changes it).  A position near 0.1 m
-    resolves 7.5e-9 m, so a substep that should move a particle less than half that moves it not at all: on the
-    default grid's ~0.33 ms substeps anything slower than ~1.1e-5 m/s stood still (a block drifting at 1e-5 m/s on
-    0.25 ms steps did not move, ``tests/test_mpm.py``).  Carried into the next step, the lost parts add up."""
+def round_off(x: Any, step: Any, x_new: Any):
+    """The part of ``step`` that the float32 sum x_new = x + step lost to rounding, exactly, per component (Knuth's
+    TwoSum: no multiplication, so no contraction into a fused multiply-add changes it); for a position (vec3, m) and
+    for F_E's update (mat33).  A position near 0.1 m resolves 7.5e-9 m, so a substep that should move a particle
+    less than half that moves it not at all: on the default grid's ~0.33 ms substeps anything slower than ~1.1e-5
+    m/s stood still (a block drifting at 1e-5 m/s on 0.25 ms steps did not move, ``tests/test_mpm.py``).  An entry
+    of F_E near 1 resolves 1.2e-7, so strain increments below 6e-8 per substep were lost (a free stretch at 1e-4 /s
+    on 0.25 ms steps kept F_E = I).  Carried into the next step, the lost parts add up.  A model that then projects
+    F_E (a return mapping, a plane-stress wall's normal stretch, a fluid's reset) keeps a round-off of at most half
+    a unit per entry, so it stays bounded."""
     bb = x_new - x
     return (x - (x_new - bb)) + (step - bb)
-
-
-@wp.func
-def update_round_off(F: wp.mat33, dF: wp.mat33, F_new: wp.mat33) -> wp.mat33:
-    """:func:`advection_round_off` for F_E's update F_new = F + dF, per entry.  An entry near 1 resolves 1.2e-7, so
-    strain increments below 6e-8 per substep were lost, not integrated (a free stretch at 1e-4 /s on 0.25 ms steps
-    kept F_E = I); carried, they add up.  A model that then projects F_E (a return mapping, a plane-stress wall's
-    normal stretch, a fluid's reset) keeps a round-off of at most half a unit per entry, so it stays bounded."""
-    bb = F_new - F
-    return (F - (F_new - bb)) + (dF - bb)
 
 
 @wp.func
@@ -689,10 +683,10 @@ def g2p_begin(p: int, ps: Particles, gi: GridInfo, sp: StepParams, grid: wp.arra
     F0 = ps.F[p]
     dF = sp.dt_g2p * (r.C @ F0) + ps.F_carry[p]
     r.F = F0 + dF
-    r.F_carry = update_round_off(F0, dF, r.F)
+    r.F_carry = round_off(F0, dF, r.F)
     step = sp.dt_g2p * r.v + ps.x_carry[p]
     r.x = xp + step
-    r.carry = advection_round_off(xp, step, r.x)
+    r.carry = round_off(xp, step, r.x)
     r.q = wp.quat_identity()
     r.alpha = 0.0
     return r

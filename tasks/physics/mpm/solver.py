@@ -751,11 +751,11 @@ class MPMSolver:
 
         # ---------------- particle state (allocate only what the present models need)
         self.x = wp.array(x, dtype=wp.vec3, device=d)
-        self.x_carry = wp.zeros(n, dtype=wp.vec3, device=d)  # the advection's round-off (kernels.advection_round_off)
+        self.x_carry = wp.zeros(n, dtype=wp.vec3, device=d)  # the advection's round-off (kernels.round_off)
         self.v = wp.array(v, dtype=wp.vec3, device=d)
         self.C = wp.zeros(n, dtype=wp.mat33, device=d)
         self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33, device=d)
-        self.F_carry = wp.zeros(n, dtype=wp.mat33, device=d)  # F_E's update's round-off (kernels.update_round_off)
+        self.F_carry = wp.zeros(n, dtype=wp.mat33, device=d)  # F_E's update's round-off (kernels.round_off)
         self.has_corotated = FIXED_COROTATED in codes_present
         self.has_plastic = any(m.code in PLASTIC_MODELS for m in self.materials)  # also one assigned mid-run
         qn = n if self.has_corotated or self.has_plastic else 1  # rotation / eigenbasis warm starts
