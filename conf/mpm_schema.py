@@ -85,6 +85,23 @@ class MPMConfig:
             the fibres 0.70-1.02x, 0.70-0.95x with the contact at the wall's face; ``python -m flows.ball_study
             --plates surface``).  False: the layers move with
             the grid alone (the former behaviour).
+        wall_normal_stiffness: kappa, dimensionless: an elastic (fixed-corotated, neo-Hookean) membrane particle's
+            F_E keeps the normal stretch its grid gives it, and its stress, its plane-stress projection's, gains a
+            stiffness kappa x 2 mu against that stretch's departure from the plane-stress one
+            (:func:`tasks.physics.mpm.kernels.wall_normal_energy`; no Poisson coupling, so no volumetric locking).
+            0: F_E is stored projected and the normal velocity gradient across the wall costs nothing, and two
+            particle layers across a wall then leave the grid velocity modes that move the particles at no strain
+            energy: a clamped two-layer strip crept under its weight at every grid alignment (1.10x -> 1.39x its
+            Euler-Bernoulli sag over 0.1 -> 0.5 s), the rubber ball held between two flats lost 11-23 % of its
+            force in 5 s.  At 0.25 (with ``wall_stencil: shared``) the strip settles at 1.02-1.08x the closed form
+            and the ball loses 2.2 % over 20 s; at 1 it loses 1.0 % over 5 s, but the stiffness's stress holds the
+            projection fixed (not the energy's full gradient), so where a grid holds a wall's thickness it does
+            work of its own: at 1 the rubber duck's rollout tripped the energy guard.  Von Mises walls keep their
+            plane-stress return.
+        wall_stencil: ``shared``: the two Gauss layers of a membrane wall use the stencil of their mid-surface
+            (:func:`tasks.physics.mpm.kernels.particle_stencil`); ``own``: each its own.  With their own, layers on
+            either side of a plane of cell centres spread over four node layers across the wall, which leaves
+            the grid modes above even to a solid: a 3 mm solid strip there crept, a quarter cell away it settled.
         finger_friction: Coulomb coefficient of the collider fingertips (0 = frictionless, < 0 = no slip while
             touching), dimensionless.
     Acceleration knobs (each changes the physics; reported in the frame statistics)
@@ -194,6 +211,8 @@ class MPMConfig:
     finger_friction: float = 0.0
     thin_walls: str = "membrane"
     wall_fibres: bool = True
+    wall_normal_stiffness: float = 0.25
+    wall_stencil: str = "shared"
     mass_scaling: str = "off"
     multi_field: bool = True
     mass_scale: float = 1.0
@@ -218,6 +237,7 @@ MASS_SCALING_MODES = ("selective", "global", "manual", "off")
 CONTACT_MODES = ("grid", "surface")
 FINGER_MODES = ("dirichlet", "particles", "collider")
 WALL_MODES = ("membrane", "solid")
+WALL_STENCILS = ("shared", "own")
 
 
 class MPMConfigError(ValueError):
@@ -259,6 +279,10 @@ def validate_mpm_config(cfg: MPMConfig) -> MPMConfig:
         bad("fingers", f"'{cfg.fingers}' is not one of {', '.join(FINGER_MODES)}")
     if cfg.thin_walls not in WALL_MODES:
         bad("thin_walls", f"'{cfg.thin_walls}' is not one of {', '.join(WALL_MODES)}")
+    if cfg.wall_stencil not in WALL_STENCILS:
+        bad("wall_stencil", f"'{cfg.wall_stencil}' is not one of {', '.join(WALL_STENCILS)}")
+    if not (math.isfinite(cfg.wall_normal_stiffness) and cfg.wall_normal_stiffness >= 0):
+        bad("wall_normal_stiffness", f"must be a finite number >= 0; got {cfg.wall_normal_stiffness}")
     if cfg.mass_scaling not in MASS_SCALING_MODES:
         bad("mass_scaling", f"'{cfg.mass_scaling}' is not one of {', '.join(MASS_SCALING_MODES)}")
     if not cfg.mass_scale >= 1.0 and cfg.mass_scaling == "manual":

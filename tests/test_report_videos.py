@@ -124,3 +124,25 @@ def test_scene_media_made_on_a_worker_are_the_report_s_own(tmp_path, compose_cfg
     assert (report / "index.html").read_text().count("<video") == 2
     for medium in ("tomato_full_stages.mp4", "tomato_full_final.mp4", "tomato_contact_sheet.png"):
         assert (report / medium).read_bytes() == (tmp_path / "reference" / medium).read_bytes()
+
+
+def test_an_object_whose_first_variant_failed_still_gets_its_media(tmp_path, compose_cfg, tomato_artifacts):
+    """A variant whose simulation failed (its rollout raised, e.g. the energy guard) leaves no G-buffer; the object's
+    contact sheet and videos then come from the variant that was rendered (the report of a main job whose rubber
+    duck's full rollout failed crashed on the missing G-buffer of its first variant: TypeError)."""
+    from flows.pipeline import PER_BACKEND, PER_OBJECT, PER_VARIANT, run_object_local
+    from flows.runtime import RunTable
+    from tasks.reporting.report import write_run_report
+
+    root = tmp_path / "artifacts"
+    cfg = compose_cfg("evaluate", [f"paths.artifacts={root}", "object=tomato", "variant=full", *SMALL])
+    shutil.copytree(tomato_artifacts, root)
+    flat = run_object_local(cfg, cfg.object, cfg.variant, root)
+    pick = lambda steps: {s.name: flat[s.name] for s in steps if s.name in flat}  # noqa: E731
+    full = {**pick(PER_VARIANT), "backends": {"physics": pick(PER_BACKEND)}}
+    failed = {k: v for k, v in full.items() if k not in ("mpm_rollout", "gbuffer", "backends")}
+    refs = {"tomato": {**pick(PER_OBJECT), "variants": {"no_dirichlet": failed, "full": full}}}
+    report = write_run_report(tmp_path / "report", cfg={}, table=RunTable(), refs=refs, wall_seconds=1.0,
+                              variants={"no_dirichlet": "w/o Dirichlet", "full": "Full"}).parent
+    assert (report / "tomato_contact_sheet.png").stat().st_size > 0
+    assert (report / "tomato_full_final.mp4").exists() and not (report / "tomato_no_dirichlet_final.mp4").exists()

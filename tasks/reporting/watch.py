@@ -181,10 +181,12 @@ def object_media(obj: str, obj_refs: Mapping[str, Any], out_dir: Path, cache: Me
     variants = obj_refs.get("variants", {})
     media = ObjectMedia(obj)
     fps = None
+    first = None  # the first variant that was rendered (a variant whose simulation failed has no G-buffer)
     for variant, vrefs in variants.items():
         g = _load(vrefs.get("gbuffer"), ["time"])
         if g is None:
             continue
+        first = vrefs if first is None else first
         times = g["time"]
         fps = 1.0 / float(times[1] - times[0]) if len(times) > 1 else 1.0
         media.duration_s = float(len(times) / fps)
@@ -195,7 +197,6 @@ def object_media(obj: str, obj_refs: Mapping[str, Any], out_dir: Path, cache: Me
         return None
     if scenes_only:
         return media
-    first = next(iter(variants.values()))
     sheet_inputs = {"gbuffer": first.get("gbuffer"), "mpm_rollout": first.get("mpm_rollout"),
                     "effect": next(iter(first.get("backends", {}).values()), {}).get("effect")}
     media.contact_sheet = cache.get(out_dir / f"{obj}_contact_sheet.png",

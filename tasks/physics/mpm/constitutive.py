@@ -250,6 +250,30 @@ def membrane_F(F: wp.mat33, N: wp.vec3, R: wp.mat33, model: int, mu: float, lam:
     return F + wp.outer((g - wp.dot(n, F @ N)) * n, N)
 
 
+@wp.func
+def wall_normal_psi(F: wp.mat33, Fp: wp.mat33, N: wp.vec3, k: float) -> float:
+    """Energy density (J/m^3) of a thin wall's normal stiffness: k / 2 |F N - Fp N|^2, with F the wall particle's
+    F_E as its grid deforms it, Fp its plane-stress projection (:func:`membrane_F`, which changes only the normal
+    stretch n . F N), N the unit rest normal and k (Pa) = ``mpm.wall_normal_stiffness`` x 2 mu: a penalty on the
+    normal stretch's departure from the plane-stress one, which touches neither the in-plane columns nor the
+    transverse shear and has no Poisson coupling (no volumetric locking; the plane-stress part of the energy is
+    the model's at Fp).  Plane stress alone gives the grid's normal velocity gradient across a wall no stiffness, and
+    with two particle layers across the wall the grid then keeps velocity modes that move the particles at no strain
+    energy (a clamped strip crept under its weight, a held ball's force crept; README, known limits)."""
+    d = F @ N - Fp @ N
+    return 0.5 * k * wp.dot(d, d)
+
+
+@wp.func
+def wall_normal_tau(F: wp.mat33, Fp: wp.mat33, N: wp.vec3, k: float) -> wp.mat33:
+    """Kirchhoff stress (Pa) of :func:`wall_normal_psi` (Fp held): P = k (F N - Fp N) N^T, tau = P F^T = k d a^T with
+    d = F N - Fp N (along the deformed normal) and a = F N, symmetrised (d and a are parallel up to the transverse
+    shear)."""
+    a = F @ N
+    d = a - Fp @ N
+    return 0.5 * k * (wp.outer(d, a) + wp.outer(a, d))
+
+
 # --------------------------------------------------------------------------------------------- StVK-Hencky
 @wp.func
 def tau_hencky_principal(eps: wp.vec3, mu: float, lam: float) -> wp.vec3:

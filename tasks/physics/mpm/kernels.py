@@ -67,6 +67,8 @@ from .constitutive import (
     tau_fluid,
     tau_hencky,
     tau_neo_hookean,
+    wall_normal_psi,
+    wall_normal_tau,
 )
 
 # CPU: Warp's host flags plus -ffp-contract=fast.  Warp emits one statement per operation, so the compiler's default
@@ -128,6 +130,8 @@ class Particles:
     x_carry: wp.array(dtype=wp.vec3)  # m: the advection's round-off, the part of dt v that the float32 position could
     # not take, carried into the next substep's step (compensated summation, :func:`round_off`)
     F_carry: wp.array(dtype=wp.mat33)  # the same for F_E's update F_E + dt C F_E (:func:`round_off`)
+    wall_offset: wp.array(dtype=float)  # m: a thin wall's Gauss layer's signed rest distance from the wall's
+    # mid-surface along ``normal`` (:func:`particle_stencil`), 0 for any other particle; length 1 when none shares
 
 
 @wp.struct
@@ -154,6 +158,7 @@ class StepParams:
     weight_g: wp.vec3  # m/s^2: gravity applied in P2G as the impulse dt_p2g m_phys g (mixed mass scales)
     weight_in_p2g: int  # 1: add that impulse (mixed scales); 0: the grid update adds g / s (uniform scale)
     first: int  # index of the launch's first particle (the fused kernel: a thread's share is first + tid)
+    wall_k: float  # mpm.wall_normal_stiffness: a thin wall's normal stiffness / 2 mu (0: F_E stored in plane stress)
 
 
 @wp.struct
@@ -339,8 +344,17 @@ def frac(g: wp.vec3, b: wp.vec3i) -> wp.vec3:
 @wp.func
 def stencil_at(g: wp.vec3) -> Stencil:
     """Quadratic B-spline stencil (base node and per-axis weights) of the grid coordinate g (grid units)."""
+    return stencil_on(g, base_index(g))
+
+
+@wp.func
+def stencil_on(g: wp.vec3, base: wp.vec3i) -> Stencil:
+    """The stencil of the grid coordinate g on the 3 x 3 x 3 nodes from ``base``: weights the quadratic B-spline's
+    polynomial pieces at f = g - base (:func:`bspline_w`).  For any f they sum to 1, reproduce linear functions and
+    have the second moment dx^2 / 4 I that the APIC matrix assumes, so the transfers stay exact for affine fields;
+    for f in [0.5, 1.5) they are the B-spline's own weights, and they are positive for |f - 1| < 0.866."""
     s = Stencil()
-    s.base = base_index(g)
+    s.base = base
     s.f = frac(g, s.base)
     s.wx = bspline_w(s.f[0])
     s.wy = bspline_w(s.f[1])
@@ -455,7 +469,8 @@ def fluid_stress(F: wp.mat33, gradv: wp.mat33, mid: int, mats: MaterialTable) ->
 @wp.func
 def stored_state(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable, sp: StepParams) -> G2PResult:
     """Stored state of particle p (x, v, C, F_E, rotation q) and the Kirchhoff stress of its already
-    return-mapped F_E (used by the frame's first P2G; fixed-corotated refines q by Newton iteration)."""
+    return-mapped F_E (used by the frame's first P2G; fixed-corotated refines q by Newton iteration; a thin wall's
+    elastic particle as in the G2P: the plane-stress projection plus its normal stiffness)."""
     r = G2PResult()
     r.x = ps.x[p]
     r.v = ps.v[p]
@@ -465,10 +480,13 @@ def stored_state(p: int, mid: int, model: int, ps: Particles, mats: MaterialTabl
     mu = mats.par[mid, C_MU]
     lam = mats.par[mid, C_LAMBDA]
     if model == MODEL_FIXED_COROTATED:
-        r.q = polar_rotation_quat(r.F, ps.q[p], sp.polar_iters, sp.polar_tol)
-        r.tau = tau_fixed_corotated(r.F, wp.quat_to_matrix(r.q), mu, lam)
+        Fp = membrane_state(r.F, p, MODEL_FIXED_COROTATED, ps, mu, lam)
+        r.q = polar_rotation_quat(Fp, ps.q[p], sp.polar_iters, sp.polar_tol)
+        r.tau = tau_fixed_corotated(Fp, wp.quat_to_matrix(r.q), mu, lam) + wall_normal_stress(
+            r.F, Fp, p, ps, sp.wall_k * 2.0 * mu)
     elif model == MODEL_NEO_HOOKEAN:
-        r.tau = tau_neo_hookean(r.F, mu, lam)
+        Fp = membrane_state(r.F, p, MODEL_NEO_HOOKEAN, ps, mu, lam)
+        r.tau = tau_neo_hookean(Fp, mu, lam) + wall_normal_stress(r.F, Fp, p, ps, sp.wall_k * 2.0 * mu)
     elif model == MODEL_FLUID:
         r.tau = fluid_stress(r.F, r.C, mid, mats)
     else:
@@ -653,7 +671,7 @@ def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles
         A = A + cr.A
     if sp.weight_in_p2g != 0:
         mv = mv + (sp.dt_p2g * physical_mass(p, mid, ps, mats)) * sp.weight_g
-    scatter_apic(grid, stencil_at(g), gi.dx, mass, mv, A, bbox)
+    scatter_apic(grid, particle_stencil(g, p, ps, gi), gi.dx, mass, mv, A, bbox)
 
 
 @wp.func
@@ -679,7 +697,7 @@ def g2p_begin(p: int, ps: Particles, gi: GridInfo, sp: StepParams, grid: wp.arra
     deformation gradient (I + dt C) F_E, before the model's update."""
     xp = ps.x[p]
     g = checked_grid_coord(xp, gi, flags, OUT_OF_GRID, sp.substep, p)
-    r = gather_apic(grid, stencil_at(g), gi.inv_dx)
+    r = gather_apic(grid, particle_stencil(g, p, ps, gi), gi.inv_dx)
     F0 = ps.F[p]
     dF = sp.dt_g2p * (r.C @ F0) + ps.F_carry[p]
     r.F = F0 + dF
@@ -740,6 +758,44 @@ def membrane_particle(p: int, ps: Particles) -> bool:
 
 
 @wp.func
+def particle_stencil(g: wp.vec3, p: int, ps: Particles, gi: GridInfo) -> Stencil:
+    """Stencil of particle p at grid coordinate g (its stored position; the P2G and the next G2P read the same
+    state, so they use the same nodes).  A Gauss layer of a wall thinner than the grid (``ps.wall_offset[p]`` = d
+    != 0, ``mpm.wall_stencil=shared``) takes the base node of its wall's mid-surface, x - d F_E N / |F_E N| (N its
+    ``normal``), so both layers of the wall use the same 27 nodes (:func:`stencil_on`, weights at its own position;
+    for a wall thinner than a cell they are positive).  With a stencil each, two layers on either side of a plane
+    of cell centres spread over four node layers across the wall, and the grid gains velocity modes that move the
+    particles but strain neither (a clamped strip whose mid-surface lay there crept under its weight, even as a
+    solid)."""
+    if ps.wall_offset.shape[0] > 1:
+        d = ps.wall_offset[p]
+        if d != 0.0 and membrane_particle(p, ps):
+            fn = ps.F[p] @ ps.normal[p]
+            ln = wp.length(fn)
+            if ln > 1.0e-6:
+                return stencil_on(g, base_index(g - (d * gi.inv_dx / ln) * fn))
+    return stencil_at(g)
+
+
+@wp.func
+def wall_normal_stress(F: wp.mat33, Fp: wp.mat33, p: int, ps: Particles, k: float) -> wp.mat33:
+    """Kirchhoff stress (Pa) of particle p's normal stiffness k (Pa) when it is a thin wall's
+    (:func:`~tasks.physics.mpm.constitutive.wall_normal_tau`; F its F_E, Fp the plane-stress projection), else 0."""
+    if k == 0.0 or not membrane_particle(p, ps):
+        return wp.mat33(0.0)
+    return wall_normal_tau(F, Fp, ps.normal[p], k)
+
+
+@wp.func
+def wall_normal_energy(F: wp.mat33, Fp: wp.mat33, p: int, ps: Particles, k: float) -> float:
+    """Energy density (J/m^3) of particle p's normal stiffness k (Pa) when it is a thin wall's
+    (:func:`~tasks.physics.mpm.constitutive.wall_normal_psi`), else 0."""
+    if k == 0.0 or not membrane_particle(p, ps):
+        return 0.0
+    return wall_normal_psi(F, Fp, ps.normal[p], k)
+
+
+@wp.func
 def membrane_state(F: wp.mat33, p: int, model: int, ps: Particles, mu: float, lam: float) -> wp.mat33:
     """The elastic trial F_E of particle p with zero normal stress on its wall (:func:`membrane_F`; fixed-corotated
     with its previous substep's rotation ``ps.q[p]``) when p is a thin wall's particle
@@ -756,10 +812,14 @@ def membrane_state(F: wp.mat33, p: int, model: int, ps: Particles, mu: float, la
 def corotated_update(r: G2PResult, p: int, ps: Particles, sp: StepParams, mu: float, lam: float) -> G2PResult:
     """Fixed-corotated part of the G2P: the trial F_E of a membrane particle projected to plane stress
     (:func:`membrane_state`), its rotation (warm-started from, and stored into, q[p]) and the Kirchhoff stress (Pa;
-    mu, lam in Pa)."""
-    r.F = membrane_state(r.F, p, MODEL_FIXED_COROTATED, ps, mu, lam)
-    r.q = rotation_update(r.F, ps.q[p], sp)
-    r.tau = tau_fixed_corotated(r.F, wp.quat_to_matrix(r.q), mu, lam)
+    mu, lam in Pa) of the projection plus the wall's normal stiffness (:func:`wall_normal_stress`; F_E keeps the
+    grid's normal stretch, or with ``sp.wall_k`` = 0 becomes the projection)."""
+    Fp = membrane_state(r.F, p, MODEL_FIXED_COROTATED, ps, mu, lam)
+    r.q = rotation_update(Fp, ps.q[p], sp)
+    r.tau = tau_fixed_corotated(Fp, wp.quat_to_matrix(r.q), mu, lam) + wall_normal_stress(
+        r.F, Fp, p, ps, sp.wall_k * 2.0 * mu)
+    if sp.wall_k == 0.0:
+        r.F = Fp
     ps.q[p] = r.q
     return r
 
@@ -778,8 +838,10 @@ def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable,
     if model == MODEL_FIXED_COROTATED:
         r = corotated_update(r, p, ps, sp, mu, lam)
     elif model == MODEL_NEO_HOOKEAN:
-        r.F = membrane_state(r.F, p, MODEL_NEO_HOOKEAN, ps, mu, lam)
-        r.tau = tau_neo_hookean(r.F, mu, lam)
+        Fp = membrane_state(r.F, p, MODEL_NEO_HOOKEAN, ps, mu, lam)
+        r.tau = tau_neo_hookean(Fp, mu, lam) + wall_normal_stress(r.F, Fp, p, ps, sp.wall_k * 2.0 * mu)
+        if sp.wall_k == 0.0:
+            r.F = Fp
     elif model == MODEL_FLUID:
         r.tau = fluid_stress(r.F, r.C, mid, mats)
         r.F = fluid_reset(r.F)
@@ -822,14 +884,19 @@ def g2p_update_fc(p: int, mid: int, ps: Particles, mats: MaterialTable, gi: Grid
 
 
 @wp.func
-def elastic_energy_density(model: int, r: G2PResult, mid: int, mats: MaterialTable) -> float:
-    """Psi(F_E) per unit reference volume of the returned state (fixed-corotated uses the tracked rotation)."""
+def elastic_energy_density(model: int, r: G2PResult, p: int, mid: int, ps: Particles, mats: MaterialTable,
+                           sp: StepParams) -> float:
+    """Psi(F_E) per unit reference volume of the returned state (fixed-corotated uses the tracked rotation; a thin
+    wall's elastic particle: its plane-stress projection's plus its normal stiffness's, :func:`wall_normal_energy`)."""
     mu = mats.par[mid, C_MU]
     lam = mats.par[mid, C_LAMBDA]
     if model == MODEL_FIXED_COROTATED:
-        return psi_fixed_corotated(r.F, wp.quat_to_matrix(r.q), mu, lam)
+        Fp = membrane_state(r.F, p, MODEL_FIXED_COROTATED, ps, mu, lam)
+        return psi_fixed_corotated(Fp, wp.quat_to_matrix(r.q), mu, lam) + wall_normal_energy(
+            r.F, Fp, p, ps, sp.wall_k * 2.0 * mu)
     elif model == MODEL_NEO_HOOKEAN:
-        return psi_neo_hookean(r.F, mu, lam)
+        Fp = membrane_state(r.F, p, MODEL_NEO_HOOKEAN, ps, mu, lam)
+        return psi_neo_hookean(Fp, mu, lam) + wall_normal_energy(r.F, Fp, p, ps, sp.wall_k * 2.0 * mu)
     elif model == MODEL_FLUID:
         return psi_fluid(wp.determinant(r.F), mats.par[mid, C_BULK], mats.par[mid, C_GAMMA])
     return psi_hencky(r.F, mu, lam)
@@ -909,7 +976,7 @@ def k_g2p(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid
     ps.v[p] = r.v
     ps.C[p] = r.C
     mass = particle_mass(p, mid, ps, mats)
-    psi = elastic_energy_density(model, r, mid, mats)
+    psi = elastic_energy_density(model, r, p, mid, ps, mats, sp)
     J = wp.determinant(r.F)
     vp = r.v
     ke = wp.float64(0.5 * mass * wp.dot(vp, vp))

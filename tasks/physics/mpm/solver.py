@@ -269,6 +269,19 @@ def membrane_pairs_checked(pairs: Optional[np.ndarray], membrane_rows: np.ndarra
             rest.astype(np.float32))
 
 
+def wall_offsets(x: np.ndarray, normals: np.ndarray, pairs: tuple) -> np.ndarray:
+    """(particle,) float32 m: each thin wall's Gauss layer's signed rest distance from its wall's mid-surface along
+    its normal, (x - midpoint of its pair) . normal (``pairs`` as from :func:`membrane_pairs_checked`), 0 for every
+    particle in no pair: :func:`tasks.physics.mpm.kernels.particle_stencil` gives both layers of a wall the stencil
+    of their mid-surface."""
+    first, second, _ = pairs
+    out = np.zeros(len(x), np.float64)
+    mid = 0.5 * (x[first].astype(np.float64) + x[second])
+    for idx in (first, second):
+        out[idx] = np.einsum("pi,pi->p", x[idx] - mid, normals[idx])
+    return out.astype(np.float32)
+
+
 GAUSS_LAYER_FACE = (math.sqrt(3.0) - 1.0) / 2.0  # a Gauss layer's distance to its wall face / the layers' distance
 
 
@@ -404,9 +417,10 @@ def resolve_device(device: Optional[str]) -> str:
     return device
 
 
-def bspline_stencil(g: np.ndarray):
-    """numpy twin of the kernel stencil: base (P,3) int, weights (P,3,3) per axis."""
-    base = np.floor(g - 0.5).astype(np.int64)
+def bspline_stencil(g: np.ndarray, base: Optional[np.ndarray] = None):
+    """numpy twin of the kernel stencil: base (P,3) int, weights (P,3,3) per axis; with ``base`` given, the
+    B-spline's polynomial pieces on the nodes from it (the kernels' ``stencil_on``)."""
+    base = np.floor(g - 0.5).astype(np.int64) if base is None else np.asarray(base, np.int64)
     f = g - base
     w = np.stack([0.5 * (1.5 - f) ** 2, 0.75 - (f - 1.0) ** 2, 0.5 * (f - 0.5) ** 2], axis=-1)  # (P,3 axes,3)
     return base, w
@@ -768,7 +782,11 @@ class MPMSolver:
         self.particles = K.Particles()
         pairs = membrane_pairs_checked(membrane_pairs, self._membrane_rows, x)
         self.reach = wp.array(contact_reach(vol, pairs), dtype=float, device=d)
-        for name in ("x", "v", "C", "F", "q", "alpha", "vol", "mat_id", "normal", "reach", "x_carry", "F_carry"):
+        shared = pairs is not None and cfg.wall_stencil == "shared"
+        self.wall_offset = wp.array(wall_offsets(x, normals, pairs) if shared else np.zeros(1, np.float32),
+                                    dtype=float, device=d)
+        for name in ("x", "v", "C", "F", "q", "alpha", "vol", "mat_id", "normal", "reach", "x_carry", "F_carry",
+                     "wall_offset"):
             setattr(self.particles, name, getattr(self, name))
         fibres = pairs if cfg.wall_fibres else None
         self.n_fibres = 0 if fibres is None else len(fibres[2])
@@ -1288,6 +1306,7 @@ class MPMSolver:
         sp.polar_newton = int(restart or self.cfg.polar_method == "newton")
         sp.weight_g = wp.vec3(*self.cfg.gravity)
         sp.weight_in_p2g = int(self._weight_in_p2g)
+        sp.wall_k = float(self.cfg.wall_normal_stiffness)
         return sp
 
     def _grid_conditions(self, released: bool = False) -> K.GridConditions:
@@ -2137,7 +2156,8 @@ class MPMSolver:
     def state_nbytes(self) -> dict[str, int]:
         """Bytes of the per-particle state arrays (allocated only for the models present)."""
         arrs = dict(x=self.x, x_carry=self.x_carry, v=self.v, C=self.C, F=self.F, F_carry=self.F_carry, q=self.q,
-                    alpha=self.alpha, vol=self.vol, mat_id=self.mat_id, normal=self.normal)
+                    alpha=self.alpha, vol=self.vol, mat_id=self.mat_id, normal=self.normal,
+                    wall_offset=self.wall_offset)
         return {k: int(a.size * wp.types.type_size_in_bytes(a.dtype)) for k, a in arrs.items()}
 
     def bytes_per_particle(self) -> float:
