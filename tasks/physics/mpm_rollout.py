@@ -480,7 +480,7 @@ def record_frame(rec: FrameRecord, f: int, scene: Scene, mu_phys: np.ndarray, co
     moduli ``mu_phys`` Pa, plastic strain), the Gaussians (positions, covariances F cov0 F^T, rotations
     polar(F) q0) and the squeeze strain of each finger (torn skin no longer counts)."""
     solver, reg = scene.solver, scene.regions
-    F = solver.deformation_gradients().astype(np.float64)
+    F = solver.deformation_gradients(plane_stress=True).astype(np.float64)  # a thin wall's: its material state
     rec.particle_positions[f] = solver.positions()
     rec.particle_J[f], rec.particle_von_mises[f] = cauchy_free_measures(F, mu_phys)
     if rec.plastic_strain is not None:

@@ -959,6 +959,20 @@ FUSED = {(corotated, two): fused_kernel(corotated, two) for corotated in (False,
 
 
 @wp.kernel
+def k_plane_stress_F(ps: Particles, mats: MaterialTable, F_out: wp.array(dtype=wp.mat33)):
+    """F_E of every particle, a thin wall's elastic particle's as its plane-stress projection (:func:`membrane_state`):
+    the material's state, without the grid's normal stretch that its normal stiffness resists
+    (``mpm.wall_normal_stiffness``)."""
+    p = wp.tid()
+    mid = int(ps.mat_id[p])
+    model = mats.model[mid]
+    F = ps.F[p]
+    if model == MODEL_FIXED_COROTATED or model == MODEL_NEO_HOOKEAN:
+        F = membrane_state(F, p, model, ps, mats.par[mid, C_MU], mats.par[mid, C_LAMBDA])
+    F_out[p] = F
+
+
+@wp.kernel
 def k_g2p(gi: GridInfo, sp: StepParams, ps: Particles, mats: MaterialTable, grid_in: wp.array3d(dtype=wp.vec4),
           grid2_in: wp.array3d(dtype=wp.vec4), flags: wp.array(dtype=wp.int32), sums: wp.array(dtype=wp.float64), ext: wp.array(dtype=float),
           g_phys: wp.vec3, mat_energy: wp.array2d(dtype=wp.float64)):

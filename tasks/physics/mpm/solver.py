@@ -1975,9 +1975,17 @@ class MPMSolver:
     def velocities(self) -> np.ndarray:
         return self.v.numpy().copy()
 
-    def deformation_gradients(self) -> np.ndarray:
-        """Elastic deformation gradients F_E (N, 3, 3) (fluid: J^(1/3) I)."""
-        return self.F.numpy().copy()
+    def deformation_gradients(self, plane_stress: bool = False) -> np.ndarray:
+        """Elastic deformation gradients F_E (N, 3, 3) (fluid: J^(1/3) I), as stored; with ``plane_stress`` a thin
+        wall's elastic particles as their plane-stress projection, the material's state (the stored F_E keeps the
+        grid's normal stretch, which ``mpm.wall_normal_stiffness`` resists: under a finger's nodes its J left 1 as
+        far as a locked solid wall's, 0.26)."""
+        if not plane_stress or self.n_membrane == 0:
+            return self.F.numpy().copy()
+        out = wp.zeros(self.n_particles, dtype=wp.mat33, device=self.device)
+        wp.launch(K.k_plane_stress_F, dim=self.n_particles, device=self.device,
+                  inputs=[self.particles, self.mat_table, out])
+        return out.numpy()
 
     def plastic_strain(self) -> np.ndarray:
         """Equivalent plastic strain alpha (N,) (zeros when no plastic material is present)."""
