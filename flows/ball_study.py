@@ -17,8 +17,8 @@ before it touches), ``surface`` plane colliders with ``mpm.contact=surface`` (ac
 the difference is the halo's share of the error, the rest the MPM shell's own (README, known limits).  Prints the
 force per flat at each whole millimetre of travel and writes ``<out>/ball_study.md``.  ``--hold`` (s) then keeps the
 flats still that long and adds a table of the held force (an elastic wall's stays; the thin wall's crept until its
-zero-energy modes were removed, README, known limits) and the pole gap (the wall under a flat's centre sinking away from it as the cap dimples).  No
-Prefect: one process.
+zero-energy modes were removed, README, known limits) and the pole gap (the wall under a flat's centre sinking away
+from it, as a dimpling cap's does).  No Prefect: one process.
 """
 from __future__ import annotations
 

@@ -83,7 +83,8 @@ def polar_rotation_quat(A: wp.mat33, q0: wp.quat, max_iter: int, tol: float) -> 
     rotation increment below tol was lost, so under a slow load R lagged F's rotation by up to tol for good and the
     stress 2 mu (F - R) F^T kept a skew part 2 mu tol, a torque no energy pays for (a cantilever of the plane-stress
     wall under its weight, 2 mu tol = 67 Pa against its 63 kPa bending stress, crept on: 0.92 -> 1.75x its
-    Euler-Bernoulli sag over 0.25 -> 1.5 s instead of settling at 1.10x)."""
+    Euler-Bernoulli sag over 0.25 -> 1.5 s; with the step taken its ringing died out near 1.10x, and the creep that
+    went on from there was the thin walls' zero-energy modes, :func:`wall_normal_psi`)."""
     q = q0
     for _it in range(max_iter):
         R = wp.quat_to_matrix(q)

@@ -483,10 +483,10 @@ def stored_state(p: int, mid: int, model: int, ps: Particles, mats: MaterialTabl
         Fp = membrane_state(r.F, p, MODEL_FIXED_COROTATED, ps, mu, lam)
         r.q = polar_rotation_quat(Fp, ps.q[p], sp.polar_iters, sp.polar_tol)
         r.tau = tau_fixed_corotated(Fp, wp.quat_to_matrix(r.q), mu, lam) + wall_normal_stress(
-            r.F, Fp, p, ps, sp.wall_k * 2.0 * mu)
+            r.F, Fp, p, ps, sp, mu)
     elif model == MODEL_NEO_HOOKEAN:
         Fp = membrane_state(r.F, p, MODEL_NEO_HOOKEAN, ps, mu, lam)
-        r.tau = tau_neo_hookean(Fp, mu, lam) + wall_normal_stress(r.F, Fp, p, ps, sp.wall_k * 2.0 * mu)
+        r.tau = tau_neo_hookean(Fp, mu, lam) + wall_normal_stress(r.F, Fp, p, ps, sp, mu)
     elif model == MODEL_FLUID:
         r.tau = fluid_stress(r.F, r.C, mid, mats)
     else:
@@ -778,21 +778,22 @@ def particle_stencil(g: wp.vec3, p: int, ps: Particles, gi: GridInfo) -> Stencil
 
 
 @wp.func
-def wall_normal_stress(F: wp.mat33, Fp: wp.mat33, p: int, ps: Particles, k: float) -> wp.mat33:
-    """Kirchhoff stress (Pa) of particle p's normal stiffness k (Pa) when it is a thin wall's
-    (:func:`~tasks.physics.mpm.constitutive.wall_normal_tau`; F its F_E, Fp the plane-stress projection), else 0."""
-    if k == 0.0 or not membrane_particle(p, ps):
+def wall_normal_stress(F: wp.mat33, Fp: wp.mat33, p: int, ps: Particles, sp: StepParams, mu: float) -> wp.mat33:
+    """Kirchhoff stress (Pa) of particle p's normal stiffness ``sp.wall_k`` x 2 mu (mu in Pa) when it is a thin
+    wall's (:func:`~tasks.physics.mpm.constitutive.wall_normal_tau`; F its F_E, Fp the plane-stress projection),
+    else 0."""
+    if sp.wall_k == 0.0 or not membrane_particle(p, ps):
         return wp.mat33(0.0)
-    return wall_normal_tau(F, Fp, ps.normal[p], k)
+    return wall_normal_tau(F, Fp, ps.normal[p], sp.wall_k * 2.0 * mu)
 
 
 @wp.func
-def wall_normal_energy(F: wp.mat33, Fp: wp.mat33, p: int, ps: Particles, k: float) -> float:
-    """Energy density (J/m^3) of particle p's normal stiffness k (Pa) when it is a thin wall's
+def wall_normal_energy(F: wp.mat33, Fp: wp.mat33, p: int, ps: Particles, sp: StepParams, mu: float) -> float:
+    """Energy density (J/m^3) of particle p's normal stiffness ``sp.wall_k`` x 2 mu when it is a thin wall's
     (:func:`~tasks.physics.mpm.constitutive.wall_normal_psi`), else 0."""
-    if k == 0.0 or not membrane_particle(p, ps):
+    if sp.wall_k == 0.0 or not membrane_particle(p, ps):
         return 0.0
-    return wall_normal_psi(F, Fp, ps.normal[p], k)
+    return wall_normal_psi(F, Fp, ps.normal[p], sp.wall_k * 2.0 * mu)
 
 
 @wp.func
@@ -817,7 +818,7 @@ def corotated_update(r: G2PResult, p: int, ps: Particles, sp: StepParams, mu: fl
     Fp = membrane_state(r.F, p, MODEL_FIXED_COROTATED, ps, mu, lam)
     r.q = rotation_update(Fp, ps.q[p], sp)
     r.tau = tau_fixed_corotated(Fp, wp.quat_to_matrix(r.q), mu, lam) + wall_normal_stress(
-        r.F, Fp, p, ps, sp.wall_k * 2.0 * mu)
+        r.F, Fp, p, ps, sp, mu)
     if sp.wall_k == 0.0:
         r.F = Fp
     ps.q[p] = r.q
@@ -839,7 +840,7 @@ def g2p_update(p: int, mid: int, model: int, ps: Particles, mats: MaterialTable,
         r = corotated_update(r, p, ps, sp, mu, lam)
     elif model == MODEL_NEO_HOOKEAN:
         Fp = membrane_state(r.F, p, MODEL_NEO_HOOKEAN, ps, mu, lam)
-        r.tau = tau_neo_hookean(Fp, mu, lam) + wall_normal_stress(r.F, Fp, p, ps, sp.wall_k * 2.0 * mu)
+        r.tau = tau_neo_hookean(Fp, mu, lam) + wall_normal_stress(r.F, Fp, p, ps, sp, mu)
         if sp.wall_k == 0.0:
             r.F = Fp
     elif model == MODEL_FLUID:
@@ -893,10 +894,10 @@ def elastic_energy_density(model: int, r: G2PResult, p: int, mid: int, ps: Parti
     if model == MODEL_FIXED_COROTATED:
         Fp = membrane_state(r.F, p, MODEL_FIXED_COROTATED, ps, mu, lam)
         return psi_fixed_corotated(Fp, wp.quat_to_matrix(r.q), mu, lam) + wall_normal_energy(
-            r.F, Fp, p, ps, sp.wall_k * 2.0 * mu)
+            r.F, Fp, p, ps, sp, mu)
     elif model == MODEL_NEO_HOOKEAN:
         Fp = membrane_state(r.F, p, MODEL_NEO_HOOKEAN, ps, mu, lam)
-        return psi_neo_hookean(Fp, mu, lam) + wall_normal_energy(r.F, Fp, p, ps, sp.wall_k * 2.0 * mu)
+        return psi_neo_hookean(Fp, mu, lam) + wall_normal_energy(r.F, Fp, p, ps, sp, mu)
     elif model == MODEL_FLUID:
         return psi_fluid(wp.determinant(r.F), mats.par[mid, C_BULK], mats.par[mid, C_GAMMA])
     return psi_hencky(r.F, mu, lam)
