@@ -4,6 +4,8 @@
     python -m flows.ball_study --spacings --travel 4   # the default grid alone, 4 mm
     python -m flows.ball_study --plates grid surface   # grid-node flats and surface flats, each grid
     python -m flows.ball_study --spacings --travel 3 --hold 20 --plates grid surface   # then held 20 s: creep?
+    python -m flows.ball_study --spacings 2 1.6 --travel 3 --plates surface            # refined: does it dimple?
+    python -m flows.ball_study --spacings 2 --travel 3 --plates surface --extra mpm.dx=0.008   # particles alone
 
 The default grid's hollow rubber ball (its own particles and materials: the object model and material oracle steps
 of :func:`flows.pipeline.run_object_local`, the rollout's scene :func:`tasks.physics.mpm_rollout.build_scene`, no
@@ -15,7 +17,9 @@ the grid with them (dx = 2 x spacing, substeps 800 / spacing per frame as in ``f
 ``grid`` (default) flats of grid-node slip points, as the default fingers act (their ~1.5-cell halo holds the wall
 before it touches), ``surface`` plane colliders with ``mpm.contact=surface`` (acting where the particles touch):
 the difference is the halo's share of the error, the rest the MPM shell's own (README, known limits).  Prints the
-force per flat at each whole millimetre of travel and writes ``<out>/ball_study.md``.  ``--hold`` (s) then keeps the
+force per flat at each whole millimetre of travel, with the pole gap at the press's end (below; the FE's too), and
+writes ``<out>/ball_study.md``.  ``--extra``: config overrides added to every MPM run (``mpm.dx`` refines the grid
+without the particles, a spacing the particles without the grid).  ``--hold`` (s) then keeps the
 flats still that long and adds a table of the held force (an elastic wall's stays; the thin wall's crept until its
 zero-energy modes were removed, README, known limits) and the pole gap (the wall under a flat's centre sinking away
 from it, as a dimpling cap's does).  No Prefect: one process.
@@ -63,6 +67,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--plates", nargs="+", choices=["grid", "surface"], default=["grid"],
                     help="the flats: grid-node slip points and/or surface plane colliders")
     ap.add_argument("--hold", type=float, default=0.0, help="then hold the flats still this long (s)")
+    ap.add_argument("--extra", nargs="*", default=[], help="config overrides added to every MPM run "
+                    "(e.g. mpm.dx=0.004 to refine the grid alone, object.material.poisson_ratio=0.3)")
     ap.add_argument("--artifacts", default="artifacts", help="artifact root of the object model steps")
     ap.add_argument("--out", default="reports/ball", help="folder of ball_study.md")
     args = ap.parse_args(argv)
@@ -83,7 +89,7 @@ def main(argv: list[str] | None = None) -> None:
         for plate in args.plates:
             over = [] if spacing is None else [f"sampling.particle_spacing={spacing / 1000:g}",
                                                f"mpm.target_substeps_per_frame={round(800 / spacing)}"]
-            scene, cfg = ball_scene([*over, f"mpm.contact={plate}"], args.artifacts)
+            scene, cfg = ball_scene([*over, f"mpm.contact={plate}", *args.extra], args.artifacts)
             shell = scene.materials[int(scene.slot[SHELL])]
             wall = wall or dict(R=0.5 * float(cfg.object.geometry.size[0]),
                                 t=float(cfg.object.geometry.wall_thickness),
@@ -93,7 +99,8 @@ def main(argv: list[str] | None = None) -> None:
             force = np.interp(marks, r["depth"], r["force"])
             name = f"MPM, dx {1e3 * scene.dx:g} mm" + (" (default)" if spacing is None else "") + f", {plate} flats"
             rows.append((name, force,
-                         f"{len(scene.solver.positions())} particles, {r['substeps']} substeps, {r['seconds']:.0f} s"))
+                         f"{len(scene.solver.positions())} particles, {r['substeps']} substeps, {r['seconds']:.0f} s; "
+                         f"pole gap {1e3 * r['pole_gap'][args.frames - 1]:.2f} mm"))
             print(_row(*rows[-1]), flush=True)
             if n_hold:
                 at = np.clip(np.round(hold_marks / scene.frame_dt).astype(int) - 1, 0, n_hold - 1)
@@ -106,7 +113,7 @@ def main(argv: list[str] | None = None) -> None:
                               h_min=wall["t"] / 6, h_max=wall["t"] / 3, model="fixed_corotated", wall=wall["t"],
                               tol=1e-7)
     rows.append(("FE, finite strain (fixed-corotated)", np.interp(marks, fe["at"], fe["force"]),
-                 f"{fe['nodes']} nodes, 3 across the wall"))
+                 f"{fe['nodes']} nodes, 3 across the wall; pole gap {1e3 * fe['pole_gap'][-1]:.2f} mm"))
     print(_row(*rows[-1]), flush=True)
     lines = [f"# Rubber ball between two flats ({datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, Warp CPU)", "",
              f"Hollow sphere R = {1e3 * wall['R']:g} mm, wall {1e3 * wall['t']:g} mm, E = {wall['E']:.3g} Pa, "

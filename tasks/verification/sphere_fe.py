@@ -209,8 +209,9 @@ def sphere_between_flats(depths, R: float, E: float, nu: float, h_min: float | N
     active sets: a sphere node is held at the flat (its height z + u_z = R - d, free to slide) while its reaction
     pushes, released when it pulls, and held when it would cross the flat.  ``wall`` (m, > 0): a hollow sphere of
     that wall thickness (the rubber ball's shell; no air inside), meshed with at most ``h_max`` (m) between nodes.
-    Returns ``at``, ``force``, ``radius`` (the reference radius of the outermost node in contact), ``nodes`` and
-    ``iterations`` (Newton, all depths)."""
+    Returns ``at``, ``force``, ``radius`` (the reference radius of the outermost node in contact), ``pole_gap`` (m,
+    how far the pole, the node on the axis at the outer surface, lies from the flat: 0 while it touches, > 0 once
+    the cap dimples away from it), ``nodes`` and ``iterations`` (Newton, all depths)."""
     if model not in ("linear", "fixed_corotated"):
         raise ValueError(f"sphere_between_flats: model must be linear or fixed_corotated, got {model!r}")
     at = np.atleast_1d(np.asarray(depths, float))
@@ -221,7 +222,8 @@ def sphere_between_flats(depths, R: float, E: float, nu: float, h_min: float | N
     q, (mu, lam) = quadrature(X, T), _lame(E, nu)
     held = np.concatenate([2 * np.flatnonzero(X[:, 0] < 1e-12 * R), 2 * np.flatnonzero(X[:, 1] < 1e-12 * R) + 1])
     surface = np.flatnonzero(np.abs(np.hypot(X[:, 0], X[:, 1]) - R) < 1e-9 * R)
-    force, radius, u, iterations = [], [], np.zeros(n_dofs), 0
+    force, radius, pole_gap, u, iterations = [], [], [], np.zeros(n_dofs), 0
+    pole = int(np.argmax(np.where(X[:, 0] < 1e-12 * R, X[:, 1], -np.inf)))
 
     def internal(u: np.ndarray) -> np.ndarray:
         return K @ u if model == "linear" else corotated_energy_forces(u, T, q, mu, lam, n_dofs)[1]
@@ -255,5 +257,6 @@ def sphere_between_flats(depths, R: float, E: float, nu: float, h_min: float | N
             active = new
         force.append(-float(fz[active].sum()))
         radius.append(float(X[cand[active], 0].max()))
-    return {"at": at, "force": np.array(force), "radius": np.array(radius), "nodes": len(X),
-            "iterations": iterations}
+        pole_gap.append(float((R - d) - (X[pole, 1] + u[2 * pole + 1])))
+    return {"at": at, "force": np.array(force), "radius": np.array(radius), "pole_gap": np.array(pole_gap),
+            "nodes": len(X), "iterations": iterations}
