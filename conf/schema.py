@@ -160,7 +160,9 @@ class SamplingConfig:
     seed: int = 0
     # a hollow wall thinner than the spacing: 1 = one particle layer on its mid-surface; 2 (default) = two layers at
     # the thickness's Gauss points +-t / (2 sqrt 3), half the volume each, so that with mpm.thin_walls=membrane the
-    # wall carries bending (tasks/control/object_model.py)
+    # wall carries bending; 3 = three layers at 0, +-sqrt(3/5) t / 2 with 8/18, 5/18, 5/18 of the volume, which
+    # also integrate a strain quadratic through the wall (a wall near a cell's thickness; README, known limits)
+    # (tasks/control/object_model.py)
     thin_wall_layers: int = 2
 
 
@@ -438,8 +440,8 @@ def validate_simulation(cfg: Any, objects: list[tuple[str, Any]]) -> None:
     need(cfg.sampling.surface_points >= 100, "sampling.surface_points", f"must be >= 100, got {cfg.sampling.surface_points}")
     need(cfg.sampling.seed >= 0, "sampling.seed", f"must be >= 0, got {cfg.sampling.seed}")
     need(cfg.sampling.particle_spacing > 0, "sampling.particle_spacing", f"must be > 0 m, got {cfg.sampling.particle_spacing}")
-    need(cfg.sampling.thin_wall_layers in (1, 2), "sampling.thin_wall_layers",
-         f"must be 1 or 2, got {cfg.sampling.thin_wall_layers}")
+    need(cfg.sampling.thin_wall_layers in (1, 2, 3), "sampling.thin_wall_layers",
+         f"must be 1, 2 or 3, got {cfg.sampling.thin_wall_layers}")
     sim = cfg.simulation
     need(sim.fluid_tait_exponent >= 1, "simulation.fluid_tait_exponent", f"must be >= 1, got {sim.fluid_tait_exponent}")
     need(sim.release_radius > 0, "simulation.release_radius", f"must be > 0 m, got {sim.release_radius}")

@@ -491,6 +491,25 @@ def test_a_wall_in_two_gauss_layers_settles_at_its_plate_bending(offset):
     assert two["settled"] and two["ratio"] == pytest.approx(1.0, abs=0.1), (two["frames"], two["ratio"])
 
 
+def test_a_wall_near_a_cells_thickness_bends_right_in_three_gauss_layers_not_in_two():
+    """The strip above 6.9 mm thick on the 8 mm grid (0.86 of a cell; E = 40 MPa: Euler-Bernoulli 0.317 mm), its
+    mid-surface on a plane of cell centres.  The clamp's held node plane lies 2 mm behind the strip's root, so the
+    right sag is the closed form's at 82 mm, (82 / 80)^4 = 1.104x it.  Two Gauss layers integrate a strain linear
+    through the wall exactly; the grid's field across a wall this thick also has a quadratic part, which vanishes at
+    both points, so nothing resists it: the strip settles at 3.67x (1.107x a quarter cell off, and on a node plane;
+    a 3 mm strip on a 3.5 mm grid 1.23x, where the clamp makes 1.04x).  Three layers (sampling.thin_wall_layers: 3,
+    at 0 and +-sqrt(3/5) t / 2 with 8/18, 5/18, 5/18 of the volume) integrate it: measured 1.112x (1.107x a quarter
+    cell off; the 3 mm strip on the 3.5 mm grid 1.030x)."""
+    from tasks.verification.membrane_bending import cantilever_under_weight
+
+    run = dict(length=0.08, thickness=0.0069, youngs_modulus=4e7, frame=1e-3, max_frames=600)
+    two, three = (cantilever_under_weight(0.008, layers, **run) for layers in (2, 3))
+    assert three["beam"] == pytest.approx(3.165e-4, rel=0.01)
+    assert three["settled"] and three["ratio"] == pytest.approx((82 / 80) ** 4, abs=0.05), (three["frames"],
+                                                                                          three["ratio"])
+    assert two["ratio"] > 1.5, two["ratio"]
+
+
 def test_without_its_normal_stiffness_and_shared_stencil_a_two_layer_wall_creeps():
     """The same strip 3/8 of a cell off a node plane with ``mpm.wall_normal_stiffness=0`` and ``wall_stencil=own``
     (the walls before 2026-12-04): plane stress gives the grid's normal velocity gradient across the wall no
@@ -571,30 +590,32 @@ def test_wall_fibre_kernel_restores_the_rest_distance_about_the_centre_of_mass()
     assert np.array_equal(got[4:], x[4:])
 
 
-def test_bad_membrane_pairs_are_one_line_errors():
+def test_bad_membrane_fibres_are_one_line_errors():
     X = sheet(np.array([0.0, 0.0, 1.0]), 0.01, 0.0025, np.full(3, 0.05))
     wall = Material(name="wall", model="neo_hookean", youngs_modulus=E, poisson_ratio=NU, density=1100.0,
                     membrane=True)
     cfg = dict(device="cpu", dx=0.005, gravity=[0, 0, 0], floor=False)
     normals = np.tile([0.0, 0.0, 1.0], (len(X), 1))
-    with pytest.raises(ValueError, match=r"membrane_pairs must be integer particle indices of shape \(P, 2\)"):
-        MPMSolver(X, 1e-9, wall, config=cfg, membrane_normals=normals, membrane_pairs=np.zeros((3, 3), int))
-    with pytest.raises(ValueError, match=r"membrane_pairs: indices must lie in \[0, 16\); got 0..16"):
-        MPMSolver(X, 1e-9, wall, config=cfg, membrane_normals=normals, membrane_pairs=np.array([[0, 16]]))
-    with pytest.raises(ValueError, match="membrane_pairs: a particle is in two pairs"):
-        MPMSolver(X, 1e-9, wall, config=cfg, membrane_normals=normals, membrane_pairs=np.array([[0, 1], [1, 2]]))
+    with pytest.raises(ValueError, match=r"membrane_fibres must be integer particle indices of shape \(P, 2\) or "
+                       r"\(P, 3\)"):
+        MPMSolver(X, 1e-9, wall, config=cfg, membrane_normals=normals, membrane_fibres=np.zeros((3, 4), int))
+    with pytest.raises(ValueError, match=r"membrane_fibres: indices must lie in \[0, 16\); got 0..16"):
+        MPMSolver(X, 1e-9, wall, config=cfg, membrane_normals=normals, membrane_fibres=np.array([[0, 16]]))
+    with pytest.raises(ValueError, match="membrane_fibres: a particle is in two fibres"):
+        MPMSolver(X, 1e-9, wall, config=cfg, membrane_normals=normals, membrane_fibres=np.array([[0, 1], [1, 2]]))
     rubber = replace(wall, membrane=False)
     some = normals.copy()
     some[1] = 0.0
-    with pytest.raises(ValueError, match="membrane_pairs: 1 pairs join a particle without a membrane normal"):
+    with pytest.raises(ValueError, match="membrane_fibres: 1 fibres join a particle without a membrane normal"):
         MPMSolver(X, 1e-9, [wall, rubber], material_ids=(~some.any(axis=1)).astype(int), config=cfg,
-                  membrane_normals=some, membrane_pairs=np.array([[0, 1], [2, 3]]))
+                  membrane_normals=some, membrane_fibres=np.array([[0, 1], [2, 3]]))
     twin = np.concatenate([X, X[:1]])
-    with pytest.raises(ValueError, match="membrane_pairs: pair 0 joins two particles at the same position"):
+    with pytest.raises(ValueError, match="membrane_fibres: fibre 0's outer and inner particles lie at the same "
+                       "position"):
         MPMSolver(twin, 1e-9, wall, config=cfg, membrane_normals=np.tile([0.0, 0.0, 1.0], (len(twin), 1)),
-                  membrane_pairs=np.array([[0, 16]]))
+                  membrane_fibres=np.array([[0, 16]]))
     s = MPMSolver(X, 1e-9, wall, config={**cfg, "wall_fibres": False}, membrane_normals=normals,
-                  membrane_pairs=np.array([[0, 1]]))
+                  membrane_fibres=np.array([[0, 1]]))
     assert s.n_fibres == 0  # mpm.wall_fibres=false: the layers' distance is left to the grid
 
 

@@ -301,11 +301,16 @@ def test_bad_contact_mode_and_collider_are_one_line_errors():
 def test_contact_reach_is_half_the_spacing_or_a_gauss_layers_distance_to_its_face():
     """contact_reach by hand: particles of 8 and 27 mm^3 reach 1 and 1.5 mm (cbrt(V0) / 2); the two Gauss layers
     of a 3 mm wall (rest distance t / sqrt 3 = 1.732 mm) reach t / 2 - t / (2 sqrt 3) = 0.634 mm, their own faces,
-    whatever their volume; without pairs nothing changes."""
-    from tasks.physics.mpm.solver import contact_reach
+    whatever their volume; in three Gauss layers (outer and inner sqrt(3/5) t = 2.324 mm apart) they reach
+    t / 2 - sqrt(3/5) t / 2 = 0.338 mm and the middle one t / 2; without fibres nothing changes."""
+    from tasks.physics.mpm.solver import WallFibres, contact_reach
 
-    vol = np.array([8e-9, 27e-9, 21e-9, 21e-9])
-    assert contact_reach(vol) == pytest.approx([1e-3, 1.5e-3, 1.379e-3, 1.379e-3], rel=1e-3)
+    vol = np.array([8e-9, 27e-9, 21e-9, 21e-9, 21e-9])
+    assert contact_reach(vol) == pytest.approx([1e-3, 1.5e-3, 1.379e-3, 1.379e-3, 1.379e-3], rel=1e-3)
     t = 0.003
-    got = contact_reach(vol, (np.array([2]), np.array([3]), np.array([t / np.sqrt(3)])))
-    assert got == pytest.approx([1e-3, 1.5e-3, t / 2 - t / (2 * np.sqrt(3)), t / 2 - t / (2 * np.sqrt(3))], rel=1e-5)
+    got = contact_reach(vol, WallFibres(np.array([2]), np.array([3]), np.array([t / np.sqrt(3)]), None))
+    face = t / 2 - t / (2 * np.sqrt(3))
+    assert got == pytest.approx([1e-3, 1.5e-3, face, face, 0.5 * np.cbrt(21e-9)], rel=1e-5)
+    got = contact_reach(vol, WallFibres(np.array([2]), np.array([3]), np.array([np.sqrt(0.6) * t]), np.array([4])))
+    face = t / 2 - np.sqrt(0.6) * t / 2
+    assert got == pytest.approx([1e-3, 1.5e-3, face, face, t / 2], rel=1e-5)

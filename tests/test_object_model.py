@@ -344,8 +344,35 @@ def test_thin_wall_in_two_layers_at_the_thickness_gauss_points(built):
     # two-point Gauss rule: a strain linear through the thickness, e(z) = kappa z, integrates exactly
     z = np.array([off, -off])
     assert np.sum(0.5 * t * z ** 2) == pytest.approx(t ** 3 / 12)
-    with pytest.raises(ObjectModelError, match="sampling.thin_wall_layers must be 1 or 2, got 3"):
-        build_object_model(catalogue("rubber_ball"), OmegaConf.merge(SAMPLING, {"thin_wall_layers": 3}))
+    with pytest.raises(ObjectModelError, match="sampling.thin_wall_layers must be 1, 2 or 3, got 4"):
+        build_object_model(catalogue("rubber_ball"), OmegaConf.merge(SAMPLING, {"thin_wall_layers": 4}))
+
+
+def test_thin_wall_in_three_layers_integrates_a_quadratic_strain_through_the_wall(built):
+    """``sampling.thin_wall_layers: 3``: the ball's one layer split into three, at +-sqrt(3/5) t / 2 along the normal
+    with 5/18 of the volume each and on the mid-surface with 8/18 (three-point Gauss-Legendre); each fibre joins
+    outer, inner and middle once; the wall's volume the same.  The rule integrates z^2 and z^4 exactly (a strain
+    linear and quadratic through the wall: its bending and the grid's quadratic part), two points only z^2."""
+    one, attrs1, _ = built["rubber_ball"]
+    three, attrs3 = build_object_model(catalogue("rubber_ball"), OmegaConf.merge(SAMPLING, {"thin_wall_layers": 3}))
+    t = catalogue("rubber_ball").geometry.wall_thickness
+    p1, n1 = one["particle_positions"].data.astype(float), one["particle_normals"].data.astype(float)
+    p3 = three["particle_positions"].data.astype(float)
+    m = len(p1)
+    assert attrs3["n_particles"] == 3 * m and attrs3["thin_wall_layers"] == 3
+    off = 0.5 * np.sqrt(0.6) * t
+    np.testing.assert_allclose(p3, np.concatenate([p1 + off * n1, p1 - off * n1, p1]), atol=1e-6)
+    fib = three["wall_fibres"].data
+    assert fib.shape == (m, 3) and np.array_equal(np.sort(fib.ravel()), np.arange(3 * m))
+    np.testing.assert_allclose(p3[fib[:, 0]] - p3[fib[:, 1]], 2 * off * n1, atol=1e-6)
+    np.testing.assert_allclose(p3[fib[:, 2]], 0.5 * (p3[fib[:, 0]] + p3[fib[:, 1]]), atol=1e-6)
+    v1, v3 = one["particle_volumes"].data.astype(float), three["particle_volumes"].data.astype(float)
+    np.testing.assert_allclose(v3, np.concatenate([5 * v1, 5 * v1, 8 * v1]) / 18, rtol=1e-6)
+    assert attrs3["wall_volume"] == pytest.approx(attrs1["wall_volume"], rel=1e-6)
+    z, w = np.array([off, -off, 0.0]), t * np.array([5, 5, 8]) / 18
+    assert np.sum(w * z ** 2) == pytest.approx(t ** 3 / 12) and np.sum(w * z ** 4) == pytest.approx(t ** 5 / 80)
+    z2 = np.array([1, -1]) * t / (2 * np.sqrt(3))
+    assert np.sum(0.5 * t * z2 ** 4) == pytest.approx(t ** 5 / 144)  # two points: 5/9 of the quartic moment
 
 
 def test_config_errors_are_one_line():

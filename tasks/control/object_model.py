@@ -59,8 +59,12 @@ Discretisation choices (documented here because downstream steps rely on them):
     ``+-t / (2 sqrt 3)`` along the normal, each particle with half the volume: the two-point rule integrates a
     strain linear through the thickness exactly, so a plane-stress wall (``mpm.thin_walls: membrane``) carries the
     bending energy ``E t^3 / (12 (1 - nu^2)) kappa^2 / 2`` per area of a curvature kappa of the grid's field (two
-    layers at +-t/2 would carry 3x); ``wall_fibres`` (fibre, layer) pairs each outer particle with its inner twin,
-    the wall's normal fibre, which the solver keeps at its rest length (``mpm.wall_fibres``); empty otherwise;
+    layers at +-t/2 would carry 3x); with ``3`` into three, at ``0`` and ``+-sqrt(3/5) t / 2`` with 8/18 and 5/18
+    of the volume (:data:`GAUSS_LAYERS`), which also integrate the strain's quadratic part: a wall near a cell's
+    thickness, whose grid field has one, bends too easily in two (a clamped strip 0.86 of a cell thick sags 1.23x
+    Euler-Bernoulli in two layers, 1.03x in three, where the grid's clamp makes 1.04x; README, known limits);
+    ``wall_fibres`` (fibre, layer) joins each outer particle to its inner twin (and the middle one), the wall's normal
+    fibre, whose ends the solver keeps at their rest distance (``mpm.wall_fibres``); empty otherwise;
   - ``interior`` set: grid points with ``sdf < -max(t, s/2)`` (half a spacing clear of the wall layer), volumes
     rescaled to the cavity volume ``V(sdf < 0) - wall volume``.  These cavity particles are the object's geometry
     only: the rollout fills them with the oracle's ``core`` (fruit flesh, stuffing: part of the body) or, without
@@ -850,8 +854,8 @@ def _validate(obj: Any, sampling: Any) -> tuple[str, np.ndarray, float, float, i
         raise ObjectModelError(f"sampling.particle_spacing must be > 0 m, got {s}")
     if n_surf < 10:
         raise ObjectModelError(f"sampling.surface_points must be >= 10, got {n_surf}")
-    if layers not in (1, 2):
-        raise ObjectModelError(f"sampling.thin_wall_layers must be 1 or 2, got {layers}")
+    if layers not in (1, 2, 3):
+        raise ObjectModelError(f"sampling.thin_wall_layers must be 1, 2 or 3, got {layers}")
     if t < 0 or not math.isfinite(t):
         raise ObjectModelError(f"object {name}: geometry.wall_thickness must be >= 0 m, got {t}")
     if not filled and t <= 0:
@@ -867,6 +871,12 @@ def _validate(obj: Any, sampling: Any) -> tuple[str, np.ndarray, float, float, i
         raise ObjectModelError(f"object {name}: geometry.kind {kind!r} is unknown: use one of "
                                f"{list(SHAPE_KINDS) + ['ply', 'mesh']}")
     return kind, size, t, s, n_surf, seed, layers
+
+
+# a wall's Gauss layers: distance of the outer and inner ones from the mid-surface / t, and the volume shares of each
+# of those and of the middle one (three layers only; Gauss-Legendre on [-t/2, t/2])
+GAUSS_LAYERS = {2: (1.0 / (2.0 * math.sqrt(3.0)), (0.5, 0.0)),
+                3: (0.5 * math.sqrt(0.6), (5.0 / 18.0, 8.0 / 18.0))}
 
 
 def sampling_seed(obj: Any, seed: int) -> np.random.SeedSequence:
@@ -967,12 +977,14 @@ def build_object_model(obj: Any, sampling: Any, grid_spacing: float | None = Non
             pvol = parea * shell_depth_volume(src.curvature(ppos, pnrm)[0], t, parea)
             ppos = ppos - 0.5 * t * pnrm
         V_wall = float(pvol.sum())
-        if layers == 2:  # the thickness's two Gauss points; fibre k joins particle k (outer) to its inner twin
-            off = t / (2.0 * math.sqrt(3.0))
-            fibres = np.stack([np.arange(len(ppos)), np.arange(len(ppos), 2 * len(ppos))], axis=1)
-            ppos = np.concatenate([ppos + off * pnrm, ppos - off * pnrm])
-            pnrm = np.concatenate([pnrm, pnrm])
-            pvol = np.concatenate([0.5 * pvol, 0.5 * pvol])
+        if layers > 1:  # the thickness's Gauss points; fibre k: particle k (outer), its inner [and middle] twin
+            off, share = GAUSS_LAYERS[layers]
+            n = len(ppos)
+            fibres = np.stack([np.arange(n), np.arange(n, 2 * n)] + ([np.arange(2 * n, 3 * n)] if layers == 3 else []),
+                              axis=1)
+            ppos = np.concatenate([ppos + off * t * pnrm, ppos - off * t * pnrm] + ([ppos] if layers == 3 else []))
+            pnrm = np.concatenate([pnrm] * layers)
+            pvol = np.concatenate([share[0] * pvol, share[0] * pvol] + ([share[1] * pvol] if layers == 3 else []))
     else:
         grid = _grid_points(src.bbox_min, src.bbox_max, s, rng_grid)
         d = src.sdf(grid)
@@ -1028,8 +1040,9 @@ def build_object_model(obj: Any, sampling: Any, grid_spacing: float | None = Non
         "particle_normals": Array(_unit(pnrm).astype(f32), ("particle", "xyz"), "1",
                                   "outward normal of the nearest outer surface"),
         "wall_fibres": Array(fibres.astype(np.int32), ("fibre", "layer"), "1",
-                             "particle indices of each normal fibre of a wall in two Gauss layers: outer, inner "
-                             "(the solver keeps each at its rest length, mpm.wall_fibres); none otherwise"),
+                             "particle indices of each normal fibre of a wall in two or three Gauss layers: outer, "
+                             "inner[, middle] (the solver keeps outer and inner at their rest distance, "
+                             "mpm.wall_fibres); none otherwise"),
         "interior_positions": Array(ipos.astype(f32), ("interior_particle", "xyz"), "m",
                                     "MPM particles of the interior material (cavity)"),
         "interior_volumes": Array(ivol.astype(f32), ("interior_particle",), "m^3", "volume per interior particle"),

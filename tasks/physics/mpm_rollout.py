@@ -394,12 +394,12 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     # sets its stable step, hence the mass scale
     thin_wall = bool(obj_attrs.get("thin_wall", False))
     thickness = float(obj_attrs.get("wall_thickness", 0.0) or 0.0)
-    normals = pairs = None
+    normals = fibres = None
     if 0.0 < thickness < dx and cfg.thin_walls == "membrane" and by_label[SHELL].model in MEMBRANE_MODELS:
         normals = np.zeros_like(x0)
         normals[mid == SHELL] = obj["particle_normals"]  # the shell's particles come first (scene_particles)
-        if len(obj["wall_fibres"]):  # the two Gauss layers' pairs (the shell's particles come first)
-            pairs = np.asarray(obj["wall_fibres"], np.int64)
+        if len(obj["wall_fibres"]):  # the Gauss layers' fibres (the shell's particles come first)
+            fibres = np.asarray(obj["wall_fibres"], np.int64)
         for lab in (SHELL, RUPTURED):  # the torn skin is the shell's particles; as foam it stays 3D
             if lab in by_label and by_label[lab].model in MEMBRANE_MODELS:
                 mat_list[slot[lab]] = replace(mat_list[slot[lab]], membrane=True)
@@ -448,7 +448,7 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     #    dragged off the tomato with it, between its skin and juice anchors: 77 of 3000 ended > 2 cells off the fruit)
     solver = MPMSolver(x0, vol, mat_list, material_ids=slot[mid], config=cfg, tracers=obj["surface_points"],
                        tracer_anchors=mid == SHELL, label=str(obj_attrs.get("name", "")), load=load,
-                       membrane_normals=normals, membrane_pairs=pairs)
+                       membrane_normals=normals, membrane_fibres=fibres)
     if thin_wall and cfg.fingers == "particles":
         notes.append("particle fingers pin the wall's particles at their centres: a wall thinner than the "
                      f"{1e3 * spacing:.3g} mm spacing (ParticlePins arms 0)")

@@ -43,7 +43,7 @@ class WallFinding:
     wall_thickness: float  # m
     particle_spacing: float  # m
     dx: float  # m, grid spacing
-    particle_layers: float  # particle layers across the wall (a thin wall: sampling.thin_wall_layers, 1 or 2)
+    particle_layers: float  # particle layers across the wall (a thin wall: sampling.thin_wall_layers, 1, 2 or 3)
     radius: float  # m, R used for the bending length
     bending_length: float  # m, l_b = sqrt(R t) / (3 (1 - nu^2))^(1/4), decay length of a dent
     buckle_wavelength: float  # m, lambda = 2 pi sqrt(R t) / (12 (1 - nu^2))^(1/4)
@@ -94,7 +94,8 @@ def thin_wall_finding(attrs: Mapping[str, Any], dx: float, poisson_ratio: float 
     elif layers == 1:
         layer_txt = "one particle layer (membrane-like: mid-surface particles carry no bending strain)"
     else:
-        layer_txt = "two particle layers at the thickness's Gauss points (bending from their difference)"
+        layer_txt = (f"{'two' if layers == 2 else 'three'} particle layers at the thickness's Gauss points (bending "
+                     "from their difference)")
     head = (f"{obj} wall {_mm(t)} {'<' if t < dx else '>='} dx {_mm(dx)}: {layer_txt}; buckle wavelength "
             f"2 pi sqrt(R t)/(12(1-nu^2))^(1/4) = {_mm(lam)} (R {_mm(R)}, nu {nu:g})")
     if ratio > 1.0:

@@ -3,8 +3,9 @@
 
 The strip (length L along x, width w, thickness t < dx) is sampled as the object model samples such walls: one layer
 of particles at the mid-surface, or two at the thickness's Gauss points z = +-t / (2 sqrt 3) (each carrying half
-the wall's volume, the two at each point a normal fibre held at its length, ``membrane_pairs``, as the rollout
-holds them), on an in-plane lattice of spacing dx / 2.  Its root is clamped: the strip reaches ``embed``
+the wall's volume), or three at z = 0, +-sqrt(3/5) t / 2 (8/18, 5/18, 5/18 of it), the layers at each point a normal
+fibre whose outer and inner particles are held at their distance (``membrane_fibres``, as the rollout holds them), on
+an in-plane lattice of spacing dx / 2.  Its root is clamped: the strip reaches ``embed``
 cells into the grid nodes held at x <= 0 (a strip that only starts at the held plane is not clamped in rotation),
 and it relaxes under gravity by kinetic damping (the velocities scaled by ``damping`` every ``frame`` s) until it has
 settled (:func:`settled`: the tip's sag stays within 0.2 % over 50 frames).  nu = 0, so the plate and beam
@@ -23,6 +24,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from tasks.control.object_model import GAUSS_LAYERS
 from tasks.physics.mpm.materials import Material
 from tasks.physics.mpm.solver import DirichletNodes, MPMSolver
 
@@ -54,25 +56,28 @@ def cantilever_under_weight(dx: float, layers: int = 2, length: float = 0.2, wid
                             damping: float = 0.95, frame: float = 2e-3, max_frames: int = 400,
                             embed: int = 2, fibres: bool = True, offset: float = 0.5,
                             config: Optional[dict] = None) -> dict:
-    """The membrane strip of the module doc on a grid of spacing ``dx`` (m) with ``layers`` (1 or 2) particle layers,
-    its free length ``length`` (m) beyond the clamp's ``embed`` cells, its mid-surface ``offset`` cells above a
-    plane of nodes; ``fibres`` False: the two layers' distance left free (``mpm.wall_fibres``); ``config``: more
+    """The membrane strip of the module doc on a grid of spacing ``dx`` (m) with ``layers`` (1, 2 or 3) particle
+    layers, its free length ``length`` (m) beyond the clamp's ``embed`` cells, its mid-surface ``offset`` cells above a
+    plane of nodes; ``fibres`` False: the layers' distance left free (``mpm.wall_fibres``); ``config``: more
     solver settings (e.g. ``wall_normal_stiffness``, ``wall_stencil``).
     Returns ``tip`` (m, the tip's sag at the end), ``beam`` (m, the closed form), ``ratio`` = tip / beam (> 1: the
     wall bends more easily than a plate of its thickness), ``sag`` (m, the tip's sag after each frame), ``frames``,
     ``settled`` (:func:`settled`; else the run stopped at ``max_frames``) and ``seconds``."""
-    if layers not in (1, 2) or not 0 < thickness < dx:
-        raise ValueError(f"need layers 1 or 2 and 0 < thickness < dx; got {layers}, {thickness}, {dx}")
+    if layers not in (1, 2, 3) or not 0 < thickness < dx:
+        raise ValueError(f"need layers 1, 2 or 3 and 0 < thickness < dx; got {layers}, {thickness}, {dx}")
     h = dx / 2
-    z = [-thickness / (2 * np.sqrt(3)), thickness / (2 * np.sqrt(3))] if layers == 2 else [0.0]
+    z, w = [0.0], [1.0]  # each layer's height above the mid-surface (m) and share of the wall's volume
+    if layers > 1:
+        off, share = GAUSS_LAYERS[layers]
+        z, w = [-off * thickness, off * thickness, 0.0][:layers], [share[0], share[0], share[1]][:layers]
     xs, ys = np.arange(h / 2 - embed * dx, length, h), np.arange(h / 2, width, h)
     mid = (np.floor(0.1 / dx) + offset) * dx  # m: on the 8 mm grid offset 0.5 is 0.1 m
     X = np.array([[x, y, mid + dz] for x in xs for y in ys for dz in z])
     strip = Material(name="strip", model="fixed_corotated", youngs_modulus=youngs_modulus, poisson_ratio=0.0,
                      density=density)
-    pairs = np.arange(len(X)).reshape(-1, 2) if layers == 2 and fibres else None  # the layers at each (x, y)
-    s = MPMSolver(X, h * h * thickness / len(z), strip, membrane_normals=np.tile([0.0, 0.0, 1.0], (len(X), 1)),
-                  membrane_pairs=pairs,
+    fibre = np.arange(len(X)).reshape(-1, layers) if layers > 1 and fibres else None  # the layers at each (x, y)
+    s = MPMSolver(X, np.tile(h * h * thickness * np.array(w), len(xs) * len(ys)), strip,
+                  membrane_normals=np.tile([0.0, 0.0, 1.0], (len(X), 1)), membrane_fibres=fibre,
                   config=dict(device="cpu", dx=dx, gravity=[0.0, 0.0, -GRAVITY], floor=False, courant=0.3,
                               domain_lo=[-0.05 - embed * dx, -0.03, 0.0],
                               domain_hi=[length + 0.05, width + 0.03, 0.2], **(config or {})))

@@ -36,7 +36,7 @@ import warnings
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Callable, Optional, Sequence, Union
+from typing import Any, Callable, NamedTuple, Optional, Sequence, Union
 
 import numpy as np
 import warp as wp
@@ -243,61 +243,78 @@ def membrane_normals_checked(normals: Optional[np.ndarray], n: int) -> Optional[
     return np.ascontiguousarray(a)
 
 
-def membrane_pairs_checked(pairs: Optional[np.ndarray], membrane_rows: np.ndarray, x: np.ndarray
-                           ) -> Optional[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """The solver's ``membrane_pairs`` as (first, second) int32 indices and their rest distances (m, float32), or
-    None; each pair joins two membrane particles (the two Gauss layers of a thin wall), no particle is in two pairs
-    and no pair is a point.  A bad array is one ValueError line naming what is wrong."""
-    if pairs is None or len(pairs) == 0:
+class WallFibres(NamedTuple):
+    """A thin wall's normal fibres as the solver holds them (:func:`membrane_fibres_checked`): per fibre its outer
+    and inner Gauss layers' particles (``first``, ``second``, int32), their rest distance (``rest``, m, float32) and,
+    in a wall of three Gauss layers, its middle layer's particle (``middle``, int32; None in two layers)."""
+    first: np.ndarray
+    second: np.ndarray
+    rest: np.ndarray
+    middle: Optional[np.ndarray]
+
+
+def membrane_fibres_checked(fibres: Optional[np.ndarray], membrane_rows: np.ndarray, x: np.ndarray
+                            ) -> Optional[WallFibres]:
+    """The solver's ``membrane_fibres`` ((P, 2) or (P, 3) particle indices: outer, inner and, in three Gauss layers,
+    middle) as :class:`WallFibres`, or None; every fibre joins membrane particles of one thin wall, no particle is
+    in two fibres, and its ends are apart.  A bad array is one ValueError line naming what is wrong."""
+    if fibres is None or len(fibres) == 0:
         return None
-    a = np.asarray(pairs)
+    a = np.asarray(fibres)
     n = len(membrane_rows)
-    if a.ndim != 2 or a.shape[1] != 2 or not np.issubdtype(a.dtype, np.integer):
-        raise ValueError(f"membrane_pairs must be integer particle indices of shape (P, 2); got {a.dtype} {a.shape}")
+    if a.ndim != 2 or a.shape[1] not in (2, 3) or not np.issubdtype(a.dtype, np.integer):
+        raise ValueError("membrane_fibres must be integer particle indices of shape (P, 2) or (P, 3) (outer, inner, "
+                         f"middle Gauss layer); got {a.dtype} {a.shape}")
     if a.min() < 0 or a.max() >= n:
-        raise ValueError(f"membrane_pairs: indices must lie in [0, {n}); got {int(a.min())}..{int(a.max())}")
+        raise ValueError(f"membrane_fibres: indices must lie in [0, {n}); got {int(a.min())}..{int(a.max())}")
     if len(np.unique(a)) != a.size:
-        raise ValueError("membrane_pairs: a particle is in two pairs (or paired with itself); each wall particle has "
-                         "one partner, its other Gauss layer")
+        raise ValueError("membrane_fibres: a particle is in two fibres (or twice in one); each wall particle lies on "
+                         "one fibre, with its wall's other Gauss layers")
     if not membrane_rows[a].all():
-        raise ValueError(f"membrane_pairs: {int((~membrane_rows[a]).any(axis=1).sum())} pairs join a particle without "
-                         "a membrane normal; pair only the two layers of a thin wall (membrane_normals)")
+        raise ValueError(f"membrane_fibres: {int((~membrane_rows[a]).any(axis=1).sum())} fibres join a particle "
+                         "without a membrane normal; join only the Gauss layers of a thin wall (membrane_normals)")
     rest = np.linalg.norm(x[a[:, 0]].astype(np.float64) - x[a[:, 1]], axis=1)
     if not rest.min() > 0:
-        raise ValueError(f"membrane_pairs: pair {int(np.argmin(rest))} joins two particles at the same position")
-    return (np.ascontiguousarray(a[:, 0], np.int32), np.ascontiguousarray(a[:, 1], np.int32),
-            rest.astype(np.float32))
+        raise ValueError(f"membrane_fibres: fibre {int(np.argmin(rest))}'s outer and inner particles lie at the "
+                         "same position")
+    return WallFibres(np.ascontiguousarray(a[:, 0], np.int32), np.ascontiguousarray(a[:, 1], np.int32),
+                      rest.astype(np.float32), np.ascontiguousarray(a[:, 2], np.int32) if a.shape[1] == 3 else None)
 
 
-def wall_offsets(x: np.ndarray, normals: np.ndarray, pairs: tuple) -> np.ndarray:
-    """(particle,) float32 m: each thin wall's Gauss layer's signed rest distance from its wall's mid-surface along
-    its normal, (x - midpoint of its pair) . normal (``pairs`` as from :func:`membrane_pairs_checked`), 0 for every
-    particle in no pair: :func:`tasks.physics.mpm.kernels.particle_stencil` gives both layers of a wall the stencil
-    of their mid-surface."""
-    first, second, _ = pairs
+def wall_offsets(x: np.ndarray, normals: np.ndarray, fibres: WallFibres) -> np.ndarray:
+    """(particle,) float32 m: each thin wall's outer and inner Gauss layer's signed rest distance from its wall's
+    mid-surface along its normal, (x - midpoint of its fibre's ends) . normal, 0 for every other particle (a middle
+    layer lies on the mid-surface): :func:`tasks.physics.mpm.kernels.particle_stencil` gives every layer of a wall
+    the stencil of its mid-surface."""
     out = np.zeros(len(x), np.float64)
-    mid = 0.5 * (x[first].astype(np.float64) + x[second])
-    for idx in (first, second):
+    mid = 0.5 * (x[fibres.first].astype(np.float64) + x[fibres.second])
+    for idx in (fibres.first, fibres.second):
         out[idx] = np.einsum("pi,pi->p", x[idx] - mid, normals[idx])
     return out.astype(np.float32)
 
 
-GAUSS_LAYER_FACE = (math.sqrt(3.0) - 1.0) / 2.0  # a Gauss layer's distance to its wall face / the layers' distance
+def gauss_layer_face(layers: int) -> float:
+    """A wall's outermost Gauss layer's distance to its face / the distance between its outer and inner layers:
+    the layers at +-t / (2 sqrt 3) (two) or +-sqrt(3/5) t / 2 (three) lie 1/sqrt 3 or sqrt(3/5) of t apart, so the
+    face is (sqrt 3 - 1) / 2 or (sqrt(5/3) - 1) / 2 of that distance outside them."""
+    return (math.sqrt(3.0) - 1.0) / 2.0 if layers == 2 else (math.sqrt(5.0 / 3.0) - 1.0) / 2.0
 
 
-def contact_reach(volume: np.ndarray, pairs: Optional[tuple] = None) -> np.ndarray:
+def contact_reach(volume: np.ndarray, fibres: Optional[WallFibres] = None) -> np.ndarray:
     """(particle,) float32 m: how far each particle's surface reaches a collider (surface contact,
-    :func:`tasks.physics.mpm.kernels.contact_velocity`): half its undeformed spacing, cbrt(V0) / 2; for the two
-    Gauss layers of a wall thinner than the grid (``pairs``: first, second, rest distance as from
-    :func:`membrane_pairs_checked`) its distance to its own face, t / 2 - t / (2 sqrt 3) with t = sqrt 3 x the
-    layers' rest distance, i.e. (sqrt 3 - 1) / 2 of that distance.  With cbrt(V0) / 2 the ball's outer layer
-    (V0 21 mm^3: 1.38 mm) touched a flat 0.74 mm outside the wall's face (0.63 mm), its inner layer never, and the
-    ball between surface flats read 1.10-1.37x the FE at 1-6 mm on the default grid; at the face 1.09-1.21x."""
+    :func:`tasks.physics.mpm.kernels.contact_velocity`): half its undeformed spacing, cbrt(V0) / 2; for the outer and
+    inner Gauss layers of a wall thinner than the grid (``fibres`` as from :func:`membrane_fibres_checked`) its
+    distance to its own face (:func:`gauss_layer_face` x their rest distance), for a middle layer half the wall's
+    thickness.  With cbrt(V0) / 2 the ball's outer layer (V0 21 mm^3: 1.38 mm) touched a flat 0.74 mm outside the
+    wall's face (0.63 mm), its inner layer never, and the ball between surface flats read 1.10-1.37x the FE at 1-6 mm
+    on the default grid; at the face 1.09-1.21x."""
     reach = 0.5 * np.cbrt(np.asarray(volume, np.float64))
-    if pairs is not None:
-        first, second, rest = pairs
-        reach[first] = GAUSS_LAYER_FACE * rest
-        reach[second] = GAUSS_LAYER_FACE * rest
+    if fibres is not None:
+        face = gauss_layer_face(2 if fibres.middle is None else 3)
+        reach[fibres.first] = face * fibres.rest
+        reach[fibres.second] = face * fibres.rest
+        if fibres.middle is not None:
+            reach[fibres.middle] = (0.5 + face) * fibres.rest
     return reach.astype(np.float32)
 
 
@@ -573,11 +590,15 @@ class MPMSolver:
             longer tells where the wall lies in it); :meth:`set_material_ids` converts a row between the two when a
             particle changes between an elastic and a von Mises material.  Whether a particle is a membrane is its
             row (non-zero), whatever its material's ``membrane`` flag.  Foam and fluid models ignore it.
-        membrane_pairs: (P, 2) particle indices, the two Gauss layers of a thin wall at each point of it (membrane
-            particles; ``config.wall_fibres``): after every substep's advection each pair is put back at its rest
-            distance about its centre of mass (:func:`tasks.physics.mpm.kernels.k_wall_fibres`, Kirchhoff-Love's
-            inextensible normal fibre), which nothing else holds on a grid coarser than the wall.  A pair whose
-            particles come to differ in material is left alone.
+        membrane_fibres: (P, 2) or (P, 3) particle indices, the Gauss layers of a thin wall at each point of it
+            (membrane particles; outer, inner and, in three layers, middle; ``config.wall_fibres``): after every
+            substep's advection each fibre's outer and inner particles are put back at their rest distance about
+            their centre of mass (:func:`tasks.physics.mpm.kernels.k_wall_fibres`, Kirchhoff-Love's inextensible
+            normal fibre), which nothing else holds on a grid coarser than the wall.  A middle particle moves with the
+            grid: put back on its fibre's mid-point every substep, clamped strips 0.86 of a cell thick read 1.14x
+            Euler-Bernoulli at dx 3.5 mm and 0.95x at dx 8 mm, free 1.03x and 1.09x, what the B-splines' clamp, a
+            node plane behind the strip's root, makes of the closed form (1.04x and 1.08x).  A fibre whose outer and inner particles come to differ in material is left
+            alone.
 
     Mass (time) scaling (``config.mass_scaling``; s from :func:`mass_scale_for`, fixed once: at construction, or for
     ``global``/``selective`` at the first :meth:`step_frame`): the densities of the scaled materials (all of them by
@@ -662,7 +683,7 @@ class MPMSolver:
         label: str = "",
         load: Optional[QuasiStaticLoad] = None,
         membrane_normals: Optional[np.ndarray] = None,
-        membrane_pairs: Optional[np.ndarray] = None,
+        membrane_fibres: Optional[np.ndarray] = None,
     ) -> None:
         self.cfg: MPMConfig = mpm_config_from(config)
         self.label = str(label)
@@ -780,17 +801,18 @@ class MPMSolver:
         self.n_membrane = int(np.count_nonzero(self._membrane_rows))
         self.normal = wp.array(normals if self.n_membrane else np.zeros((1, 3), np.float32), dtype=wp.vec3, device=d)
         self.particles = K.Particles()
-        pairs = membrane_pairs_checked(membrane_pairs, self._membrane_rows, x)
-        self.reach = wp.array(contact_reach(vol, pairs), dtype=float, device=d)
-        shared = pairs is not None and cfg.wall_stencil == "shared"
-        self.wall_offset = wp.array(wall_offsets(x, normals, pairs) if shared else np.zeros(1, np.float32),
+        fibres = membrane_fibres_checked(membrane_fibres, self._membrane_rows, x)
+        self.reach = wp.array(contact_reach(vol, fibres), dtype=float, device=d)
+        shared = fibres is not None and cfg.wall_stencil == "shared"
+        self.wall_offset = wp.array(wall_offsets(x, normals, fibres) if shared else np.zeros(1, np.float32),
                                     dtype=float, device=d)
         for name in ("x", "v", "C", "F", "q", "alpha", "vol", "mat_id", "normal", "reach", "x_carry", "F_carry",
                      "wall_offset"):
             setattr(self.particles, name, getattr(self, name))
-        fibres = pairs if cfg.wall_fibres else None
-        self.n_fibres = 0 if fibres is None else len(fibres[2])
-        self._fibre_arrays = [] if fibres is None else [wp.array(f, device=d) for f in fibres]  # first, second, rest
+        fibres = fibres if cfg.wall_fibres else None
+        self.n_fibres = 0 if fibres is None else len(fibres.rest)
+        self._fibre_arrays = [] if fibres is None else [  # first, second, rest (a middle layer moves with the grid)
+            wp.array(f, device=d) for f in (fibres.first, fibres.second, fibres.rest)]
         self._fibres = None if fibres is None else wp.launch(
             K.k_wall_fibres, dim=self.n_fibres, device=d, record_cmd=True,
             inputs=[self.x, self.vol, self.mat_id, *self._fibre_arrays])
