@@ -3,7 +3,9 @@
 A hollow object whose wall is thinner than the particle spacing ``s`` is sampled on the wall's mid-surface, the
 particles carrying area x thickness of volume (:mod:`tasks.control.object_model`), so its mass and membrane stiffness
 E t are physical: by default in two layers at the thickness's Gauss points, which in plane stress
-(``mpm.thin_walls: membrane``) carry its bending for the curvatures the grid's field represents; with
+(``mpm.thin_walls: membrane``) carry its bending for the curvatures the grid's field represents (over half a cell
+thick, three layers, ``sampling.thin_wall_layers: 3``, which the finding then advises: two leave the grid's strain
+quadratic through the wall unresisted, README, known limits); with
 ``sampling.thin_wall_layers: 1`` in ONE layer on the neutral surface, where bending strain is zero.  Either way the
 quadratic B-spline grid smears the wall over ~3 dx, so a dent or buckle shorter than the grid can represent is not
 what the wall would do.
@@ -104,6 +106,10 @@ def thin_wall_finding(attrs: Mapping[str, Any], dx: float, poisson_ratio: float 
                f"{_mm(s * lam / (2.0 * dx))} for dx <= lambda/2)")
     else:
         msg = f"resolved: {head} >= 2 dx = {_mm(2 * dx)} (x{1.0 / ratio:.2g} margin)"
+    if sampled_thin and layers == 2 and t > 0.5 * dx:
+        msg += (f"; a wall over half a cell thick ({t / dx:.2g} dx) in two Gauss layers can leave the grid's strain "
+                "quadratic through it unresisted (a clamped strip 0.86 dx thick sagged 1.23-3.67x Euler-Bernoulli): "
+                "sample it in three, sampling.thin_wall_layers=3")
     return WallFinding(obj, ratio > 1.0, msg, t, s, dx, layers, R, l_b, lam, ratio, D)
 
 
