@@ -269,7 +269,12 @@ def wall_normal_psi(F: wp.mat33, Fp: wp.mat33, N: wp.vec3, k: float) -> float:
 def wall_normal_tau(F: wp.mat33, Fp: wp.mat33, N: wp.vec3, k: float) -> wp.mat33:
     """Kirchhoff stress (Pa) of :func:`wall_normal_psi` (Fp held): P = k (F N - Fp N) N^T, tau = P F^T = k d a^T with
     d = F N - Fp N (along the deformed normal) and a = F N, symmetrised (d and a are parallel up to the transverse
-    shear)."""
+    shear).  Not the energy's full gradient: Fp moves with F through the area stretch A, and with g = n . F N = J / A,
+    (dJ/dF) F^T = J I and (dA/dF) F^T = A (I - n n^T) the exact stress is k (g - g*) [g n n^T + c (I - n n^T)],
+    c = -A dg*/dA (nu / (1 - nu) at rest).  Tried (2026-12-04): it is conservative (the rubber duck at
+    ``mpm.wall_normal_stiffness`` 1 runs clean where this form trips the energy guard at frame 15), but where the
+    grid holds a wall's thickness (g > g* as it stretches) its in-plane term stiffens the stretch: the ball's
+    breathing amplitude -2 % -> -9 % of the membrane sphere's (``tests/test_membrane.py``).  This form is kept."""
     a = F @ N
     d = a - Fp @ N
     return 0.5 * k * (wp.outer(d, a) + wp.outer(a, d))
