@@ -6,6 +6,9 @@
     python -m flows.ball_study --spacings --travel 3 --hold 20 --plates grid surface   # then held 20 s: creep?
     python -m flows.ball_study --spacings 2 1.6 --travel 3 --plates surface            # refined: does it dimple?
     python -m flows.ball_study --spacings 2 --travel 3 --plates surface --extra mpm.dx=0.008   # particles alone
+    python -m flows.ball_study --spacings 2 1.6 --travel 3 --plates surface --extra sampling.thin_wall_layers=3
+    python -m flows.ball_study --spacings 2 1.6 --travel 3 --plates surface \
+        --extra sampling.thin_wall_layers=3 mpm.thin_walls=solid       # the same wall as a 3D solid
 
 The default grid's hollow rubber ball (its own particles and materials: the object model and material oracle steps
 of :func:`flows.pipeline.run_object_local`, the rollout's scene :func:`tasks.physics.mpm_rollout.build_scene`, no
@@ -38,9 +41,13 @@ FE_STEP = 0.25e-3  # m: the FE's depth increment (Newton from the previous depth
 
 
 def ball_scene(overrides: list[str], root: str, obj: str = "rubber_ball"):
-    """The rollout's scene of ``obj`` (full variant, no gravity) on the default grid config plus ``overrides``."""
+    """The rollout's scene of ``obj`` (full variant, no gravity) on the default grid config plus ``overrides``.  A
+    wall sampled in Gauss layers but held as a 3D solid (``mpm.thin_walls=solid``: the solver gets no fibres) touches
+    the flats at its faces as the plane-stress wall does (:func:`tasks.physics.mpm.solver.contact_reach` from the
+    object model's ``wall_fibres``), not half a particle spacing out, so the two models meet the flats alike."""
     from flows.pipeline import evaluate_config, run_object_local, step_params
     from tasks.core.artifacts import read_artifact
+    from tasks.physics.mpm.solver import WallFibres, contact_reach
     from tasks.physics.mpm_rollout import build_scene, mpm_rollout_step
 
     cfg = evaluate_config([f"object={obj}", "variant=full", "mpm.gravity=[0,0,0]", "mpm.energy_guard_tolerance=0",
@@ -49,9 +56,17 @@ def ball_scene(overrides: list[str], root: str, obj: str = "rubber_ball"):
     a = {k: read_artifact(v) for k, v in refs.items()}
     params = step_params(mpm_rollout_step, cfg, cfg.object, cfg.variant)
     model = a["object_model"]
-    return build_scene(model.arrays, {**model.attrs, "name": model.ref.scope}, a["dirichlet_field"].arrays,
-                       a["contact_patches"].arrays, a["signal_smoothing"]["time"], a["material_oracle"].attrs["materials"],
-                       params["mpm"], params["simulation"], a["force_coefficients"]["force_coefficients"], "dirichlet"), cfg
+    scene = build_scene(model.arrays, {**model.attrs, "name": model.ref.scope}, a["dirichlet_field"].arrays,
+                        a["contact_patches"].arrays, a["signal_smoothing"]["time"],
+                        a["material_oracle"].attrs["materials"], params["mpm"], params["simulation"],
+                        a["force_coefficients"]["force_coefficients"], "dirichlet")
+    fib = np.asarray(model.arrays["wall_fibres"], np.int64)  # the shell's particles come first in the scene
+    if len(fib) and scene.solver.n_membrane == 0:
+        x = scene.solver.positions().astype(np.float64)
+        rest = np.linalg.norm(x[fib[:, 0]] - x[fib[:, 1]], axis=1)
+        faces = WallFibres(fib[:, 0], fib[:, 1], rest, fib[:, 2] if fib.shape[1] == 3 else None)
+        scene.solver.reach.assign(contact_reach(scene.solver.volumes(), faces))
+    return scene, cfg
 
 
 def _row(name: str, force: np.ndarray, note: str) -> str:

@@ -686,6 +686,29 @@ def test_the_ball_held_between_flats_keeps_its_force_and_its_shape(tmp_path, fix
         assert change < -0.08 and gap > 3e-4, (change, r["pole_gap"][[29, -1]])
 
 
+def test_the_balls_wall_in_three_gauss_layers_reaches_the_flats_at_its_faces_as_a_membrane_and_as_a_solid(tmp_path):
+    """The rubber ball (3 mm wall) sampled in three Gauss layers: in plane stress (the default mpm.thin_walls) the
+    solver holds one fibre per point (its outer and inner layers sqrt(3/5) t = 2.32 mm apart) and each outer or inner
+    layer reaches a flat at its own face, t / 2 - sqrt(3/5) t / 2 = 0.338 mm, the middle one at t / 2; held as a 3D
+    solid (mpm.thin_walls=solid, no fibres) the ball study's scene gives its layers the same reach, not half a
+    particle spacing (cbrt(V0) / 2, 1.1-1.3 mm)."""
+    from flows.ball_study import ball_scene
+
+    t = 0.003
+    reach = {}
+    for walls in ("membrane", "solid"):
+        scene, _ = ball_scene([f"mpm.thin_walls={walls}", "sampling.thin_wall_layers=3"], str(tmp_path))
+        s = scene.solver
+        n = len(s.positions()) // 3
+        assert s.n_fibres == (n if walls == "membrane" else 0) and (s.n_membrane > 0) == (walls == "membrane")
+        reach[walls] = s.contact_radii()
+        x = s.positions().astype(np.float64)
+        np.testing.assert_allclose(np.linalg.norm(x[:n] - x[n:2 * n], axis=1), np.sqrt(0.6) * t, rtol=1e-3)
+    for r in reach.values():
+        np.testing.assert_allclose(r[:2 * n], t / 2 - np.sqrt(0.6) * t / 2, rtol=1e-3)
+        np.testing.assert_allclose(r[2 * n:], t / 2, rtol=1e-3)
+
+
 def test_the_balls_wall_breathes_at_the_membrane_spheres_period(tmp_path):
     """The rubber ball's two-layer plane-stress wall on the default grid (no gravity, floor or mass scaling), started
     with a uniform radial speed: its mean radius oscillates with the breathing period of a membrane sphere,

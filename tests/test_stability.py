@@ -140,17 +140,18 @@ def test_thin_walls_of_the_real_objects(ctx):
     two = thin_wall_finding({**base, "thin_wall_layers": 2, "wall_thickness": 1e-4, "bbox_min": [-0.033] * 3,
                              "bbox_max": [0.033] * 3}, dx=0.008, poisson_ratio=0.33, name="can")
     assert two.particle_layers == 2 and "two particle layers at the thickness's Gauss points" in two.message
-    assert "thin_wall_layers=3" not in two.message  # 0.0125 dx thick
+    assert not two.advice  # 0.0125 dx thick
     # the ball's 3 mm wall on a 4 mm grid (0.75 dx) in two Gauss layers: advised to take three; in three: not; at
     # exactly half a cell (the orange's 4 mm peel on the 8 mm grid): not
     thick = {**base, "thin_wall_layers": 2, "wall_thickness": 3e-3, "bbox_min": [-0.0325] * 3,
              "bbox_max": [0.0325] * 3}
     advised = thin_wall_finding(thick, dx=0.004, poisson_ratio=0.49, name="ball")
-    assert "(0.75 dx) in two Gauss layers" in advised.message and "sampling.thin_wall_layers=3" in advised.message
+    assert "(0.75 dx) in two Gauss layers" in advised.advice and "sampling.thin_wall_layers=3" in advised.advice
+    assert advised.advice in advised.message and not advised.flagged  # listed in a report for its advice
     three = thin_wall_finding({**thick, "thin_wall_layers": 3}, dx=0.004, poisson_ratio=0.49, name="ball")
-    assert "three particle layers" in three.message and "thin_wall_layers=3" not in three.message
+    assert "three particle layers" in three.message and not three.advice
     half = thin_wall_finding({**thick, "wall_thickness": 4e-3}, dx=0.008, poisson_ratio=0.3, name="orange")
-    assert "thin_wall_layers=3" not in half.message
+    assert not half.advice and "thin_wall_layers=3" not in half.message
     ball = thin_wall_finding({**base, "wall_thickness": 3e-3, "bbox_min": [-0.0325] * 3, "bbox_max": [0.0325] * 3},
                              dx=0.008, poisson_ratio=0.49, name="ball")
     assert not ball.flagged and ball.buckle_wavelength == pytest.approx(0.0357, rel=0.01)

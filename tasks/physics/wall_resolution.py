@@ -51,6 +51,7 @@ class WallFinding:
     buckle_wavelength: float  # m, lambda = 2 pi sqrt(R t) / (12 (1 - nu^2))^(1/4)
     under_resolution: float  # 2 dx / buckle_wavelength (> 1: flagged)
     bending_stiffness: float  # N m, D = E t^3 / (12 (1 - nu^2)) (nan when E is not given)
+    advice: str = ""  # a wall over half a cell thick in two Gauss layers: take three (also in message)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -106,11 +107,13 @@ def thin_wall_finding(attrs: Mapping[str, Any], dx: float, poisson_ratio: float 
                f"{_mm(s * lam / (2.0 * dx))} for dx <= lambda/2)")
     else:
         msg = f"resolved: {head} >= 2 dx = {_mm(2 * dx)} (x{1.0 / ratio:.2g} margin)"
+    advice = ""
     if sampled_thin and layers == 2 and t > 0.5 * dx:
-        msg += (f"; a wall over half a cell thick ({t / dx:.2g} dx) in two Gauss layers can leave the grid's strain "
-                "quadratic through it unresisted (a clamped strip 0.86 dx thick sagged 1.23-3.67x Euler-Bernoulli): "
-                "sample it in three, sampling.thin_wall_layers=3")
-    return WallFinding(obj, ratio > 1.0, msg, t, s, dx, layers, R, l_b, lam, ratio, D)
+        advice = (f"a wall over half a cell thick ({t / dx:.2g} dx) in two Gauss layers can leave the grid's strain "
+                  "quadratic through it unresisted (a clamped strip 0.86 dx thick sagged 1.23-3.67x "
+                  "Euler-Bernoulli): sample it in three, sampling.thin_wall_layers=3")
+        msg += "; " + advice
+    return WallFinding(obj, ratio > 1.0, msg, t, s, dx, layers, R, l_b, lam, ratio, D, advice)
 
 
 def _mm(x: float) -> str:

@@ -327,7 +327,8 @@ def left_out(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
 
 
 def wall_findings(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
-    """Per object whose wall the grid cannot resolve: the thin-wall finding (:mod:`tasks.physics.wall_resolution`)."""
+    """Per object whose wall the grid cannot resolve, or whose wall over half a cell thick is sampled in two Gauss
+    layers: the thin-wall finding (:mod:`tasks.physics.wall_resolution`)."""
     from tasks.physics.material_oracle import materials_from_dict
     from tasks.physics.wall_resolution import thin_wall_finding
 
@@ -343,7 +344,7 @@ def wall_findings(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
         except (ArtifactError, KeyError):
             continue
         finding = thin_wall_finding(shape, dx, shell.poisson_ratio, shell.youngs_modulus, name=obj)
-        if finding.flagged:
+        if finding.flagged or finding.advice:
             lines.append(f"- {obj}: {finding.message}")
     return lines
 
