@@ -597,8 +597,8 @@ class MPMSolver:
             normal fibre), which nothing else holds on a grid coarser than the wall.  A middle particle moves with the
             grid: put back on its fibre's mid-point every substep, clamped strips 0.86 of a cell thick read 1.14x
             Euler-Bernoulli at dx 3.5 mm and 0.95x at dx 8 mm, free 1.03x and 1.09x, what the B-splines' clamp, a
-            node plane behind the strip's root, makes of the closed form (1.04x and 1.08x).  A fibre whose outer and inner particles come to differ in material is left
-            alone.
+            node plane behind the strip's root, makes of the closed form (1.04x and 1.08x).  A fibre whose outer and
+            inner particles come to differ in material is left alone.
 
     Mass (time) scaling (``config.mass_scaling``; s from :func:`mass_scale_for`, fixed once: at construction, or for
     ``global``/``selective`` at the first :meth:`step_frame`): the densities of the scaled materials (all of them by
