@@ -47,7 +47,7 @@ def ball_scene(overrides: list[str], root: str, obj: str = "rubber_ball"):
     object model's ``wall_fibres``), not half a particle spacing out, so the two models meet the flats alike."""
     from flows.pipeline import evaluate_config, run_object_local, step_params
     from tasks.core.artifacts import read_artifact
-    from tasks.physics.mpm.solver import WallFibres, contact_reach
+    from tasks.physics.mpm.solver import contact_reach, membrane_fibres_checked
     from tasks.physics.mpm_rollout import build_scene, mpm_rollout_step
 
     cfg = evaluate_config([f"object={obj}", "variant=full", "mpm.gravity=[0,0,0]", "mpm.energy_guard_tolerance=0",
@@ -62,9 +62,8 @@ def ball_scene(overrides: list[str], root: str, obj: str = "rubber_ball"):
                         a["force_coefficients"]["force_coefficients"], "dirichlet")
     fib = np.asarray(model.arrays["wall_fibres"], np.int64)  # the shell's particles come first in the scene
     if len(fib) and scene.solver.n_membrane == 0:
-        x = scene.solver.positions().astype(np.float64)
-        rest = np.linalg.norm(x[fib[:, 0]] - x[fib[:, 1]], axis=1)
-        faces = WallFibres(fib[:, 0], fib[:, 1], rest, fib[:, 2] if fib.shape[1] == 3 else None)
+        x = scene.solver.positions()
+        faces = membrane_fibres_checked(fib, np.ones(len(x), bool), x)
         scene.solver.reach.assign(contact_reach(scene.solver.volumes(), faces))
     return scene, cfg
 

@@ -314,3 +314,8 @@ def test_contact_reach_is_half_the_spacing_or_a_gauss_layers_distance_to_its_fac
     got = contact_reach(vol, WallFibres(np.array([2]), np.array([3]), np.array([np.sqrt(0.6) * t]), np.array([4])))
     face = t / 2 - np.sqrt(0.6) * t / 2
     assert got == pytest.approx([1e-3, 1.5e-3, face, face, t / 2], rel=1e-5)
+    from tasks.physics.wall_resolution import gauss_layer_face, gauss_layers
+
+    for layers in (2, 3):  # the face fraction is the sampling's: (1/2 - h) / (2 h) for layers at +-h t
+        (h, *_), shares = gauss_layers(layers)
+        assert gauss_layer_face(layers) == pytest.approx((0.5 - h) / (2 * h), rel=1e-12) and sum(shares) == 1.0

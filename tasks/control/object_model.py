@@ -60,7 +60,7 @@ Discretisation choices (documented here because downstream steps rely on them):
     strain linear through the thickness exactly, so a plane-stress wall (``mpm.thin_walls: membrane``) carries the
     bending energy ``E t^3 / (12 (1 - nu^2)) kappa^2 / 2`` per area of a curvature kappa of the grid's field (two
     layers at +-t/2 would carry 3x); with ``3`` into three, at ``0`` and ``+-sqrt(3/5) t / 2`` with 8/18 and 5/18
-    of the volume (:data:`GAUSS_LAYERS`), which also integrate the strain's quadratic part: a wall near a cell's
+    of the volume (:func:`~tasks.physics.wall_resolution.gauss_layers`), which also integrate the strain's quadratic part: a wall near a cell's
     thickness, whose grid field has one, bends too easily in two (a clamped strip 0.86 of a cell thick sags 1.23x
     Euler-Bernoulli in two layers, 1.03x in three, where the grid's clamp makes 1.04x; README, known limits);
     ``wall_fibres`` (fibre, layer) joins each outer particle to its inner twin (and the middle one), the wall's normal
@@ -100,7 +100,7 @@ from tasks.core.artifacts import Array
 from tasks.core.excerpt import one_line
 from tasks.core.params import file_sha256
 from tasks.core.step import artifact_step
-from tasks.physics.wall_resolution import grid_spacing
+from tasks.physics.wall_resolution import gauss_layers, grid_spacing
 
 __all__ = [
     "ObjectModelError", "build_object_model", "poisson_disk", "quadric_curvature", "matrix_to_quaternion",
@@ -873,12 +873,6 @@ def _validate(obj: Any, sampling: Any) -> tuple[str, np.ndarray, float, float, i
     return kind, size, t, s, n_surf, seed, layers
 
 
-# a wall's Gauss layers: distance of the outer and inner ones from the mid-surface / t, and the volume shares of each
-# of those and of the middle one (three layers only; Gauss-Legendre on [-t/2, t/2])
-GAUSS_LAYERS = {2: (1.0 / (2.0 * math.sqrt(3.0)), (0.5, 0.0)),
-                3: (0.5 * math.sqrt(0.6), (5.0 / 18.0, 8.0 / 18.0))}
-
-
 def sampling_seed(obj: Any, seed: int) -> np.random.SeedSequence:
     """The seed sequence of every random draw of :func:`build_object_model`: the explicit ``sampling.seed`` and the
     object's *content*, never its name or label, so the same object under two names gets bitwise identical
@@ -978,13 +972,12 @@ def build_object_model(obj: Any, sampling: Any, grid_spacing: float | None = Non
             ppos = ppos - 0.5 * t * pnrm
         V_wall = float(pvol.sum())
         if layers > 1:  # the thickness's Gauss points; fibre k: particle k (outer), its inner [and middle] twin
-            off, share = GAUSS_LAYERS[layers]
+            heights, shares = gauss_layers(layers)
             n = len(ppos)
-            fibres = np.stack([np.arange(n), np.arange(n, 2 * n)] + ([np.arange(2 * n, 3 * n)] if layers == 3 else []),
-                              axis=1)
-            ppos = np.concatenate([ppos + off * t * pnrm, ppos - off * t * pnrm] + ([ppos] if layers == 3 else []))
+            fibres = np.arange(layers * n).reshape(layers, n).T
+            ppos = np.concatenate([ppos + h * t * pnrm for h in heights])
             pnrm = np.concatenate([pnrm] * layers)
-            pvol = np.concatenate([share[0] * pvol, share[0] * pvol] + ([share[1] * pvol] if layers == 3 else []))
+            pvol = np.concatenate([w * pvol for w in shares])
     else:
         grid = _grid_points(src.bbox_min, src.bbox_max, s, rng_grid)
         d = src.sdf(grid)

@@ -24,9 +24,9 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from tasks.control.object_model import GAUSS_LAYERS
 from tasks.physics.mpm.materials import Material
 from tasks.physics.mpm.solver import DirichletNodes, MPMSolver
+from tasks.physics.wall_resolution import gauss_layers
 
 GRAVITY = 9.81  # m/s^2
 SETTLE_FRAMES = 50  # frames over which a settled tip's sag stays put
@@ -66,10 +66,8 @@ def cantilever_under_weight(dx: float, layers: int = 2, length: float = 0.2, wid
     if layers not in (1, 2, 3) or not 0 < thickness < dx:
         raise ValueError(f"need layers 1, 2 or 3 and 0 < thickness < dx; got {layers}, {thickness}, {dx}")
     h = dx / 2
-    z, w = [0.0], [1.0]  # each layer's height above the mid-surface (m) and share of the wall's volume
-    if layers > 1:
-        off, share = GAUSS_LAYERS[layers]
-        z, w = [-off * thickness, off * thickness, 0.0][:layers], [share[0], share[0], share[1]][:layers]
+    heights, w = gauss_layers(layers)  # each layer's height above the mid-surface / t and share of the volume
+    z = [h * thickness for h in heights]
     xs, ys = np.arange(h / 2 - embed * dx, length, h), np.arange(h / 2, width, h)
     mid = (np.floor(0.1 / dx) + offset) * dx  # m: on the 8 mm grid offset 0.5 is 0.1 m
     X = np.array([[x, y, mid + dz] for x in xs for y in ys for dz in z])

@@ -42,6 +42,7 @@ import numpy as np
 import warp as wp
 
 from conf.mpm_schema import MPMConfig, mpm_config_from
+from tasks.physics.wall_resolution import gauss_layer_face
 
 from . import kernels as K
 from .materials import (
@@ -293,18 +294,11 @@ def wall_offsets(x: np.ndarray, normals: np.ndarray, fibres: WallFibres) -> np.n
     return out.astype(np.float32)
 
 
-def gauss_layer_face(layers: int) -> float:
-    """A wall's outermost Gauss layer's distance to its face / the distance between its outer and inner layers:
-    the layers at +-t / (2 sqrt 3) (two) or +-sqrt(3/5) t / 2 (three) lie 1/sqrt 3 or sqrt(3/5) of t apart, so the
-    face is (sqrt 3 - 1) / 2 or (sqrt(5/3) - 1) / 2 of that distance outside them."""
-    return (math.sqrt(3.0) - 1.0) / 2.0 if layers == 2 else (math.sqrt(5.0 / 3.0) - 1.0) / 2.0
-
-
 def contact_reach(volume: np.ndarray, fibres: Optional[WallFibres] = None) -> np.ndarray:
     """(particle,) float32 m: how far each particle's surface reaches a collider (surface contact,
     :func:`tasks.physics.mpm.kernels.contact_velocity`): half its undeformed spacing, cbrt(V0) / 2; for the outer and
     inner Gauss layers of a wall thinner than the grid (``fibres`` as from :func:`membrane_fibres_checked`) its
-    distance to its own face (:func:`gauss_layer_face` x their rest distance), for a middle layer half the wall's
+    distance to its own face (:func:`~tasks.physics.wall_resolution.gauss_layer_face` x their rest distance), for a middle layer half the wall's
     thickness.  With cbrt(V0) / 2 the ball's outer layer (V0 21 mm^3: 1.38 mm) touched a flat 0.74 mm outside the
     wall's face (0.63 mm), its inner layer never, and the ball between surface flats read 1.10-1.37x the FE at 1-6 mm
     on the default grid; at the face 1.09-1.21x."""
