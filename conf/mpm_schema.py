@@ -76,6 +76,13 @@ class MPMConfig:
             grid, which cannot resolve the thickness, holds it where a finger's nodes reach through the wall, and
             the wall's volume locks as nu -> 0.5 (the rubber ball and duck, nu = 0.49: 570 and 3,100 N per finger;
             README, known limits).
+        membrane_max_thickness: the thickest wall, as a fraction of ``dx``, that ``thin_walls: membrane`` holds in
+            plane stress; a wall from this fraction up to ``dx`` (still sampled in Gauss layers on its mid-surface)
+            carries full 3D stress, the grid resolving enough of its thickness.  Past about half a cell the
+            plane-stress wall softens as the grid refines, a 3D solid in Gauss layers locks on a coarse grid and
+            converges from above: the rubber ball between surface flats at 3 mm (two layers) reads 0.85x (plane
+            stress) / 0.99x (solid) the FE at 0.94 of a cell (dx 3.2 mm), 0.92x / 1.02x at 0.75, 0.95x / 1.07x at
+            0.6 and 1.03x / 1.34x at 0.375 (the default grid); README, known limits.
         wall_fibres: a membrane wall sampled in two Gauss layers (``sampling.thin_wall_layers: 2``) keeps the
             distance between its layers at each point, Kirchhoff-Love's inextensible normal fibre
             (:func:`tasks.physics.mpm.kernels.k_wall_fibres`, after every substep's advection).  The grid cannot
@@ -210,6 +217,7 @@ class MPMConfig:
     fingers: str = "dirichlet"
     finger_friction: float = 0.0
     thin_walls: str = "membrane"
+    membrane_max_thickness: float = 0.75
     wall_fibres: bool = True
     wall_normal_stiffness: float = 0.25
     wall_stencil: str = "shared"
@@ -279,6 +287,9 @@ def validate_mpm_config(cfg: MPMConfig) -> MPMConfig:
         bad("fingers", f"'{cfg.fingers}' is not one of {', '.join(FINGER_MODES)}")
     if cfg.thin_walls not in WALL_MODES:
         bad("thin_walls", f"'{cfg.thin_walls}' is not one of {', '.join(WALL_MODES)}")
+    if not 0 < cfg.membrane_max_thickness <= 1:
+        bad("membrane_max_thickness", f"must be in (0, 1], a fraction of dx (got {cfg.membrane_max_thickness}); a "
+                                      "wall as thick as dx is sampled as a volume, 1 holds every thinner one in plane stress")
     if cfg.wall_stencil not in WALL_STENCILS:
         bad("wall_stencil", f"'{cfg.wall_stencil}' is not one of {', '.join(WALL_STENCILS)}")
     if not (math.isfinite(cfg.wall_normal_stiffness) and cfg.wall_normal_stiffness >= 0):

@@ -9,6 +9,8 @@
     python -m flows.ball_study --spacings 2 1.6 --travel 3 --plates surface --extra sampling.thin_wall_layers=3
     python -m flows.ball_study --spacings 2 1.6 --travel 3 --plates surface \
         --extra sampling.thin_wall_layers=3 mpm.thin_walls=solid       # the same wall as a 3D solid
+    python -m flows.ball_study --spacings 2 1.6 --travel 3 --plates surface \
+        --extra mpm.membrane_max_thickness=1   # plane stress up to a cell thick (over 3/4 of a cell: 3D by default)
 
 The default grid's hollow rubber ball (its own particles and materials: the object model and material oracle steps
 of :func:`flows.pipeline.run_object_local`, the rollout's scene :func:`tasks.physics.mpm_rollout.build_scene`, no
@@ -42,12 +44,11 @@ FE_STEP = 0.25e-3  # m: the FE's default depth increment (Newton from the previo
 
 def ball_scene(overrides: list[str], root: str, obj: str = "rubber_ball"):
     """The rollout's scene of ``obj`` (full variant, no gravity) on the default grid config plus ``overrides``.  A
-    wall sampled in Gauss layers but held as a 3D solid (``mpm.thin_walls=solid``: the solver gets no fibres) touches
-    the flats at its faces as the plane-stress wall does (:func:`tasks.physics.mpm.solver.contact_reach` from the
-    object model's ``wall_fibres``), not half a particle spacing out, so the two models meet the flats alike."""
+    wall sampled in Gauss layers but held as a 3D solid (``mpm.thin_walls=solid``, or thicker than
+    ``mpm.membrane_max_thickness`` of a cell) touches the flats at its faces as the plane-stress wall does
+    (:func:`tasks.physics.mpm_rollout.build_scene`), not half a particle spacing out."""
     from flows.pipeline import evaluate_config, run_object_local, step_params
     from tasks.core.artifacts import read_artifact
-    from tasks.physics.mpm.solver import contact_reach, membrane_fibres_checked
     from tasks.physics.mpm_rollout import build_scene, mpm_rollout_step
 
     cfg = evaluate_config([f"object={obj}", "variant=full", "mpm.gravity=[0,0,0]", "mpm.energy_guard_tolerance=0",
@@ -60,11 +61,6 @@ def ball_scene(overrides: list[str], root: str, obj: str = "rubber_ball"):
                         a["contact_patches"].arrays, a["signal_smoothing"]["time"],
                         a["material_oracle"].attrs["materials"], params["mpm"], params["simulation"],
                         a["force_coefficients"]["force_coefficients"], "dirichlet")
-    fib = np.asarray(model.arrays["wall_fibres"], np.int64)  # the shell's particles come first in the scene
-    if len(fib) and scene.solver.n_membrane == 0:
-        x = scene.solver.positions()
-        faces = membrane_fibres_checked(fib, np.ones(len(x), bool), x)
-        scene.solver.reach.assign(contact_reach(scene.solver.volumes(), faces))
     return scene, cfg
 
 

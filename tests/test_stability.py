@@ -141,15 +141,18 @@ def test_thin_walls_of_the_real_objects(ctx):
                              "bbox_max": [0.033] * 3}, dx=0.008, poisson_ratio=0.33, name="can")
     assert two.particle_layers == 2 and "two particle layers at the thickness's Gauss points" in two.message
     assert not two.advice  # 0.0125 dx thick
-    # the ball's 3 mm wall on a 4 mm grid (0.75 dx) in two Gauss layers: advised to take three; in three: not; at
-    # exactly half a cell (the orange's 4 mm peel on the 8 mm grid): not
+    # the ball's 3 mm wall on a 4.5 mm grid (0.67 dx) in two Gauss layers, held in plane stress: advised to take
+    # three; in three: not; at exactly half a cell (the orange's 4 mm peel on the 8 mm grid): not; at 3/4 of a cell
+    # (mpm.membrane_max_thickness) it carries 3D stress: not, unless plane stress is asked for up to a cell
     thick = {**base, "thin_wall_layers": 2, "wall_thickness": 3e-3, "bbox_min": [-0.0325] * 3,
              "bbox_max": [0.0325] * 3}
-    advised = thin_wall_finding(thick, dx=0.004, poisson_ratio=0.49, name="ball")
-    assert "(0.75 dx) in two Gauss layers" in advised.advice and "sampling.thin_wall_layers=3" in advised.advice
+    advised = thin_wall_finding(thick, dx=0.0045, poisson_ratio=0.49, name="ball")
+    assert "(0.67 dx) in two Gauss layers" in advised.advice and "sampling.thin_wall_layers=3" in advised.advice
     assert advised.advice in advised.message and not advised.flagged  # listed in a report for its advice
-    three = thin_wall_finding({**thick, "thin_wall_layers": 3}, dx=0.004, poisson_ratio=0.49, name="ball")
+    three = thin_wall_finding({**thick, "thin_wall_layers": 3}, dx=0.0045, poisson_ratio=0.49, name="ball")
     assert "three particle layers" in three.message and not three.advice
+    assert not thin_wall_finding(thick, dx=0.004, poisson_ratio=0.49).advice
+    assert "(0.75 dx)" in thin_wall_finding(thick, dx=0.004, poisson_ratio=0.49, membrane_max_thickness=1.0).advice
     half = thin_wall_finding({**thick, "wall_thickness": 4e-3}, dx=0.008, poisson_ratio=0.3, name="orange")
     assert not half.advice and "thin_wall_layers=3" not in half.message
     ball = thin_wall_finding({**base, "wall_thickness": 3e-3, "bbox_min": [-0.0325] * 3, "bbox_max": [0.0325] * 3},

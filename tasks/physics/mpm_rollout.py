@@ -94,8 +94,10 @@ from tasks.physics.mpm.solver import (
     MPMSolver,
     ParticlePins,
     QuasiStaticLoad,
+    contact_reach,
     deform_covariances,
     material_mass_scales,
+    membrane_fibres_checked,
     polar_rotation,
     rotate_quaternions,
 )
@@ -390,12 +392,17 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     dx = cfg.dx or spacing * cfg.particles_per_cell ** (1.0 / 3.0)
     cfg = replace(cfg, dx=dx)  # the solver applies mpm.mass_scaling (per material; weights stay physical)
     # a hollow object's wall thinner than the grid spacing is a shell the grid cannot resolve through its thickness:
-    # held in plane stress (mpm.thin_walls; elastic and von Mises models).  Its in-plane wave speed, not the 3D one,
-    # sets its stable step, hence the mass scale
+    # held in plane stress (mpm.thin_walls; elastic and von Mises models) up to mpm.membrane_max_thickness of a cell.
+    # Its in-plane wave speed, not the 3D one, sets its stable step, hence the mass scale
     thin_wall = bool(obj_attrs.get("thin_wall", False))
     thickness = float(obj_attrs.get("wall_thickness", 0.0) or 0.0)
     normals = fibres = None
-    if 0.0 < thickness < dx and cfg.thin_walls == "membrane" and by_label[SHELL].model in MEMBRANE_MODELS:
+    plane_stress = 0.0 < thickness < dx and cfg.thin_walls == "membrane" and by_label[SHELL].model in MEMBRANE_MODELS
+    if plane_stress and thickness >= cfg.membrane_max_thickness * dx:
+        notes.append(f"the {by_label[SHELL].name} wall ({1e3 * thickness:.3g} mm) is {thickness / dx:.2f} of the "
+                     f"{1e3 * dx:.3g} mm grid's cell, at least mpm.membrane_max_thickness "
+                     f"({cfg.membrane_max_thickness:g}): held as a 3D solid in its Gauss layers")
+    elif plane_stress:
         normals = np.zeros_like(x0)
         normals[mid == SHELL] = obj["particle_normals"]  # the shell's particles come first (scene_particles)
         if len(obj["wall_fibres"]):  # the Gauss layers' fibres (the shell's particles come first)
@@ -449,6 +456,9 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     solver = MPMSolver(x0, vol, mat_list, material_ids=slot[mid], config=cfg, tracers=obj["surface_points"],
                        tracer_anchors=mid == SHELL, label=str(obj_attrs.get("name", "")), load=load,
                        membrane_normals=normals, membrane_fibres=fibres)
+    if fibres is None and len(obj["wall_fibres"]):  # Gauss layers held as a 3D solid touch colliders at their faces
+        layers = membrane_fibres_checked(np.asarray(obj["wall_fibres"], np.int64), np.ones(len(x0), bool), x0)
+        solver.set_contact_radii(contact_reach(solver.volumes(), layers))
     if thin_wall and cfg.fingers == "particles":
         notes.append("particle fingers pin the wall's particles at their centres: a wall thinner than the "
                      f"{1e3 * spacing:.3g} mm spacing (ParticlePins arms 0)")
@@ -966,6 +976,7 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
         "boundary": boundary, "materials": [m.name for m in scene.materials], "n_particles": int(len(mid)),
         "n_interior": int((mid == INTERIOR).sum()),
         "with_interior": bool(scene.with_interior), "dx": float(scene.dx), "mass_scale": solver.mass_scale,
+        "membrane_max_thickness": float(scene.config.membrane_max_thickness),
         "gravity_effective": solver.gravity, "device": solver.device,
         "substeps_total": int(rec.stats["substeps"].sum()),
         "threshold_event": rec.event, "notes": scene.notes,

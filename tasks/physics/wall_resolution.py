@@ -1,11 +1,12 @@
 """Can the MPM grid resolve an object's wall?  A pure check of wall thickness against the grid spacing.
 
-A hollow object whose wall is thinner than the particle spacing ``s`` is sampled on the wall's mid-surface, the
+A hollow object whose wall is thinner than the grid spacing ``dx`` is sampled on the wall's mid-surface, the
 particles carrying area x thickness of volume (:mod:`tasks.control.object_model`), so its mass and membrane stiffness
 E t are physical: by default in two layers at the thickness's Gauss points, which in plane stress
 (``mpm.thin_walls: membrane``) carry its bending for the curvatures the grid's field represents (over half a cell
 thick, three layers, ``sampling.thin_wall_layers: 3``, which the finding then advises: two leave the grid's strain
-quadratic through the wall unresisted, README, known limits); with
+quadratic through the wall unresisted, README, known limits; from ``mpm.membrane_max_thickness``, 3/4 of a cell,
+on it carries 3D stress in its layers, where plane stress softens as the grid refines); with
 ``sampling.thin_wall_layers: 1`` in ONE layer on the neutral surface, where bending strain is zero.  Either way the
 quadratic B-spline grid smears the wall over ~3 dx, so a dent or buckle shorter than the grid can represent is not
 what the wall would do.
@@ -33,6 +34,8 @@ import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass
 from typing import Any
+
+from conf.mpm_schema import MPMConfig
 
 
 @dataclass
@@ -91,8 +94,12 @@ def grid_spacing(mpm: Any, particle_spacing: float) -> float:
 
 
 def thin_wall_finding(attrs: Mapping[str, Any], dx: float, poisson_ratio: float = 0.3,
-                      youngs_modulus: float | None = None, name: str | None = None) -> WallFinding:
-    """Compare an object's wall with the grid spacing ``dx`` (m); see the module doc for the criterion.
+                      youngs_modulus: float | None = None, name: str | None = None,
+                      membrane_max_thickness: float = MPMConfig.membrane_max_thickness) -> WallFinding:
+    """Compare an object's wall with the grid spacing ``dx`` (m); see the module doc for the criterion.  A wall
+    sampled in two Gauss layers that is over half a cell thick but held in plane stress (thinner than
+    ``membrane_max_thickness`` x dx, ``mpm.membrane_max_thickness``; thicker ones carry 3D stress) is advised to
+    take three.
 
     ``attrs``: the object model's attributes (``wall_thickness``, ``particle_spacing``, ``bbox_min``, ``bbox_max``,
     ``thin_wall``; a solid body has ``wall_thickness`` 0), ``poisson_ratio`` and optional ``youngs_modulus`` (Pa)
@@ -134,7 +141,7 @@ def thin_wall_finding(attrs: Mapping[str, Any], dx: float, poisson_ratio: float 
     else:
         msg = f"resolved: {head} >= 2 dx = {_mm(2 * dx)} (x{1.0 / ratio:.2g} margin)"
     advice = ""
-    if sampled_thin and layers == 2 and t > 0.5 * dx:
+    if sampled_thin and layers == 2 and 0.5 * dx < t < membrane_max_thickness * dx:
         advice = (f"a wall over half a cell thick ({t / dx:.2g} dx) in two Gauss layers can leave the grid's strain "
                   "quadratic through it unresisted (a clamped strip 0.86 dx thick sagged 1.23-3.67x "
                   "Euler-Bernoulli): sample it in three, sampling.thin_wall_layers=3")

@@ -340,10 +340,12 @@ def wall_findings(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
         try:
             shape = read_artifact(obj_refs["object_model"], names=[]).attrs
             shell = materials_from_dict(read_artifact(obj_refs["material_oracle"], names=[]).attrs["materials"]).shell
-            dx = float(read_artifact(rollout, names=[]).attrs["dx"])
+            run = read_artifact(rollout, names=[]).attrs
+            dx = float(run["dx"])
         except (ArtifactError, KeyError):
             continue
-        finding = thin_wall_finding(shape, dx, shell.poisson_ratio, shell.youngs_modulus, name=obj)
+        limit = {"membrane_max_thickness": float(run["membrane_max_thickness"])} if "membrane_max_thickness" in run else {}
+        finding = thin_wall_finding(shape, dx, shell.poisson_ratio, shell.youngs_modulus, name=obj, **limit)
         if finding.flagged or finding.advice:
             lines.append(f"- {obj}: {finding.message}")
     return lines

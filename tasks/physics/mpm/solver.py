@@ -2029,6 +2029,15 @@ class MPMSolver:
         (:func:`tasks.physics.mpm.kernels.contact_velocity`, before its F^T n stretch; :func:`contact_reach`)."""
         return self.reach.numpy().astype(np.float64)
 
+    def set_contact_radii(self, reach: np.ndarray) -> None:
+        """Set each particle's contact radius (m; :meth:`contact_radii`), e.g. a wall sampled in Gauss layers but held
+        as a 3D solid, whose layers touch at the wall's faces (:func:`contact_reach` with its fibres)."""
+        r = np.asarray(reach, np.float64)
+        if r.shape != (self.n_particles,) or not (np.all(np.isfinite(r)) and np.all(r >= 0)):
+            raise ValueError(f"set_contact_radii: need {self.n_particles} finite radii >= 0 (m), one per particle; "
+                             f"got shape {r.shape}")
+        self.reach.assign(r.astype(np.float32))
+
     def masses(self) -> np.ndarray:
         """Particle masses (kg), including the material's current mass scale (the inertia)."""
         par = self.mat_par.numpy()
