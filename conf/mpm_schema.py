@@ -64,10 +64,10 @@ class MPMConfig:
             particles it touches and never pulls; its impulses are the finger's reaction (N).  Meant for
             ``contact: surface`` (both act where the material touches).  Not the default: it lost Table 2 on the
             rubber ball, clay and rubber duck (README, known limits; ``python -m flows.finger_study``).
-        thin_walls: how a hollow object's wall thinner than the grid spacing ``dx`` (one or two particle layers
-            below the particle spacing, ``sampling.thin_wall_layers``, one or two volume layers above it;
-            :mod:`tasks.control.object_model`) carries stress.  ``membrane`` (default): its elastic particles
-            (fixed-corotated, neo-Hookean) have no normal stress on the wall, as a thin shell (plane stress;
+        thin_walls: how a hollow object's wall thinner than the grid spacing ``dx`` (sampled on its mid-surface in
+            ``sampling.thin_wall_layers`` Gauss layers, :mod:`tasks.control.object_model`) carries stress.  ``membrane`` (default; up to
+            ``membrane_max_thickness`` of a cell): its elastic particles (fixed-corotated, neo-Hookean) have no
+            normal stress on the wall, as a thin shell (plane stress;
             :func:`tasks.physics.mpm.constitutive.membrane_F`), and its von Mises particles return-map in plane
             stress (:func:`tasks.physics.mpm.constitutive.membrane_plastic_return`; can 6,900 -> 1,600 N, paper cup
             950 -> 350 N per finger): the wall thins as it stretches, and its in-plane wave
