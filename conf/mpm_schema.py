@@ -77,8 +77,9 @@ class MPMConfig:
             the wall's volume locks as nu -> 0.5 (the rubber ball and duck, nu = 0.49: 570 and 3,100 N per finger;
             README, known limits).
         membrane_max_thickness: the thickest wall, as a fraction of ``dx``, that ``thin_walls: membrane`` holds in
-            plane stress; a wall from this fraction up to ``dx`` (still sampled in Gauss layers on its mid-surface)
-            carries full 3D stress, the grid resolving enough of its thickness.  Past about half a cell the
+            plane stress; a wall from this fraction up to ``dx`` sampled in two or three Gauss layers on its
+            mid-surface carries full 3D stress, the grid resolving enough of its thickness (one layer, which has no
+            bending as a solid either, stays in plane stress).  Past about half a cell the
             plane-stress wall softens as the grid refines, a 3D solid in Gauss layers locks on a coarse grid and
             converges from above: the rubber ball between surface flats at 3 mm (two layers) reads 0.85x (plane
             stress) / 0.99x (solid) the FE at 0.94 of a cell (dx 3.2 mm), 0.92x / 1.02x at 0.75, 0.95x / 1.07x at

@@ -668,6 +668,16 @@ def test_the_balls_wall_keeps_its_thickness_under_a_flat_and_carries_its_shell_f
         assert force < 0.85 * 3.26, force
 
 
+def test_a_one_layer_wall_over_three_quarters_of_a_cell_stays_in_plane_stress(tmp_path):
+    """One particle layer on the mid-surface (``sampling.thin_wall_layers=1``) has no bending as a 3D solid either,
+    and would lock its volume (nu = 0.49): on the 4 mm grid the ball's 3 mm wall in one layer stays a membrane."""
+    from flows.ball_study import ball_scene
+
+    scene, _ = ball_scene(["mpm.dx=0.004", "sampling.thin_wall_layers=1"], str(tmp_path))
+    assert scene.solver.n_membrane == len(scene.solver.positions()) and scene.solver.n_fibres == 0
+    assert not any("membrane_max_thickness" in note for note in scene.notes), scene.notes
+
+
 @pytest.mark.parametrize("max_thickness", [0.75, 1.0])
 def test_the_balls_wall_over_three_quarters_of_a_cell_carries_3d_stress_and_reads_the_fe(tmp_path, max_thickness):
     """The rubber ball on a 4 mm grid (2 mm particles, 400 substeps per frame as ``flows.ball_study`` refines it):

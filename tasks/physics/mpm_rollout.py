@@ -398,7 +398,8 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     thickness = float(obj_attrs.get("wall_thickness", 0.0) or 0.0)
     normals = fibres = None
     plane_stress = 0.0 < thickness < dx and cfg.thin_walls == "membrane" and by_label[SHELL].model in MEMBRANE_MODELS
-    if plane_stress and thickness >= cfg.membrane_max_thickness * dx:
+    # ...in Gauss layers (one layer on the mid-surface carries no bending as a solid either, and locks; it stays)
+    if plane_stress and thickness >= cfg.membrane_max_thickness * dx and len(obj["wall_fibres"]):
         notes.append(f"the {by_label[SHELL].name} wall ({1e3 * thickness:.3g} mm) is {thickness / dx:.2f} of the "
                      f"{1e3 * dx:.3g} mm grid's cell, at least mpm.membrane_max_thickness "
                      f"({cfg.membrane_max_thickness:g}): held as a 3D solid in its Gauss layers")
