@@ -75,7 +75,8 @@ class MPMConfig:
             (ball 50 N per finger, rubber springs back with 20 % of its dent left).  ``solid``: full 3D stress; the
             grid, which cannot resolve the thickness, holds it where a finger's nodes reach through the wall, and
             the wall's volume locks as nu -> 0.5 (the rubber ball and duck, nu = 0.49: 570 and 3,100 N per finger;
-            README, known limits).
+            README, known limits); its Gauss layers touch colliders at the wall's faces (since 2026-12-04; before,
+            half a particle spacing out).
         membrane_max_thickness: the thickest wall, as a fraction of ``dx``, that ``thin_walls: membrane`` holds in
             plane stress; a wall from this fraction up to ``dx`` sampled in two or three Gauss layers on its
             mid-surface carries full 3D stress, the grid resolving enough of its thickness (one layer, which has no
