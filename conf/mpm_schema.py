@@ -65,9 +65,9 @@ class MPMConfig:
             ``contact: surface`` (both act where the material touches).  Not the default: it lost Table 2 on the
             rubber ball, clay and rubber duck (README, known limits; ``python -m flows.finger_study``).
         thin_walls: how a hollow object's wall thinner than the grid spacing ``dx`` (sampled on its mid-surface in
-            ``sampling.thin_wall_layers`` Gauss layers, :mod:`tasks.control.object_model`) carries stress.  ``membrane`` (default; up to
-            ``membrane_max_thickness`` of a cell): its elastic particles (fixed-corotated, neo-Hookean) have no
-            normal stress on the wall, as a thin shell (plane stress;
+            ``sampling.thin_wall_layers`` Gauss layers, :mod:`tasks.control.object_model`) carries stress.
+            ``membrane`` (default; up to ``membrane_max_thickness`` of a cell): its elastic particles
+            (fixed-corotated, neo-Hookean) have no normal stress on the wall, as a thin shell (plane stress;
             :func:`tasks.physics.mpm.constitutive.membrane_F`), and its von Mises particles return-map in plane
             stress (:func:`tasks.physics.mpm.constitutive.membrane_plastic_return`; can 6,900 -> 1,600 N, paper cup
             950 -> 350 N per finger): the wall thins as it stretches, and its in-plane wave
@@ -290,8 +290,9 @@ def validate_mpm_config(cfg: MPMConfig) -> MPMConfig:
     if cfg.thin_walls not in WALL_MODES:
         bad("thin_walls", f"'{cfg.thin_walls}' is not one of {', '.join(WALL_MODES)}")
     if not 0 < cfg.membrane_max_thickness <= 1:
-        bad("membrane_max_thickness", f"must be in (0, 1], a fraction of dx (got {cfg.membrane_max_thickness}); a "
-                                      "wall as thick as dx is sampled as a volume, 1 holds every thinner one in plane stress")
+        bad("membrane_max_thickness", f"must be in (0, 1], a fraction of dx (got {cfg.membrane_max_thickness}); "
+                                      "a wall as thick as dx is sampled as a volume, 1 holds every thinner one in "
+                                      "plane stress")
     if cfg.wall_stencil not in WALL_STENCILS:
         bad("wall_stencil", f"'{cfg.wall_stencil}' is not one of {', '.join(WALL_STENCILS)}")
     if not (math.isfinite(cfg.wall_normal_stiffness) and cfg.wall_normal_stiffness >= 0):

@@ -454,7 +454,8 @@ def test_bad_membrane_normals_and_wall_mode_are_one_line_errors():
         mpm_config_from(dict(wall_stencil="mid"))
     with pytest.raises(MPMConfigError, match="mpm.wall_normal_stiffness: must be a finite number >= 0; got -1"):
         mpm_config_from(dict(wall_normal_stiffness=-1.0))
-    with pytest.raises(MPMConfigError, match=r"mpm.membrane_max_thickness: must be in \(0, 1\], a fraction of dx \(got 1.5\)"):
+    with pytest.raises(MPMConfigError,
+                       match=r"mpm.membrane_max_thickness: must be in \(0, 1\], a fraction of dx \(got 1.5\)"):
         mpm_config_from(dict(membrane_max_thickness=1.5))
     with pytest.raises(ValueError, match="set_contact_radii: need 16 finite radii >= 0"):
         MPMSolver(X, 1e-9, rubber, config=cfg).set_contact_radii(np.full(16, -1.0))

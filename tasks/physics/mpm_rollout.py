@@ -397,13 +397,15 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     thin_wall = bool(obj_attrs.get("thin_wall", False))
     thickness = float(obj_attrs.get("wall_thickness", 0.0) or 0.0)
     normals = fibres = None
-    plane_stress = 0.0 < thickness < dx and cfg.thin_walls == "membrane" and by_label[SHELL].model in MEMBRANE_MODELS
-    # ...in Gauss layers (one layer on the mid-surface carries no bending as a solid either, and locks; it stays)
-    if plane_stress and thickness >= cfg.membrane_max_thickness * dx and len(obj["wall_fibres"]):
+    membrane = 0.0 < thickness < dx and cfg.thin_walls == "membrane" and by_label[SHELL].model in MEMBRANE_MODELS
+    # ...a thicker wall in Gauss layers carries 3D stress (one layer on the mid-surface has no bending as a solid
+    # either, and locks: it stays a membrane)
+    thick = thickness >= cfg.membrane_max_thickness * dx and len(obj["wall_fibres"]) > 0
+    if membrane and thick:
         notes.append(f"the {by_label[SHELL].name} wall ({1e3 * thickness:.3g} mm) is {thickness / dx:.2f} of the "
                      f"{1e3 * dx:.3g} mm grid's cell, at least mpm.membrane_max_thickness "
                      f"({cfg.membrane_max_thickness:g}): held as a 3D solid in its Gauss layers")
-    elif plane_stress:
+    elif membrane:
         normals = np.zeros_like(x0)
         normals[mid == SHELL] = obj["particle_normals"]  # the shell's particles come first (scene_particles)
         if len(obj["wall_fibres"]):  # the Gauss layers' fibres (the shell's particles come first)

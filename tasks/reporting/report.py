@@ -17,6 +17,7 @@ import matplotlib.pyplot as plt  # headless: matplotlib picks its Agg backend wh
 import numpy as np
 
 from conf.hand import FINGERS
+from conf.mpm_schema import MPMConfig
 from tasks.core.artifacts import ArtifactError, ArtifactRef, read_artifact
 from tasks.core.scope import split_seed_scope
 from tasks.physics.free_flight import rollout_flights
@@ -344,8 +345,9 @@ def wall_findings(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
             dx = float(run["dx"])
         except (ArtifactError, KeyError):
             continue
-        limit = {"membrane_max_thickness": float(run["membrane_max_thickness"])} if "membrane_max_thickness" in run else {}
-        finding = thin_wall_finding(shape, dx, shell.poisson_ratio, shell.youngs_modulus, name=obj, **limit)
+        limit = float(run.get("membrane_max_thickness", MPMConfig.membrane_max_thickness))  # older runs: the default
+        finding = thin_wall_finding(shape, dx, shell.poisson_ratio, shell.youngs_modulus, name=obj,
+                                    membrane_max_thickness=limit)
         if finding.flagged or finding.advice:
             lines.append(f"- {obj}: {finding.message}")
     return lines

@@ -775,8 +775,8 @@ def run_thin_wall(case: Case, ctx: SuiteContext, progress: _Progress | None = No
     dx = grid_spacing(ctx.mpm, float(ctx.sampling["particle_spacing"]))
     _, attrs = build_object_model(_Attr(obj), _Attr(ctx.sampling), dx)
     mat = _material(f"oracle:{name}", ctx)
-    limit = {k: float(ctx.mpm[k]) for k in ("membrane_max_thickness",) if k in ctx.mpm}
-    fnd = thin_wall_finding(attrs, dx, mat.poisson_ratio, mat.youngs_modulus, name=name, **limit)
+    fnd = thin_wall_finding(attrs, dx, mat.poisson_ratio, mat.youngs_modulus, name=name,
+                            membrane_max_thickness=float(ctx.mpm["membrane_max_thickness"]))
     row = Row(case.name, case.category, outcome="flagged" if fnd.flagged else "resolved", reason=fnd.message)
     row.notes = (f"{attrs['n_particles']} wall particles; bending length {fnd.bending_length * 1e3:.3g} mm; "
                  f"D = E t^3/(12(1-nu^2)) = {fnd.bending_stiffness:.3g} N m")

@@ -298,7 +298,8 @@ def contact_reach(volume: np.ndarray, fibres: Optional[WallFibres] = None) -> np
     """(particle,) float32 m: how far each particle's surface reaches a collider (surface contact,
     :func:`tasks.physics.mpm.kernels.contact_velocity`): half its undeformed spacing, cbrt(V0) / 2; for the outer and
     inner Gauss layers of a wall thinner than the grid (``fibres`` as from :func:`membrane_fibres_checked`) its
-    distance to its own face (:func:`~tasks.physics.wall_resolution.gauss_layer_face` x their rest distance), for a middle layer half the wall's
+    distance to its own face (:func:`~tasks.physics.wall_resolution.gauss_layer_face` x their rest distance), for a
+    middle layer half the wall's
     thickness.  With cbrt(V0) / 2 the ball's outer layer (V0 21 mm^3: 1.38 mm) touched a flat 0.74 mm outside the
     wall's face (0.63 mm), its inner layer never, and the ball between surface flats read 1.10-1.37x the FE at 1-6 mm
     on the default grid; at the face 1.09-1.21x."""
