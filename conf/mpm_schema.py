@@ -56,9 +56,9 @@ class MPMConfig:
             points driven by the displacement the point still needs, through the P2G momentum, with no node held
             (a cube between two pinned layers reads E A eps within 5 % at nu = 0.3-0.49, grid-node plates +30 % and
             more); on a wall thinner than the particle spacing the particles are pinned at their centres.  Not the
-            default: on Table 2 it ties BDC-T, SDC and mIoU but loses 0.044 on BDC-S at the default spacing, a gap
-            that narrows with refinement (on the four objects where it sits 0.112 at 4 mm, 0.034 at 3 mm), and
-            its reactions are not uniformly smaller (README, known limits).  ``collider``: each active finger is a rigid
+            default: on Table 2 it gains on BDC-T and SDC but loses 0.052 on BDC-S and 0.018 on mIoU at the default
+            spacing (2026-12-05), a BDC-S gap that narrows with refinement (on the four objects where it sat 0.112
+            at 4 mm, 0.034 at 3 mm), and its reactions are not uniformly smaller (README, known limits).  ``collider``: each active finger is a rigid
             sphere ``Collider`` of the fingertip pad radius (10 mm, the pad of the contact patches), its lowest point
             at the patch centre displaced by the eq. 3 amplitude eta c_k,t, moved there every frame: it pushes the
             particles it touches and never pulls; its impulses are the finger's reaction (N).  Meant for

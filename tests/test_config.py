@@ -64,6 +64,9 @@ def test_unknown_object_is_an_error(compose_cfg):
     ("simulation.force_balance_friction=0", "simulation.force_balance_friction"),
     ("simulation.release_margin_cells=-1", "simulation.release_margin_cells"),
     ("simulation.stuffing_cohesion=-0.5", "simulation.stuffing_cohesion"),
+    ("simulation.gravity_preload_frames=-1", "simulation.gravity_preload_frames"),
+    ("simulation.gravity_preload_passes=0", "simulation.gravity_preload_passes"),
+    ("simulation.gravity_preload_tolerance=0", "simulation.gravity_preload_tolerance"),
     # the object's own material values (they win over the oracle) and geometry
     ("object.material.youngs_modulus=-2e6", "object.material.youngs_modulus"),
     ("object.material.poisson_ratio=0.5", "object.material.poisson_ratio"),

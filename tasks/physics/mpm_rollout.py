@@ -25,10 +25,14 @@ rubber ball's shell buckles in, so Table 2 gets worse; not the default.
 Particle fingers (``mpm.fingers = particles``, :func:`particle_pins`): the Dirichlet targets of eq. 3 on the
 particles the constrained surface points are embedded in (their surface points driven through the P2G momentum,
 :class:`ParticlePins`), with no grid node held, so no layer beside the finger is held rigid; a wall thinner than
-the spacing is pinned at its particles' centres.  Not the default: at the default spacing Table 2 ties on BDC-T,
-SDC and mIoU and loses 0.044 on BDC-S (the halo of the grid-node fingers widens the deformed region the metric
-compares with the contact areas; on the four objects where the gap sits it narrows from 0.112 to 0.034 at 3 mm), and
-the reactions are not uniformly smaller (README, known limits).
+the spacing is pinned at its particles' centres.  Not the default: at the default spacing Table 2 gains on BDC-T and
+SDC but loses 0.052 on BDC-S and 0.018 on mIoU (the halo of the grid-node fingers moves the patch rims with the
+patch, the pinned dent spreads past them; on the four objects where the BDC-S gap sat it narrowed from 0.112 to 0.034
+at 3 mm), and the reactions are not uniformly smaller (README, known limits).
+
+Gravity preload (``simulation.gravity_preload_frames``, :meth:`MPMSolver.preload_gravity`): before the first frame
+the body settles under its weight and is put back where it was given with the stress that carried it, so the given
+(captured) shape is its equilibrium on the table and the run starts at rest, not sagging from its first frame.
 
 Squeezing threshold (sec. 3.2): the squeeze strain of finger k is the indentation under the fingertip divided
 by the object's half extent along the squeeze direction, ``eps_k = mean(u . d_k) / h(d_k)``, the mean taken over
@@ -65,7 +69,7 @@ simulated |reaction_k| clipped (``reaction``; ``auto`` picks it with collider fi
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Mapping, Optional
 
 import numpy as np
@@ -91,6 +95,7 @@ from tasks.physics.mpm.solver import (
     Collider,
     DirichletPoints,
     ForcePatch,
+    GravityPreload,
     MPMSolver,
     ParticlePins,
     QuasiStaticLoad,
@@ -181,6 +186,7 @@ class Scene:
     regions: SqueezeRegions
     notes: list[str]
     thin_wall: bool = False  # the shell is a wall thinner than the spacing (object model; sampling.thin_wall_layers)
+    preload: Optional[GravityPreload] = None  # the gravity preload's figures (simulation.gravity_preload_frames)
 
 
 @dataclass
@@ -465,9 +471,18 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     if thin_wall and cfg.fingers == "particles":
         notes.append("particle fingers pin the wall's particles at their centres: a wall thinner than the "
                      f"{1e3 * spacing:.3g} mm spacing (ParticlePins arms 0)")
+    # 5. the given shape is the body's equilibrium on the table under its weight (simulation.gravity_preload_frames)
+    pre = None
+    if int(sim["gravity_preload_frames"]) > 0:
+        pre = solver.preload_gravity(frame_dt, int(sim["gravity_preload_frames"]), int(sim["gravity_preload_passes"]),
+                                     tolerance=float(sim["gravity_preload_tolerance"]))
+        notes.append(f"gravity preload: unsupported, the body would settle by up to {1e3 * pre.sag:.3g} mm under its "
+                     f"weight; held in its given shape by that stress ({pre.passes} pass(es), {pre.frames} damped "
+                     f"frames, {1e3 * pre.residual:.2g} mm left{'' if pre.converged else ', not at rest'}; per pass "
+                     + ", ".join(f"{1e3 * m:.3g}" for m in pre.moved) + " mm)")
     return Scene(oracle=mats, solver=solver, materials=mat_list, slot=slot, labels=mid, with_interior=with_interior,
                  dx=dx, config=cfg, frame_dt=frame_dt, surface0=obj["surface_points"].astype(np.float64),
-                 regions=regions, notes=notes, thin_wall=thin_wall)
+                 regions=regions, notes=notes, thin_wall=thin_wall, preload=pre)
 
 
 # ----------------------------------------------------------------------------------------------- 2. the frames
@@ -980,6 +995,7 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
         "n_interior": int((mid == INTERIOR).sum()),
         "with_interior": bool(scene.with_interior), "dx": float(scene.dx), "mass_scale": solver.mass_scale,
         "membrane_max_thickness": float(scene.config.membrane_max_thickness),
+        "gravity_preload": None if scene.preload is None else asdict(scene.preload),
         "gravity_effective": solver.gravity, "device": solver.device,
         "substeps_total": int(rec.stats["substeps"].sum()),
         "threshold_event": rec.event, "notes": scene.notes,

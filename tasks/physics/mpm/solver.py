@@ -181,6 +181,21 @@ class ParticlePins:
     arms: Optional[np.ndarray] = None  # (pin,) where along n the pin acts, in half spacings (default 1: the surface)
 
 
+@dataclass
+class GravityPreload:
+    """What :meth:`MPMSolver.preload_gravity` did (SI).  ``sag``: m, the largest particle displacement of the first
+    pass (how far the body moves under its weight from the shape it was given); ``residual``: m, that of the last
+    pass (what the prestress leaves unbalanced); ``frames``: damped frames over all passes; ``converged``: the last
+    pass came to rest within its frames."""
+
+    passes: int
+    frames: int
+    sag: float
+    residual: float
+    converged: bool
+    moved: tuple = ()  # m, the largest particle displacement of each pass
+
+
 BoundarySpec = Union[DirichletPoints, DirichletNodes, Sequence[Union[DirichletPoints, DirichletNodes]], None,
                      Callable[[float, Optional[float]], Any]]
 
@@ -713,6 +728,8 @@ class MPMSolver:
         self._contact: Optional[dict] = None  # the open contact of the quasi-static check: its frames, sums of KE, IE (J)
         self.quasi_static_contacts: list[dict] = []  # judged contacts: first and last checked frame, KE/IE (class doc)
         self._damping = np.zeros(len(self.materials))  # local damping coefficient per material (quasi-static damping)
+        self._preload_damping = 0.0  # local damping of every material while the body settles (preload_gravity)
+        self._tracer_F0_inv: Optional[np.ndarray] = None  # (T, 3, 3) the tracers' F after a preload, inverted
         present = sorted(set(int(i) for i in np.unique(mid)))
         self._present = present
         codes_present = {self.materials[i].code for i in present}
@@ -1716,6 +1733,8 @@ class MPMSolver:
         a = float(self.cfg.quasi_static_damping)
         on = quasi_static and self.mass_scale > 1.0 and a > 0.0
         rates = np.where(self._quasi_static_materials(), a, 0.0) if on else np.zeros(len(self.materials))
+        if self._preload_damping > 0.0:  # preload_gravity: everything settles
+            rates = np.full(len(self.materials), self._preload_damping)
         if not np.array_equal(rates, self._damping):
             self._damping = rates
             self._mat_params[:, COL_DAMPING] = rates
@@ -1787,6 +1806,87 @@ class MPMSolver:
         par, mid = self.mat_par.numpy(), self._mid_host[on]
         return plastic_dissipation(self.alpha.numpy()[on], self.vol.numpy()[on], par[mid, COL_YIELD],
                                    par[mid, COL_HARDENING])
+
+    def preload_gravity(self, frame_dt: float, max_frames: int, passes: int = 3, damping: float = 0.8,
+                        tolerance: float = 0.01) -> GravityPreload:
+        """Gravity preload (geostatic prestress): make the body's given shape (a captured object standing on the
+        table) its equilibrium under its weight, so that the run starts at rest instead of sagging and swaying
+        from the first frame (the plush toy, given gravity at t = 0: its top swung 4 cm forward before the
+        fingers arrived).  Each pass (at most ``passes``):
+
+        1. settles the body by dynamic relaxation (Cundall's local damping ``damping`` on every material, as FLAC's
+           static solutions and LS-DYNA's dynamic-relaxation preload do; gravity, floor and walls only) until the
+           fastest solid particle moves at most ``tolerance`` grid cells per ``frame_dt`` s after its motion
+           peaked, or for ``max_frames`` frames;
+        2. puts the particles back where they were given, at rest (v = 0, C = 0), keeping their deformation
+           gradients: the stress that carried the weight in the settled shape now holds the given shape, whose
+           stress-free shape is the given one less the sag (first order in the sag).  The next pass settles what
+           that change of geometry left.  A body that leans under its weight (a soft toy rocking on its base) is
+           over-held by the full settled strain, since its upright given shape has less overturning moment than
+           the settled one, and its passes converge slowly (the plush toy's 36.6, 22, 16.5, 11 mm); from the
+           second pass on each pass keeps omega times its strain, omega by Aitken's rule (Irons and Tuck 1969, as
+           partitioned fluid-structure codes relax their coupling iterations), exact for a linear response (the
+           plush toy: 36.6, 22, 0.2 mm).  A fluid (the can's cola) has no shape to hold: it stays where it settled,
+           at rest, with the pressure it settled to.
+
+        The tracers (surface Gaussians) are re-bound to stay on their given positions, and :meth:`tracer_state`
+        reports their deformation from the preloaded state.  Time and frame count restart at 0.  Raises
+        :class:`SimulationError` like :meth:`step_frame`."""
+        if not (max_frames >= 1 and passes >= 1 and 0.0 < damping < 1.0 and tolerance > 0.0):
+            raise ValueError(f"preload_gravity: need max_frames >= 1, passes >= 1, damping in (0, 1) and tolerance "
+                             f"> 0, got {max_frames}, {passes}, {damping}, {tolerance}")
+        x0 = self.positions()
+        fluid = np.array([m.model == "fluid" for m in self.materials])[self._mid_host]  # no shape to hold: it settles
+        zero_v, zero_c = np.zeros((self.n_particles, 3)), np.zeros((self.n_particles, 3, 3))
+        frames, moved, rest = 0, [], False
+        start, last, omega = self.F.numpy().astype(np.float64), None, 1.0
+        self._preload_damping = damping
+        try:
+            for _ in range(passes):
+                peak = -math.inf  # the pass starts at rest: it is over once its motion has peaked and died down
+                for _ in range(max_frames):
+                    self.step_frame(frame_dt, quasi_static=False)
+                    frames += 1
+                    speed = float(np.linalg.norm(self.velocities()[~fluid], axis=1).max(initial=0.0))
+                    rest = speed * frame_dt <= tolerance * self.dx and speed < peak
+                    if rest:
+                        break
+                    peak = max(peak, speed)
+                x = self.positions()
+                moved.append(float(np.linalg.norm(x - x0, axis=1)[~fluid].max(initial=0.0)))
+                settled = self.F.numpy().astype(np.float64)
+                update = np.where(fluid[:, None, None], 0.0, settled - start)  # the solids' settled strain
+                if last is not None:  # Aitken relaxation of the passes (Irons and Tuck 1969)
+                    change = update - last
+                    size = float(np.vdot(change, change))
+                    if size > 0.0:
+                        omega = float(np.clip(-omega * np.vdot(last, change) / size, 0.1, 2.0))
+                last, start = update, np.where(fluid[:, None, None], settled, start + omega * update)
+                self.set_deformation_gradients(start)
+                self.set_positions(np.where(fluid[:, None], x, x0))
+                self.set_velocities(zero_v)
+                self.set_affine_velocities(zero_c)
+                if rest and moved[-1] <= tolerance * self.dx:
+                    break
+        finally:
+            self._preload_damping = 0.0
+        self._rebind_tracers_to_preload()
+        self.time, self.frame, self.substep = 0.0, 0, 0
+        return GravityPreload(passes=len(moved), frames=frames, sag=moved[0], residual=moved[-1], converged=rest,
+                              moved=tuple(moved))
+
+    def _rebind_tracers_to_preload(self) -> None:
+        """After :meth:`preload_gravity`: each tracer's rest offsets become F0_k^-1 r_tk (F0_k its anchor's preloaded
+        F), so it sits at its given position, and its reported F is relative to its preloaded F."""
+        if not self.n_tracers:
+            return
+        anchor, weight, offset = self._anchor
+        near, r = anchor.numpy(), offset.numpy().astype(np.float64)
+        F0 = self.F.numpy().astype(np.float64)
+        self._anchor = (anchor, weight, wp.array(np.einsum("tkij,tkj->tki", np.linalg.inv(F0[near]), r)
+                                                 .astype(np.float32), dtype=wp.vec3, device=self.device))
+        self._place_tracers()
+        self._tracer_F0_inv = np.linalg.inv(self.tF.numpy()[: self.n_tracers].astype(np.float64))
 
     def close_quasi_static_contact(self) -> bool:
         """Judge the open contact of the quasi-static check (class doc): the solver calls it in the first frame after
@@ -2090,9 +2190,13 @@ class MPMSolver:
 
     def tracer_state(self) -> tuple[np.ndarray, np.ndarray]:
         """The tracers placed once from their anchors' current state: positions (T, 3) m and deformation
-        gradients (T, 3, 3), each the weighted mean of its anchors' F."""
+        gradients (T, 3, 3), each the weighted mean of its anchors' F (after :meth:`preload_gravity`, relative to
+        the preloaded state: I at its end)."""
         self._place_tracers()
-        return self.tx.numpy()[: self.n_tracers].copy(), self.tF.numpy()[: self.n_tracers].copy()
+        tF = self.tF.numpy()[: self.n_tracers].copy()
+        if self._tracer_F0_inv is not None:
+            tF = np.einsum("tij,tjk->tik", tF.astype(np.float64), self._tracer_F0_inv).astype(np.float32)
+        return self.tx.numpy()[: self.n_tracers].copy(), tF
 
     def grid_mass(self) -> float:
         """Total mass (kg) on the grid from the last P2G (float64 sum of the nodal masses of both velocity
