@@ -58,10 +58,11 @@ class MPMConfig:
             more); on a wall thinner than the particle spacing the particles are pinned at their centres.  Not the
             default: on Table 2 it gains on BDC-T and SDC but loses 0.052 on BDC-S and 0.018 on mIoU at the default
             spacing (2026-12-05), a BDC-S gap that narrows with refinement (on the four objects where it sat 0.112
-            at 4 mm, 0.034 at 3 mm), and its reactions are not uniformly smaller (README, known limits).  ``collider``: each active finger is a rigid
-            sphere ``Collider`` of the fingertip pad radius (10 mm, the pad of the contact patches), its lowest point
-            at the patch centre displaced by the eq. 3 amplitude eta c_k,t, moved there every frame: it pushes the
-            particles it touches and never pulls; its impulses are the finger's reaction (N).  Meant for
+            at 4 mm, 0.034 at 3 mm), and its reactions are not uniformly smaller (README, known limits).
+            ``collider``: each active finger is a rigid sphere ``Collider`` of the fingertip pad radius (10 mm, the
+            pad of the contact patches), its lowest point at the patch centre displaced by the eq. 3 amplitude
+            eta c_k,t, moved there every frame: it pushes the particles it touches and never pulls; its impulses
+            are the finger's reaction (N).  Meant for
             ``contact: surface`` (both act where the material touches).  Not the default: it lost Table 2 on the
             rubber ball, clay and rubber duck (README, known limits; ``python -m flows.finger_study``).
         thin_walls: how a hollow object's wall thinner than the grid spacing ``dx`` (sampled on its mid-surface in

@@ -361,6 +361,8 @@ def test_clay_squeeze_is_quasi_static_and_within_the_energy_guard(clay):
     checked = np.isfinite(r["ke_ie_contact"])
     pre = r.attrs["gravity_preload"]  # the stiff clay barely settles: one pass of a few frames
     assert pre["passes"] == 1 and pre["frames"] <= 4 and pre["converged"] and pre["sag"] < 0.1 * 0.008
+    # the volume ratio is to the given shape: 1 at the start, though the preloaded clay is compressed by its weight
+    assert np.abs(r["particle_J"][0] - 1.0).max() < 1e-6
     assert any(n.startswith("gravity preload") for n in r.attrs["notes"])
     assert r["ke_ie_ratio"][~checked].max() < 0.1  # no start-up sag: the given shape carries the clay's weight
     assert qs["frames_checked"] == checked.sum() > 20 and qs["contacts_over_limit"] == 0 < qs["contacts_checked"]

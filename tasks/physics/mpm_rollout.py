@@ -187,6 +187,7 @@ class Scene:
     notes: list[str]
     thin_wall: bool = False  # the shell is a wall thinner than the spacing (object model; sampling.thin_wall_layers)
     preload: Optional[GravityPreload] = None  # the gravity preload's figures (simulation.gravity_preload_frames)
+    j_given: Optional[np.ndarray] = None  # (particle,) det F of the given shape after the preload (None: 1)
 
 
 @dataclass
@@ -472,7 +473,7 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         notes.append("particle fingers pin the wall's particles at their centres: a wall thinner than the "
                      f"{1e3 * spacing:.3g} mm spacing (ParticlePins arms 0)")
     # 5. the given shape is the body's equilibrium on the table under its weight (simulation.gravity_preload_frames)
-    pre = None
+    pre = j_given = None
     if int(sim["gravity_preload_frames"]) > 0:
         pre = solver.preload_gravity(frame_dt, int(sim["gravity_preload_frames"]), int(sim["gravity_preload_passes"]),
                                      tolerance=float(sim["gravity_preload_tolerance"]))
@@ -480,9 +481,10 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
                      f"weight; held in its given shape by that stress ({pre.passes} pass(es), {pre.frames} damped "
                      f"frames, {1e3 * pre.residual:.2g} mm left{'' if pre.converged else ', not at rest'}; per pass "
                      + ", ".join(f"{1e3 * m:.3g}" for m in pre.moved) + " mm)")
+        j_given = np.linalg.det(solver.deformation_gradients(plane_stress=True).astype(np.float64))
     return Scene(oracle=mats, solver=solver, materials=mat_list, slot=slot, labels=mid, with_interior=with_interior,
                  dx=dx, config=cfg, frame_dt=frame_dt, surface0=obj["surface_points"].astype(np.float64),
-                 regions=regions, notes=notes, thin_wall=thin_wall, preload=pre)
+                 regions=regions, notes=notes, thin_wall=thin_wall, preload=pre, j_given=j_given)
 
 
 # ----------------------------------------------------------------------------------------------- 2. the frames
@@ -511,6 +513,8 @@ def record_frame(rec: FrameRecord, f: int, scene: Scene, mu_phys: np.ndarray, co
     F = solver.deformation_gradients(plane_stress=True).astype(np.float64)  # a thin wall's: its material state
     rec.particle_positions[f] = solver.positions()
     rec.particle_J[f], rec.particle_von_mises[f] = cauchy_free_measures(F, mu_phys)
+    if scene.j_given is not None:  # volume ratio to the given shape, which the preload holds under its weight
+        rec.particle_J[f] /= scene.j_given
     if rec.plastic_strain is not None:
         rec.plastic_strain[f] = solver.plastic_strain()
     tx, tF = solver.tracer_state()
@@ -962,7 +966,8 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
         "particle_material": Array(mid.astype(np.int8), ("particle",), "1",
                                    "0 shell, 1 interior (released juice / cola / stuffing), 2 ruptured shell, "
                                    "3 core (pulp / stuffing: part of the body)"),
-        "particle_J": Array(rec.particle_J, ("frame", "particle"), "1", "det F (volume ratio)"),
+        "particle_J": Array(rec.particle_J, ("frame", "particle"), "1",
+                            "det F / det F_given: volume ratio to the given shape (F_given: after the gravity preload)"),
         "particle_von_mises": Array(rec.particle_von_mises, ("frame", "particle"), "Pa",
                                     "3 mu eps_eq of the elastic Hencky strain"),
         "gaussian_positions": Array(rec.gaussian_positions, ("frame", "point", "xyz"), "m"),
