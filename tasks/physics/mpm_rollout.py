@@ -69,7 +69,7 @@ simulated |reaction_k| clipped (``reaction``; ``auto`` picks it with collider fi
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from typing import Any, Mapping, Optional
 
 import numpy as np
@@ -1000,7 +1000,7 @@ def collect_outputs(scene: Scene, rec: FrameRecord, times: np.ndarray, patches: 
         "n_interior": int((mid == INTERIOR).sum()),
         "with_interior": bool(scene.with_interior), "dx": float(scene.dx), "mass_scale": solver.mass_scale,
         "membrane_max_thickness": float(scene.config.membrane_max_thickness),
-        "gravity_preload": None if scene.preload is None else asdict(scene.preload),
+        "gravity_preload": None if scene.preload is None else scene.preload.as_dict(),
         "gravity_effective": solver.gravity, "device": solver.device,
         "substeps_total": int(rec.stats["substeps"].sum()),
         "threshold_event": rec.event, "notes": scene.notes,

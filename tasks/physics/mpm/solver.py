@@ -183,17 +183,30 @@ class ParticlePins:
 
 @dataclass
 class GravityPreload:
-    """What :meth:`MPMSolver.preload_gravity` did (SI).  ``sag``: m, the largest particle displacement of the first
-    pass (how far the body moves under its weight from the shape it was given); ``residual``: m, that of the last
-    pass (what the prestress leaves unbalanced); ``frames``: damped frames over all passes; ``converged``: the last
-    pass came to rest within its frames."""
+    """What :meth:`MPMSolver.preload_gravity` did (SI).  ``moved``: m, the largest solid-particle displacement of
+    each pass; its first is the ``sag`` (how far the body moves under its weight from the shape it was given), its
+    last the ``residual`` (what the prestress leaves unbalanced); ``frames``: damped frames over all passes;
+    ``converged``: the last pass came to rest within its frames."""
 
-    passes: int
+    moved: tuple[float, ...]
     frames: int
-    sag: float
-    residual: float
     converged: bool
-    moved: tuple = ()  # m, the largest particle displacement of each pass
+
+    @property
+    def passes(self) -> int:
+        return len(self.moved)
+
+    @property
+    def sag(self) -> float:
+        return self.moved[0]
+
+    @property
+    def residual(self) -> float:
+        return self.moved[-1]
+
+    def as_dict(self) -> dict:
+        return {"passes": self.passes, "frames": self.frames, "sag": self.sag, "residual": self.residual,
+                "converged": self.converged, "moved": list(self.moved)}
 
 
 BoundarySpec = Union[DirichletPoints, DirichletNodes, Sequence[Union[DirichletPoints, DirichletNodes]], None,
@@ -1872,8 +1885,7 @@ class MPMSolver:
             self._preload_damping = 0.0
         self._rebind_tracers_to_preload()
         self.time, self.frame, self.substep = 0.0, 0, 0
-        return GravityPreload(passes=len(moved), frames=frames, sag=moved[0], residual=moved[-1], converged=rest,
-                              moved=tuple(moved))
+        return GravityPreload(moved=tuple(moved), frames=frames, converged=rest)
 
     def _rebind_tracers_to_preload(self) -> None:
         """After :meth:`preload_gravity`: each tracer's rest offsets become F0_k^-1 r_tk (F0_k its anchor's preloaded
