@@ -48,17 +48,18 @@ class MPMConfig:
             them, through the P2G momentum; the floor height defaults to the lowest particle's surface;
             ``floor_sticky`` then means no slip while touching).  ``Collider`` s passed to ``step_frame`` act at
             the surface in both modes; ``DirichletPoints``/``DirichletNodes`` always act on grid nodes.
-        fingers: how the squeeze's fingers drive the material (the ``dirichlet`` boundary of
-            :mod:`tasks.physics.mpm_rollout`; the force-driven ablation is unaffected).  ``dirichlet`` (default):
-            every surface point the eq. 3 field constrains is driven to its target as ``DirichletPoints`` on the
-            grid nodes of its B-spline stencil (a ~1.5 dx halo).  ``particles``: the same targets on the particles
-            instead (``ParticlePins``): the particles each constrained point is embedded in have their surface
-            points driven by the displacement the point still needs, through the P2G momentum, with no node held
-            (a cube between two pinned layers reads E A eps within 5 % at nu = 0.3-0.49, grid-node plates +30 % and
-            more); on a wall thinner than the particle spacing the particles are pinned at their centres.  Not the
-            default: on Table 2 it gains on BDC-T and SDC but loses 0.052 on BDC-S and 0.018 on mIoU at the default
-            spacing (2026-12-05), a BDC-S gap that narrows with refinement (on the four objects where it sat 0.112
-            at 4 mm, 0.034 at 3 mm), and its reactions are not uniformly smaller (README, known limits).
+        fingers: how the squeeze's fingers drive the material (``variant.boundary=dirichlet`` in
+            :mod:`tasks.physics.mpm_rollout`; the force-driven ablation is unaffected).  ``particles`` (default):
+            every surface point the eq. 3 field constrains is driven to its target on the particles it is embedded in
+            (``ParticlePins``): their surface points are driven by the displacement the point still needs, and the
+            constraint reaches the grid through the P2G momentum, with no node held (a cube between two pinned layers
+            reads E A eps within 5 % at nu = 0.3-0.49); on a wall thinner than the particle spacing the particles are
+            pinned at their centres.  ``dirichlet``: the same targets as ``DirichletPoints`` on the grid nodes of
+            each point's B-spline stencil (a ~1.5 dx halo: grid-node plates +30 % and more on the cube).  Default
+            grid, all eight objects (2026-12-05): the pins hold the constrained points 1.03-3.7x closer to their
+            targets and cut the rubber ball's preset errors (standard: position 0.46 -> 0.35 %, reaction 34 -> 26 %);
+            on Table 2 they gain on BDC-T and SDC and lose 0.052 on BDC-S and 0.018 on mIoU, what the halo had held
+            around each patch (README, known limits).
             ``collider``: each active finger is a rigid sphere ``Collider`` of the fingertip pad radius (10 mm, the
             pad of the contact patches), its lowest point at the patch centre displaced by the eq. 3 amplitude
             eta c_k,t, moved there every frame: it pushes the particles it touches and never pulls; its impulses
@@ -217,7 +218,7 @@ class MPMConfig:
     floor_sticky: bool = False
     wall_sticky: bool = False
     contact: str = "grid"
-    fingers: str = "dirichlet"
+    fingers: str = "particles"
     finger_friction: float = 0.0
     thin_walls: str = "membrane"
     membrane_max_thickness: float = 0.75

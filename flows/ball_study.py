@@ -19,12 +19,12 @@ moving ``--travel`` mm towards the other, against the axisymmetric finite-strain
 between flats (:func:`tasks.verification.sphere_fe.sphere_between_flats` with ``wall``, fixed-corotated: the wall's
 radius, thickness, E and nu from the scene; no air inside in either).  ``--spacings`` (mm) refine the particles,
 the grid with them (dx = 2 x spacing, substeps 800 / spacing per frame as in ``flows.finger_study``).  ``--plates``:
-``grid`` (default) flats of grid-node slip points, as the default fingers act (their ~1.5-cell halo holds the wall
-before it touches), ``surface`` plane colliders with ``mpm.contact=surface`` (acting where the particles touch):
-the difference is the halo's share of the error, the rest the MPM shell's own (README, known limits).  Prints the
-force per flat at each whole millimetre of travel, with the pole gap at the press's end (below; the FE's too), and
-writes ``<out>/ball_study.md``.  ``--extra``: config overrides added to every MPM run (``mpm.dx`` refines the grid
-without the particles, a spacing the particles without the grid).  ``--hold`` (s) then keeps the
+``grid`` (default) flats of grid-node slip points (their ~1.5-cell halo holds the wall before it touches, as
+``mpm.fingers=dirichlet`` does), ``surface`` plane colliders with ``mpm.contact=surface`` (acting where the
+particles touch): the difference is the halo's share of the error, the rest the MPM shell's own (README, known
+limits).  Prints the force per flat at each whole millimetre of travel, with the pole gap at the press's end (below;
+the FE's too), and writes ``<out>/ball_study.md``.  ``--extra``: config overrides added to every MPM run (``mpm.dx``
+refines the grid without the particles, a spacing the particles without the grid).  ``--hold`` (s) then keeps the
 flats still that long and adds a table of the held force (an elastic wall's stays; the thin wall's crept until its
 zero-energy modes were removed, README, known limits) and the pole gap (the wall under a flat's centre sinking away
 from it, as a dimpling cap's does).  No Prefect: one process.

@@ -1,4 +1,4 @@
-"""Finger modes compared on Table 2:  ``python -m flows.finger_study`` (grid-node Dirichlet fingers vs collider fingers).
+"""Finger modes compared on Table 2:  ``python -m flows.finger_study`` (particle pins, grid-node points, colliders).
 
     python -m flows.finger_study --objects rubber_ball clay rubber_duck
     python -m flows.finger_study --objects clay --modes surface_dirichlet surface_collider
@@ -29,8 +29,8 @@ from datetime import datetime
 from pathlib import Path
 
 MODES = {  # name -> config overrides
-    "grid_dirichlet": ["mpm.contact=grid", "mpm.fingers=dirichlet"],  # the default
-    "grid_particles": ["mpm.contact=grid", "mpm.fingers=particles"],
+    "grid_dirichlet": ["mpm.contact=grid", "mpm.fingers=dirichlet"],
+    "grid_particles": ["mpm.contact=grid", "mpm.fingers=particles"],  # the default
     "surface_dirichlet": ["mpm.contact=surface", "mpm.fingers=dirichlet"],
     "surface_collider": ["mpm.contact=surface", "mpm.fingers=collider"],
 }

@@ -334,8 +334,29 @@ def assert_follows_the_field(art) -> None:
     np.testing.assert_allclose(obs[big], pred[big], rtol=0.15)
 
 
-def test_dirichlet_points_follow_their_targets(clay):
-    assert_follows_the_field(clay)
+def _assert_every_touching_finger_reads_a_reaction(art) -> None:
+    touching = art["patches"]["patch_active"].any(axis=0)
+    reaction = np.linalg.norm(np.asarray(art["rollout"]["reaction_force"]), axis=-1).max(axis=0)
+    assert np.all(reaction[touching] > 0.1), reaction
+
+
+def test_the_default_particle_pins_follow_their_targets(clay, ball):
+    """The default fingers (``mpm.fingers=particles``) pin the particles the constrained points are embedded in: the
+    points follow the eq. 3 field, every finger that touches reads a reaction, and the ball's wall, thinner than the
+    4 mm spacing, is pinned at its particles' centres (a push half a spacing out crushed the duck's wall at 3 mm)."""
+    for art in (clay, ball):
+        assert art["rollout"].attrs["fingers"] == "particles"
+        assert_follows_the_field(art)
+        _assert_every_touching_finger_reads_a_reaction(art)
+    assert any("at their centres" in n for n in ball["rollout"].attrs["notes"]), ball["rollout"].attrs["notes"]
+
+
+def test_grid_node_fingers_follow_their_targets(tmp_path):
+    """``mpm.fingers=dirichlet`` (eq. 3 on the grid nodes of each point's stencil) on the clay's default squeeze."""
+    art = _rollout(tmp_path, "clay", "mpm.fingers=dirichlet")
+    assert art["rollout"].attrs["fingers"] == "dirichlet"
+    assert_follows_the_field(art)
+    _assert_every_touching_finger_reads_a_reaction(art)
 
 
 def test_clay_keeps_its_dent_and_rubber_rebounds(clay, ball):
@@ -376,12 +397,14 @@ def test_clay_squeeze_is_quasi_static_and_within_the_energy_guard(clay):
 
 def test_thin_wall_membrane_releases_the_rubber_balls_locked_volume(ball_solid, ball):
     """The ball's 3 mm rubber wall (nu = 0.49) is thinner than the 4 mm spacing and the 8 mm grid.  As one layer in
-    3D stress (``mpm.thin_walls=solid``, ``sampling.thin_wall_layers=1``) its volume locks where the finger nodes
-    hold its thickness: its particles' J leaves 1 by far more than a nearly incompressible wall's may, and the
-    fingers read hundreds of N.  In plane stress (the default ``membrane``), sampled in two layers at the
-    thickness's Gauss points (which carry its bending), the wall thins as it stretches, J stays near 1 and the
-    reactions fall by an order of magnitude, while the squeeze still follows the eq. 3 field and the rubber springs
-    back (``test_clay_keeps_its_dent_and_rubber_rebounds``; one layer in plane stress kept 37 % of its dent)."""
+    3D stress (``mpm.thin_walls=solid``, ``sampling.thin_wall_layers=1``) its volume locks where the grid holds its
+    thickness: its particles' J leaves 1 by far more than a nearly incompressible wall's may, and the fingers' reactions
+    rise.  In plane stress (the default ``membrane``), sampled in two layers at the thickness's Gauss points (which
+    carry its bending), the wall thins as it stretches, J stays near 1 and the reactions fall, while the squeeze
+    still follows the eq. 3 field and the rubber springs back (``test_clay_keeps_its_dent_and_rubber_rebounds``; one
+    layer in plane stress kept 37 % of its dent).  Measured (mean per-finger peak reaction, max |J - 1|): under the
+    default particle pins solid 110 N, 0.043 -> membrane 32 N, 0.011; under grid-node fingers, whose halo also holds
+    the wall's thickness, solid 549 N, 0.254 -> membrane 51 N, 0.015."""
     solid, membrane = ball_solid["rollout"], ball["rollout"]
     assert any("held in plane stress" in n for n in membrane.attrs["notes"])
     assert not any("held in plane stress" in n for n in solid.attrs["notes"])
@@ -391,7 +414,7 @@ def test_thin_wall_membrane_releases_the_rubber_balls_locked_volume(ball_solid, 
         peaks = np.linalg.norm(r["reaction_force"], axis=-1).max(axis=0)
         return peaks[peaks > 0].mean()
 
-    assert mean_peak_reaction(membrane) < 0.2 * mean_peak_reaction(solid)
+    assert mean_peak_reaction(membrane) < 0.4 * mean_peak_reaction(solid)
     dev = {k: np.abs(r["particle_J"] - 1.0).max() for k, r in (("solid", solid), ("membrane", membrane))}
     assert dev["membrane"] < 0.5 * dev["solid"], dev
     # its stable step follows the in-plane wave speed (3.6x slower at nu = 0.49), so the same substeps scale less mass

@@ -8,8 +8,8 @@ the particles' surface points instead of the grid nodes of their stencils.  Know
     arms 0, the pinned centres a wall thinner than the spacing gets) end on their targets within a few per cent of
     the travel;
   * with nothing else acting, the pins' reactions integrated over the frames are the block's momentum change;
-  * the eq. 3 field on a rollout (``mpm.fingers=particles``) pins the particles the constrained points are
-    embedded in, and they follow the field (tracking within a quarter cell);
+  * the eq. 3 field on a rollout (the default ``mpm.fingers=particles``) pins the particles the constrained points
+    are embedded in, and they follow the field (``tests/test_mpm_rollout.py``, the default fingers' test);
   * bad input: one line naming ``ParticlePins``; a pinned particle crushed by its push: the volume guard's line
     names its finger and the fix.
 """
@@ -112,29 +112,3 @@ def test_a_crushed_pinned_particle_is_named_in_the_error():
             target[: len(top), 2] -= 0.004
             s.step_frame(0.004, pins=ParticlePins(pinned, target, normals, fingers))
     assert np.isfinite(s.positions()).all()
-
-
-def test_the_eq3_field_drives_the_pinned_particles_of_a_squeezed_clay(tmp_path):
-    """``mpm.fingers=particles`` on the clay's default squeeze: the constrained points follow their eq. 3 targets
-    within a quarter cell, the observed squeeze strain follows the prescribed one within 15 % while the fingers
-    advance, and every finger that touches reads a reaction."""
-    from tests.test_mpm_rollout import _rollout, assert_follows_the_field
-
-    art = _rollout(tmp_path, "clay", "mpm.fingers=particles")
-    assert_follows_the_field(art)
-    r = art["rollout"]
-    touching = art["patches"]["patch_active"].any(axis=0)
-    reaction = np.linalg.norm(np.asarray(r["reaction_force"]), axis=-1).max(axis=0)
-    assert np.all(reaction[touching] > 0.1), reaction
-
-
-def test_a_one_layer_wall_is_pinned_at_its_particles_centres_and_follows_the_field(tmp_path):
-    """The rubber ball's 3 mm wall is one particle layer at the 4 mm spacing: ``mpm.fingers=particles`` pins those
-    particles at their centres (a push at a surface half a spacing out crushed the duck's wall particles at 3 mm
-    spacing), says so in the rollout's notes, and the constrained points still follow the field."""
-    from tests.test_mpm_rollout import _rollout, assert_follows_the_field
-
-    art = _rollout(tmp_path, "rubber_ball", "mpm.fingers=particles", "signal.session=ramp_hold_release")
-    assert art["object"].attrs["thin_wall"]
-    assert any("at their centres" in n for n in art["rollout"].attrs["notes"]), art["rollout"].attrs["notes"]
-    assert_follows_the_field(art)

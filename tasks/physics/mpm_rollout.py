@@ -1,9 +1,13 @@
 """Squeezing-driven deformation: the MPM rollout of one object under its squeeze (paper sec. 3.2, eqs. 4-5).
 
 Per output frame the displacement field of eq. 3 is imposed as Dirichlet boundary conditions: every surface
-point constrained at the end of the frame is driven towards its target ``x0 + dx(x0)`` with the velocity
-``(target - current) / frame_dt``, projected onto the grid nodes of its B-spline stencil (the tracked surface
-points are the 3D Gaussians, tracers embedded in the body).  The contact is unilateral: a point is driven only
+point constrained at the end of the frame is driven towards its target ``x0 + dx(x0)`` (the tracked surface points
+are the 3D Gaussians, tracers embedded in the body).  By default (``mpm.fingers = particles``, :func:`particle_pins`)
+the particles each point is embedded in are driven by the displacement it still needs, and the constraint reaches the
+grid through the P2G momentum (:class:`ParticlePins`; a wall thinner than the spacing is pinned at its particles'
+centres); with ``mpm.fingers = dirichlet`` the velocity ``(target - current) / frame_dt`` overwrites the grid nodes
+of the point's B-spline stencil instead (:func:`dirichlet_points`), whose ~1.5-cell halo holds the material around
+the patch.  The contact is unilateral: a point is driven only
 while the finger pushes or holds it: (target - current) . d_k >= -dx/4 while the target advances or holds (d_k the
 inward patch normal; the tolerance stops contact chatter) and >= 0 while it retreats, so material that lies
 deeper than a retreating finger is left free, so on release the object rebounds or keeps its dent as its
@@ -22,13 +26,10 @@ converges (Hertz within 3-15 % at 1.5 cells per contact radius), but the squeeze
 where eq. 3 puts it: under the default mass scaling a pushed clay keeps flowing past the finger and the one-layer
 rubber ball's shell buckles in, so Table 2 gets worse; not the default.
 
-Particle fingers (``mpm.fingers = particles``, :func:`particle_pins`): the Dirichlet targets of eq. 3 on the
-particles the constrained surface points are embedded in (their surface points driven through the P2G momentum,
-:class:`ParticlePins`), with no grid node held, so no layer beside the finger is held rigid; a wall thinner than
-the spacing is pinned at its particles' centres.  Not the default: at the default spacing Table 2 gains on BDC-T and
-SDC but loses 0.052 on BDC-S and 0.018 on mIoU (the halo of the grid-node fingers moves the patch rims with the
-patch, the pinned dent spreads past them; on the four objects where the BDC-S gap sat it narrowed from 0.112 to 0.034
-at 3 mm), and the reactions are not uniformly smaller (README, known limits).
+Particle fingers, the default, against grid-node Dirichlet points (README, known limits, ``python -m
+flows.finger_study``): on the default grid the pins hold the constrained points 1.03-3.7x closer to their targets
+and act on the material only, so the dent spreads past the patch rims as a real one does; the halo had moved the rims
+with the patch and held the body around it, which Table 2's BDC-S and mIoU rewarded (0.052 and 0.018 more).
 
 Gravity preload (``simulation.gravity_preload_frames``, :meth:`MPMSolver.preload_gravity`): before the first frame
 the body settles under its weight and is put back where it was given with the stress that carried it, so the given
@@ -943,7 +944,8 @@ def resistive_feedback(oracle: ObjectMaterials, contact: np.ndarray, patches: Ma
 
 def feedback_rule(sim: Mapping[str, Any], fingers: str) -> str:
     """``simulation.feedback_rule`` resolved: ``auto`` is ``reaction`` with collider fingers (their reactions are
-    the fingertip impulses at the surface) and the paper's ``yield_area`` with grid-node Dirichlet fingers."""
+    the fingertip impulses at the surface) and the paper's ``yield_area`` with Dirichlet fingers (particle pins or grid
+    nodes), whose reactions are not converged."""
     rule = str(sim.get("feedback_rule", "auto"))
     if rule == "auto":
         return "reaction" if fingers == "collider" else "yield_area"
@@ -1267,9 +1269,10 @@ ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_
                reads=("mpm", "simulation", "variant.boundary"),
                outputs=ROLLOUT_OUTPUTS)
 def mpm_rollout_step(inputs, params):
-    """The squeeze simulated with MLS-MPM (eqs. 4-5) under the eq. 3 field (``variant.boundary=dirichlet``: grid-node
-    Dirichlet points, or fingertip colliders with ``mpm.fingers=collider``) or the per-finger force (``force``, the
-    no_dirichlet ablation), with the oracle's materials."""
+    """The squeeze simulated with MLS-MPM (eqs. 4-5) under the eq. 3 field (``variant.boundary=dirichlet``: particle
+    pins, grid-node Dirichlet points with ``mpm.fingers=dirichlet`` or fingertip colliders with
+    ``mpm.fingers=collider``) or the per-finger force (``force``, the no_dirichlet ablation), with the oracle's
+    materials."""
     obj = inputs["object_model"]
     return mpm_rollout(obj.arrays, {**obj.attrs, "name": obj.ref.scope}, inputs["dirichlet_field"].arrays,
                        inputs["force_coefficients"]["force_coefficients"], inputs["contact_patches"].arrays,
