@@ -78,6 +78,7 @@ def test_feedback_rule_auto_reaction_and_the_papers_yield_area():
     clay = material_oracle("a block of soft modelling clay", "clay")  # yield stress 40 kPa
     assert feedback_rule({"feedback_rule": "auto"}, "collider") == "reaction"
     assert feedback_rule({"feedback_rule": "auto"}, "dirichlet") == "yield_area"
+    assert feedback_rule({"feedback_rule": "auto"}, "particles") == "yield_area"  # the default fingers: sec. 3.2
     assert feedback_rule({"feedback_rule": "yield_area"}, "collider") == "yield_area"
     fb, rule = resistive_feedback(clay, contact, patches, 100.0, "reaction")
     np.testing.assert_allclose(fb, [[5.0, 2.0]])
