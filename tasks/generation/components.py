@@ -31,7 +31,7 @@ from transformers import CLIPTextModel, CLIPTokenizer
 
 HASH_CHUNK_BYTES = 8 * 1024 * 1024
 CONFIG_NAMES = ("model_index.json", "config.json", "scheduler_config.json")
-DOWNLOAD_PATTERNS = '--include "*.json" "*.txt" "*model.safetensors"'
+DOWNLOAD_PATTERNS = '--include "*.json" --include "*.txt" --include "*model.safetensors"'
 
 
 @dataclass(frozen=True)
@@ -217,11 +217,12 @@ def missing_weights_message(missing: list[MissingModel]) -> str:
     """One header line plus one line per missing model: what it is, where it was expected, how to fetch it."""
     lines = [
         "Diffusion weights missing (nothing is downloaded at run time); on a machine with internet run the command "
-        "shown, then copy the folder it fills to the same path here:"
+        "shown (huggingface_hub's `hf` CLI), then copy the folder it fills to the same path here "
+        "(docs/tutorials/diffusion-weights.md, 'Download'):"
     ]
     for model in missing:
         lines.append(
-            f"  {model.model} at {model.expected} ({model.problem}): huggingface-cli download {model.repo} "
+            f"  {model.model} at {model.expected} ({model.problem}): hf download {model.repo} "
             f"{DOWNLOAD_PATTERNS} --local-dir {model.fetch_to}"
         )
     return "\n".join(lines)
