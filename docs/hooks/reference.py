@@ -27,7 +27,7 @@ KEY_RE = re.compile(r"^[a-z_]+(\.[a-z_0-9]+)+(/[a-z_0-9]+)?$")
 UNIT_RE = re.compile(
     r"^(m/s\^2|m/s|m|s|ms|Pa|MPa|Hz|N|rad|px|deg|degrees|1/s|kg/m\^3|kg|J|bytes|1|flexion units|frames|grid cells|"
     r"m per unit force coefficient|N per unit force coefficient)(?=$|[,;:)\s])")
-IN_UNIT_RE = re.compile(r"\bin (m/s\^2|m/s|m|s|Pa|Hz|N|rad|px|degrees|kg/m\^3)\b")
+IN_UNIT_RE = re.compile(r"\bin (m/s\^2|m/s|m|s|Pa|Hz|N|rad|px|degrees|kg/m\^3|metres|seconds|pascals)\b")
 
 
 # ------------------------------------------------------------------------------------------------ config reference
@@ -64,24 +64,34 @@ def _field_comments(cls: type) -> dict[str, str]:
 
 
 def _doc_entries(cls: type) -> dict[str, str]:
-    """``name: text`` entries of a class docstring (indented continuation lines joined; ``a / b:`` names both)."""
+    """``name: text`` entries of a class docstring for its field names, in any of the layouts conf/ uses: one entry
+    per (indented) line, several on a line after ``.`` or ``;``, ``a, b:`` and ``a / b:`` naming several fields.
+    Section headings (a capitalised line without a colon, less indented than the entries) are left out."""
     doc = cls.__doc__ or ""
+    fields_ = [f.name for f in dataclasses.fields(cls)] if dataclasses.is_dataclass(cls) else []
+    if not fields_ or ":" not in doc:
+        return {}
+    lines = doc.splitlines()[1:]
+    lines = [ln for ln in lines if not re.match(r"^\s{0,4}[A-Z][^:]*$", ln)]
+    text = " ".join(ln.strip() for ln in lines).strip()
+    name = "|".join(sorted(map(re.escape, fields_), key=len, reverse=True))
+    head = re.compile(rf"(?:^|(?<=[.;)] )|(?<=[.;)]  ))((?:{name})(?:\s*(?:,|/)\s*(?:{name}))*):\s")
+    found = list(head.finditer(text))
     out: dict[str, str] = {}
-    current: list[str] | None = None
-    indent = None
-    for line in doc.splitlines():
-        m = re.match(r"^(\s*)([a-z_][a-z_0-9]*(?:\s*/\s*[a-z_][a-z_0-9]*)*):\s+(.*)$", line)
-        if m and (indent is None or len(m.group(1)) <= indent):
-            indent = len(m.group(1))
-            current = [m.group(3).strip()]
-            for name in re.split(r"\s*/\s*", m.group(2)):
-                out[name] = current  # type: ignore[assignment]
-            continue
-        if current is not None and line.strip() and len(line) - len(line.lstrip()) > (indent or 0):
-            current.append(line.strip())
-        else:
-            current = None
-    return {k: " ".join(v) for k, v in out.items()}  # type: ignore[arg-type]
+    for i, m in enumerate(found):
+        body = text[m.end(): found[i + 1].start() if i + 1 < len(found) else len(text)].strip()
+        for n in re.split(r"\s*(?:,|/)\s*", m.group(1)):
+            out.setdefault(n, body)
+    return out
+
+
+def _doc_sentence(cls: type, name: str) -> str:
+    """The first sentence of a class docstring that names ``name`` in double backquotes (prose docstrings)."""
+    doc = " ".join((cls.__doc__ or "").split())
+    for sentence in re.split(r"(?<=[.;])\s+", doc):
+        if f"``{name}``" in sentence:
+            return sentence.strip()
+    return ""
 
 
 def _type_name(tp: object) -> str:
@@ -158,7 +168,7 @@ def _ranges() -> dict[str, list[str]]:
 def _unit(key: str, text: str) -> str:
     m = UNIT_RE.match(text) or IN_UNIT_RE.search(text)
     if m:
-        return m.group(1)
+        return {"metres": "m", "seconds": "s", "pascals": "Pa"}.get(m.group(1), m.group(1))
     if key.endswith("_deg"):
         return "deg"
     return ""
@@ -183,7 +193,7 @@ def _rows(cls: type, prefix: str, values: object, seen: set,
             seen.add(sub)
             rows += _rows(sub, key, value if isinstance(value, dict) else _default(f), seen, documented)
             continue
-        text = docs.get(f.name) or comments.get(f.name, "")
+        text = docs.get(f.name) or comments.get(f.name, "") or _doc_sentence(cls, f.name)
         if typing.get_origin(tp) is dict and _dataclass_of(typing.get_args(tp)[-1]):
             inner = _dataclass_of(typing.get_args(tp)[-1])
             text = (text + " " if text else "") + f"Named entries, each with the keys of `{inner.__name__}`."
