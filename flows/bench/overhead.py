@@ -1,28 +1,33 @@
 """Orchestration overhead benchmark: what one cached Prefect task costs outside the step's own compute.
 
-    python -m flows.overhead                       # 8 chains x (1 source + 11 consumers) = 96 tasks, 3 MB sources
-    python -m flows.overhead --chains 4 --fan 5 --mb 0
+    python -m flows.bench.overhead                     # 8 chains x (1 source + 11 consumers) = 96 tasks, 3 MB sources
+    python -m flows.bench.overhead chains=4 fan=5 mb=0
 
 Runs small :func:`tasks.core.step.artifact_step` tasks through the main job's machinery (:func:`flows.pipeline.run`:
 the same Prefect settings, result storage and cache policy, one temporary Prefect server, a local Dask cluster of
-``--workers`` worker processes via prefect-dask).  Each chain is one source step writing ``--mb`` MB of float32
-noise (the real artifacts average 3 MB, 0.2-20 MB) and ``--fan`` consumer steps that read it, as
+``workers`` worker processes via prefect-dask).  Each chain is one source step writing ``mb`` MB of float32
+noise (the real artifacts average 3 MB, 0.2-20 MB) and ``fan`` consumer steps that read it, as
 ``object_model`` is read by eight steps of its object.  After a warm-up chain per worker (imports), the CPU
 seconds of the flow process (Dask scheduler and nannies included), the Dask workers and the Prefect server are
 read from ``/proc`` (utime + stime) before and after the timed tasks: first cold (every task runs), then again
-with the same keys (every task is a cache hit).  Prints CPU seconds and wall seconds per task.
+with the same keys (every task is a cache hit).  Prints CPU seconds and wall seconds per task.  Config:
+``conf/study/bench_overhead.yaml`` (keys: :class:`conf.study.schema.OverheadBenchConfig`).
 """
 from __future__ import annotations
 
-import argparse
 import tempfile
 import time
 import uuid
 
+import hydra
 import numpy as np
+from omegaconf import DictConfig, OmegaConf
 
+from conf.study.schema import register_study_configs
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step
+
+register_study_configs()
 
 
 @artifact_step("overhead_source", outputs=("noise",))
@@ -89,32 +94,30 @@ def benchmark_flow(root: str, chains: int, fan: int, mb: float, workers: int) ->
     return {"cold": cold, "cached": warm}
 
 
-def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--chains", type=int, default=8)
-    ap.add_argument("--fan", type=int, default=11, help="consumer steps per source")
-    ap.add_argument("--mb", type=float, default=3.0, help="size of each source artifact in MB")
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--artifacts", default=None, help="artifacts folder (default: a new temporary folder)")
-    args = ap.parse_args(argv)
-    root = args.artifacts or tempfile.mkdtemp(prefix="virsqueezer-overhead-")
+@hydra.main(version_base="1.3", config_path="../../conf", config_name="study/bench_overhead")
+def main(cfg: DictConfig) -> None:
+    for key in ("chains", "fan", "workers"):
+        if cfg[key] < 1:
+            raise SystemExit(f"input error: {key} must be >= 1, got {cfg[key]}")
+    if not cfg.mb >= 0:
+        raise SystemExit(f"input error: mb must be >= 0 MB, got {cfg.mb}")
+    root = cfg.artifacts or tempfile.mkdtemp(prefix="virsqueezer-overhead-")
 
     from flows.lifecycle import begin_run
 
     begin_run(root)  # Prefect's home under the artifacts folder, before Prefect loads
-    from omegaconf import OmegaConf
     from prefect import flow
 
     from flows.lifecycle import temporary_server
     from flows.runtime import make_task_runner, result_storage_settings
 
-    runner = make_task_runner(OmegaConf.create({"kind": "dask", "n_workers": args.workers, "threads_per_worker": 1,
+    runner = make_task_runner(OmegaConf.create({"kind": "dask", "n_workers": cfg.workers, "threads_per_worker": 1,
                                                 "address": None}))
     bench = flow(benchmark_flow, name="overhead", validate_parameters=False, persist_result=False,
                  task_runner=runner)
     with result_storage_settings(root), temporary_server():
-        result = bench(root, args.chains, args.fan, args.mb, args.workers)
-    print(f"artifacts {root}, {args.workers} workers, sources {args.mb} MB, fan {args.fan}")
+        result = bench(root, cfg.chains, cfg.fan, cfg.mb, cfg.workers)
+    print(f"artifacts {root}, {cfg.workers} workers, sources {cfg.mb} MB, fan {cfg.fan}")
     print(f"{'pass':7s} {'tasks':>5s} {'wall/task s':>11s} {'CPU/task s':>10s} {'flow':>6s} {'workers':>7s} "
           f"{'server':>6s}  states")
     for name, r in result.items():

@@ -1,31 +1,32 @@
 """MPM throughput benchmark: our Warp MLS-MPM vs a Taichi MLS-MPM peer on the same scene.
 
-    python -m flows.benchmark                      # 64^3 grid, ~130k particles, 100 substeps x 3 repeats
-    python -m flows.benchmark --n-grid 32 --quick  # small and fast
-    python -m flows.benchmark --threads 1          # our solver on one thread only
-    python -m flows.benchmark --render             # the Gaussian rasteriser: time per frame against its floor
+    python -m flows.bench.mpm                        # 64^3 grid, ~130k particles, 100 substeps x 3 repeats
+    python -m flows.bench.mpm n_grid=32 quick=true   # small and fast
+    python -m flows.bench.mpm threads=1              # our solver on one thread only
+    python -m flows.bench.render                     # the Gaussian rasteriser: time per frame against its floor
 
-Scene (identical for both solvers): a fixed-corotated elastic cube (E, nu, rho below), 2 x 2 x 2 particles per
-cell, falling with an initial downward velocity onto the floor of an n^3 grid (dx = 1/n, slip walls on a 3-node
-boundary layer, the bottom wall is the floor), same forced dt (Courant 0.3 of the P-wave speed), same number of
-substeps, float32.  Throughput = particles x substeps / wall time, compile/JIT excluded (both warmed up).
+Scene (identical for both solvers, :func:`tasks.verification.mpm_throughput.make_scene`): a fixed-corotated
+elastic cube (E, nu, rho below), 2 x 2 x 2 particles per cell, falling with an initial downward velocity onto the
+floor of an n^3 grid (dx = 1/n, slip walls on a 3-node boundary layer, the bottom wall is the floor), same forced
+dt (Courant 0.3 of the P-wave speed), same number of substeps, float32.  Throughput = particles x substeps / wall
+time, compile/JIT excluded (both warmed up).
 
-Solvers measured (each in a fresh subprocess, runs interleaved, best of ``--repeats``):
-  * warp-cpu: ``tasks.physics.mpm.MPMSolver`` on Warp's CPU backend (LLVM) with ``mpm.threads`` = ``--threads``
+Solvers measured (each in a fresh subprocess, runs interleaved, best of ``repeats``):
+  * warp-cpu: ``tasks.physics.mpm.MPMSolver`` on Warp's CPU backend (LLVM) with ``mpm.threads`` = ``threads``
     (default: all cores; the fused particle kernel split over the threads), and warp-cpu-1-thread (one thread, the
-    same-thread comparison); frames of ``--substeps`` substeps with the full per-frame work (stats kernel, guards)
-    included;
+    same-thread comparison); frames of ``substeps`` substeps with the full per-frame work (stats kernel, guards)
+    included (``python -m tasks.verification.mpm_throughput``);
   * warp-cuda: the same on CUDA when a GPU is present;
   * taichi (default threads; all cores) and taichi (cpu_max_num_threads=1, same-thread comparison), both with
     Taichi's 3x3 SVD for the rotation (what Taichi MPM codes use), plus taichi-quat-1t: the peer with the same
-    warm-started quaternion polar iteration as ours, to separate the algorithmic from the implementation gain.
-Results go to ``reports/benchmark/benchmark.json`` and ``benchmark.md``.
+    warm-started quaternion polar iteration as ours, to separate the algorithmic from the implementation gain
+    (``python -m tasks.verification.taichi_peer``).
+Results go to ``<out>/benchmark.json`` and ``benchmark.md`` (``out=reports/benchmark``).  Config:
+``conf/study/bench_mpm.yaml`` (keys: :class:`conf.study.schema.MPMBenchConfig`).
 """
 from __future__ import annotations
 
-import argparse
 import json
-import math
 import os
 import platform
 import subprocess
@@ -33,73 +34,19 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
+import hydra
 import numpy as np
+from omegaconf import DictConfig, OmegaConf
 
-BOUND = 3
+from conf.study.schema import register_study_configs
 
-
-def make_scene(n_grid: int, cube: float, ppc_axis: int, E: float, nu: float, rho: float, v0: float,
-               courant: float) -> dict:
-    """Particles on a lattice (ppc_axis^3 per cell) filling a cube of side ``cube`` (m) in the unit box."""
-    dx = 1.0 / n_grid
-    h = dx / ppc_axis
-    lo = np.array([0.5 - cube / 2, 0.5 - cube / 2, BOUND * dx + 2 * dx])
-    m = int(round(cube / h))
-    g = (np.arange(m) + 0.5) * h
-    X = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3) + lo
-    V = np.zeros_like(X)
-    V[:, 2] = -v0
-    cp = np.sqrt(E * (1 - nu) / (rho * (1 + nu) * (1 - 2 * nu)))
-    dt = courant * dx / cp
-    return dict(positions=X.astype(np.float32), velocities=V.astype(np.float32), n_grid=n_grid, dx=dx, dt=dt, E=E,
-                nu=nu, rho=rho, p_vol=h ** 3, gravity=-9.81, bound=BOUND, cp=cp)
-
-
-def run_warp(scene_path: str, device: str, substeps: int, repeats: int, save: str | None = None,
-             polar_iters: int = 1, threads: int = 1) -> dict:
-    """Run our solver on the saved scene (called in a subprocess)."""
-    import warp as wp
-
-    from tasks.physics.mpm import Material, MPMSolver
-
-    sc = np.load(scene_path)
-    n, dx, dt = int(sc["n_grid"]), float(sc["dx"]), float(sc["dt"])
-    mat = Material(name="cube", model="fixed_corotated", youngs_modulus=float(sc["E"]), poisson_ratio=float(sc["nu"]),
-                   density=float(sc["rho"]))
-    pad = int(sc["bound"])
-    cfg = dict(device=device, dx=dx, dt=dt, padding=pad, floor=False, gravity=[0.0, 0.0, float(sc["gravity"])],
-               domain_lo=[pad * dx] * 3, domain_hi=[(n - 1 - pad) * dx] * 3, check_every=max(substeps, 1),
-               courant_limit=1.0, polar_iterations=polar_iters, threads=threads)
-    solver = MPMSolver(sc["positions"], float(sc["p_vol"]), mat, velocities=sc["velocities"], config=cfg)
-    assert solver.dims == (n, n, n), solver.dims
-    frame_dt = substeps * dt
-    t0 = time.perf_counter()
-    solver.step_frame(3 * dt)  # JIT compile (or cache load) + warm-up, excluded
-    compile_s = time.perf_counter() - t0
-    times = []
-    subs = []
-    for _ in range(repeats):
-        with wp.ScopedTimer(f"warp-{device}", synchronize=True, print=False) as timer:
-            st = solver.step_frame(frame_dt)
-        times.append(timer.elapsed / 1000.0)
-        subs.append(st.substeps)
-    x = solver.positions()
-    if save:
-        np.save(save, x)
-    N = solver.n_particles
-    best = min(times)
-    return dict(solver="warp", device=device, threads=solver.threads if device == "cpu" else "gpu", polar="quat",
-                n_particles=N, substeps=subs[0], seconds=times, best_seconds=best,
-                throughput=N * subs[0] / best, compile_seconds=compile_s, total_substeps=3 + sum(subs),
-                bytes_per_particle=solver.bytes_per_particle(), state_bytes=solver.state_nbytes(),
-                grid_dims=list(solver.dims), com=x.mean(0).tolist(), x_min=x.min(0).tolist(),
-                x_max=x.max(0).tolist(), finite=bool(np.isfinite(x).all()), warp_version=wp.__version__)
-
+register_study_configs()
 
 def _subprocess_json(cmd: list[str], timeout: float) -> dict:
     env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parents[1]), env.get("PYTHONPATH", "")])
+    env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parents[2]), env.get("PYTHONPATH", "")])
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
     for line in reversed(out.stdout.strip().splitlines()):
         if line.startswith("{"):
@@ -107,66 +54,16 @@ def _subprocess_json(cmd: list[str], timeout: float) -> dict:
     raise RuntimeError(f"benchmark subprocess failed ({' '.join(cmd)}):\n{out.stdout[-2000:]}\n{out.stderr[-4000:]}")
 
 
-MAX_PARTICLES = 20_000_000  # a scene beyond this would not fit a laptop's memory in the three solvers
+@hydra.main(version_base="1.3", config_path="../../conf", config_name="study/bench_mpm")
+def main(cfg: DictConfig) -> dict:
+    from tasks.verification.mpm_throughput import check_scene_config, make_scene
 
-
-def check_args(a: argparse.Namespace) -> None:
-    """One line (``SystemExit``) naming a flag whose value no scene can be built from, before Warp is loaded."""
-    def need(ok: bool, flag: str, msg: str) -> None:
-        if not ok:
-            raise SystemExit(f"input error: {flag} {msg}")
-
-    for flag, v in (("--E", a.E), ("--rho", a.rho), ("--courant", a.courant), ("--cube", a.cube)):
-        need(math.isfinite(v) and v > 0, flag, f"must be a finite number > 0, got {v}")
-    need(math.isfinite(a.v0), "--v0", f"must be a finite speed (m/s), got {a.v0}")
-    need(0 <= a.nu < 0.5, "--nu", f"must be in [0, 0.5), got {a.nu}")
-    need(a.n_grid >= 2 * BOUND + 4, "--n-grid", f"must be >= {2 * BOUND + 4} (walls of {BOUND} nodes), got {a.n_grid}")
-    need(a.cube <= 0.8, "--cube", f"must be <= 0.8 (the side in the unit box, walls and fall included), got {a.cube}")
-    for flag, v in (("--ppc-axis", a.ppc_axis), ("--substeps", a.substeps), ("--repeats", a.repeats),
-                    ("--rounds", a.rounds), ("--polar-iters", a.polar_iters), ("--threads", a.threads)):
-        need(v >= 1, flag, f"must be >= 1, got {v}")
-    n = round(a.cube * a.n_grid * a.ppc_axis) ** 3
-    need(n <= MAX_PARTICLES, "--n-grid", f"{a.n_grid} with --cube {a.cube} and --ppc-axis {a.ppc_axis} gives {n:.3g} "
-         f"particles, above {MAX_PARTICLES:.0e}: lower one of them")
-
-
-def main(argv: list[str] | None = None) -> dict:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--n-grid", type=int, default=64)
-    ap.add_argument("--cube", type=float, default=0.4, help="cube side (m) in the unit box")
-    ap.add_argument("--ppc-axis", type=int, default=2, help="particles per cell per axis")
-    ap.add_argument("--E", type=float, default=1.0e5)
-    ap.add_argument("--nu", type=float, default=0.3)
-    ap.add_argument("--rho", type=float, default=1000.0)
-    ap.add_argument("--v0", type=float, default=1.0, help="initial downward speed (m/s)")
-    ap.add_argument("--courant", type=float, default=0.3)
-    ap.add_argument("--substeps", type=int, default=100)
-    ap.add_argument("--repeats", type=int, default=3)
-    ap.add_argument("--rounds", type=int, default=2, help="interleaved rounds (fresh processes; best is kept)")
-    ap.add_argument("--polar-iters", type=int, default=1,
-                    help="quaternion polar iterations per substep (ours and the taichi-quat peer)")
-    ap.add_argument("--threads", type=int, default=os.cpu_count() or 1,
-                    help="CPU threads of our solver (mpm.threads; default all cores); 1-thread runs are added")
-    ap.add_argument("--skip-taichi", action="store_true")
-    ap.add_argument("--quick", action="store_true", help="32^3 grid, 40 substeps, 1 round")
-    ap.add_argument("--out", default="reports/benchmark")
-    ap.add_argument("--render", action="store_true",
-                    help="benchmark the Gaussian rasteriser against its physical floor instead (tasks/render/benchmark.py)")
-    ap.add_argument("--_worker", default=None, help=argparse.SUPPRESS)
-    ap.add_argument("--_scene", default=None, help=argparse.SUPPRESS)
-    ap.add_argument("--_save", default=None, help=argparse.SUPPRESS)
-    a = ap.parse_args(argv)
-    if a.render:
-        from tasks.render.benchmark import main as render_benchmark
-
-        return {"render": render_benchmark()}
-    if a._worker:  # subprocess: one warp run
-        res = run_warp(a._scene, a._worker, a.substeps, a.repeats, a._save, a.polar_iters, a.threads)
-        print(json.dumps(res))
-        return res
+    a = SimpleNamespace(**OmegaConf.to_container(cfg, resolve=True))
+    if a.threads is None:
+        a.threads = os.cpu_count() or 1
     if a.quick:
         a.n_grid, a.substeps, a.rounds, a.cube = 32, 40, 1, 0.4
-    check_args(a)
+    check_scene_config(vars(a))
 
     import warp as wp
 
@@ -183,9 +80,10 @@ def main(argv: list[str] | None = None) -> dict:
         warp_runs.insert(1, ("cpu", 1))
     for dev, threads in warp_runs:
         label = f"warp-{dev.split(':')[0]}" + ("-1-thread" if dev == "cpu" and threads == 1 and a.threads > 1 else "")
-        runs.append((label, [sys.executable, "-m", "flows.benchmark", "--_worker", dev, "--_scene", scene_path,
-                             "--substeps", str(a.substeps), "--repeats", str(a.repeats), "--threads", str(threads),
-                             "--polar-iters", str(a.polar_iters), "--_save", os.path.join(tmp, f"{label}.npy")]))
+        runs.append((label, [sys.executable, "-m", "tasks.verification.mpm_throughput", "--device", dev,
+                             "--scene", scene_path, "--substeps", str(a.substeps), "--repeats", str(a.repeats),
+                             "--threads", str(threads), "--polar-iters", str(a.polar_iters),
+                             "--save", os.path.join(tmp, f"{label}.npy")]))
     if not a.skip_taichi:
         for label, threads, polar in (("taichi-svd-default-threads", 0, "svd"), ("taichi-svd-1-thread", 1, "svd"),
                                       ("taichi-quat-1-thread", 1, "quat")):

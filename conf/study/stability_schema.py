@@ -1,4 +1,5 @@
-"""Structured schema of ``python -m flows.stability`` (the numerical stability suite, :mod:`tasks.verification.stability`).
+"""Structured schema of ``python -m flows.studies.stability`` (the numerical stability suite,
+:mod:`tasks.verification.stability`).
 
 The suite reads the production config groups (``mpm``, ``sampling``, ``control``, ``signal``, ``simulation``,
 ``oracle`` and the object ``catalog``) from the same YAML files as the main flows, so every case runs with the

@@ -1,4 +1,5 @@
-"""Render and effect knobs, error against run time:  ``python -m flows.render_convergence``  (``object=NAME``).
+"""Render and effect knobs, error against run time:  ``python -m flows.studies.render_convergence``
+(``object=NAME``; config ``conf/study/render_convergence.yaml``).
 
 Runs the object's default chain (one variant, up to the eq. 7 refinement) through the cached steps
 (:func:`flows.pipeline.run_object_local`, no Prefect), then the ``gbuffer`` step once per ``render_study.resolutions``
@@ -18,7 +19,7 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from conf.convergence_schema import register_render_study_config, validate_render_study
+from conf.study.render_convergence_schema import register_render_study_config, validate_render_study
 
 register_render_study_config()
 
@@ -66,7 +67,7 @@ def run_render_study(cfg: DictConfig) -> Path:
     return path
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="render_convergence")
+@hydra.main(version_base="1.3", config_path="../../conf", config_name="study/render_convergence")
 def main(cfg: DictConfig) -> None:
     run_render_study(cfg)
 

@@ -1,10 +1,11 @@
-"""Error against run time:  ``python -m flows.convergence``  (``object=clay`` for another object).
+"""Error against run time:  ``python -m flows.studies.convergence``  (``object=clay`` for another object).
 
 Runs one object and its session once per setting of ``convergence.settings`` (each a set of config overrides)
 through the cached pipeline steps (:func:`flows.pipeline.submit_object`), so a rerun of the sweep is served from
 the cache and a killed sweep resumes where it stopped; each step's recorded compute seconds are the wall time.
 Then measures every setting against the reference setting and writes ``<paths.reports>/convergence/<run>/``
-``convergence.md``, ``convergence.csv`` and ``pareto.png`` (:mod:`tasks.verification.convergence`).  No computation here.
+``convergence.md``, ``convergence.csv`` and ``pareto.png`` (:mod:`tasks.verification.convergence`).  No computation
+here.  Config: ``conf/study/convergence.yaml``.
 """
 from __future__ import annotations
 
@@ -17,11 +18,11 @@ from typing import Any
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from conf.convergence_schema import register_convergence_config, validate_convergence
+from conf.study.convergence_schema import register_convergence_config, validate_convergence
 
 register_convergence_config()
 
-PRESET_DIR = Path(__file__).resolve().parents[1] / "conf" / "preset"
+PRESET_DIR = Path(__file__).resolve().parents[2] / "conf" / "preset"
 
 
 def setting_configs(cfg: DictConfig) -> dict[str, DictConfig]:
@@ -128,7 +129,7 @@ def run_convergence(cfg: DictConfig) -> dict:
         return sweep_flow.with_options(task_runner=runner)(configs, sweep, str(report_dir))
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="convergence")
+@hydra.main(version_base="1.3", config_path="../../conf", config_name="study/convergence")
 def main(cfg: DictConfig) -> None:
     from flows.lifecycle import begin_run
 

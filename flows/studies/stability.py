@@ -1,10 +1,12 @@
-"""Numerical stability suite:  ``python -m flows.stability`` (all cases, ~10 min on 2 cores),
-``python -m flows.stability quick=true`` (< 1 min), ``python -m flows.stability cases=[courant,deep_poke]``.
+"""Numerical stability suite:  ``python -m flows.studies.stability`` (all cases, ~10 min on 2 cores),
+``python -m flows.studies.stability quick=true`` (< 1 min),
+``python -m flows.studies.stability cases=[courant,deep_poke]``.
 
-Wires :mod:`tasks.verification.stability` (cases, runners, report) to the Hydra config (``conf/stability.yaml``, schema
-``conf/stability_schema.py``) and writes ``<paths.reports>/stability/<run>/stability.md`` and ``stability.csv``.
-No Prefect: the cases are short diagnostics run in this process, one after the other (a case that fails is a row
-of the table, never the end of the run).
+Wires :mod:`tasks.verification.stability` (cases, runners, report) to the Hydra config
+(``conf/study/stability.yaml``, schema ``conf/study/stability_schema.py``) and writes
+``<paths.reports>/stability/<run>/stability.md`` and ``stability.csv``.  No Prefect: the cases are short
+diagnostics run in this process, one after the other (a case that fails is a row of the table, never the end of
+the run).
 """
 from __future__ import annotations
 
@@ -14,12 +16,12 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig, OmegaConf
 
-from conf.stability_schema import register_stability_config
+from conf.study.stability_schema import register_stability_config
 
 register_stability_config()
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="stability")
+@hydra.main(version_base="1.3", config_path="../../conf", config_name="study/stability")
 def main(cfg: DictConfig) -> None:
     from flows.preflight import preflight_stability
 
