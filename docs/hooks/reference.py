@@ -34,7 +34,9 @@ IN_UNIT_RE = re.compile(r"\bin (m/s\^2|m/s|m|s|Pa|Hz|N|rad|px|degrees|kg/m\^3|me
 def _conf_modules() -> list:
     if str(ROOT) not in sys.path:
         sys.path.insert(0, str(ROOT))
-    names = ["conf.schema"] + sorted(f"conf.{p.stem}" for p in (ROOT / "conf").glob("*_schema.py"))
+    conf = ROOT / "conf"  # the studies' schemas live in conf/study/
+    found = sorted(p.relative_to(ROOT).with_suffix("") for p in conf.rglob("*schema.py") if p != conf / "schema.py")
+    names = ["conf.schema"] + [".".join(p.parts) for p in found]
     return [importlib.import_module(n) for n in names]
 
 
