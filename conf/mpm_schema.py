@@ -67,7 +67,7 @@ class MPMConfig:
             ``contact: surface`` (both act where the material touches).  Not the default: it lost Table 2 on the
             rubber ball, clay and rubber duck (README, known limits; ``python -m flows.studies.fingers``).
         thin_walls: how a hollow object's wall thinner than the grid spacing ``dx`` (sampled on its mid-surface in
-            ``sampling.thin_wall_layers`` Gauss layers, :mod:`tasks.control.object_model`) carries stress.
+            ``sampling.thin_wall_layers`` Gauss layers, :mod:`tasks.physics.particle_fill`) carries stress.
             ``membrane`` (default; up to ``membrane_max_thickness`` of a cell): its elastic particles
             (fixed-corotated, neo-Hookean) have no normal stress on the wall, as a thin shell (plane stress;
             :func:`tasks.physics.mpm.constitutive.membrane_F`), and its von Mises particles return-map in plane

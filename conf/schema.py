@@ -162,7 +162,7 @@ class SamplingConfig:
     # the thickness's Gauss points +-t / (2 sqrt 3), half the volume each, so that with mpm.thin_walls=membrane the
     # wall carries bending; 3 = three layers at 0, +-sqrt(3/5) t / 2 with 8/18, 5/18, 5/18 of the volume, which
     # also integrate a strain quadratic through the wall (a wall near a cell's thickness; README, known limits)
-    # (tasks/control/object_model.py)
+    # (tasks/physics/particle_fill.py)
     thin_wall_layers: int = 2
 
 

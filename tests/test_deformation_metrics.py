@@ -445,7 +445,7 @@ def test_step_compute_runs_on_loaded_artifacts_and_writes(tmp_path):
               "force_coefficients": loaded("force_coefficients", art["forces"]),
               "contact_patches": loaded("contact_patches", art["contacts"]),
               "signal_smoothing": loaded("signal_smoothing", art["frames"]),
-              "object_model": loaded("object_model", art["obj"])}
+              "mpm_particles": loaded("mpm_particles", art["obj"])}
     params = Params("deformation_metrics", {"metrics": {"region_fraction": 0.1, "ate_with_scale": False,
                                                         "min_motion": 1e-5}})
     arrays, attrs = deformation_metrics_step.compute(inputs, params)

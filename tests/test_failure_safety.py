@@ -95,7 +95,7 @@ def test_a_failed_step_leaves_no_artifact_and_the_fixed_rerun_reuses_upstream(pr
     assert "\n" not in msg and "rubber_ball/material_oracle" in msg
 
     art = tmp_path / "artifacts" / "rubber_ball"
-    upstream_steps = ["contact_patches", "dirichlet_field", "force_coefficients", "object_model",
+    upstream_steps = ["contact_patches", "dirichlet_field", "force_coefficients", "mpm_particles", "object_model",
                       "signal_smoothing", "squeeze_signals"]
     # the failed step and everything after it: no artifact, complete or not, and no temporary
     assert sorted(p.parent.name for p in art.glob("*/*.zarr")) == upstream_steps

@@ -1,5 +1,5 @@
 """Collider fingers (``mpm.fingers = collider``): the eq. 3 field drives a rigid fingertip sphere per finger
-(:func:`tasks.physics.mpm_rollout.finger_colliders`).  Known answers, each driven through the real field
+(:func:`tasks.physics.rollout_fingers.finger_colliders`).  Known answers, each driven through the real field
 (:func:`tasks.control.dirichlet_field.dirichlet_field`) and the rollout's fingertip functions:
 
   * a fingertip (the pad radius R = 10 mm) pressed into a block by the field's amplitude reads Hertz's
@@ -18,7 +18,7 @@ import pytest
 from conf.mpm_schema import MPMConfigError, mpm_config_from
 from tasks.physics.material_oracle import material_oracle
 from tasks.physics.mpm import Material, MPMSolver
-from tasks.physics.mpm_rollout import feedback_rule, resistive_feedback
+from tasks.physics.rollout_records import feedback_rule, resistive_feedback
 from tasks.verification.contact import block_particles, finger_field, fingertip_case, force_ramp, press_fingers
 
 

@@ -16,20 +16,6 @@ from tasks.physics.attachment import detached_summary, distance_from_body
 from tasks.physics.free_flight import blob_flights, flight_summary, rollout_flights
 from tasks.physics.labels import CORE, INTERIOR, RUPTURED, SHELL
 from tasks.physics.material_oracle import material_oracle
-from tasks.physics.mpm_rollout import (
-    FLIGHT_FRAMES,
-    FLIGHT_SAMPLE_SUBSTEPS,
-    _quasi_static_summary,
-    balanced_push,
-    bernoulli_speed,
-    cauchy_free_measures,
-    inside_friction_cones,
-    interior_plan,
-    load_rise_time,
-    peel_velocities,
-    resistive_feedback,
-    seam_opening,
-)
 from tasks.physics.regions import (
     CONTACT_CORE_PHI,
     finger_regions,
@@ -37,6 +23,16 @@ from tasks.physics.regions import (
     squeeze_strain,
     support_half_extent,
 )
+from tasks.physics.rollout_fingers import balanced_push, inside_friction_cones
+from tasks.physics.rollout_records import (
+    FLIGHT_FRAMES,
+    FLIGHT_SAMPLE_SUBSTEPS,
+    cauchy_free_measures,
+    quasi_static_summary,
+    resistive_feedback,
+)
+from tasks.physics.rollout_scene import interior_plan, load_rise_time
+from tasks.physics.rupture_release import bernoulli_speed, peel_velocities, seam_opening
 from tasks.reporting.report import FLIGHT_NAMES
 
 # ------------------------------------------------------------------------------------------ pure measures
@@ -178,17 +174,17 @@ def test_quasi_static_summary_is_none_when_no_frame_was_checked():
     which would read as perfectly quasi-static.  A checked run gives the solver's judged contacts, the largest and
     how many exceed the limit (a contact with kinetic but no internal energy, inf, is None and over it)."""
     contact = np.zeros((6, 5, 3))
-    qs = _quasi_static_summary([], np.full(6, np.nan), contact, 1.0, 0.1)
+    qs = quasi_static_summary([], np.full(6, np.nan), contact, 1.0, 0.1)
     assert qs["max_ke_ie_in_contact"] is None and qs["contacts"] == []
     assert qs["contacts_checked"] == 0 and qs["contacts_over_limit"] == 0
     assert qs["frames_checked"] == 0 and qs["frames_in_contact"] == 0
     contact[3:, 0, 2] = 1.0
     judged = [{"first_frame": 4, "last_frame": 5, "ke_ie": 0.3}]
-    qs = _quasi_static_summary(judged, np.array([np.nan] * 4 + [0.5, 0.3]), contact, 40.0, 0.1)
+    qs = quasi_static_summary(judged, np.array([np.nan] * 4 + [0.5, 0.3]), contact, 40.0, 0.1)
     assert qs["max_ke_ie_in_contact"] == pytest.approx(0.3) and qs["contacts"] == judged
     assert qs["contacts_checked"] == 1 and qs["contacts_over_limit"] == 1
     assert qs["frames_checked"] == 2 and qs["frames_in_contact"] == 3
-    qs = _quasi_static_summary(judged + [{"first_frame": 7, "last_frame": 8, "ke_ie": math.inf}], np.full(6, np.nan),
+    qs = quasi_static_summary(judged + [{"first_frame": 7, "last_frame": 8, "ke_ie": math.inf}], np.full(6, np.nan),
                                contact, 40.0, 0.1)
     assert qs["max_ke_ie_in_contact"] is None and qs["contacts"][1]["ke_ie"] is None
     assert qs["contacts_over_limit"] == 2
@@ -232,7 +228,7 @@ def test_flight_recorder_holds_a_blob_while_it_touches_the_body_then_measures_it
     m/s; sampled every 2 substeps for 4 frames of 1/60 s.  Known answers: at first every blob particle is held
     (it shares grid nodes with the wall); the blob's one flight starts once all of it has left the wall's stencils
     (> 2.5 cells), runs to the end (it stays clear of the table and the domain walls) and falls at g within 1 %."""
-    from tasks.physics.mpm_rollout import FlightRecord
+    from tasks.physics.rollout_records import FlightRecord
     from tests.test_mpm_multifield import DX, FRAME_DT, wall_and_blob
 
     s, ids = wall_and_blob([0.0205, 0.015, 0.035], [0.0305, 0.025, 0.045], velocity=(0.6, 0.0, 0.5))
@@ -262,7 +258,7 @@ def test_flight_recorder_holds_a_falling_blob_once_its_surface_touches_the_table
     particle's surface (centre - half its spacing r) is within 0.25 r of the table: its last free sample is < 1 mm
     above it (the floor nodes' reach, 1.44 dx = 7.2 mm, held it from there before), and it is held from then on."""
     from tasks.physics.free_flight import TABLE_GAP
-    from tasks.physics.mpm_rollout import FlightRecord
+    from tasks.physics.rollout_records import FlightRecord
     from tests.test_mpm_multifield import DX, FRAME_DT, wall_and_blob
 
     s, ids = wall_and_blob([0.05, 0.03, 0.02], [0.07, 0.05, 0.03])
@@ -298,8 +294,8 @@ def _rollout(tmp_path, name: str, *extra: str):
                            "variant": OmegaConf.load("conf/variant/full.yaml")},
                           OmegaConf.from_dotlist(["control.smoothing.frame_rate=20", *extra]))
     refs = run_object_local(cfg, cfg.object, cfg.variant, tmp_path, until="mpm_rollout")
-    names = dict(object="object_model", field="dirichlet_field", forces="force_coefficients", patches="contact_patches",
-                 rollout="mpm_rollout")
+    names = dict(object="object_model", particles="mpm_particles", field="dirichlet_field", forces="force_coefficients",
+                 patches="contact_patches", rollout="mpm_rollout")
     return {k: read_artifact(refs[step]) for k, step in names.items()}
 
 
@@ -549,7 +545,7 @@ def test_tomato_below_its_threshold_has_flesh_but_no_interior(tmp_path):
     assert any("never reach the squeeze threshold" in n and "core" in n for n in r.attrs["notes"])
     mat = r["particle_material"]
     assert set(np.unique(mat).tolist()) == {SHELL, CORE}
-    assert (mat == CORE).sum() == len(art["object"]["interior_positions"])
+    assert (mat == CORE).sum() == len(art["particles"]["interior_positions"])
     assert r.attrs["materials"] == ["shell", "core"]
     eps = r["squeeze_strain"].max(axis=1)
     assert eps.max() > 0.03 and eps[-1] < 0.3 * eps.max()  # dented by the poke, then springs back
@@ -669,7 +665,7 @@ def test_force_push_keeps_the_finger_pressure_when_its_patch_tears():
     from types import SimpleNamespace
 
     from conf.hand import N_FINGERS
-    from tasks.physics.mpm_rollout import force_patch
+    from tasks.physics.rollout_fingers import force_patch
 
     n = 8
     finger = np.full((1, n), 1, np.int32)
@@ -717,7 +713,7 @@ def test_the_stuffing_under_an_opening_carries_what_closes_the_grip():
     thumb through its opening able to push (0, 0, 8) N: s = 1/2 (its 4 N close the grip along z; the 1.2 N across
     it is the least residual); able to push only 2 N: s = 1 (all of it, 2 N are left); a grip already closed on the
     skin: s = 0; nothing beneath: 0."""
-    from tasks.physics.mpm_rollout import grip_closing_share
+    from tasks.physics.rollout_fingers import grip_closing_share
 
     skin = np.array([[0.0, 0, 0], [0.3, 0, -1], [0.3, 0, -1], [0.3, 0, -1], [0.3, 0, -1]])
     thumb = np.zeros((5, 3))
@@ -734,7 +730,7 @@ def test_stuffing_beneath_a_torn_finger_is_the_core_near_its_opening():
     """stuffing_beneath: the core particles within ``depth`` of a finger's opening points, owned by the nearest
     opening point's finger; only the candidates (the core) are pushed, never shell, torn skin or released interior,
     and nothing farther than ``depth`` (known answers on a line of particles)."""
-    from tasks.physics.mpm_rollout import stuffing_beneath
+    from tasks.physics.rollout_fingers import stuffing_beneath
 
     x = np.array([[0.0, 0, 0], [0.005, 0, 0], [0.012, 0, 0], [0.03, 0, 0], [0.045, 0, 0], [0.05, 0, 0], [0.1, 0, 0]])
     labels = np.array([CORE, CORE, CORE, CORE, CORE, INTERIOR, CORE])
@@ -765,13 +761,13 @@ def test_bernoulli_release_speed_of_a_pressed_liquid():
 
 def _pressed_block(interior):
     """A block of core (J = 0.9, C = 0.5) under a skin layer (x > 16 mm), pressed by finger 0 along -x at 20 kPa
-    (2 N on 1 cm^2) and released at the threshold (:func:`_release`, release radius 12 mm, centre on the skin) with
+    (2 N on 1 cm^2) and released at the threshold (:func:`rupture_and_release`, release radius 12 mm, centre on the skin) with
     the ``interior`` material: returns the solver, rest positions, labels, initial F, release event, released mask
     and the finger's contact centre."""
     from conf.hand import N_FINGERS
     from tasks.physics.mpm.materials import Material
     from tasks.physics.mpm.solver import MPMSolver
-    from tasks.physics.mpm_rollout import _release
+    from tasks.physics.rupture_release import rupture_and_release
     from tests.particles import lattice
 
     h = 0.004
@@ -801,8 +797,8 @@ def _pressed_block(interior):
     sim = {"release_radius": 0.012, "max_release_speed": 10.0, "release_mach_max": 1.0, "stuffing_packing": 0.5,
            "seam_opening": 0.6}
     strain = np.eye(1, N_FINGERS)[0] * 0.3
-    ev = _release(s, 0, 0.5, strain, 0.2, patches, centre, reaction, reaction * 0, "dirichlet", mid, slot, released,
-                  sim)
+    ev = rupture_and_release(s, 0, 0.5, strain, 0.2, patches, centre, reaction, reaction * 0, "dirichlet", mid, slot,
+                             released, sim)
     return s, x, mid, F0, ev, released, centre[0]
 
 
@@ -867,17 +863,17 @@ def test_released_stuffing_holds_to_the_toy_and_juice_does_not():
     velocity field (physical inertia, mass_scaled False) and its contact with the toy holds its yield stress x
     simulation.stuffing_cohesion in tension (125 Pa at the default 1; 0 gives the free contact); a liquid (juice)
     gets no cohesion: it separates freely from the fruit."""
-    from tasks.physics.mpm_rollout import _released_material
     from tasks.physics.oracle.table import INTERIORS
+    from tasks.physics.rupture_release import released_material
 
     sim = dict(OmegaConf.to_container(OmegaConf.structured(SimulationConfig())))
     fibre = INTERIORS["polyester_fibrefill"].material
-    loose = _released_material(fibre, sim)
+    loose = released_material(fibre, sim)
     assert loose.cohesion == pytest.approx(fibre.yield_stress) == pytest.approx(125.0)
     assert not loose.is_mass_scaled
-    assert _released_material(fibre, {**sim, "stuffing_cohesion": 0.0}).cohesion == 0.0
-    assert _released_material(fibre, {**sim, "stuffing_cohesion": 0.4}).cohesion == pytest.approx(50.0)
-    assert _released_material(INTERIORS["tomato_juice"].material, sim).cohesion == 0.0
+    assert released_material(fibre, {**sim, "stuffing_cohesion": 0.0}).cohesion == 0.0
+    assert released_material(fibre, {**sim, "stuffing_cohesion": 0.4}).cohesion == pytest.approx(50.0)
+    assert released_material(INTERIORS["tomato_juice"].material, sim).cohesion == 0.0
 
 
 def test_seam_opening_folds_the_torn_patch_into_a_ring():

@@ -1,4 +1,5 @@
-"""Object model (tasks.control.object_model, tasks.control.geometry, tasks.control.gaussian_ply): known answers and clear errors.
+"""Object model (tasks.control.object_model, its sources, tasks.control.geometry, tasks.control.gaussian_ply) and the
+MPM particle fill (tasks.physics.particle_fill): known answers and clear errors.
 
 Known answers: a sphere's area 4 pi R^2 and volume 4/3 pi R^3, its principal curvatures 1/R, outward normals;
 the eight catalogue objects fit their configured bbox; a thin wall is one particle layer of mass area x
@@ -16,9 +17,12 @@ import trimesh
 from omegaconf import OmegaConf
 
 from conf.schema import ObjectConfig, SamplingConfig
+from tasks.control.curvature import matrix_to_quaternion, shell_depth_volume
 from tasks.control.gaussian_ply import C0, GaussianPlyError, read_gaussian_ply, write_gaussian_ply
 from tasks.control.geometry import make_shape
-from tasks.control.object_model import ObjectModelError, build_object_model, matrix_to_quaternion, shell_depth_volume
+from tasks.control.object_config import ObjectModelError
+from tasks.control.object_model import build_object_model
+from tasks.physics.particle_fill import build_mpm_particles
 
 REPO = Path(__file__).resolve().parents[1]
 EIGHT = ["can", "plush_toy", "rubber_duck", "clay", "tomato", "orange", "rubber_ball", "paper_cup"]
@@ -46,6 +50,14 @@ ATTRS = {"bbox_min", "bbox_max", "surface_area_total", "enclosed_volume", "wall_
 SAMPLING = OmegaConf.merge(OmegaConf.structured(SamplingConfig), {"thin_wall_layers": 1})
 
 
+def build_with_particles(obj, sampling, grid_spacing=None):
+    """The object model (surface Gaussians) and its MPM particles of the grid spacing ``grid_spacing`` (m; None: the
+    particle spacing) as one (arrays, attrs), as the rollout sees them."""
+    arrays, attrs = build_object_model(obj, sampling)
+    p_arrays, p_attrs = build_mpm_particles(obj, sampling, grid_spacing)
+    return {**arrays, **p_arrays}, {**attrs, **p_attrs}
+
+
 def catalogue(name: str):
     return OmegaConf.merge(OmegaConf.structured(ObjectConfig), OmegaConf.load(REPO / "conf" / "object" / f"{name}.yaml"))
 
@@ -70,7 +82,7 @@ def built():
     out = {}
     for name in EIGHT:
         t0 = time.perf_counter()
-        arrays, attrs = build_object_model(catalogue(name), SAMPLING)
+        arrays, attrs = build_with_particles(catalogue(name), SAMPLING)
         out[name] = (arrays, attrs, time.perf_counter() - t0)
     return out
 
@@ -79,7 +91,7 @@ def built():
 @pytest.mark.parametrize("kind", ["sphere", "ellipsoid"])  # analytic sphere / generic meshed implicit path
 def test_sphere_known_answers(kind):
     R = 0.025
-    arrays, attrs = build_object_model(make_obj(geometry={"kind": kind, "size": [2 * R] * 3}, filled=True), SAMPLING)
+    arrays, attrs = build_with_particles(make_obj(geometry={"kind": kind, "size": [2 * R] * 3}, filled=True), SAMPLING)
     a = {k: v.data for k, v in arrays.items()}
     assert attrs["surface_area_total"] == pytest.approx(4 * np.pi * R ** 2, rel=0.02)
     assert attrs["enclosed_volume"] == pytest.approx(4 / 3 * np.pi * R ** 3, rel=0.03)
@@ -157,8 +169,8 @@ def test_a_wall_thinner_than_the_grid_is_sampled_in_gauss_layers_even_when_not_t
     obj = catalogue("orange")
     t, s = obj.geometry.wall_thickness, 0.004
     sampling = OmegaConf.merge(OmegaConf.structured(SamplingConfig), {"particle_spacing": s})
-    _, by_spacing = build_object_model(obj, sampling)
-    arrays, by_grid = build_object_model(obj, sampling, grid_spacing=2 * s)
+    _, by_spacing = build_with_particles(obj, sampling)
+    arrays, by_grid = build_with_particles(obj, sampling, grid_spacing=2 * s)
     assert t == pytest.approx(s) and not by_spacing["thin_wall"] and by_spacing["thin_wall_layers"] == 0
     assert by_grid["thin_wall"] and by_grid["thin_wall_layers"] == 2
     shape = make_shape(obj.geometry.kind, obj.geometry.size)
@@ -284,9 +296,9 @@ def test_colours_are_recognisable(built):
 
 def test_deterministic_from_seed():
     obj = catalogue("rubber_duck")
-    a1, _ = build_object_model(obj, SAMPLING)
-    a2, _ = build_object_model(obj, SAMPLING)
-    a3, _ = build_object_model(obj, OmegaConf.merge(SAMPLING, {"seed": 1}))
+    a1, _ = build_with_particles(obj, SAMPLING)
+    a2, _ = build_with_particles(obj, SAMPLING)
+    a3, _ = build_with_particles(obj, OmegaConf.merge(SAMPLING, {"seed": 1}))
     for k in ARRAYS:
         assert np.array_equal(a1[k].data, a2[k].data), k
     assert not np.array_equal(a1["surface_points"].data, a3["surface_points"].data)
@@ -297,11 +309,11 @@ def test_particles_come_from_the_content_and_seed_not_the_name(tmp_path):
     same mesh file under two paths too; another ``sampling.seed`` draws different ones."""
     small = OmegaConf.merge(SAMPLING, {"surface_points": 400, "particle_spacing": 0.006})
     ball = catalogue("rubber_ball")
-    a, _ = build_object_model(ball, small)
-    b, _ = build_object_model(OmegaConf.merge(ball, {"name": "sphere_b", "display_name": "Another ball"}), small)
+    a, _ = build_with_particles(ball, small)
+    b, _ = build_with_particles(OmegaConf.merge(ball, {"name": "sphere_b", "display_name": "Another ball"}), small)
     for k in ARRAYS:
         assert a[k].data.tobytes() == b[k].data.tobytes(), k
-    c, _ = build_object_model(ball, OmegaConf.merge(small, {"seed": 1}))
+    c, _ = build_with_particles(ball, OmegaConf.merge(small, {"seed": 1}))
     assert not np.array_equal(a["particle_positions"].data, c["particle_positions"].data)
     assert not np.array_equal(a["surface_points"].data, c["surface_points"].data)
     mesh = trimesh.creation.icosphere(subdivisions=3, radius=0.03)
@@ -309,7 +321,7 @@ def test_particles_come_from_the_content_and_seed_not_the_name(tmp_path):
     (tmp_path / "two").mkdir()
     mesh.export(tmp_path / "one" / "ball.stl")
     mesh.export(tmp_path / "two" / "other.stl")
-    built_mesh = [build_object_model(make_obj(name=name, geometry={"kind": "mesh", "path": str(path),
+    built_mesh = [build_with_particles(make_obj(name=name, geometry={"kind": "mesh", "path": str(path),
                                                                    "size": [0.06] * 3}, filled=True), small)[0]
                   for name, path in (("m1", tmp_path / "one" / "ball.stl"), ("m2", tmp_path / "two" / "other.stl"))]
     for k in ARRAYS:
@@ -321,7 +333,7 @@ def test_thin_wall_in_two_layers_at_the_thickness_gauss_points(built):
     +-t / (2 sqrt 3) along the normal, each particle with half the volume; the wall's volume and everything else
     the same."""
     one, attrs1, _ = built["rubber_ball"]
-    two, attrs2 = build_object_model(catalogue("rubber_ball"), OmegaConf.merge(SAMPLING, {"thin_wall_layers": 2}))
+    two, attrs2 = build_with_particles(catalogue("rubber_ball"), OmegaConf.merge(SAMPLING, {"thin_wall_layers": 2}))
     t = catalogue("rubber_ball").geometry.wall_thickness
     p1, n1 = one["particle_positions"].data.astype(float), one["particle_normals"].data.astype(float)
     p2, n2 = two["particle_positions"].data.astype(float), two["particle_normals"].data.astype(float)
@@ -345,7 +357,7 @@ def test_thin_wall_in_two_layers_at_the_thickness_gauss_points(built):
     z = np.array([off, -off])
     assert np.sum(0.5 * t * z ** 2) == pytest.approx(t ** 3 / 12)
     with pytest.raises(ObjectModelError, match="sampling.thin_wall_layers must be 1, 2 or 3, got 4"):
-        build_object_model(catalogue("rubber_ball"), OmegaConf.merge(SAMPLING, {"thin_wall_layers": 4}))
+        build_with_particles(catalogue("rubber_ball"), OmegaConf.merge(SAMPLING, {"thin_wall_layers": 4}))
 
 
 def test_thin_wall_in_three_layers_integrates_a_quadratic_strain_through_the_wall(built):
@@ -354,7 +366,7 @@ def test_thin_wall_in_three_layers_integrates_a_quadratic_strain_through_the_wal
     outer, inner and middle once; the wall's volume the same.  The rule integrates z^2 and z^4 exactly (a strain
     linear and quadratic through the wall: its bending and the grid's quadratic part), two points only z^2."""
     one, attrs1, _ = built["rubber_ball"]
-    three, attrs3 = build_object_model(catalogue("rubber_ball"), OmegaConf.merge(SAMPLING, {"thin_wall_layers": 3}))
+    three, attrs3 = build_with_particles(catalogue("rubber_ball"), OmegaConf.merge(SAMPLING, {"thin_wall_layers": 3}))
     t = catalogue("rubber_ball").geometry.wall_thickness
     p1, n1 = one["particle_positions"].data.astype(float), one["particle_normals"].data.astype(float)
     p3 = three["particle_positions"].data.astype(float)
@@ -384,7 +396,7 @@ def test_config_errors_are_one_line():
     ]
     for obj, text in cases:
         with pytest.raises(ObjectModelError, match=text) as exc:
-            build_object_model(obj, SAMPLING)
+            build_with_particles(obj, SAMPLING)
         assert "\n" not in str(exc.value)
 
 
@@ -463,7 +475,7 @@ def test_malformed_ply_errors_name_file_and_fix(tmp_path):
     # through the object model the same message surfaces as an ObjectModelError
     for fname, text in cases:
         with pytest.raises(ObjectModelError, match=text):
-            build_object_model(make_obj(geometry={"kind": "ply", "path": str(tmp_path / fname)}, filled=True), SAMPLING)
+            build_with_particles(make_obj(geometry={"kind": "ply", "path": str(tmp_path / fname)}, filled=True), SAMPLING)
 
 
 def test_ply_object_from_a_written_splat(tmp_path, built):
@@ -472,7 +484,7 @@ def test_ply_object_from_a_written_splat(tmp_path, built):
     path = write_gaussian_ply(tmp_path / "orange.ply", a["surface_points"], a["gaussian_scales"],
                               a["gaussian_rotations"], a["gaussian_opacities"], a["gaussian_colors"])
     obj = OmegaConf.merge(catalogue("orange"), {"geometry": {"kind": "ply", "path": str(path)}})
-    b_arrays, b = build_object_model(obj, SAMPLING)
+    b_arrays, b = build_with_particles(obj, SAMPLING)
     bb = {k: v.data for k, v in b_arrays.items()}
     # the same Gaussians, fitted into the configured bbox (uniform scale ~1: the samples' own bbox is a hair smaller)
     np.testing.assert_allclose(bb["surface_points"], a["surface_points"], atol=2e-4)
@@ -493,7 +505,7 @@ def test_mesh_icosphere_loads(tmp_path, ext):
     trimesh.creation.icosphere(subdivisions=4, radius=R).export(path)
     obj = make_obj(geometry={"kind": "mesh", "path": str(path), "size": [2 * R] * 3, "wall_thickness": 0.002},
                    interior="juice")
-    arrays, attrs = build_object_model(obj, SAMPLING)
+    arrays, attrs = build_with_particles(obj, SAMPLING)
     a = {k: v.data for k, v in arrays.items()}
     assert attrs["enclosed_volume"] == pytest.approx(4 / 3 * np.pi * R ** 3, rel=0.03)
     assert attrs["surface_area_total"] == pytest.approx(4 * np.pi * R ** 2, rel=0.02)
@@ -503,7 +515,7 @@ def test_mesh_icosphere_loads(tmp_path, ext):
     assert a["particle_volumes"].sum() == pytest.approx(4 / 3 * np.pi * (R ** 3 - (R - 0.002) ** 3), rel=0.02)
     assert np.linalg.norm(a["interior_positions"], axis=1).max() < R - 0.002
     # a solid fill from trimesh's voxelisation (no rtree / embree needed)
-    arrays, attrs = build_object_model(make_obj(geometry={"kind": "mesh", "path": str(path), "size": [2 * R] * 3},
+    arrays, attrs = build_with_particles(make_obj(geometry={"kind": "mesh", "path": str(path), "size": [2 * R] * 3},
                                                 filled=True), SAMPLING)
     assert arrays["particle_volumes"].data.sum() == pytest.approx(4 / 3 * np.pi * R ** 3, rel=0.03)
     assert attrs["n_particles"] == pytest.approx(4 / 3 * np.pi * R ** 3 / SAMPLING.particle_spacing ** 3, rel=0.1)
@@ -522,11 +534,11 @@ def test_mesh_errors_name_file_and_fix(tmp_path):
     ]
     for fname, text in cases:
         with pytest.raises(ObjectModelError, match=text) as exc:
-            build_object_model(make_obj(geometry={"kind": "mesh", "path": str(tmp_path / fname)}, filled=True), SAMPLING)
+            build_with_particles(make_obj(geometry={"kind": "mesh", "path": str(tmp_path / fname)}, filled=True), SAMPLING)
         assert fname in str(exc.value) and "\n" not in str(exc.value)
     # the closed box works, scaled uniformly into the configured bbox
     box.export(tmp_path / "box.stl")
-    arrays, attrs = build_object_model(
+    arrays, attrs = build_with_particles(
         make_obj(geometry={"kind": "mesh", "path": str(tmp_path / "box.stl"), "size": [0.1, 0.1, 0.1]}, filled=True),
         SAMPLING)
     assert np.allclose(np.subtract(attrs["bbox_max"], attrs["bbox_min"]), [0.1, 0.08, 0.06])
@@ -600,7 +612,7 @@ def test_self_intersecting_mesh_is_refused_with_the_file_and_the_fix(tmp_path):
     for name, mesh in (("overlap.obj", _two_overlapping_boxes()), ("folded.stl", _folded_sphere())):
         mesh.export(tmp_path / name)
         with pytest.raises(ObjectModelError) as exc:
-            build_object_model(make_obj(geometry={"kind": "mesh", "path": str(tmp_path / name)}, filled=True),
+            build_with_particles(make_obj(geometry={"kind": "mesh", "path": str(tmp_path / name)}, filled=True),
                                SAMPLING)
         msg = str(exc.value)
         assert msg.startswith(f"mesh {tmp_path / name} intersects itself (") and "boolean union" in msg
@@ -610,7 +622,7 @@ def test_self_intersecting_mesh_is_refused_with_the_file_and_the_fix(tmp_path):
 def test_a_user_file_keeps_its_size_or_states_the_rescale(tmp_path):
     """A mesh or splat is fitted into geometry.size: at the size given nothing is said, a rescale is one line with
     the factor, and a file of 1 km or 1 um is refused with the fix."""
-    from tasks.control.object_model import check_geometry_file
+    from tasks.control.sources.by_kind import check_geometry_file
 
     box = trimesh.creation.box(extents=[0.05, 0.04, 0.03])
     box.export(tmp_path / "box.stl")

@@ -42,14 +42,14 @@ def artifact_of(root: Path, obj: str, step: str) -> list[Path]:
 
 def test_rerun_is_all_cached_and_one_parameter_recomputes_only_downstream(prefect_server, tmp_path, compose_cfg):
     first = run_grid(compose_cfg, tmp_path, ["tomato", "clay"])
-    assert set(first.values()) == {"ran"} and len(first) == 2 * (len(STEPS) + 1)  # + material_oracle
+    assert set(first.values()) == {"ran"} and len(first) == 2 * (len(STEPS) + 2)  # + material_oracle, mpm_particles
     assert run_grid(compose_cfg, tmp_path, ["tomato", "clay"]) == {k: "cached" for k in first}
 
     # gamma (eq. 1) is read by force_coefficients: it and everything downstream reruns, for both objects
     changed = run_grid(compose_cfg, tmp_path, ["tomato", "clay"], ["control.force.gamma=2.0"])
     for obj in ("tomato", "clay"):
         assert [changed[(obj, s)] for s in STEPS] == ["cached"] * 3 + ["ran"] * (len(STEPS) - 3)
-        assert changed[(obj, "material_oracle")] == "cached"
+        assert changed[(obj, "material_oracle")] == changed[(obj, "mpm_particles")] == "cached"
 
     # a per-object change (the clay's session) reruns the clay's signal chain only
     per_object = run_grid(compose_cfg, tmp_path, ["tomato", "clay"], ["control.force.gamma=2.0", "catalog.clay.session=pulses"])
@@ -370,7 +370,7 @@ def test_a_fully_cached_run_starts_no_server_or_workers_and_still_finds_a_damage
     assert warm == {k: "cached" for k in first}
     assert re.search(r"^every step is cached \(15 artifacts checked in [\d.]+ s\): no Prefect server or task "
                      r"runner started, writing the report$", out, re.M), out
-    assert "[15/15] tomato llm_evaluation [full/physics]: cached" in out
+    assert "[16/16] tomato llm_evaluation [full/physics]: cached" in out
     assert step_warnings.take() == []
 
     [group] = artifact_of(tmp_path, "tomato", "deformation_metrics")

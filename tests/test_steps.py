@@ -15,6 +15,7 @@ from tasks.core.step import StepOutputError, StepSpec, WiringError, artifact_ste
 REPO = Path(__file__).resolve().parents[1]
 STEP_MODULES = {
     "object_model": "tasks.control.object_model",
+    "mpm_particles": "tasks.physics.mpm_particles",
     "squeeze_signals": "tasks.control.squeeze_signals",
     "signal_smoothing": "tasks.control.signal_smoothing",
     "force_coefficients": "tasks.control.force_coefficients",

@@ -409,7 +409,7 @@ def deformation_metrics(rollout: Mapping[str, np.ndarray], rollout_attrs: Mappin
 
     Inputs are the artifacts' arrays (mappings name -> numpy): ``rollout`` (mpm_rollout) with its attrs
     ``rollout_attrs``, ``field`` (dirichlet_field), ``forces`` (force_coefficients), ``contacts``
-    (contact_patches), ``frames`` (signal_smoothing), ``obj`` (object_model); ``params`` the ``metrics`` config
+    (contact_patches), ``frames`` (signal_smoothing), ``obj`` (mpm_particles); ``params`` the ``metrics`` config
     (:class:`conf.metrics_schema.MetricsConfig` values).
 
     Returns the per-frame arrays ``bdc_s_iou``, ``miou_iou``, ``volume_ratio``, ``nonrigid_displacement_rms``,
@@ -495,7 +495,7 @@ def deformation_metrics(rollout: Mapping[str, np.ndarray], rollout_attrs: Mappin
 
 @artifact_step("deformation_metrics",
                inputs=("mpm_rollout", "dirichlet_field", "force_coefficients", "contact_patches", "signal_smoothing",
-                       "object_model"),
+                       "mpm_particles"),
                reads=("metrics",),
                outputs=("bdc_s_iou", "miou_iou", "nonrigid_displacement_rms", "volume_ratio", "sensed_trajectory",
                         "reconstructed_trajectory"))
@@ -504,4 +504,4 @@ def deformation_metrics_step(inputs, params):
     r = inputs["mpm_rollout"]
     return deformation_metrics(r.arrays, r.attrs, inputs["dirichlet_field"].arrays,
                                inputs["force_coefficients"].arrays, inputs["contact_patches"].arrays,
-                               inputs["signal_smoothing"].arrays, inputs["object_model"].arrays, params["metrics"])
+                               inputs["signal_smoothing"].arrays, inputs["mpm_particles"].arrays, params["metrics"])

@@ -1,7 +1,7 @@
 """Can the MPM grid resolve an object's wall?  A pure check of wall thickness against the grid spacing.
 
 A hollow object whose wall is thinner than the grid spacing ``dx`` is sampled on the wall's mid-surface, the
-particles carrying area x thickness of volume (:mod:`tasks.control.object_model`), so its mass and membrane stiffness
+particles carrying area x thickness of volume (:mod:`tasks.physics.particle_fill`), so its mass and membrane stiffness
 E t are physical: by default in two layers at the thickness's Gauss points, which in plane stress
 (``mpm.thin_walls: membrane``) carry its bending for the curvatures the grid's field represents (over half a cell
 thick, three layers, ``sampling.thin_wall_layers: 3``, which the finding then advises: two leave the grid's strain

@@ -28,7 +28,8 @@ Case kinds and their production path
     * ``squeeze``: the real pipeline functions (:func:`tasks.control.squeeze_signals.grasp_targets` -> crafted session ->
       :func:`~tasks.control.signal_smoothing.smooth_signals` -> :func:`~tasks.control.force_coefficients.force_coefficients` ->
       :func:`~tasks.control.contact_patches.contact_patches` -> :func:`~tasks.control.dirichlet_field.dirichlet_field` ->
-      :func:`~tasks.physics.mpm_rollout.mpm_rollout`) on a real object (:func:`~tasks.control.object_model.build_object_model`)
+      :func:`~tasks.physics.mpm_rollout.mpm_rollout`) on a real object (:func:`~tasks.control.object_model.build_object_model`,
+      :func:`~tasks.physics.particle_fill.build_mpm_particles`)
       with the production config groups, called directly (no Prefect).
     * ``push_out`` / ``nan_state`` / ``nan_input``: the compression column driven into the domain boundary, or
       corrupted by a NaN in its state / in its boundary input, to exercise the guards.
@@ -603,12 +604,14 @@ def run_squeeze(case: Case, ctx: SuiteContext, progress: _Progress | None = None
     from tasks.control.signal_smoothing import smooth_signals
     from tasks.physics.material_oracle import material_oracle, materials_to_dict
     from tasks.physics.mpm_rollout import mpm_rollout
+    from tasks.physics.particle_fill import build_mpm_particles
 
     p = case.params
     obj = dict(ctx.catalog[p["object"]])
-    o_arr, o_attrs = build_object_model(_Attr(obj), _Attr(ctx.sampling),
-                                        grid_spacing(ctx.mpm, float(ctx.sampling["particle_spacing"])))
-    o = _plain_arrays(o_arr)
+    o_arr, o_attrs = build_object_model(_Attr(obj), _Attr(ctx.sampling))
+    p_arr, p_attrs = build_mpm_particles(_Attr(obj), _Attr(ctx.sampling),
+                                         grid_spacing(ctx.mpm, float(ctx.sampling["particle_spacing"])))
+    o, o_attrs = _plain_arrays({**o_arr, **p_arr}), {**o_attrs, **p_attrs}
     half = 0.5 * (np.asarray(o_attrs["bbox_max"]) - np.asarray(o_attrs["bbox_min"]))
     sig = ctx.signal
     duration = float(p.get("duration", 0.9))
@@ -769,11 +772,13 @@ def _detached_fraction(gauss: np.ndarray, parts: np.ndarray, dx: float, every: i
 def run_thin_wall(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
     """:func:`tasks.physics.wall_resolution.thin_wall_finding` on the real object model with the production dx."""
     from tasks.control.object_model import build_object_model
+    from tasks.physics.particle_fill import build_mpm_particles
 
     name = case.params["object"]
     obj = ctx.catalog[name]
     dx = grid_spacing(ctx.mpm, float(ctx.sampling["particle_spacing"]))
-    _, attrs = build_object_model(_Attr(obj), _Attr(ctx.sampling), dx)
+    attrs = {**build_object_model(_Attr(obj), _Attr(ctx.sampling))[1],
+             **build_mpm_particles(_Attr(obj), _Attr(ctx.sampling), dx)[1]}
     mat = _material(f"oracle:{name}", ctx)
     fnd = thin_wall_finding(attrs, dx, mat.poisson_ratio, mat.youngs_modulus, name=name,
                             membrane_max_thickness=float(ctx.mpm["membrane_max_thickness"]))
