@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--artifacts", default="artifacts", help="artifact root (the cache the runs share)")
     ap.add_argument("--out", default="reports/fingers", help="folder of finger_study.md")
     args = ap.parse_args(argv)
-    from tasks.physics.mpm.solver import SimulationError
+    from tasks.physics.mpm import SimulationError
 
     lines = [f"# Finger modes on Table 2 ({datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, Warp CPU)", "",
              "Full variant, default grid config (`conf/evaluate.yaml`) plus the mode's overrides: "

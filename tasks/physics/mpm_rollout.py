@@ -91,22 +91,21 @@ from tasks.physics.free_flight import (
     touches_table,
 )
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
-from tasks.physics.mpm.materials import MEMBRANE_MODELS, Material, material_from_dict
-from tasks.physics.mpm.solver import (
+from tasks.physics.mpm import (
     Collider,
     DirichletPoints,
     ForcePatch,
-    GravityPreload,
     MPMSolver,
     ParticlePins,
-    QuasiStaticLoad,
-    contact_reach,
     deform_covariances,
     material_mass_scales,
-    membrane_fibres_checked,
     polar_rotation,
     rotate_quaternions,
 )
+from tasks.physics.mpm.mass_scaling import QuasiStaticLoad
+from tasks.physics.mpm.materials import MEMBRANE_MODELS, Material, material_from_dict
+from tasks.physics.mpm.solver import GravityPreload
+from tasks.physics.mpm.thin_walls import contact_reach, membrane_fibres_checked
 from tasks.physics.oracle.convert import materials_from_dict, mpm_material_kwargs
 from tasks.physics.oracle.schema import ObjectMaterials
 from tasks.physics.regions import finger_regions, region_weights, squeeze_strain
