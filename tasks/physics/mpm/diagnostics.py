@@ -1,6 +1,15 @@
 """Diagnostics of a run: the frame statistics (:class:`FrameStats`), the guards that stop a run leaving its valid
 range (error flags raised by the kernels, the J range, the energy guard, :class:`EnergyBudget`) with one
 :class:`SimulationError` line naming where and when, and the plastic work dissipated so far.
+
+Energy guard (``config.energy_guard_tolerance``): after every frame the total energy E = kinetic + internal +
+gravitational (-m_phys g . x) is compared with its value at the reference frame (construction, or the end of the
+first frame after a state setter) plus the work the boundary put in since (per frame, the positive part of the
+work of the Dirichlet nodes, impulse . new velocity = m (v_bc - v*) . v_bc per node and substep, and of the force
+patches, impulse . node velocity).  Walls, floor, friction, plasticity and viscosity only remove energy, and
+gravity only exchanges it with the potential term, so growth beyond tolerance x energy scale (see
+:class:`EnergyBudget`) is a numerical instability: :class:`SimulationError` naming object, frame, time and the
+materials whose energy grew.
 """
 from __future__ import annotations
 
@@ -61,7 +70,7 @@ class FrameStats:
     quasi_static_checked: bool = False  # the quasi-static check applied to this frame (see MPMSolver)
     ke_ie_contact: float = math.nan  # checked frames: sum KE / sum (IE + plastic work) of the measured materials
     energy_growth: float = 0.0  # energy guard measure: unexplained energy growth / energy scale (EnergyBudget)
-    local_damping: float = 0.0  # local damping coefficient of the measured materials during the frame (class doc)
+    local_damping: float = 0.0  # local damping coefficient of the measured materials during the frame (:mod:`tasks.physics.mpm.mass_scaling`)
     plastic_dissipation: float = 0.0  # J, plastic work the measured materials dissipated so far (plastic_dissipation)
 
     def as_dict(self) -> dict:
@@ -74,7 +83,7 @@ class FrameStats:
 
 @dataclass
 class EnergyBudget:
-    """Energy guard bookkeeping from a reference frame on (J; see :class:`MPMSolver`).
+    """Energy guard bookkeeping from a reference frame on (J; see the module doc).
 
     The unexplained growth is E - E_ref - W_in: E the total energy (kinetic + internal + gravitational -m_phys g . x,
     so material falling under gravity, released juice included, converts potential into kinetic energy and gains
@@ -213,7 +222,7 @@ def energy_state_changed(solver: MPMSolver) -> None:
 
 
 def check_energy(solver: MPMSolver, st: FrameStats) -> None:
-    """Energy guard (see the class doc and :class:`EnergyBudget`): raise when the energy grew beyond the
+    """Energy guard (see the module doc and :class:`EnergyBudget`): raise when the energy grew beyond the
     reference energy plus the boundary work put in by more than tolerance x energy scale."""
     rel = float(solver.cfg.energy_guard_tolerance)
     per_split = solver.mat_energy.numpy()

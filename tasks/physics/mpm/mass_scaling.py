@@ -1,7 +1,64 @@
-"""Mass (time) scaling and its quasi-static check (class doc of :class:`~tasks.physics.mpm.solver.MPMSolver`): the density
-factor each material gets (:func:`mass_scale_for`, :func:`material_mass_scales`, bounded by the load's rise time,
+"""Mass (time) scaling and its quasi-static check (below): the density factor each material gets (:func:`mass_scale_for`, :func:`material_mass_scales`, bounded by the load's rise time,
 :class:`QuasiStaticLoad`), the local damping of quasi-static frames, and the kinetic/internal energy ratio of
 the scaled materials judged per contact (:func:`close_quasi_static_contact`).
+
+Mass (time) scaling (``config.mass_scaling``; s from :func:`mass_scale_for`, fixed once: at construction, or for
+``global``/``selective`` at the first :meth:`~tasks.physics.mpm.solver.MPMSolver.step_frame`): the densities of the scaled materials (all of them by
+s, or under ``selective`` those with ``Material.is_mass_scaled`` each by its own factor <= s, see
+:func:`material_mass_scales`; per material in ``material_mass_scale``) are multiplied, while every particle's
+weight stays physical, m_phys g: under a uniform scale the grid adds g / s (``self.gravity``, m/s^2) to every
+node's velocity; under mixed scales each particle's P2G adds the impulse dt m_phys g, so a node gains dt g sum_p
+w_ip m_phys,p divided by its (scaled) mass: a scaled solid feels g / s exactly as under uniform scaling and an
+unscaled blob falls at g.  Weights and every quasi-static state under gravity and boundary loads are unchanged,
+while a scaled material's wave speed, hence the stable dt it needs, scales by 1/sqrt(s) and sqrt(s); the stable
+step is the smallest over the materials present with their own scales.  For elastic materials driven only by
+gravity and static boundaries the uniformly scaled motion is exactly the unscaled one slowed down by sqrt(s):
+x_s(t) = x(t / sqrt(s)). Inertia-driven motion of a scaled material (impacts, rebounds, free flight) is slowed
+by that factor, so a boundary moving at a prescribed speed meets a material that responds sqrt(s) times slower.
+Quasi-static check: mass scaling assumes that the scaled material deforms quasi-statically, so its measure is
+the kinetic/internal energy ratio of the materials whose inertia is artificial (:func:`quasi_static_materials`:
+the mass-scaled ones declared quasi-static; ``FrameStats.ke_ie_ratio`` per frame), judged as Abaqus/Explicit
+judges a quasi-static analysis: "the kinetic energy of the deforming material should not exceed a small
+fraction (typically 5 % to 10 %) of its internal energy throughout the majority of the process" (Getting
+Started with Abaqus, "Quasi-static analysis with Abaqus/Explicit", energy balance; the limit is
+``config.quasi_static_ke_ie_max``), with the internal energy as Abaqus counts it, ALLIE: the stored strain energy
+plus the plastic work dissipated so far (:func:`~tasks.physics.mpm.diagnostics.plastic_dissipation`; before 2026-12-04 the strain energy
+alone, which a yielding wall keeps small whatever it has absorbed: the default can warned at 0.47, 0.015 with
+its plastic work).  Exclusions, each for a physical reason: released material and fluids keep their physical mass
+(their motion is real dynamics, not a mass-scaling artefact); frames without boundary load (the start-up sag of a
+body under its suddenly applied weight, KE/IE ~ 1, and free flight are dynamic in any case, and nothing distorts a
+deformation that no finger imposes); the first ``QUASI_STATIC_ONSET_FRAMES`` loaded frames of every contact (the
+material under a finger is brought to its speed while its strain energy is still that of its weight); frames the
+caller declares dynamic (``step_frame(quasi_static=False)``: after a rupture the release is dynamic by design).  The
+remaining frames of one contact (``FrameStats.quasi_static_checked``) form the process, and the measure is its ratio
+of sums, sum KE / sum (IE + plastic work) over the contact: each frame counts with its energy, so a deformation that
+inertia distorts at full load shows, while the first frames of a load, where IE (~ load^2) is a few thousandths of
+its peak, weigh what they deform (the default paper cup pushed by a force: 1.28 in its first checked frame at 3 % of
+the load, 0.019 over the contact).  ``FrameStats.ke_ie_contact`` is that ratio
+over the contact so far; the contact is judged when it ends (:func:`close_quasi_static_contact`: the fingers
+let go, a rupture, or the caller ends the run), listed in ``quasi_static_contacts`` with the share of its KE in
+the body's sway on its base (``sway_ke_share``: the horizontal motion of the measured materials' centre of mass
+and their rigid rotation about it, :func:`kinetic_energy_split`; a body pressed straight down has ~none), and
+above the limit warned about once, in one line naming object, frames, times, that share and knobs
+(``FrameStats.quasi_static_ok`` False in the frame that closed it).  A body rocking on the table under a
+force-driven push (the default ball and duck: 85-99 % of their KE in the lowest, sway mode) is what the check is
+for: its lowest mode is slower than the load (see the solver's ``load``).  The force-driven plush toy's sway under its
+fingers' unbalanced net push (87 % of its KE; ``simulation.force_balance=none``) is real dynamics: the same
+contact reads KE/IE 0.18 unscaled (README, known limits), so it warns at every mass scale > 1; the push
+balanced in force and moment (the default) reads 0.037.
+
+Quasi-static damping (``config.quasi_static_damping`` = a, 0 = off): mass scaling slows a scaled body's
+vibration modes by sqrt(s) to periods of a few output frames, so a body pushed by a force (or loaded next to a
+finger) rings instead of following its load.  As in explicit quasi-static analyses by dynamic relaxation (FLAC's
+and PFC's local damping, Cundall 1987), the materials the quasi-static check measures get local non-viscous
+damping (:func:`tasks.physics.mpm.kernels.transfer.local_damping`: the net force on a particle becomes F - a |F| sign(v),
+per component) in every frame the caller declares quasi-static (``step_frame(quasi_static=True)``) of a
+mass-scaled run.  It removes a fixed fraction of the vibration energy per cycle at any frequency and vanishes at
+equilibrium (a block pushed by a constant force settles on its static compression).  It is not a cure for a
+load that rises as fast as the scaled body's slowest mode (measured in the squeezes: the response then lags, see
+``conf/mpm/default.yaml``): there only less mass scaling helps.  Released material, fluids and every frame after
+a rupture (``quasi_static=False``) keep their inertia undamped; an unscaled run is never damped.
+``FrameStats.local_damping`` is the coefficient a the measured materials had in the frame.
 """
 from __future__ import annotations
 
@@ -160,7 +217,7 @@ def resolve_auto_mass_scale(solver: MPMSolver, frame_dt: float) -> None:
 
 
 def set_damping(solver: MPMSolver, quasi_static: bool) -> None:
-    """The frame's local damping coefficients (class doc, quasi-static damping): ``quasi_static_damping`` on the
+    """The frame's local damping coefficients (module doc, quasi-static damping): ``quasi_static_damping`` on the
     measured materials of a mass-scaled run in a quasi-static frame, else none."""
     a = float(solver.cfg.quasi_static_damping)
     on = quasi_static and solver.mass_scale > 1.0 and a > 0.0
@@ -174,7 +231,7 @@ def set_damping(solver: MPMSolver, quasi_static: bool) -> None:
 
 
 def close_quasi_static_contact(solver: MPMSolver) -> bool:
-    """Judge the open contact of the quasi-static check (class doc): the solver calls it in the first frame after
+    """Judge the open contact of the quasi-static check (module doc): the solver calls it in the first frame after
     a contact (the fingers let go, or a rupture), the caller when it ends the run while a finger still loads the
     body.  The contact's KE/IE (sum KE / sum IE of the measured materials over its checked frames) is appended
     to ``quasi_static_contacts`` (first_frame, last_frame, ke_ie) and, above ``config.quasi_static_ke_ie_max``,

@@ -59,13 +59,12 @@ from .diagnostics import (
     energy_baseline,
     energy_state_changed,
     frame_stats,
-    reset_flags,
 )
 from .inputs import BoundarySpec, Collider, DirichletNodes, ForcePatch, ParticlePins
 from .kernels.contact import k_collider_advance, k_pin_advance
-from .kernels.structs import N_FLAGS, Colliders, DirichletGrid, GridInfo, MaterialTable, Particles
+from .kernels.structs import MaterialTable
 from .kernels.transfer import k_g2p, k_p2g
-from .kernels.walls import k_plane_stress_F, k_wall_fibres
+from .kernels.walls import k_plane_stress_F
 from .launch import (
     launch_fused,
     launch_grid,
@@ -93,7 +92,6 @@ from .materials import (
     COL_DENSITY,
     COL_PHYSICAL_DENSITY,
     N_COLS,
-    PLASTIC_MODELS,
     Material,
 )
 from .model import (
@@ -104,13 +102,11 @@ from .model import (
     update_fields,
     upload_materials,
 )
+from .state import allocate_buffers, allocate_grid, allocate_particles, place_grid
 from .thin_walls import (
     check_membranes,
-    contact_reach,
     convert_membrane_normals,
-    membrane_fibres_checked,
     membrane_normals_checked,
-    wall_offsets,
 )
 from .tracers import TRACER_ANCHORS, bind_tracers, place_tracers, rebind_tracers_to_preload
 
@@ -193,72 +189,9 @@ class MPMSolver:
             node plane behind the strip's root, makes of the closed form (1.04x and 1.08x).  A fibre whose outer and
             inner particles come to differ in material is left alone.
 
-    Mass (time) scaling (``config.mass_scaling``; s from :func:`mass_scale_for`, fixed once: at construction, or for
-    ``global``/``selective`` at the first :meth:`step_frame`): the densities of the scaled materials (all of them by
-    s, or under ``selective`` those with ``Material.is_mass_scaled`` each by its own factor <= s, see
-    :func:`material_mass_scales`; per material in ``material_mass_scale``) are multiplied, while every particle's
-    weight stays physical, m_phys g: under a uniform scale the grid adds g / s (``self.gravity``, m/s^2) to every
-    node's velocity; under mixed scales each particle's P2G adds the impulse dt m_phys g, so a node gains dt g sum_p
-    w_ip m_phys,p divided by its (scaled) mass: a scaled solid feels g / s exactly as under uniform scaling and an
-    unscaled blob falls at g.  Weights and every quasi-static state under gravity and boundary loads are unchanged,
-    while a scaled material's wave speed, hence the stable dt it needs, scales by 1/sqrt(s) and sqrt(s); the stable
-    step is the smallest over the materials present with their own scales.  For elastic materials driven only by
-    gravity and static boundaries the uniformly scaled motion is exactly the unscaled one slowed down by sqrt(s):
-    x_s(t) = x(t / sqrt(s)). Inertia-driven motion of a scaled material (impacts, rebounds, free flight) is slowed
-    by that factor, so a boundary moving at a prescribed speed meets a material that responds sqrt(s) times slower.
-    Quasi-static check: mass scaling assumes that the scaled material deforms quasi-statically, so its measure is
-    the kinetic/internal energy ratio of the materials whose inertia is artificial (:func:`~tasks.physics.mpm.mass_scaling.quasi_static_materials`:
-    the mass-scaled ones declared quasi-static; ``FrameStats.ke_ie_ratio`` per frame), judged as Abaqus/Explicit
-    judges a quasi-static analysis: "the kinetic energy of the deforming material should not exceed a small
-    fraction (typically 5 % to 10 %) of its internal energy throughout the majority of the process" (Getting
-    Started with Abaqus, "Quasi-static analysis with Abaqus/Explicit", energy balance; the limit is
-    ``config.quasi_static_ke_ie_max``), with the internal energy as Abaqus counts it, ALLIE: the stored strain energy
-    plus the plastic work dissipated so far (:func:`plastic_dissipation`; before 2026-12-04 the strain energy
-    alone, which a yielding wall keeps small whatever it has absorbed: the default can warned at 0.47, 0.015 with
-    its plastic work).  Exclusions, each for a physical reason: released material and fluids keep their physical mass
-    (their motion is real dynamics, not a mass-scaling artefact); frames without boundary load (the start-up sag of a
-    body under its suddenly applied weight, KE/IE ~ 1, and free flight are dynamic in any case, and nothing distorts a
-    deformation that no finger imposes); the first ``QUASI_STATIC_ONSET_FRAMES`` loaded frames of every contact (the
-    material under a finger is brought to its speed while its strain energy is still that of its weight); frames the
-    caller declares dynamic (``step_frame(quasi_static=False)``: after a rupture the release is dynamic by design).  The
-    remaining frames of one contact (``FrameStats.quasi_static_checked``) form the process, and the measure is its ratio
-    of sums, sum KE / sum (IE + plastic work) over the contact: each frame counts with its energy, so a deformation that
-    inertia distorts at full load shows, while the first frames of a load, where IE (~ load^2) is a few thousandths of
-    its peak, weigh what they deform (the default paper cup pushed by a force: 1.28 in its first checked frame at 3 % of
-    the load, 0.019 over the contact).  ``FrameStats.ke_ie_contact`` is that ratio
-    over the contact so far; the contact is judged when it ends (:meth:`close_quasi_static_contact`: the fingers
-    let go, a rupture, or the caller ends the run), listed in ``quasi_static_contacts`` with the share of its KE in
-    the body's sway on its base (``sway_ke_share``: the horizontal motion of the measured materials' centre of mass
-    and their rigid rotation about it, :func:`kinetic_energy_split`; a body pressed straight down has ~none), and
-    above the limit warned about once, in one line naming object, frames, times, that share and knobs
-    (``FrameStats.quasi_static_ok`` False in the frame that closed it).  A body rocking on the table under a
-    force-driven push (the default ball and duck: 85-99 % of their KE in the lowest, sway mode) is what the check is
-    for: its lowest mode is slower than the load (see ``load``).  The force-driven plush toy's sway under its
-    fingers' unbalanced net push (87 % of its KE; ``simulation.force_balance=none``) is real dynamics: the same
-    contact reads KE/IE 0.18 unscaled (README, known limits), so it warns at every mass scale > 1; the push
-    balanced in force and moment (the default) reads 0.037.
-
-    Quasi-static damping (``config.quasi_static_damping`` = a, 0 = off): mass scaling slows a scaled body's
-    vibration modes by sqrt(s) to periods of a few output frames, so a body pushed by a force (or loaded next to a
-    finger) rings instead of following its load.  As in explicit quasi-static analyses by dynamic relaxation (FLAC's
-    and PFC's local damping, Cundall 1987), the materials the quasi-static check measures get local non-viscous
-    damping (:func:`tasks.physics.mpm.kernels.transfer.local_damping`: the net force on a particle becomes F - a |F| sign(v),
-    per component) in every frame the caller declares quasi-static (``step_frame(quasi_static=True)``) of a
-    mass-scaled run.  It removes a fixed fraction of the vibration energy per cycle at any frequency and vanishes at
-    equilibrium (a block pushed by a constant force settles on its static compression).  It is not a cure for a
-    load that rises as fast as the scaled body's slowest mode (measured in the squeezes: the response then lags, see
-    ``conf/mpm/default.yaml``): there only less mass scaling helps.  Released material, fluids and every frame after
-    a rupture (``quasi_static=False``) keep their inertia undamped; an unscaled run is never damped.
-    ``FrameStats.local_damping`` is the coefficient a the measured materials had in the frame.
-
-    Energy guard (``config.energy_guard_tolerance``): after every frame the total energy E = kinetic + internal +
-    gravitational (-m_phys g . x) is compared with its value at the reference frame (construction, or the end of the
-    first frame after a state setter) plus the work the boundary put in since (per frame, the positive part of the
-    work of the Dirichlet nodes, impulse . new velocity = m (v_bc - v*) . v_bc per node and substep, and of the force
-    patches, impulse . node velocity).  Walls, floor, friction, plasticity and viscosity only remove energy, and
-    gravity only exchanges it with the potential term, so growth beyond tolerance x energy scale (see
-    :class:`EnergyBudget`) is a numerical instability: :class:`SimulationError` naming object, frame, time and the
-    materials whose energy grew.
+    Mass (time) scaling, its quasi-static check and the quasi-static damping (``config.mass_scaling``,
+    ``quasi_static_ke_ie_max``, ``quasi_static_damping``): :mod:`tasks.physics.mpm.mass_scaling`.  The energy guard
+    (``config.energy_guard_tolerance``) and the other guards: :mod:`tasks.physics.mpm.diagnostics`.
     """
 
     def __init__(
@@ -309,7 +242,7 @@ class MPMSolver:
         self._warned_quasi_static = False
         self._loaded_frames = 0  # consecutive frames in which the boundary loaded the material (quasi-static check)
         self._contact: Optional[dict] = None  # the open contact of the quasi-static check: its frames, sums of KE, IE (J)
-        self.quasi_static_contacts: list[dict] = []  # judged contacts: first and last checked frame, KE/IE (class doc)
+        self.quasi_static_contacts: list[dict] = []  # judged contacts: first and last checked frame, KE/IE (mass_scaling)
         self._damping = np.zeros(len(self.materials))  # local damping coefficient per material (quasi-static damping)
         self._preload_damping = 0.0  # local damping of every material while the body settles (preload_gravity)
         self._tracer_F0_inv: Optional[np.ndarray] = None  # (T, 3, 3) the tracers' F after a preload, inverted
@@ -321,53 +254,13 @@ class MPMSolver:
         # ---------------- grid geometry
         cfg = self.cfg
         tr = None if tracers is None else np.asarray(tracers, np.float32).reshape(-1, 3)
-        pts = x if tr is None or len(tr) == 0 else np.concatenate([x, tr], axis=0)
-        bb_lo, bb_hi = pts.min(axis=0).astype(np.float64), pts.max(axis=0).astype(np.float64)
-        extent = float(np.max(bb_hi - bb_lo))
-        if cfg.dx is not None:
-            dx = float(cfg.dx)
-        else:
-            dx = max(extent, 1e-6) / cfg.cells_across
-        self.floor_height: Optional[float] = None
-        if cfg.floor:
-            # default: the lowest particle (not tracer) rests on the floor: its centre (grid contact) or, with surface
-            # contact, its surface (centre minus half its spacing, see Collider)
-            low = x[:, 2] - (0.5 * np.cbrt(vol) if cfg.contact == "surface" else 0.0)
-            self.floor_height = float(low.min() if cfg.floor_height is None else cfg.floor_height)
-        if cfg.domain_lo is not None:
-            box_lo = np.asarray(cfg.domain_lo, np.float64)
-            box_hi = np.asarray(cfg.domain_hi, np.float64)
-        else:
-            box_lo = bb_lo - cfg.margin_cells * dx
-            box_hi = bb_hi + cfg.margin_cells * dx
-            if self.floor_height is not None:
-                box_lo[2] = min(self.floor_height, bb_lo[2])
-        pad = cfg.padding
-        dims = np.ceil((box_hi - box_lo) / dx - 1e-9).astype(int) + 2 * pad + 1
-        lo = box_lo - pad * dx
-        self.dx = dx
-        self.lo = lo
-        self.dims = tuple(int(d) for d in dims)
-        self.gi = GridInfo()
-        self.gi.lo = wp.vec3(*lo.astype(np.float32))
-        self.gi.dx = float(dx)
-        self.gi.inv_dx = float(1.0 / dx)
-        self.gi.safe_lo = wp.vec3(1.0, 1.0, 1.0)
-        self.gi.safe_hi = wp.vec3(*(np.asarray(self.dims, np.float32) - 2.0))
-        g0 = (x.astype(np.float64) - lo) / dx
-        outside = np.any((g0 < pad - 0.5) | (g0 > np.asarray(self.dims) - pad - 0.5), axis=1)
-        if np.any(outside):
-            raise SimulationError(
-                f"{int(outside.sum())} particles start inside the padding layer / outside the domain box "
-                f"[{box_lo.round(4).tolist()}, {box_hi.round(4).tolist()}]: enlarge domain_lo/domain_hi"
-            )
-        self.floor_g = 0.0 if self.floor_height is None else float((self.floor_height - lo[2]) / dx)
+        place_grid(self, x, vol, tr)
 
         # ---------------- scaling and material table
         self.stiffness_scale = float(cfg.stiffness_scaling)
         # global / selective: fixed by the first step_frame's duration
         self._mass_scale_pending = cfg.mass_scaling in ("global", "selective")
-        self.mass_scale = 1.0 if self._mass_scale_pending else mass_scale_for(present_materials(self), dx, None, cfg)
+        self.mass_scale = 1.0 if self._mass_scale_pending else mass_scale_for(present_materials(self), self.dx, None, cfg)
         self.material_mass_scale = np.full(len(self.materials), self.mass_scale)
         d = self.device
         self.mat_model = wp.zeros(len(self.materials), dtype=wp.int32, device=d)
@@ -379,52 +272,9 @@ class MPMSolver:
         self.mat_table.field = self.mat_field
         upload_materials(self)
 
-        # ---------------- particle state (allocate only what the present models need)
-        self.x = wp.array(x, dtype=wp.vec3, device=d)
-        self.x_carry = wp.zeros(n, dtype=wp.vec3, device=d)  # the advection's round-off (kernels.round_off)
-        self.v = wp.array(v, dtype=wp.vec3, device=d)
-        self.C = wp.zeros(n, dtype=wp.mat33, device=d)
-        self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33, device=d)
-        self.F_carry = wp.zeros(n, dtype=wp.mat33, device=d)  # F_E's update's round-off (kernels.round_off)
-        self.has_corotated = FIXED_COROTATED in codes_present
-        self.has_plastic = any(m.code in PLASTIC_MODELS for m in self.materials)  # also one assigned mid-run
-        qn = n if self.has_corotated or self.has_plastic else 1  # rotation / eigenbasis warm starts
-        self.q = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (qn, 1)), dtype=wp.quat, device=d)
-        self.alpha = wp.zeros(n if self.has_plastic else 1, dtype=float, device=d)
-        self.vol = wp.array(vol, dtype=float, device=d)
-        self.mat_id = wp.array(mid, dtype=wp.int32, device=d)
-        self.n_membrane = int(np.count_nonzero(self._membrane_rows))
-        self.normal = wp.array(normals if self.n_membrane else np.zeros((1, 3), np.float32), dtype=wp.vec3, device=d)
-        self.particles = Particles()
-        fibres = membrane_fibres_checked(membrane_fibres, self._membrane_rows, x)
-        self.reach = wp.array(contact_reach(vol, fibres), dtype=float, device=d)
-        shared = fibres is not None and cfg.wall_stencil == "shared"
-        self.wall_offset = wp.array(wall_offsets(x, normals, fibres) if shared else np.zeros(1, np.float32),
-                                    dtype=float, device=d)
-        for name in ("x", "v", "C", "F", "q", "alpha", "vol", "mat_id", "normal", "reach", "x_carry", "F_carry",
-                     "wall_offset"):
-            setattr(self.particles, name, getattr(self, name))
-        fibres = fibres if cfg.wall_fibres else None
-        self.n_fibres = 0 if fibres is None else len(fibres.rest)
-        self._fibre_arrays = [] if fibres is None else [  # first, second, rest (a middle layer moves with the grid)
-            wp.array(f, device=d) for f in (fibres.first, fibres.second, fibres.rest)]
-        self._fibres = None if fibres is None else wp.launch(
-            k_wall_fibres, dim=self.n_fibres, device=d, record_cmd=True,
-            inputs=[self.x, self.vol, self.mat_id, *self._fibre_arrays])
-
-        # ---------------- grid (two buffers: the fused G2P/P2G reads one and fills the other)
-        self.grid_a = wp.zeros(self.dims, dtype=wp.vec4, device=d)
-        self.grid_b = wp.zeros(self.dims, dtype=wp.vec4, device=d)
-        self._bc_alloc = False
-        dummy3 = wp.zeros((1, 1, 1), dtype=wp.vec4, device=d)
-        # the released field's grid buffer paired with each body buffer (a one-node placeholder while unused)
-        self._field2 = {id(self.grid_a): dummy3, id(self.grid_b): dummy3}
-        self.two_fields = False
-        self.field_cohesion = 0.0
-        update_fields(self)
-        self.bc_grid = DirichletGrid()
-        self.bc_grid.target = self.bc_grid.reaction = dummy3
-        self.bc_grid.proj = wp.zeros((1, 1, 1), dtype=wp.mat33, device=d)
+        # ---------------- particle state and grid buffers
+        allocate_particles(self, x, v, vol, mid, normals, membrane_fibres, codes_present)
+        allocate_grid(self)
 
         # ---------------- tracers
         self.n_tracers = 0 if tr is None else len(tr)
@@ -433,27 +283,8 @@ class MPMSolver:
                            device=d)
         bind_tracers(self, x, vol, tr, tracer_anchors)
 
-        # ---------------- small buffers
-        self.flags = wp.zeros(N_FLAGS, dtype=wp.int32, device=d)
-        reset_flags(self)
-        self.gstats = wp.zeros(1, dtype=float, device=d)
-        big = 2**30
-        self.bbox_init = wp.array(np.array([big, big, big, -big, -big, -big], np.int32), dtype=wp.int32, device=d)
-        self.bbox = wp.zeros(6, dtype=wp.int32, device=d)
-        self._last_box: Optional[tuple[np.ndarray, np.ndarray]] = None
-        self.all_corotated = codes_present == {FIXED_COROTATED}
-        # CPU: host views of the small per-substep buffers (zero-copy); CUDA: device ops + copies
-        self._cpu = wp.get_device(d).is_cpu
-        self._gstats_np = self.gstats.numpy() if self._cpu else None
-        self._bbox_np = self.bbox.numpy() if self._cpu else None
-        self._cmds: Optional[dict] = None
-        self.sums = wp.zeros(6, dtype=wp.float64, device=d)
-        self.ext = wp.zeros(3, dtype=float, device=d)
-        self.ext_init = wp.array(np.array([np.inf, -np.inf, 0.0], np.float32), dtype=float, device=d)
-        self.mat_energy = wp.zeros((len(self.materials), 3), dtype=wp.float64, device=d)
-        self.boundary_work = wp.zeros(1, dtype=wp.float64, device=d)  # J, this frame (energy guard)
-        self.col = Colliders()  # surface-contact colliders (count 0: none), see _upload_colliders
-        self._col_version = 0  # bumped when self.col changes (the recorded launches re-read it)
+        # ---------------- small buffers, colliders, pins, fingers and threads
+        allocate_buffers(self, codes_present)
         set_colliders(self, [])
         set_pins(self, None)
         alloc_finger_arrays(self, self.n_fingers)
