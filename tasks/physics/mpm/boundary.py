@@ -229,7 +229,7 @@ def set_pins(solver: MPMSolver, pins: Optional[ParticlePins], frame_dt: float = 
     if not (np.isfinite(target).all() and np.isfinite(normal).all() and (length > 0).all()):
         raise ValueError(f"ParticlePins at frame {solver.frame}: NaN/inf targets or zero normals")
     normal = normal / length[:, None]
-    start = solver.surface_points(idx, normal, arm)
+    start = surface_points(solver, idx, normal, arm)
     velocity = (target - start) / frame_dt
     slot = np.full(solver.n_particles, -1, np.int32)
     slot[idx] = np.arange(n, dtype=np.int32)
@@ -259,7 +259,7 @@ def upload_colliders(solver: MPMSolver, spec: Optional[Union[Collider, Sequence[
     under ``mpm.contact = surface``, for the released field under ``grid`` contact; friction ``floor_friction``,
     no slip if ``floor_sticky``); returns their number."""
     items = [] if spec is None else ([spec] if isinstance(spec, Collider) else list(spec))
-    table = solver.table_plane_fields()
+    table = table_plane_fields(solver)
     if table is not None:
         mu = -1.0 if solver.cfg.floor_sticky else float(solver.cfg.floor_friction)
         items = [Collider("plane", (0.0, 0.0, solver.floor_height), (0.0, 0.0, 1.0), friction=mu,
@@ -294,3 +294,39 @@ def upload_colliders(solver: MPMSolver, spec: Optional[Union[Collider, Sequence[
 def grow_fingers(solver: MPMSolver, k: int) -> None:
     if k > solver.n_fingers:
         alloc_finger_arrays(solver, k)
+
+
+def surface_points(solver: MPMSolver, indices: np.ndarray, normals: np.ndarray, arms: Optional[np.ndarray] = None
+                   ) -> np.ndarray:
+    """(P, 3) m: the surface points of particles ``indices`` along the unit ``normals`` (P, 3), centre + r n
+    with r = arm radius |F^T n| (radius half the particle's undeformed spacing; ``arms`` (P,) default 1, 0 the
+    centre: :class:`ParticlePins`), as the contact and pin kernels measure them."""
+    idx = np.asarray(indices, np.int64).reshape(-1)
+    F = solver.deformation_gradients()[idx].astype(np.float64)
+    radius = 0.5 * np.cbrt(solver.volumes()[idx].astype(np.float64))
+    if arms is not None:
+        radius = radius * np.asarray(arms, np.float64).reshape(-1)
+    reach = radius * np.linalg.norm(np.einsum("pji,pj->pi", F, normals), axis=1)
+    return solver.positions()[idx].astype(np.float64) + reach[:, None] * normals
+
+
+def table_plane_fields(solver: MPMSolver) -> Optional[int]:
+    """Which particles the table (floor) acts on as a plane collider, where their surface touches it: every
+    particle under ``mpm.contact = surface`` (-1), the released field's (1) under ``grid`` contact with two
+    velocity fields (the body's field keeps the floor as a grid condition, :func:`tasks.physics.mpm.kernels.grid.
+    fixed_boundaries`), or none (None: no table, or one field under ``grid`` contact)."""
+    if solver.floor_height is None:
+        return None
+    if solver.cfg.contact == "surface":
+        return -1
+    return 1 if solver.two_fields else None
+
+
+def on_table_plane(solver: MPMSolver) -> np.ndarray:
+    """(particle,) bool: the particles the table acts on as a plane collider (:meth:`table_plane_fields`)."""
+    which = table_plane_fields(solver)
+    if which is None:
+        return np.zeros(solver.n_particles, bool)
+    if which < 0:
+        return np.ones(solver.n_particles, bool)
+    return solver.mat_field.numpy()[solver.material_ids()] == which

@@ -42,9 +42,12 @@ from conf.mpm_schema import MPMConfig, mpm_config_from
 
 from .boundary import (
     alloc_finger_arrays,
+    on_table_plane,
     project_points,
     set_colliders,
     set_pins,
+    surface_points,
+    table_plane_fields,
     upload_colliders,
     upload_dirichlet,
     upload_forces,
@@ -95,17 +98,22 @@ from .materials import (
     Material,
 )
 from .model import (
-    FIXED_COROTATED,
     present_materials,
     released_field_materials,
     resolve_device,
-    update_fields,
     upload_materials,
 )
-from .state import allocate_buffers, allocate_grid, allocate_particles, place_grid
+from .state import (
+    allocate_buffers,
+    allocate_grid,
+    allocate_particles,
+    assign_materials,
+    grid_nbytes,
+    place_grid,
+    state_nbytes,
+)
 from .thin_walls import (
     check_membranes,
-    convert_membrane_normals,
     membrane_normals_checked,
 )
 from .tracers import TRACER_ANCHORS, bind_tracers, place_tracers, rebind_tracers_to_preload
@@ -383,40 +391,20 @@ class MPMSolver:
 
     def surface_points(self, indices: np.ndarray, normals: np.ndarray, arms: Optional[np.ndarray] = None
                        ) -> np.ndarray:
-        """(P, 3) m: the surface points of particles ``indices`` along the unit ``normals`` (P, 3), centre + r n
-        with r = arm radius |F^T n| (radius half the particle's undeformed spacing; ``arms`` (P,) default 1, 0 the
-        centre: :class:`ParticlePins`), as the contact and pin kernels measure them."""
-        idx = np.asarray(indices, np.int64).reshape(-1)
-        F = self.deformation_gradients()[idx].astype(np.float64)
-        radius = 0.5 * np.cbrt(self.volumes()[idx].astype(np.float64))
-        if arms is not None:
-            radius = radius * np.asarray(arms, np.float64).reshape(-1)
-        reach = radius * np.linalg.norm(np.einsum("pji,pj->pi", F, normals), axis=1)
-        return self.positions()[idx].astype(np.float64) + reach[:, None] * normals
+        """See :func:`tasks.physics.mpm.boundary.surface_points`."""
+        return surface_points(self, indices, normals, arms)
 
     def tracer_anchor_particles(self) -> np.ndarray:
         """(T, TRACER_ANCHORS) the particles each tracer is embedded in, nearest first."""
         return self._anchor[0].numpy().copy() if self._anchor is not None else np.zeros((0, TRACER_ANCHORS), np.int32)
 
     def table_plane_fields(self) -> Optional[int]:
-        """Which particles the table (floor) acts on as a plane collider, where their surface touches it: every
-        particle under ``mpm.contact = surface`` (-1), the released field's (1) under ``grid`` contact with two
-        velocity fields (the body's field keeps the floor as a grid condition, :func:`tasks.physics.mpm.kernels.grid.
-        fixed_boundaries`), or none (None: no table, or one field under ``grid`` contact)."""
-        if self.floor_height is None:
-            return None
-        if self.cfg.contact == "surface":
-            return -1
-        return 1 if self.two_fields else None
+        """See :func:`tasks.physics.mpm.boundary.table_plane_fields`."""
+        return table_plane_fields(self)
 
     def on_table_plane(self) -> np.ndarray:
-        """(particle,) bool: the particles the table acts on as a plane collider (:meth:`table_plane_fields`)."""
-        which = self.table_plane_fields()
-        if which is None:
-            return np.zeros(self.n_particles, bool)
-        if which < 0:
-            return np.ones(self.n_particles, bool)
-        return self.mat_field.numpy()[self.material_ids()] == which
+        """See :func:`tasks.physics.mpm.boundary.on_table_plane`."""
+        return on_table_plane(self)
 
 
     def step_frame(self, frame_dt: float, dirichlet: BoundarySpec = None,
@@ -756,31 +744,8 @@ class MPMSolver:
         self.x_carry.zero_()  # a round-off belongs to the positions it was lost from
 
     def set_material_ids(self, ids: np.ndarray) -> None:
-        """Re-assign particle materials (e.g. a ruptured shell).  The new materials must use models whose state
-        is already allocated and the same (physical) density: the physical mass, hence the weight, is conserved
-        exactly; under selective mass scaling the inertia follows the new material's scale (burst pulp that
-        becomes released juice gets its physical mass back).  The set of materials present, the stable time step
-        (their wave speeds, fluid viscosity) and the fixed-corotated fast path are updated; the scale s stays as
-        it was."""
-        energy_state_changed(self)
-        ids = np.asarray(ids, np.int32).reshape(self.n_particles)
-        if ids.min() < 0 or ids.max() >= len(self.materials):
-            raise ValueError(f"material ids must be in [0, {len(self.materials)})")
-        changed = ids != self._mid_host
-        for a, b in {(int(i), int(j)) for i, j in zip(self._mid_host[changed], ids[changed])}:
-            ma, mb = self.materials[a], self.materials[b]
-            if ma.density != mb.density:
-                raise ValueError(f"material {mb.name} has another density than {ma.name}: mass would change")
-            if (mb.code == FIXED_COROTATED and not self.has_corotated) or (mb.is_plastic and not self.has_plastic):
-                raise ValueError(f"material {mb.name} needs solver state that was not allocated")
-        check_membranes(self, ids)
-        convert_membrane_normals(self, ids)
-        self._mid_host = ids.copy()
-        self.mat_id.assign(ids)
-        self._present = sorted(set(int(i) for i in np.unique(ids)))
-        self.all_corotated = {self.materials[i].code for i in self._present} == {FIXED_COROTATED}
-        upload_materials(self)
-        update_fields(self)
+        """See :func:`tasks.physics.mpm.state.assign_materials`."""
+        return assign_materials(self, ids)
 
 
     def affine_velocities(self) -> np.ndarray:
@@ -804,20 +769,12 @@ class MPMSolver:
         self.F_carry.zero_()
 
     def state_nbytes(self) -> dict[str, int]:
-        """Bytes of the per-particle state arrays (allocated only for the models present)."""
-        arrs = dict(x=self.x, x_carry=self.x_carry, v=self.v, C=self.C, F=self.F, F_carry=self.F_carry, q=self.q,
-                    alpha=self.alpha, vol=self.vol, mat_id=self.mat_id, normal=self.normal,
-                    wall_offset=self.wall_offset)
-        return {k: int(a.size * wp.types.type_size_in_bytes(a.dtype)) for k, a in arrs.items()}
+        """See :func:`tasks.physics.mpm.state.state_nbytes`."""
+        return state_nbytes(self)
 
     def bytes_per_particle(self) -> float:
         return sum(self.state_nbytes().values()) / self.n_particles
 
     def grid_nbytes(self) -> int:
-        """Bytes of the grid arrays: two vec4 buffers (four once a second velocity field was used), plus the
-        Dirichlet target, reaction (vec4) and projector (mat33) arrays once a constraint was used, plus one vec4
-        P2G buffer per field for every particle chunk after the first (``mpm.threads`` > 1)."""
-        nodes = int(np.prod(self.dims))
-        fields = 2 if self._field2[id(self.grid_a)].shape == self.grid_a.shape else 1
-        chunks = sum(16 * nodes * (1 + (sh["grid2"].shape == self.grid_a.shape)) for sh in self._shares)
-        return nodes * (2 * 16 * fields + ((16 + 16 + 36) if self._bc_alloc else 0)) + chunks
+        """See :func:`tasks.physics.mpm.state.grid_nbytes`."""
+        return grid_nbytes(self)

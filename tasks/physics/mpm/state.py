@@ -10,12 +10,18 @@ from typing import TYPE_CHECKING, Optional
 import numpy as np
 import warp as wp
 
-from .diagnostics import SimulationError, reset_flags
+from .diagnostics import SimulationError, energy_state_changed, reset_flags
 from .kernels.structs import N_FLAGS, Colliders, DirichletGrid, GridInfo, Particles
 from .kernels.walls import k_wall_fibres
 from .materials import PLASTIC_MODELS
-from .model import FIXED_COROTATED, update_fields
-from .thin_walls import contact_reach, membrane_fibres_checked, wall_offsets
+from .model import FIXED_COROTATED, update_fields, upload_materials
+from .thin_walls import (
+    check_membranes,
+    contact_reach,
+    convert_membrane_normals,
+    membrane_fibres_checked,
+    wall_offsets,
+)
 
 if TYPE_CHECKING:
     from .solver import MPMSolver
@@ -152,3 +158,49 @@ def allocate_buffers(solver: MPMSolver, codes_present: set[int]) -> None:
     solver.boundary_work = wp.zeros(1, dtype=wp.float64, device=d)  # J, this frame (energy guard)
     solver.col = Colliders()  # surface-contact colliders (count 0: none), see _upload_colliders
     solver._col_version = 0  # bumped when solver.col changes (the recorded launches re-read it)
+
+
+def assign_materials(solver: MPMSolver, ids: np.ndarray) -> None:
+    """Re-assign particle materials (e.g. a ruptured shell).  The new materials must use models whose state
+    is already allocated and the same (physical) density: the physical mass, hence the weight, is conserved
+    exactly; under selective mass scaling the inertia follows the new material's scale (burst pulp that
+    becomes released juice gets its physical mass back).  The set of materials present, the stable time step
+    (their wave speeds, fluid viscosity) and the fixed-corotated fast path are updated; the scale s stays as
+    it was."""
+    energy_state_changed(solver)
+    ids = np.asarray(ids, np.int32).reshape(solver.n_particles)
+    if ids.min() < 0 or ids.max() >= len(solver.materials):
+        raise ValueError(f"material ids must be in [0, {len(solver.materials)})")
+    changed = ids != solver._mid_host
+    for a, b in {(int(i), int(j)) for i, j in zip(solver._mid_host[changed], ids[changed])}:
+        ma, mb = solver.materials[a], solver.materials[b]
+        if ma.density != mb.density:
+            raise ValueError(f"material {mb.name} has another density than {ma.name}: mass would change")
+        if (mb.code == FIXED_COROTATED and not solver.has_corotated) or (mb.is_plastic and not solver.has_plastic):
+            raise ValueError(f"material {mb.name} needs solver state that was not allocated")
+    check_membranes(solver, ids)
+    convert_membrane_normals(solver, ids)
+    solver._mid_host = ids.copy()
+    solver.mat_id.assign(ids)
+    solver._present = sorted(set(int(i) for i in np.unique(ids)))
+    solver.all_corotated = {solver.materials[i].code for i in solver._present} == {FIXED_COROTATED}
+    upload_materials(solver)
+    update_fields(solver)
+
+
+def state_nbytes(solver: MPMSolver) -> dict[str, int]:
+    """Bytes of the per-particle state arrays (allocated only for the models present)."""
+    arrs = dict(x=solver.x, x_carry=solver.x_carry, v=solver.v, C=solver.C, F=solver.F, F_carry=solver.F_carry, q=solver.q,
+                alpha=solver.alpha, vol=solver.vol, mat_id=solver.mat_id, normal=solver.normal,
+                wall_offset=solver.wall_offset)
+    return {k: int(a.size * wp.types.type_size_in_bytes(a.dtype)) for k, a in arrs.items()}
+
+
+def grid_nbytes(solver: MPMSolver) -> int:
+    """Bytes of the grid arrays: two vec4 buffers (four once a second velocity field was used), plus the
+    Dirichlet target, reaction (vec4) and projector (mat33) arrays once a constraint was used, plus one vec4
+    P2G buffer per field for every particle chunk after the first (``mpm.threads`` > 1)."""
+    nodes = int(np.prod(solver.dims))
+    fields = 2 if solver._field2[id(solver.grid_a)].shape == solver.grid_a.shape else 1
+    chunks = sum(16 * nodes * (1 + (sh["grid2"].shape == solver.grid_a.shape)) for sh in solver._shares)
+    return nodes * (2 * 16 * fields + ((16 + 16 + 36) if solver._bc_alloc else 0)) + chunks
