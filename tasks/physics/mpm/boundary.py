@@ -76,7 +76,6 @@ def project_points(solver: MPMSolver, positions: np.ndarray, velocities: np.ndar
                           finger_ids=share.argmax(axis=1).astype(np.int32))
 
 
-# ------------------------------------------------------------------ boundary upload
 def upload_dirichlet(solver: MPMSolver, spec: BoundarySpec) -> list[dict]:
     if spec is None:
         return []

@@ -141,7 +141,6 @@ def reset_flags(solver: MPMSolver, flags: Optional[wp.array] = None) -> None:
     (solver.flags if flags is None else flags).assign(f)
 
 
-# ------------------------------------------------------------------ statistics and guards
 def frame_stats(solver: MPMSolver, nsub: int, dts: list[float], frame_dt: float, wall0: float,
                  quasi_static: bool) -> FrameStats:
     s = solver.sums.numpy()
@@ -198,7 +197,6 @@ def measured_plastic_dissipation(solver: MPMSolver, measured: np.ndarray) -> flo
                                par[mid, COL_HARDENING])
 
 
-# ------------------------------------------------------------------ energy guard
 def energy_baseline(solver: MPMSolver) -> None:
     """Before the first frame: the reference energy of the initial state (F_E = I, C = 0: no internal energy),
     per material: kinetic 1/2 m v^2 (scaled masses) + gravitational -m_phys g . x (J)."""
@@ -230,7 +228,7 @@ def check_energy(solver: MPMSolver, st: FrameStats) -> None:
     ref = solver._energy_ref
     if ref is None or ref.frame is None:
         solver._energy_ref = EnergyBudget.start(solver.frame, per, st.gravitational_energy,
-                                              st.kinetic_energy + st.internal_energy, ref)
+                                                st.kinetic_energy + st.internal_energy, ref)
         return
     growth = ref.update(per, st.gravitational_energy, st.boundary_work)
     # below the energy of lifting the whole body by one grid cell the discretisation resolves no change (a body

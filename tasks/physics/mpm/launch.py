@@ -45,8 +45,6 @@ def set_debug_mode() -> None:
 # mpm.threads: the hand-over (pool, 4 chunk launches, 3 grid sums) costs ~170 us of CPU per substep (measured on 64
 # particles under load) and a thread saves ~80 ns per particle of its share: break-even ~2000 particles, 2x margin
 MIN_PARTICLES_PER_THREAD = 4096
-
-
 CHUNKS_PER_THREAD = 2  # mpm.threads > 1: particle chunks per thread (each has its own P2G grid)
 
 
@@ -68,7 +66,6 @@ def young_objects_collected():
         gc.unfreeze()
 
 
-# ------------------------------------------------------------------ stepping
 def step_params(solver: MPMSolver, dt_g2p: float, dt_p2g: float, restart: bool = False) -> StepParams:
     sp = StepParams()
     sp.dt_g2p = float(dt_g2p)
@@ -142,7 +139,7 @@ def recorded(solver: MPMSolver) -> dict:
         if solver.two_fields:
             fields = (wp.launch(k_grid_update, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
                 cmds["gs2"], conditions_free, cur2, other2, solver.bc_grid, solver.gstats, solver.boundary_work]),
-                wp.launch(k_field_contact, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
+                      wp.launch(k_field_contact, dim=(1, 1, 1), device=d, record_cmd=True, inputs=[
                     cmds["gs"], conditions, conditions_free, cur, cur2]))
         cmds[id(cur)] = (fused, grid, fields, accumulate)
     cmds["col_version"] = {id(solver.grid_a): solver._col_version, id(solver.grid_b): solver._col_version}

@@ -212,7 +212,7 @@ def resolve_auto_mass_scale(solver: MPMSolver, frame_dt: float) -> None:
     solver._mass_scale_pending = False
     solver.mass_scale = mass_scale_for(present_materials(solver), solver.dx, frame_dt, solver.cfg, solver.load)
     solver.material_mass_scale = material_mass_scales(solver.materials, present_materials(solver), solver.dx, frame_dt,
-                                                    solver.cfg, solver.load)
+                                                      solver.cfg, solver.load)
     upload_materials(solver)
 
 

@@ -17,8 +17,6 @@ if TYPE_CHECKING:
 
 
 FIXED_COROTATED = MODEL_CODES["fixed_corotated"]
-
-
 VON_MISES = MODEL_CODES["von_mises"]
 
 
@@ -29,8 +27,8 @@ def resolve_device(device: Optional[str]) -> str:
     return device
 
 
-# ------------------------------------------------------------------ setup helpers
 def present_materials(solver: MPMSolver) -> list[Material]:
+    """The materials that particles have now."""
     return [solver.materials[i] for i in solver._present]
 
 
@@ -88,7 +86,7 @@ def update_fields(solver: MPMSolver) -> None:
     solver.mat_field.assign(field)
     if two and solver._field2[id(solver.grid_a)].shape != solver.grid_a.shape:
         solver._field2 = {id(g): wp.zeros(solver.dims, dtype=wp.vec4, device=solver.device)
-                        for g in (solver.grid_a, solver.grid_b)}
+                          for g in (solver.grid_a, solver.grid_b)}
     if two != solver.two_fields:
         solver._cmds = None  # the recorded launches hold the grid buffers
         for g in solver._field2.values():

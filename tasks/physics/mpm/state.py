@@ -103,7 +103,7 @@ def allocate_particles(solver: MPMSolver, x: np.ndarray, v: np.ndarray, vol: np.
     solver.reach = wp.array(contact_reach(vol, fibres), dtype=float, device=d)
     shared = fibres is not None and cfg.wall_stencil == "shared"
     solver.wall_offset = wp.array(wall_offsets(x, normals, fibres) if shared else np.zeros(1, np.float32),
-                                dtype=float, device=d)
+                                  dtype=float, device=d)
     for name in ("x", "v", "C", "F", "q", "alpha", "vol", "mat_id", "normal", "reach", "x_carry", "F_carry",
                  "wall_offset"):
         setattr(solver.particles, name, getattr(solver, name))

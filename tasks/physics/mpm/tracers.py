@@ -59,7 +59,7 @@ def rebind_tracers_to_preload(solver: MPMSolver) -> None:
     near, r = anchor.numpy(), offset.numpy().astype(np.float64)
     F0 = solver.F.numpy().astype(np.float64)
     solver._anchor = (anchor, weight, wp.array(np.einsum("tkij,tkj->tki", np.linalg.inv(F0[near]), r)
-                                             .astype(np.float32), dtype=wp.vec3, device=solver.device))
+                                               .astype(np.float32), dtype=wp.vec3, device=solver.device))
     place_tracers(solver)
     solver._tracer_F0_inv = np.linalg.inv(solver.tF.numpy()[: solver.n_tracers].astype(np.float64))
 
@@ -87,8 +87,8 @@ def bind_tracers(solver: MPMSolver, x: np.ndarray, vol: np.ndarray, tr: Optional
     w /= w.sum(axis=1, keepdims=True)
     d = solver.device
     solver._anchor = (wp.array(near.astype(np.int32), dtype=wp.int32, device=d),
-                    wp.array(w.astype(np.float32), dtype=float, device=d),
-                    wp.array((tr[:, None, :] - x[near]).astype(np.float32), dtype=wp.vec3, device=d))
+                      wp.array(w.astype(np.float32), dtype=float, device=d),
+                      wp.array((tr[:, None, :] - x[near]).astype(np.float32), dtype=wp.vec3, device=d))
 
 
 def place_tracers(solver: MPMSolver) -> None:
