@@ -8,6 +8,8 @@
 * no test imports a study or benchmark module (``flows.studies``, ``flows.bench``): their library parts live in
   ``tasks/verification`` (the studies run as ``python -m``);
 * no step module imports another step module (shared helpers live in non-step modules of a stage);
+* the MPM engine (``tasks/physics/mpm/``) imports nothing of ours outside itself but the ``mpm`` config schema
+  (``conf.mpm_schema``);
 * package ``__init__`` files under ``tasks`` hold only a docstring (a step's code version is the import closure
   of its module: code in a parent package would run without being part of it), except the engine's re-exports.
 """
@@ -27,9 +29,7 @@ STAGE_RANK = {"core": 0, "control": 1, "physics": 2, "render": 3, "generation": 
               "reporting": 7}  # verification beside reporting: the report reads the studies, never the other way
 # known crossings, each with the change that removes it (a strict xfail: the test fails once it is gone, so the
 # entry is deleted with the fix)
-KNOWN_CROSSINGS = {
-    "tasks.control.object_model": "issue 43: the particle fill (physics.wall_resolution) moves to a physics step",
-}
+KNOWN_CROSSINGS: dict[str, str] = {}
 
 
 def _modules(package: str) -> dict[str, Path]:
@@ -126,3 +126,43 @@ def test_package_inits_hold_only_a_docstring(name, path):
     body = ast.parse(path.read_text()).body
     assert len(body) == 1 and isinstance(body[0], ast.Expr) and isinstance(body[0].value, ast.Constant), (
         f"{path} must hold only a docstring")
+
+
+ENGINE = "tasks.physics.mpm"
+# the engine reads its settings as the ``mpm`` config group's schema (MPMConfig): the one import outside itself
+ENGINE_MAY_IMPORT = {"conf.mpm_schema"}
+
+
+@pytest.mark.parametrize("name,path", [(n, p) for n, p in sorted(_modules("tasks").items())
+                                       if n == ENGINE or n.startswith(ENGINE + ".")])
+def test_the_engine_imports_nothing_of_ours_outside_itself(name, path):
+    """The MPM engine (``tasks/physics/mpm/``) is a library of its own: it imports numpy, warp, scipy and itself,
+    and of ours only the ``mpm`` config schema, never a stage (its relative imports stay inside it by construction;
+    a relative import that climbs out of it counts too)."""
+    outside = set()
+    package = name if path.name == "__init__.py" else name.rsplit(".", 1)[0]
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.level:
+            base = package.split(".")
+            base = base[: len(base) - (node.level - 1)]
+            target = ".".join(base + ([node.module] if node.module else []))
+            if not (target == ENGINE or target.startswith(ENGINE + ".")):
+                outside.add(target)
+        else:
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module] if isinstance(node, ast.ImportFrom) and node.module else [])
+            outside |= {m for m in names if m.split(".")[0] in ("tasks", "flows", "conf", "tests")
+                        and not (m == ENGINE or m.startswith(ENGINE + ".")) and m not in ENGINE_MAY_IMPORT}
+    assert not outside, f"{name} imports {sorted(outside)}: the engine imports nothing of ours outside itself"
+
+
+def test_the_engine_check_catches_an_import_from_a_stage(tmp_path):
+    """The check above is not vacuous: the engine's own modules are found, and the solver as it was before the
+    engine held its thin-wall definitions (``from tasks.physics.wall_resolution import gauss_layer_face``) fails."""
+    engine = [n for n in _modules("tasks") if n == ENGINE or n.startswith(ENGINE + ".")]
+    assert {"tasks.physics.mpm.solver", "tasks.physics.mpm.kernels.transfer", "tasks.physics.mpm.thin_walls"} <= set(
+        engine)
+    bad = tmp_path / "solver.py"
+    bad.write_text("from tasks.physics.wall_resolution import gauss_layer_face\nfrom ..wall_resolution import x\n")
+    with pytest.raises(AssertionError, match=r"wall_resolution"):
+        test_the_engine_imports_nothing_of_ours_outside_itself("tasks.physics.mpm.solver", bad)

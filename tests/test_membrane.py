@@ -578,14 +578,14 @@ def test_wall_fibre_kernel_restores_the_rest_distance_about_the_centre_of_mass()
     back to L along its line, the lighter particle moving 3/4 of the gap: (0, 0, 0) -> (0, 0, -3L/8) and
     (0, 0, L/2) -> (0, 0, 5L/8), so the centre of mass stays at 3L/8; a stretched pair comes back the same way; a pair
     of two materials (one particle released) is left alone."""
-    from tasks.physics.mpm import kernels as K
+    from tasks.physics.mpm.kernels.walls import k_wall_fibres
 
     L = 0.002
     x = np.array([[0, 0, 0], [0, 0, L / 2], [1, 1, 1], [1, 1, 1 + 3 * L], [2, 2, 2], [2, 2, 2 + L / 4]], np.float32)
     vol = np.array([1.0, 3.0, 2.0, 2.0, 1.0, 1.0], np.float32)
     mid = np.array([0, 0, 0, 0, 0, 1], np.int32)
     xs = wp.array(x, dtype=wp.vec3, device="cpu")
-    wp.launch(K.k_wall_fibres, 3, [xs, wp.array(vol, device="cpu"), wp.array(mid, device="cpu"),
+    wp.launch(k_wall_fibres, 3, [xs, wp.array(vol, device="cpu"), wp.array(mid, device="cpu"),
                                    wp.array(np.array([0, 2, 4], np.int32), device="cpu"),
                                    wp.array(np.array([1, 3, 5], np.int32), device="cpu"),
                                    wp.array(np.full(3, L, np.float32), device="cpu")], device="cpu")

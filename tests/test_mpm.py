@@ -31,21 +31,16 @@ from tasks.physics.mpm import (
     material_mass_scales,
     polar_rotation,
 )
+from tasks.physics.mpm.boundary import bspline_stencil
 from tasks.physics.mpm.constitutive import (
     hencky_plastic_return,
     hencky_plastic_return_warm,
     polar_rotation_quat,
     polar_track_quat,
 )
-from tasks.physics.mpm.kernels import stencil_at, stencil_weight
-from tasks.physics.mpm.solver import (
-    QuasiStaticLoad,
-    bspline_stencil,
-    kinetic_energy_split,
-    lowest_period,
-    plastic_dissipation,
-    quasi_static_bound,
-)
+from tasks.physics.mpm.diagnostics import plastic_dissipation
+from tasks.physics.mpm.kernels.stencil import stencil_at, stencil_weight
+from tasks.physics.mpm.mass_scaling import QuasiStaticLoad, kinetic_energy_split, lowest_period, quasi_static_bound
 from tests.particles import lattice
 
 DX = 0.005  # m

@@ -303,7 +303,7 @@ def test_contact_reach_is_half_the_spacing_or_a_gauss_layers_distance_to_its_fac
     of a 3 mm wall (rest distance t / sqrt 3 = 1.732 mm) reach t / 2 - t / (2 sqrt 3) = 0.634 mm, their own faces,
     whatever their volume; in three Gauss layers (outer and inner sqrt(3/5) t = 2.324 mm apart) they reach
     t / 2 - sqrt(3/5) t / 2 = 0.338 mm and the middle one t / 2; without fibres nothing changes."""
-    from tasks.physics.mpm.solver import WallFibres, contact_reach
+    from tasks.physics.mpm.thin_walls import WallFibres, contact_reach
 
     vol = np.array([8e-9, 27e-9, 21e-9, 21e-9, 21e-9])
     assert contact_reach(vol) == pytest.approx([1e-3, 1.5e-3, 1.379e-3, 1.379e-3, 1.379e-3], rel=1e-3)
@@ -314,7 +314,7 @@ def test_contact_reach_is_half_the_spacing_or_a_gauss_layers_distance_to_its_fac
     got = contact_reach(vol, WallFibres(np.array([2]), np.array([3]), np.array([np.sqrt(0.6) * t]), np.array([4])))
     face = t / 2 - np.sqrt(0.6) * t / 2
     assert got == pytest.approx([1e-3, 1.5e-3, face, face, t / 2], rel=1e-5)
-    from tasks.physics.wall_resolution import gauss_layer_face, gauss_layers
+    from tasks.physics.mpm.thin_walls import gauss_layer_face, gauss_layers
 
     for layers in (2, 3):  # the face fraction is the sampling's: (1/2 - h) / (2 h) for layers at +-h t
         (h, *_), shares = gauss_layers(layers)

@@ -1,6 +1,6 @@
 """Two velocity fields on the grid (multi-field MPM, Bardenhagen et al. 2000): released material and fluids move
 with their own nodal velocities, coupled to the (mass-scaled) body only by a frictionless, non-sticking contact
-(:func:`tasks.physics.mpm.kernels.k_field_contact`), or holding in tension up to the released material's
+(:func:`tasks.physics.mpm.kernels.grid.k_field_contact`), or holding in tension up to the released material's
 ``cohesion``.  Known answers: free fall at g next to a scaled body, a blob thrown at a heavy wall keeps its
 tangential velocity and loses its normal one without passing through, separating fields do not stick, the contact
 conserves momentum node by node, a cohesive blob stays on the wall below its strength and leaves above it."""
@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 import warp as wp
 
-from tasks.physics.mpm import kernels as K
+from tasks.physics.mpm import MPMSolver
+from tasks.physics.mpm.kernels.grid import k_field_contact
+from tasks.physics.mpm.kernels.structs import GridConditions, GridStep
 from tasks.physics.mpm.materials import Material
-from tasks.physics.mpm.solver import MPMSolver
 from tests.particles import lattice
 
 DX = 0.005  # m
@@ -124,12 +125,12 @@ def test_field_contact_kernel_conserves_momentum_and_keeps_tangential_velocity(v
     free[2, 2, 2, :3] = (vx, 0.5, 0.0)
     gb = wp.array(body, dtype=wp.vec4, device="cpu")
     gf = wp.array(free, dtype=wp.vec4, device="cpu")
-    gs = K.GridStep()
+    gs = GridStep()
     gs.origin = wp.vec3i(1, 1, 1)
     gs.dt = 1e-3
-    cond, cond_free = K.GridConditions(), K.GridConditions()
+    cond, cond_free = GridConditions(), GridConditions()
     cond_free.field_cohesion = cohesion
-    wp.launch(K.k_field_contact, dim=(3, 3, 3), inputs=[gs, cond, cond_free, gb, gf], device="cpu")
+    wp.launch(k_field_contact, dim=(3, 3, 3), inputs=[gs, cond, cond_free, gb, gf], device="cpu")
     b, f = gb.numpy()[2, 2, 2], gf.numpy()[2, 2, 2]
     np.testing.assert_allclose(b[:3], [expect_b, 0.0, 0.0], atol=1e-6)
     np.testing.assert_allclose(f[:3], [expect_f, 0.5, 0.0], atol=1e-6)

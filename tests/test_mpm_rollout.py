@@ -197,8 +197,8 @@ def test_flight_recorder_probes_a_falling_blob_within_one_frame_and_its_centre_o
     substeps with the time since the frame start, the particles then at that time.  Its pressure and viscosity push
     the particles about (each one's fitted acceleration is off g by > 3 %), but they cancel in the centre of mass,
     which the MLS-MPM transfers (P2G, grid update, G2P) move by its momentum alone: g within 0.1 %."""
+    from tasks.physics.mpm import MPMSolver
     from tasks.physics.mpm.materials import Material
-    from tasks.physics.mpm.solver import MPMSolver
 
     h = 0.0025
     axis = (np.arange(4) + 0.5) * h
@@ -765,8 +765,8 @@ def _pressed_block(interior):
     the ``interior`` material: returns the solver, rest positions, labels, initial F, release event, released mask
     and the finger's contact centre."""
     from conf.hand import N_FINGERS
+    from tasks.physics.mpm import MPMSolver
     from tasks.physics.mpm.materials import Material
-    from tasks.physics.mpm.solver import MPMSolver
     from tasks.physics.rupture_release import rupture_and_release
     from tests.particles import lattice
 

@@ -10,9 +10,8 @@ import warnings
 import numpy as np
 import pytest
 
-from tasks.physics.mpm import Collider, Material, MPMSolver
-from tasks.physics.mpm import solver as mpm_solver
-from tasks.physics.mpm.solver import SimulationError
+from tasks.physics.mpm import Collider, Material, MPMSolver, SimulationError
+from tasks.physics.mpm import launch as mpm_launch
 from tests.particles import lattice
 
 DX = 0.005  # m
@@ -57,7 +56,7 @@ def test_two_threads_share_the_released_fields_table_plane_under_grid_contact():
 @pytest.fixture(autouse=True)
 def small_shares(monkeypatch):
     """Thread these small (fast) scenes too: the per-thread minimum is a speed threshold, not a limit."""
-    monkeypatch.setattr(mpm_solver, "MIN_PARTICLES_PER_THREAD", 1024)
+    monkeypatch.setattr(mpm_launch, "MIN_PARTICLES_PER_THREAD", 1024)
 
 
 def test_two_threads_run_the_one_thread_squeeze_to_round_off():

@@ -18,8 +18,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tasks.physics.mpm import Material, MPMSolver, ParticlePins
-from tasks.physics.mpm.solver import SimulationError
+from tasks.physics.mpm import Material, MPMSolver, ParticlePins, SimulationError
 from tasks.verification.contact import block_particles, uniaxial_case
 
 

@@ -90,7 +90,7 @@ DEFINITIONS: dict[str, str] = {
     "peak_feedback_force": "peak_feedback_force (N, per finger) = max_t feedback_force[t, k] (glove resistance).",
     "max_ke_ie_in_contact": (
         "max_ke_ie_in_contact (1) = the largest value of the quasi-static check's measure (mass scaling, "
-        "tasks/physics/mpm/solver.py) over the contacts it judges: sum KE / sum (IE + plastic work dissipated so far, "
+        "tasks/physics/mpm/mass_scaling.py) over the contacts it judges: sum KE / sum (IE + plastic work dissipated so far, "
         "Abaqus' ALLIE) of the mass-scaled material over "
         "the checked frames of one contact, a frame being checked when a finger loads the object, past the "
         "contact's first frames and before a rupture; NaN when no contact is judged (no mass scaling, no contact)."),

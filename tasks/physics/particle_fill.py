@@ -27,7 +27,7 @@ Volume particles on a cell-centred grid of spacing ``s = sampling.particle_spaci
   strain linear through the thickness exactly, so a plane-stress wall (``mpm.thin_walls: membrane``) carries the
   bending energy ``E t^3 / (12 (1 - nu^2)) kappa^2 / 2`` per area of a curvature kappa of the grid's field (two
   layers at +-t/2 would carry 3x); with ``3`` into three, at ``0`` and ``+-sqrt(3/5) t / 2`` with 8/18 and 5/18
-  of the volume (:func:`~tasks.physics.wall_resolution.gauss_layers`), which also integrate the strain's quadratic
+  of the volume (:func:`~tasks.physics.mpm.thin_walls.gauss_layers`), which also integrate the strain's quadratic
   part: a wall near a cell's
   thickness, whose grid field has one, bends too easily in two (a clamped strip 0.86 of a cell thick sags 1.23x
   Euler-Bernoulli in two layers, 1.03x in three, where the grid's clamp makes 1.04x; README, known limits);
@@ -52,7 +52,7 @@ from tasks.control.sources.by_kind import open_source
 from tasks.control.sources.ply import PlySource
 from tasks.control.surface_sampling import poisson_disk, voronoi_area
 from tasks.core.artifacts import Array
-from tasks.physics.wall_resolution import gauss_layers
+from tasks.physics.mpm.thin_walls import gauss_layers
 
 __all__ = ["build_mpm_particles", "PARTICLE_OUTPUTS", "jittered_grid"]
 

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from conf.hand import FINGERTIP_PAD_RADIUS, N_FINGERS
 from tasks.physics.labels import CORE
-from tasks.physics.mpm.solver import Collider, DirichletPoints, ForcePatch, MPMSolver, ParticlePins
+from tasks.physics.mpm import Collider, DirichletPoints, ForcePatch, MPMSolver, ParticlePins
 from tasks.physics.rollout_scene import Scene
 
 

@@ -23,7 +23,7 @@ from tasks.physics.free_flight import (
     touches_table,
 )
 from tasks.physics.labels import CORE, INTERIOR, RUPTURED, SHELL
-from tasks.physics.mpm.solver import MPMSolver, deform_covariances, polar_rotation, rotate_quaternions
+from tasks.physics.mpm import MPMSolver, deform_covariances, polar_rotation, rotate_quaternions
 from tasks.physics.oracle.schema import ObjectMaterials
 from tasks.physics.regions import squeeze_strain
 from tasks.physics.rollout_scene import Scene

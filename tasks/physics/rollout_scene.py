@@ -11,15 +11,11 @@ import numpy as np
 
 from conf.mpm_schema import MPMConfig, mpm_config_from
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
+from tasks.physics.mpm import MPMSolver, material_mass_scales
+from tasks.physics.mpm.mass_scaling import QuasiStaticLoad
 from tasks.physics.mpm.materials import MEMBRANE_MODELS, Material, material_from_dict
-from tasks.physics.mpm.solver import (
-    GravityPreload,
-    MPMSolver,
-    QuasiStaticLoad,
-    contact_reach,
-    material_mass_scales,
-    membrane_fibres_checked,
-)
+from tasks.physics.mpm.solver import GravityPreload
+from tasks.physics.mpm.thin_walls import contact_reach, membrane_fibres_checked
 from tasks.physics.oracle.convert import materials_from_dict, mpm_material_kwargs
 from tasks.physics.oracle.schema import ObjectMaterials
 from tasks.physics.regions import finger_regions, region_weights, squeeze_strain

@@ -11,8 +11,8 @@ import numpy as np
 
 from conf.hand import N_FINGERS
 from tasks.physics.labels import CORE, INTERIOR, RUPTURED, SHELL
+from tasks.physics.mpm import MPMSolver
 from tasks.physics.mpm.materials import Material, material_from_dict
-from tasks.physics.mpm.solver import MPMSolver
 from tasks.physics.oracle.convert import mpm_material_kwargs
 
 
@@ -22,7 +22,7 @@ def released_material(interior: Any, sim: Mapping[str, Any]) -> Material:
     A fluid (juice, cola) gets the Tait exponent ``simulation.fluid_tait_exponent`` (its bulk modulus is set with
     the mass scale).  A ``foam`` (the table's loose fibrefill stuffing: a cohesive, crushable fibre mass) is used as
     stated, the torn-out fibre mass itself, with a crush cap that admits the packed state it is released at
-    (``simulation.stuffing_packing``, :func:`_release`): compression up to it is elastic, beyond it permanent; its
+    (``simulation.stuffing_packing``, :func:`rupture_and_release`): compression up to it is elastic, beyond it permanent; its
     contact with the toy holds its yield stress x ``simulation.stuffing_cohesion`` in tension (``Material.cohesion``:
     its fibres stay entangled with the stuffing it tore from).  Any
     other solid interior (an LLM's answer may give one) is ``ruptured_softening`` times softer than stated: torn

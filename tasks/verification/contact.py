@@ -1,8 +1,8 @@
 """Known-answer contact cases of the MPM solver: grid-node contact against surface (particle) contact.
 
 Two closed forms, each run with ``mpm.contact = grid`` (the solver's floor acts on grid nodes, a plate is a set of
-slip :class:`~tasks.physics.mpm.solver.DirichletPoints`) and ``surface`` (floor and plate are plane
-:class:`~tasks.physics.mpm.solver.Collider` s acting on the particles that touch them):
+slip :class:`~tasks.physics.mpm.inputs.DirichletPoints`) and ``surface`` (floor and plate are plane
+:class:`~tasks.physics.mpm.inputs.Collider` s acting on the particles that touch them):
 
 * Hertz (1882; Johnson, Contact Mechanics, sec. 4.2): an elastic sphere (radius R) pressed by a rigid frictionless
   flat with approach d carries F = 4/3 E* sqrt(R) d^1.5, E* = E / (1 - nu^2), over a contact circle of radius

@@ -24,9 +24,9 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from tasks.physics.mpm import DirichletNodes, MPMSolver
 from tasks.physics.mpm.materials import Material
-from tasks.physics.mpm.solver import DirichletNodes, MPMSolver
-from tasks.physics.wall_resolution import gauss_layers
+from tasks.physics.mpm.thin_walls import gauss_layers
 
 GRAVITY = 9.81  # m/s^2
 SETTLE_FRAMES = 50  # frames over which a settled tip's sag stays put

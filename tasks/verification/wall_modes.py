@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from tasks.physics.mpm.solver import bspline_stencil
+from tasks.physics.mpm.boundary import bspline_stencil
 
 
 def wall_modes(offset: float, layers: int = 2, normal_stiffness: bool = False, shared_stencil: bool = False,
