@@ -50,8 +50,9 @@ def _edit(root: Path, rel: str) -> None:
 
 
 @pytest.mark.parametrize("edited,expected", [
-    # reached only through tasks.physics.mpm -> solver -> kernels -> constitutive
-    ("tasks/physics/mpm/constitutive.py", {"mpm_rollout"}),
+    # reached only through the engine (tasks.physics.mpm -> solver -> kernels -> constitutive): the rollout, and the
+    # particle fill, which places a thin wall's particles at the engine's own Gauss layers (mpm.thin_walls)
+    ("tasks/physics/mpm/constitutive.py", {"mpm_particles", "mpm_rollout"}),
     # the recording format, imported by the signal step and by the smoothing step (its validate_signals)
     ("tasks/control/recording.py", {"squeeze_signals", "signal_smoothing"}),
     # shared by the rollout (threshold) and the metrics (Table 2)
