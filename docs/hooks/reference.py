@@ -9,7 +9,7 @@
   the input files and the arrays it writes.  The declarations are read from the source with ``ast`` (nothing under
   ``tasks/`` is imported), so the page follows the code wherever a step module lives.
 
-The functions are plain Python so that ``tests/test_docs.py`` checks the same output the site shows.
+The functions are plain Python so that ``tests/flows/test_docs.py`` checks the same output the site shows.
 """
 from __future__ import annotations
 
