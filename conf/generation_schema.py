@@ -17,7 +17,12 @@ class GenerationConfig:
     Diffusion img2img + depth ControlNet, confined by the mask; needs local weights), ``text_only`` (the same
     generator with the prompt only: the ablation "w/o physics-guided conditions"), ``none`` (no effect).
     weights: folder holding one diffusers-format folder per model (``stable_diffusion``, ``motion_adapter``,
-    ``controlnet_depth`` name them); nothing is downloaded.  prompt / negative_prompt: override the prompt built
+    ``controlnet_depth`` name them); nothing is downloaded (``python -m flows.weights check DIR`` lists what is
+    there and the ``hf download`` commands for what is missing).  ``<model>_single_file``: one original-format
+    checkpoint instead (an SD-1.5 fine-tune's LDM ``.safetensors``, AnimateDiff's ``mm_sd_v15_v2.ckpt``, a
+    ``control_*.pth``), with ``<model>_single_file_config``, the local diffusers-format folder of its configs (and
+    tokenizer: the repo fetched with only ``--include "*.json" --include "*.txt"``); both relative to ``weights`` or
+    absolute.  prompt / negative_prompt: override the prompt built
     from the object and its effect.  steps: denoising steps; strength: img2img strength (share of the schedule
     run); guidance_scale: classifier-free guidance; controlnet_scale: weight of the depth condition; window /
     overlap: frames per motion-module window and frames shared by neighbouring windows; refine_pass: a per-frame
@@ -31,6 +36,12 @@ class GenerationConfig:
     stable_diffusion: str = "stable-diffusion"
     motion_adapter: str = "motion-adapter"
     controlnet_depth: str = "controlnet-depth"
+    stable_diffusion_single_file: Optional[str] = None
+    stable_diffusion_single_file_config: Optional[str] = None
+    motion_adapter_single_file: Optional[str] = None
+    motion_adapter_single_file_config: Optional[str] = None
+    controlnet_depth_single_file: Optional[str] = None
+    controlnet_depth_single_file_config: Optional[str] = None
     prompt: Optional[str] = None
     negative_prompt: Optional[str] = None
     steps: int = 20
@@ -97,6 +108,11 @@ def validate_generation(generation, refinement, video_metrics) -> None:
         (g.backend not in ("diffusers", "text_only") or bool(g.weights), "generation.weights",
          f"is required with generation={g.backend}: generation.weights=/path/to/models (a folder holding "
          f"{g.stable_diffusion}/, {g.motion_adapter}/ and {g.controlnet_depth}/)"),
+        *[(not getattr(g, f"{m}_single_file") or bool(getattr(g, f"{m}_single_file_config")),
+           f"generation.{m}_single_file_config",
+           f"is required with generation.{m}_single_file (the local diffusers-format config folder of that "
+           "checkpoint; without it diffusers fetches configs from the hub)")
+          for m in ("stable_diffusion", "motion_adapter", "controlnet_depth")],
         (g.steps >= 1, "generation.steps", f"must be >= 1, got {g.steps}"),
         (0 < g.strength <= 1, "generation.strength", f"must be in (0, 1], got {g.strength}"),
         (g.window >= 2 and 0 <= g.overlap < g.window, "generation.window/overlap",
