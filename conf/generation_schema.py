@@ -29,6 +29,13 @@ class GenerationConfig:
     SD ControlNet img2img pass at ``refine_strength`` after the video pass; seed: fixes the noise.
     device: auto (CUDA when present) | cpu | cuda; dtype: auto (float32 on CPU, float16 on CUDA) | float32 |
     float16 | bfloat16.
+    resolution: px, the longer side of the frames the diffusion pipelines run on (default 512, SD-1.5's training
+    size; the 192 px render alone would give it a 24 x 24 latent against the 64 x 64 it was trained on): the render,
+    mask and depth are resized to it and the generated frames back to the render's size before the exact composite
+    by the refined mask; null runs at the render's size.  Memory options (null / auto: chosen by the device,
+    tasks/generation/memory_options.py): vae_slicing, vae_tiling (true | false), attention (auto | sdpa | sliced |
+    default), cpu_offload (model CPU offload on CUDA; needs accelerate), split_inference (FreeNoise split inference
+    when the sequence spans several windows).
     """
 
     backend: str = "physics"
@@ -55,6 +62,12 @@ class GenerationConfig:
     seed: int = 0
     device: str = "auto"
     dtype: str = "auto"
+    resolution: Optional[int] = 512
+    vae_slicing: Optional[bool] = None
+    vae_tiling: Optional[bool] = None
+    attention: str = "auto"
+    cpu_offload: Optional[bool] = None
+    split_inference: Optional[bool] = None
     weights_digest: Optional[str] = None  # set by the pre-flight check: identity of the weights (cache key)
 
 
@@ -120,6 +133,10 @@ def validate_generation(generation, refinement, video_metrics) -> None:
         (g.device in ("auto", "cpu", "cuda"), "generation.device", f"must be auto, cpu or cuda, got {g.device!r}"),
         (g.dtype in ("auto", "float32", "float16", "bfloat16"), "generation.dtype",
          f"must be auto, float32, float16 or bfloat16, got {g.dtype!r}"),
+        (g.resolution is None or (64 <= g.resolution <= 2048 and g.resolution % 8 == 0), "generation.resolution",
+         f"must be null or a multiple of 8 in [64, 2048] px, got {g.resolution}"),
+        (g.attention in ("auto", "sdpa", "sliced", "default"), "generation.attention",
+         f"must be auto, sdpa, sliced or default, got {g.attention!r}"),
         (r.iterations >= 0, "refinement.iterations", f"must be >= 0, got {r.iterations}"),
         (r.lr > 0, "refinement.lr", f"must be > 0, got {r.lr}"),
         (r.samples_per_iteration >= 1, "refinement.samples_per_iteration",
