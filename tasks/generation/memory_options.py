@@ -96,7 +96,7 @@ def apply_memory_options(pipelines, options: MemoryOptions, device: torch.device
         try:
             import accelerate  # noqa: F401
         except ImportError:
-            raise ValueError("generation.cpu_offload needs the accelerate package: pip install -e .[gpu]") from None
+            raise ValueError("generation.cpu_offload needs the accelerate package: pip install -e '.[weights]'") from None
         for pipe in (pipelines.video, pipelines.refine, pipelines.text_to_video):
             pipe.enable_model_cpu_offload(device=device)
 
