@@ -35,6 +35,7 @@ def _extrapolate(timed: dict[int, dict], flops: dict[int, int], window: int) -> 
     seconds = timed[top]["seconds"] * flops[window] / flops[top]
     act = {f: timed[f]["rss_peak_gb"] - timed[f]["rss_before_gb"] for f in frames}
     slope = (act[top] - act[frames[-2]]) / (top - frames[-2]) if len(frames) > 1 else act[top] / top
+    slope = max(0.0, slope)  # sampling noise can make the larger run's peak the smaller
     return seconds, timed[top]["rss_before_gb"] + act[top] + slope * (window - top)
 
 
@@ -44,7 +45,7 @@ def _grid_line(cfg: DictConfig, name: str, step_window_s: float, encode_s: float
     steps = int(g.steps * g.strength)
     clip = steps * step_window_s * padded / cfg.window + padded * (encode_s + decode_s)
     return (f"  {name}: one {cfg.window}-frame step {step_window_s:.3g} s; per clip ({g.frames} frames padded to "
-            f"{padded}, {steps} steps, VAE both ways) {clip:.4g} s; {g.clips} clips {clip * g.clips / 3600:.3g} h")
+            f"{padded}, {steps} steps{', VAE both ways' if cfg.vae else ', VAE not timed'}) {clip:.4g} s; {g.clips} clips {clip * g.clips / 3600:.3g} h")
 
 
 @hydra.main(version_base="1.3", config_path="../../conf/bench", config_name="diffusion")
