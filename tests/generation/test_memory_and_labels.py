@@ -98,3 +98,22 @@ def test_the_label_says_which_passes_ran(pipelines):
     assert diffusion_label("text_only", {"views": [dict(off, windows=[[0, 8], [4, 12]])]}) == \
         "text-only diffusion (AnimateDiff text-to-video, w/o physics-guided conditions; 32 x 32 px, FreeNoise over " \
         "2 windows)"
+
+
+def test_the_configured_backend_runs_at_its_resolution_with_the_automatic_options(tmp_path):
+    from dataclasses import asdict
+
+    from conf.generation_schema import GenerationConfig
+    from tasks.generation.components import DiffusionWeights
+    from tasks.generation.effect import diffusion_effect
+    from tests.tiny_diffusion import save_diffusers_folders
+
+    save_diffusers_folders(tiny_components(seed=0), DiffusionWeights(folder=str(tmp_path)))
+    generation = vars(GenerationConfig(backend="diffusers", weights=str(tmp_path), steps=2, strength=1.0, window=8,
+                                       overlap=4, resolution=48, device="cpu"))
+    rgb, mask, depth = moving_disc_scene(num_frames=4, size=32)
+    out, info = diffusion_effect(generation, rgb[None], mask[None], depth[None], PROMPT, "")
+    assert out.shape == (1, 4, 32, 32, 3) and np.array_equal(out[0][~mask], rgb[~mask])
+    assert info["memory"] == asdict(choose_memory_options("cpu", 48)) and info["views"][0]["resolution"] == [48, 48]
+    assert diffusion_label("diffusers", info) == \
+        "diffusion (AnimateDiff + depth ControlNet, without img2img pass; 48 x 48 px)"
