@@ -18,11 +18,14 @@ class GenerationConfig:
     generator with the prompt only: the ablation "w/o physics-guided conditions"), ``none`` (no effect).
     weights: folder holding one diffusers-format folder per model (``stable_diffusion``, ``motion_adapter``,
     ``controlnet_depth`` name them); nothing is downloaded (``python -m flows.weights check DIR`` lists what is
-    there and the ``hf download`` commands for what is missing).  ``<model>_single_file``: one original-format
-    checkpoint instead (an SD-1.5 fine-tune's LDM ``.safetensors``, AnimateDiff's ``mm_sd_v15_v2.ckpt``, a
-    ``control_*.pth``), with ``<model>_single_file_config``, the local diffusers-format folder of its configs (and
-    tokenizer: the repo fetched with only ``--include "*.json" --include "*.txt"``); both relative to ``weights`` or
-    absolute.  prompt / negative_prompt: override the prompt built
+    there and the ``hf download`` commands for what is missing).
+    stable_diffusion_single_file / motion_adapter_single_file / controlnet_depth_single_file: one original-format
+    checkpoint instead of that model's folder (an SD-1.5 fine-tune's LDM ``.safetensors``, AnimateDiff's
+    ``mm_sd_v15_v2.ckpt``, a ``control_*.pth``), relative to ``weights`` or absolute.
+    stable_diffusion_single_file_config / motion_adapter_single_file_config / controlnet_depth_single_file_config:
+    required with the single file, the local diffusers-format folder of its configs (and tokenizer: the repository
+    fetched with only ``--include "*.json" --include "*.txt"``), relative to ``weights`` or absolute.
+    prompt / negative_prompt: override the prompt built
     from the object and its effect.  steps: denoising steps; strength: img2img strength (share of the schedule
     run); guidance_scale: classifier-free guidance; controlnet_scale: weight of the depth condition; window /
     overlap: frames per motion-module window and frames shared by neighbouring windows; refine_pass: a per-frame
@@ -32,10 +35,14 @@ class GenerationConfig:
     resolution: px, the longer side of the frames the diffusion pipelines run on (default 512, SD-1.5's training
     size; the 192 px render alone would give it a 24 x 24 latent against the 64 x 64 it was trained on): the render,
     mask and depth are resized to it and the generated frames back to the render's size before the exact composite
-    by the refined mask; null runs at the render's size.  Memory options (null / auto: chosen by the device,
-    tasks/generation/memory_options.py): vae_slicing, vae_tiling (true | false), attention (auto | sdpa | sliced |
-    default), cpu_offload (model CPU offload on CUDA; needs accelerate), split_inference (FreeNoise split inference
-    when the sequence spans several windows).
+    by the refined mask; null runs at the render's size.
+    vae_slicing: VAE encode / decode one image at a time (same result; auto: on).  vae_tiling: VAE in overlapping
+    tiles (changes pixels slightly; auto: on CUDA above 512 px).  attention: auto | sdpa (torch's fused attention) |
+    sliced (the lowest peak, slower) | default (diffusers' own choice); auto: sliced on CUDA under 12 GB, else sdpa.
+    cpu_offload: model CPU offload, each model on the GPU only while it runs (CUDA only, needs accelerate; auto: on
+    under 12 GB).
+    split_inference: FreeNoise split inference when the sequence spans several windows (auto: on); every memory
+    option's automatic choice (null / auto) is made by the device in tasks/generation/memory_options.py.
     """
 
     backend: str = "physics"

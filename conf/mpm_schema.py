@@ -29,9 +29,9 @@ class MPMConfig:
         max_speed_cfl: advective bound dt <= max_speed_cfl dx / max |v|.
         dt: forced substep size in s (disables the adaptive choice); checked against ``courant_limit``.
         courant_limit: largest Courant number dt c_p / dx accepted, for ``courant`` and for a forced ``dt``.
-            0.8: ``python -m flows.stability`` measured explicit MLS-MPM (8 cells, plate release) unstable at 0.95
-            for nu = 0.45 and at 0.9 for nu = 0.49, with J in range and no NaN (energy x120): no guard catches
-            that, so the config refuses it.
+            0.8: ``python -m flows.studies.stability`` measured explicit MLS-MPM (8 cells, plate release) unstable
+            at 0.95 for nu = 0.45 and at 0.9 for nu = 0.49, with J in range and no NaN (energy x120): no guard
+            catches that, so the config refuses it.
         max_substeps_per_frame: safety cap (a collapsing dt is an error, not an endless loop).
     Body force and boundaries
         gravity: m/s^2 (z up).
@@ -65,7 +65,7 @@ class MPMConfig:
             eta c_k,t, moved there every frame: it pushes the particles it touches and never pulls; its impulses
             are the finger's reaction (N).  Meant for
             ``contact: surface`` (both act where the material touches).  Not the default: it lost Table 2 on the
-            rubber ball, clay and rubber duck (README, known limits; ``python -m flows.finger_study``).
+            rubber ball, clay and rubber duck (README, known limits; ``python -m flows.studies.fingers``).
         thin_walls: how a hollow object's wall thinner than the grid spacing ``dx`` (sampled on its mid-surface in
             ``sampling.thin_wall_layers`` Gauss layers, :mod:`tasks.control.object_model`) carries stress.
             ``membrane`` (default; up to ``membrane_max_thickness`` of a cell): its elastic particles
@@ -93,8 +93,8 @@ class MPMConfig:
             resolve the wall's thickness and its plane-stress particles carry no normal stress, so nothing else keeps
             it: the rubber ball between two flats had its layers closed to 11 % of their distance under the flats at
             4 mm, its bending lever arm with them, and read 0.35-0.56x the FE of the hollow sphere at dx 4 mm (with
-            the fibres 0.70-1.02x, 0.70-0.95x with the contact at the wall's face; ``python -m flows.ball_study
-            --plates surface``).  False: the layers move with
+            the fibres 0.70-1.02x, 0.70-0.95x with the contact at the wall's face; ``python -m flows.studies.ball
+            plates=[surface]``).  False: the layers move with
             the grid alone (the former behaviour).
         wall_normal_stiffness: kappa, dimensionless: an elastic (fixed-corotated, neo-Hookean) membrane particle's
             F_E keeps the normal stretch its grid gives it, and its stress, its plane-stress projection's, gains a
@@ -185,7 +185,7 @@ class MPMConfig:
             cut into 2 chunks per thread, each scattering into its own P2G grid, summed in chunk order after every
             substep (the same physics, reproducible; sums in another order than on one thread, so positions differ
             at float32 round-off).  1 where the run already keeps every core busy with one scene per core
-            (``flows.evaluate``'s Dask workers); ``flows.squeeze`` and ``flows.benchmark`` use 2.  Ignored on CUDA;
+            (``flows.evaluate``'s Dask workers); ``flows.squeeze`` and ``flows.bench.mpm`` use 2.  Ignored on CUDA;
             scenes under 4096 particles per thread use fewer.
     Solver details
         polar_method: per-substep rotation update of fixed-corotated particles, warm-started from the previous

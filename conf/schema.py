@@ -428,7 +428,7 @@ def validate(cfg: Any) -> None:
 
 def validate_simulation(cfg: Any, objects: list[tuple[str, Any]]) -> None:
     """The checks of what a simulation reads, shared by the pipeline and the stability suite
-    (:func:`conf.stability_schema.validate_stability`): no unknown key and no non-finite number anywhere in
+    (:func:`conf.study.stability_schema.validate_stability`): no unknown key and no non-finite number anywhere in
     ``cfg``; the ``signal``, ``control``, ``sampling``, ``simulation``, ``mpm`` and ``oracle`` groups; the geometry
     and material of ``objects`` ((config key, object) pairs).  Raises :class:`ConfigError` naming the key."""
     need = _need

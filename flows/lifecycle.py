@@ -27,7 +27,7 @@
 4. **Cheap tasks.**  On its temporary server a run's tasks skip what costs CPU on every task and serves no one:
    log lines shipped to the API, a CA bundle parsed for a plain-HTTP client, the server's event table and
    automations (:func:`loopback_client_settings`, :data:`LOOPBACK_SERVER_ENV`), and on any server the settings
-   revalidated by each Dask task (:func:`settings_shipped_whole`).  ``python -m flows.overhead`` measures it.
+   revalidated by each Dask task (:func:`settings_shipped_whole`).  ``python -m flows.bench.overhead`` measures it.
 """
 from __future__ import annotations
 

@@ -130,8 +130,8 @@ def backend_config(cfg: DictConfig, backend: str) -> DictConfig:
 def missing_backends(cfg: DictConfig) -> dict[str, str]:
     """The diffusion backends this run did not use, and why (Table 1's n/a rows)."""
     ran = set(selected_backends(cfg))
-    why = ("weights not present: generation.weights is not set (README: Diffusion weights)" if not cfg.generation.weights
-           else "not selected: add it to grid.backends")
+    why = ("weights not present: generation.weights is not set (docs/tutorials/diffusion-weights.md, 'Download')"
+           if not cfg.generation.weights else "not selected: add it to grid.backends")
     return {b: why for b in ("diffusers", "text_only") if b not in ran}
 
 
@@ -355,7 +355,7 @@ def run(cfg: DictConfig, flow_label: str) -> dict:
     if "physics" in selected_backends(cfg) and not cfg.generation.weights:
         print("effect backend: physics-rendered (weight-free). For the paper's diffusion backend put SD-1.5, an "
               "AnimateDiff motion adapter and a depth ControlNet under one folder and run generation=diffusers "
-              "generation.weights=/path/to/models (README: Diffusion weights).")
+              "generation.weights=/path/to/models (docs/tutorials/diffusion-weights.md, 'Download').")
     config = OmegaConf.to_container(cfg, resolve=True)
     job_dir = sweep_job_dir()
     if config.get("run_name") is None and job_dir is not None:

@@ -19,7 +19,7 @@ A bad input stops the run with one line naming the input (its config key) and th
 7. the paper metrics' weight files named in ``paper_metrics`` (absent ones are reported "not computed" by the
    step): the present files' digests are recorded in ``paper_metrics.weights_digest`` (cache key).
 
-The stability suite (``python -m flows.stability``) has its own config: :func:`preflight_stability` checks it
+The stability suite (``python -m flows.studies.stability``) has its own config: :func:`preflight_stability` checks it
 the same way (its simulation groups and catalog, and the case names) before any case runs.
 """
 from __future__ import annotations
@@ -182,9 +182,9 @@ def preflight(cfg: DictConfig) -> None:
 
 
 def preflight_stability(cfg: DictConfig) -> list:
-    """The stability suite's config (:func:`conf.stability_schema.validate_stability`) and its selected cases
+    """The stability suite's config (:func:`conf.study.stability_schema.validate_stability`) and its selected cases
     (``cases``, ``quick``), or one line (``SystemExit``) before any case runs.  Returns the cases."""
-    from conf.stability_schema import validate_stability
+    from conf.study.stability_schema import validate_stability
     from tasks.verification.stability import select_cases
 
     try:

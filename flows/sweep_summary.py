@@ -38,7 +38,8 @@ def summarize_sweep(sweep_dir: str | Path) -> pd.DataFrame:
     # pre-flight checks, and pandas with the report tables is most of that start-up (~2 s of CPU per start)
     import pandas as pd
 
-    from tasks.reporting.report_tables import TABLE2, markdown_table
+    from tasks.core.tables import markdown_table
+    from tasks.reporting.report_tables import TABLE2
 
     sweep_dir = Path(sweep_dir)
     frames, overrides = [], {}

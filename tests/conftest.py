@@ -29,14 +29,15 @@ def prefect_server():
 
 
 def compose(config_name: str, overrides: list[str]):
-    """Compose a config exactly as the ``python -m flows.<name>`` entry point does."""
+    """Compose a config exactly as the ``python -m flows.<name>`` entry point does (a study's or benchmark's:
+    ``study/<name>``, as ``python -m flows.studies.<name>`` / ``flows.bench.<name>``)."""
     from hydra import compose as hydra_compose
     from hydra import initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from conf.schema import register_configs
+    from conf.study.schema import register_study_configs
 
-    register_configs()
+    register_study_configs()  # the pipeline's schema and every study's
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
         return hydra_compose(config_name=config_name, overrides=overrides)

@@ -3,6 +3,11 @@ answers, and one tiny real sweep through the flow that writes the table."""
 from __future__ import annotations
 
 import math
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -128,21 +133,35 @@ def test_observed_order_recovers_a_known_order(p):
     assert observed_order([0.01], [0.1]) is None
 
 
+REPO = Path(__file__).resolve().parents[1]
+
+
 # ------------------------------------------------------------------------------------------ the real flow, tiny
 TINY = ["object=rubber_ball", "sampling.surface_points=300", "sampling.particle_spacing=0.006", "signal.duration=0.6",
         "control.smoothing.frame_rate=10"]
 
 
-def test_two_setting_sweep_writes_the_table(prefect_server, tmp_path, compose_cfg):
-    from flows.convergence import run_convergence
+def _sweep(overrides: list[str], server: str, cwd: Path) -> dict[str, str]:
+    """``python -m flows.studies.convergence`` with ``overrides`` on the shared Prefect server: its per-task status
+    counts and its report path (the lines it prints)."""
+    env = dict(os.environ, PYTHONPATH=str(REPO), PREFECT_API_URL=server)
+    out = subprocess.run([sys.executable, "-m", "flows.studies.convergence", *overrides], cwd=cwd, env=env,
+                         capture_output=True, text=True, timeout=900)
+    assert out.returncode == 0, out.stderr[-3000:]
+    printed = out.stdout + out.stderr  # the flow's prints go through Prefect's log (log_prints)
+    statuses, report = re.search(r"per-task table \(([^)]*)\)", printed), re.search(r"report: (\S+)", printed)
+    assert statuses and report, printed[-3000:]
+    return {"statuses": statuses.group(1), "report": report.group(1)}
 
-    cfg = compose_cfg("convergence", [
+
+def test_two_setting_sweep_writes_the_table(prefect_server, tmp_path):
+    overrides = [
         f"paths.artifacts={tmp_path / 'artifacts'}", f"paths.reports={tmp_path / 'reports'}", "run_name=tiny", *TINY,
         "convergence.reference=fine",
         ("convergence.settings=[{name: fine, family: grid, overrides: []},"
          "{name: coarse, family: grid, overrides: ['mpm.particles_per_cell=27']}]"),
-        "convergence.families={grid: dx}"])
-    out = run_convergence(cfg)
+        "convergence.families={grid: dx}"]
+    out = _sweep(overrides, prefect_server, tmp_path)
     df = pd.read_csv(tmp_path / "reports" / "convergence" / "tiny" / "convergence.csv")
     assert list(df.columns) == list(TABLE_COLUMNS)
     assert df["setting"].tolist() == ["fine", "coarse"] and (df["status"] == "ok").all()
@@ -153,18 +172,18 @@ def test_two_setting_sweep_writes_the_table(prefect_server, tmp_path, compose_cf
     assert 0 < coarse["position_error"] < 0.2 and coarse["rollout_s"] > 0
     assert (tmp_path / "reports" / "convergence" / "tiny" / "pareto.png").stat().st_size > 0
     # a rerun of the sweep is served from the cache and reports the same recorded times
-    again = run_convergence(cfg)
-    assert set(again["statuses"].values()) == {"cached"}
+    again = _sweep(overrides, prefect_server, tmp_path)
+    assert re.fullmatch(r"cached: \d+", again["statuses"]), again["statuses"]
     df2 = pd.read_csv(tmp_path / "reports" / "convergence" / "tiny" / "convergence.csv")
     pd.testing.assert_series_equal(df["rollout_s"], df2["rollout_s"])
     assert out["report"] == again["report"]
 
 
 def test_finger_study_row_writes_a_missing_quasi_static_measure():
-    """The finger study's table row (flows.finger_study.table_row): the numbers at their precision, a metric the
-    run has not as '-', and a quasi-static measure stored as None (kinetic energy without internal energy in a
+    """The finger study's table row (tasks.verification.finger_modes.table_row): the numbers at their precision, a
+    metric the run has not as '-', and a quasi-static measure stored as None (kinetic energy without internal energy in a
     contact) as 'inf / none' instead of stopping the study (it did, on the plush toy with surface contact)."""
-    from flows.finger_study import table_row
+    from tasks.verification.finger_modes import table_row
 
     r = dict(bdc_t=0.5, bdc_s=None, sdc=0.25, miou=0.125, seconds=61.2, substeps=9220, reaction_peak=10.109,
              reaction_mean_peak=5.655, feedback_peak=10.109, feedback_rule="|contact force| (no yield stress)",

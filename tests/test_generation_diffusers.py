@@ -209,7 +209,7 @@ def test_empty_weights_folder_names_all_three_models_and_where_they_go(tmp_path)
         ("a depth ControlNet", "controlnet-depth"),
     ]:
         assert name in message and f"--local-dir {tmp_path / subfolder}" in message
-    assert message.count("hf download") == 3
+    assert message.count("hf download ") == 3 and "huggingface-cli" not in message
     with pytest.raises(MissingWeightsError, match="stable-diffusion-v1-5"):
         load_components(weights)
 

@@ -624,13 +624,25 @@ def test_bad_membrane_fibres_are_one_line_errors():
     assert s.n_fibres == 0  # mpm.wall_fibres=false: the layers' distance is left to the grid
 
 
+def _ball_scene(overrides: list[str], root: str):
+    """The default grid's rubber ball as ``python -m flows.studies.ball`` builds it (its object steps run under
+    ``root``, the pipeline's config with :data:`tasks.verification.ball.BALL_OVERRIDES` and ``overrides``): the
+    rollout's scene (:func:`tasks.verification.ball.ball_scene`) and the config."""
+    from flows.pipeline import evaluate_config, mpm_rollout_step, run_object_local, step_params
+    from tasks.verification.ball import BALL_OVERRIDES, UNTIL, ball_scene
+
+    cfg = evaluate_config([*BALL_OVERRIDES, *overrides])
+    refs = run_object_local(cfg, cfg.object, cfg.variant, root, until=UNTIL)
+    return ball_scene(refs, step_params(mpm_rollout_step, cfg, cfg.object, cfg.variant)), cfg
+
+
 @pytest.mark.parametrize("fibres, normal_stiffness", [(True, True), (False, True), (False, False)])
 def test_the_balls_wall_keeps_its_thickness_under_a_flat_and_carries_its_shell_force(tmp_path, fibres,
                                                                                       normal_stiffness):
     """The rubber ball (hollow, R = 32.5 mm, 3 mm wall, E = 2.5 MPa, nu = 0.49; two Gauss layers on the default
-    8 mm grid) between two frictionless surface flats, each moving 2 mm (``flows.ball_study``'s press).  The
+    8 mm grid) between two frictionless surface flats, each moving 2 mm (``flows.studies.ball``'s press).  The
     finite-strain FE of the same shell reads 3.26 N per flat at 2 mm (``tasks.verification.sphere_fe``, checked
-    against Reissner's thin-shell stiffness in ``tests/test_mpm_contact.py``; ``python -m flows.ball_study``).
+    against Reissner's thin-shell stiffness in ``tests/test_mpm_contact.py``; ``python -m flows.studies.ball``).
     With the wall's normal fibres (``mpm.wall_fibres``, the default) every pair of layers keeps its rest distance
     and the force is within -20/+40 % of the FE (measured 3.61 N with the flats at the wall's faces, 4.36 N when the
     particles reached 0.74 mm beyond them: the fibre is rigid through the thickness and the grid coarse; 2.72 N at
@@ -639,11 +651,10 @@ def test_the_balls_wall_keeps_its_thickness_under_a_flat_and_carries_its_shell_f
     under the flats, 0.975 at the least; 3.49 N); without either (the walls before 2026-12-04) the flats close the
     layers under them (measured to 60 % of their distance at 2 mm, 11 % at 4 mm), the wall loses its bending lever
     arm there and reads 2.40 N."""
-    from flows.ball_study import ball_scene
     from tasks.verification.contact import body_between_flats
 
     old = [] if normal_stiffness else ["mpm.wall_normal_stiffness=0", "mpm.wall_stencil=own"]
-    scene, _ = ball_scene(["mpm.contact=surface", f"mpm.wall_fibres={str(fibres).lower()}", *old], str(tmp_path))
+    scene, _ = _ball_scene(["mpm.contact=surface", f"mpm.wall_fibres={str(fibres).lower()}", *old], str(tmp_path))
     s = scene.solver
     x0 = s.positions().astype(np.float64)
     n = len(x0) // 2
@@ -672,25 +683,22 @@ def test_the_balls_wall_keeps_its_thickness_under_a_flat_and_carries_its_shell_f
 def test_a_one_layer_wall_over_three_quarters_of_a_cell_stays_in_plane_stress(tmp_path):
     """One particle layer on the mid-surface (``sampling.thin_wall_layers=1``) has no bending as a 3D solid either,
     and would lock its volume (nu = 0.49): on the 4 mm grid the ball's 3 mm wall in one layer stays a membrane."""
-    from flows.ball_study import ball_scene
-
-    scene, _ = ball_scene(["mpm.dx=0.004", "sampling.thin_wall_layers=1"], str(tmp_path))
+    scene, _ = _ball_scene(["mpm.dx=0.004", "sampling.thin_wall_layers=1"], str(tmp_path))
     assert scene.solver.n_membrane == len(scene.solver.positions()) and scene.solver.n_fibres == 0
     assert not any("membrane_max_thickness" in note for note in scene.notes), scene.notes
 
 
 @pytest.mark.parametrize("max_thickness", [0.75, 1.0])
 def test_the_balls_wall_over_three_quarters_of_a_cell_carries_3d_stress_and_reads_the_fe(tmp_path, max_thickness):
-    """The rubber ball on a 4 mm grid (2 mm particles, 400 substeps per frame as ``flows.ball_study`` refines it):
+    """The rubber ball on a 4 mm grid (2 mm particles, 400 substeps per frame as ``flows.studies.ball`` refines it):
     its 3 mm wall, 0.75 of a cell in two Gauss layers, between two frictionless surface flats each moving 2 mm.  The
     FE reads 3.26 N per flat (as above).  By default (``mpm.membrane_max_thickness`` 0.75) the wall carries 3D
     stress in its layers and reads it within 8 % (measured 3.31 N over 60 frames, 1.02x); held in plane stress up
     to a cell thick (1.0, the former default) it reads at most 0.9x (measured 2.71 N, 0.83x): plane stress softens
     as the grid resolves the wall's thickness (README, known limits: "Walls over 3/4 of a cell carry 3D stress")."""
-    from flows.ball_study import ball_scene
     from tasks.verification.contact import body_between_flats
 
-    scene, _ = ball_scene(["mpm.contact=surface", "sampling.particle_spacing=0.002",
+    scene, _ = _ball_scene(["mpm.contact=surface", "sampling.particle_spacing=0.002",
                            "mpm.target_substeps_per_frame=400", f"mpm.membrane_max_thickness={max_thickness}"],
                           str(tmp_path))
     s = scene.solver
@@ -710,11 +718,10 @@ def test_the_ball_held_between_flats_keeps_its_force_and_its_shape(tmp_path, fix
     0.3 s) and the pole gap (the wall on the flats' axis sinking away from them) stays under 0.1 mm (measured
     -0.01 mm); without them (the walls before 2026-12-04) the wall's zero-energy modes let the cap dimple away from
     the flats and the force creep (measured -14 %, the pole gap 0.21 -> 0.56 mm)."""
-    from flows.ball_study import ball_scene
     from tasks.verification.contact import body_between_flats
 
     old = [] if fixed else ["mpm.wall_normal_stiffness=0", "mpm.wall_stencil=own"]
-    scene, _ = ball_scene(["mpm.contact=surface", *old], str(tmp_path))
+    scene, _ = _ball_scene(["mpm.contact=surface", *old], str(tmp_path))
     r = body_between_flats(scene.solver, "surface", 0.003, 30 * scene.frame_dt, 30, 30)
     change = r["held"][-1] / r["force"][-1] - 1.0
     gap = float(np.abs(r["pole_gap"][-1]))
@@ -731,12 +738,10 @@ def test_the_balls_wall_in_three_gauss_layers_reaches_the_flats_at_its_faces_as_
     solid, by mpm.thin_walls=solid or on a 4 mm grid where the wall is 0.75 of a cell (mpm.membrane_max_thickness),
     the rollout's scene has no fibre and no plane-stress particle and gives its layers the same reach, not half a
     particle spacing (cbrt(V0) / 2, 1.1-1.3 mm); the 4 mm grid's scene says why in its notes."""
-    from flows.ball_study import ball_scene
-
     t = 0.003
     reach = {}
     for case, over in (("membrane", []), ("solid", ["mpm.thin_walls=solid"]), ("thick", ["mpm.dx=0.004"])):
-        scene, _ = ball_scene([*over, "sampling.thin_wall_layers=3"], str(tmp_path))
+        scene, _ = _ball_scene([*over, "sampling.thin_wall_layers=3"], str(tmp_path))
         s = scene.solver
         n = len(s.positions()) // 3
         assert s.n_fibres == (n if case == "membrane" else 0) and (s.n_membrane > 0) == (case == "membrane")
@@ -753,10 +758,9 @@ def test_the_balls_wall_breathes_at_the_membrane_spheres_period(tmp_path):
     with a uniform radial speed: its mean radius oscillates with the breathing period of a membrane sphere,
     2 pi R sqrt(rho (1 - nu) / (2 E)) (R the mid-surface radius; 2.11 ms here), within 4 % (measured +1.8 %), at the
     amplitude v0 / omega within 5 % (measured -2 %): the curved wall's in-plane stiffness is the shell's."""
-    from flows.ball_study import ball_scene
     from tasks.physics.labels import SHELL
 
-    scene, _ = ball_scene(["mpm.mass_scaling=off", "mpm.floor=false"], str(tmp_path))
+    scene, _ = _ball_scene(["mpm.mass_scaling=off", "mpm.floor=false"], str(tmp_path))
     s = scene.solver
     wall = scene.materials[int(scene.slot[SHELL])]
     x = s.positions().astype(np.float64)

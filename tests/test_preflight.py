@@ -70,7 +70,8 @@ def test_missing_diffusion_weights_name_each_model_and_where_it_goes(tmp_path, c
     for model, folder in (("an SD-1.5 base", "stable-diffusion"), ("an AnimateDiff motion adapter", "motion-adapter"),
                           ("a depth ControlNet", "controlnet-depth")):
         assert model in msg and str(tmp_path / "models" / folder) in msg
-    assert msg.count("hf download") == 3 and "huggingface-cli" not in msg and "nothing is downloaded" in msg
+    assert msg.count("hf download ") == 3 and msg.count("--include") == 9 and "huggingface-cli" not in msg
+    assert "nothing is downloaded" in msg
     assert not (tmp_path / "artifacts").exists()
 
 
@@ -247,13 +248,13 @@ def test_llm_judge_settings_are_checked_before_the_flow(compose_cfg):
     ("signal.duration=-1", "config error: signal.duration must be > 0 s, got -1.0"),
 ])
 def test_a_bad_stability_input_is_one_line_before_any_case_runs(compose_cfg, capsys, override, expected):
-    """python -m flows.stability goes through the same checks as the pipeline's mains: the entry point stops with
-    exactly this line (Python prints a SystemExit's message as the one line on stderr) and prints nothing before
-    it (no case, no report folder)."""
-    import flows.stability
+    """python -m flows.studies.stability goes through the same checks as the pipeline's mains: its first call
+    (:func:`flows.preflight.preflight_stability`) stops with exactly this line (Python prints a SystemExit's message
+    as the one line on stderr) and prints nothing before it (no case, no report folder)."""
+    from flows.preflight import preflight_stability
 
     with pytest.raises(SystemExit) as exc:
-        flows.stability.main(compose_cfg("stability", [override]))
+        preflight_stability(compose_cfg("study/stability", [override]))
     assert str(exc.value) == expected
     assert capsys.readouterr().out == ""
 
@@ -269,25 +270,31 @@ def test_preflight_imports_no_prefect():
 
 
 # ----------------------------------------------------------------------------------------------- argparse entry points
-def test_benchmark_and_human_study_refuse_bad_input_in_one_line(tmp_path, capsys):
-    """python -m flows.benchmark and python -m flows.human_study stop on a bad flag or a missing file with one
-    line naming it, before Warp is loaded or anything is read or written."""
-    import flows.benchmark
+def test_benchmark_and_human_study_refuse_bad_input_in_one_line(tmp_path, capsys, compose_cfg):
+    """python -m flows.bench.mpm (its config's check, :func:`tasks.verification.mpm_throughput.check_scene_config`)
+    and python -m flows.human_study stop on a bad key or a missing file with one line naming it, before Warp is
+    loaded or anything is read or written."""
     import flows.human_study
+    from tasks.verification.mpm_throughput import check_scene_config
 
-    report = tmp_path / "evaluate-1"
-    cases = [
-        (flows.benchmark.main, ["--E", "inf"], "input error: --E must be a finite number > 0, got inf"),
-        (flows.benchmark.main, ["--nu", "0.5"], "input error: --nu must be in [0, 0.5), got 0.5"),
-        (flows.benchmark.main, ["--n-grid", "2000"], "input error: --n-grid 2000 with --cube 0.4 and --ppc-axis 2 "
-                                                     "gives 4.1e+09 particles, above 2e+07: lower one of them"),
-        (flows.human_study.main, ["build", str(report)],
-         f"input error: report folder {report} does not exist: give a run's report folder (reports/evaluate-<time>)"),
-    ]
-    for main, argv, expected in cases:
+    for override, expected in [
+        ("E=inf", "input error: E must be a finite number > 0, got inf"),
+        ("nu=0.5", "input error: nu must be in [0, 0.5), got 0.5"),
+        ("n_grid=2000", "input error: n_grid 2000 with cube 0.4 and ppc_axis 2 gives 4.1e+09 particles, above "
+                        "2e+07: lower one of them"),
+    ]:
         with pytest.raises(SystemExit) as exc:
-            main(argv)
+            check_scene_config(compose_cfg("study/bench_mpm", [override]))
         assert str(exc.value) == expected
+    out = subprocess.run([sys.executable, "-m", "flows.bench.mpm", "nu=0.5", f"out={tmp_path / 'bench'}"], cwd=REPO,
+                         capture_output=True, text=True, timeout=120)  # the entry point checks before its work
+    assert out.returncode == 1 and out.stderr.strip().splitlines()[-1] == "input error: nu must be in [0, 0.5), got 0.5"
+    assert not (tmp_path / "bench").exists()
+    report = tmp_path / "evaluate-1"
+    with pytest.raises(SystemExit) as exc:
+        flows.human_study.main(["build", str(report)])
+    assert str(exc.value) == (f"input error: report folder {report} does not exist: give a run's report folder "
+                              "(reports/evaluate-<time>)")
     report.mkdir()
     with pytest.raises(SystemExit) as exc:
         flows.human_study.main(["analyse", str(report), str(tmp_path / "a.csv")])

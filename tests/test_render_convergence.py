@@ -5,21 +5,32 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tasks.reporting.render_knobs import SECTION_TITLE, report_section
 from tasks.verification.render_convergence import (
     DIFFUSION_NOTE,
-    SECTION_TITLE,
     held_frames,
     image_errors,
     knob_row,
     knob_tables,
-    report_section,
     resized,
     write_study,
 )
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _study(overrides: list[str], cwd: Path) -> subprocess.CompletedProcess:
+    """``python -m flows.studies.render_convergence`` with ``overrides``."""
+    return subprocess.run([sys.executable, "-m", "flows.studies.render_convergence", *overrides], cwd=cwd,
+                          env=dict(os.environ, PYTHONPATH=str(REPO)), capture_output=True, text=True, timeout=900)
 
 
 def test_image_errors_of_a_known_offset_and_of_identical_images():
@@ -96,12 +107,12 @@ TINY = ["object=tomato", "sampling.surface_points=600", "sampling.particle_spaci
         "render_study.frame_strides=[1,2]", "render_study.refinement_iterations=[0,2,4]"]
 
 
-def test_a_tiny_study_measures_every_knob_and_a_rerun_is_cached(tmp_path, compose_cfg):
-    from flows.render_convergence import run_render_study
-
-    cfg = compose_cfg("render_convergence", [f"paths.artifacts={tmp_path / 'artifacts'}",
-                                             f"paths.reports={tmp_path / 'reports'}", "run_name=tiny", *TINY])
-    path = run_render_study(cfg)
+def test_a_tiny_study_measures_every_knob_and_a_rerun_is_cached(tmp_path):
+    overrides = [f"paths.artifacts={tmp_path / 'artifacts'}", f"paths.reports={tmp_path / 'reports'}", "run_name=tiny",
+                 *TINY]
+    out = _study(overrides, tmp_path)
+    assert out.returncode == 0, out.stderr[-3000:]
+    path = tmp_path / "reports" / "render_convergence" / "tiny" / "render_knobs.json"
     rows = json.loads(path.read_text())["rows"]
     by = {(r["knob"], r["setting"]): r for r in rows}
     assert sorted(by) == [("frame_stride", 1), ("frame_stride", 2), ("refinement", 0), ("refinement", 2),
@@ -112,17 +123,14 @@ def test_a_tiny_study_measures_every_knob_and_a_rerun_is_cached(tmp_path, compos
     assert 0 < by[("resolution", 16)]["rgb_error"] < 0.2 and 0 < by[("frame_stride", 2)]["rgb_error"] < 0.2
     assert by[("refinement", 0)]["rgb_error"] > 0 and all(r["seconds"] > 0 for r in rows)
     assert by[("frame_stride", 2)]["frames"] * 2 - 1 <= by[("frame_stride", 1)]["frames"]
-    again = json.loads(run_render_study(cfg).read_text())["rows"]
+    assert _study(overrides, tmp_path).returncode == 0
+    again = json.loads(path.read_text())["rows"]
     assert [r["seconds"] for r in again] == [r["seconds"] for r in rows]  # served from the cache, same times
 
 
-def test_a_bad_setting_list_is_one_line_naming_the_key(tmp_path, compose_cfg):
-    from flows.render_convergence import run_render_study
-
-    cfg = compose_cfg("render_convergence", [f"paths.artifacts={tmp_path / 'artifacts'}",
-                                             f"paths.reports={tmp_path / 'reports'}", "render_study.resolutions=[8,64]"])
-    with pytest.raises(SystemExit) as exc:
-        run_render_study(cfg)
-    assert str(exc.value) == ("config error: render_study.resolutions must list at least two distinct values >= 16, "
-                              "got [8, 64]")
+def test_a_bad_setting_list_is_one_line_naming_the_key(tmp_path):
+    out = _study([f"paths.artifacts={tmp_path / 'artifacts'}", f"paths.reports={tmp_path / 'reports'}",
+                  "render_study.resolutions=[8,64]"], tmp_path)
+    assert out.returncode == 1 and out.stderr.strip().splitlines()[-1] == (
+        "config error: render_study.resolutions must list at least two distinct values >= 16, got [8, 64]")
     assert not (tmp_path / "artifacts").exists()  # refused before any work

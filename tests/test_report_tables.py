@@ -7,7 +7,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from tasks.reporting.report_tables import TABLE2, TRAJECTORY, markdown_table, paper_layout, write_metric_files
+from tasks.core.tables import markdown_table
+from tasks.reporting.report_tables import TABLE2, TRAJECTORY, paper_layout, write_metric_files
 
 LABELS = {"full": "Full VirSqueezer", "no_dirichlet": "w/o Dirichlet"}
 

@@ -36,16 +36,16 @@ REPO = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def ctx() -> SuiteContext:
-    """The production config groups, composed exactly as ``python -m flows.stability`` does."""
+    """The production config groups, composed exactly as ``python -m flows.studies.stability`` does."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
-    from conf.stability_schema import register_stability_config
+    from conf.study.stability_schema import register_stability_config
 
     register_stability_config()
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=str(REPO / "conf"), version_base="1.3"):
-        cfg = compose(config_name="stability", overrides=[])
+        cfg = compose(config_name="study/stability", overrides=[])
     GlobalHydra.instance().clear()
     return SuiteContext.from_config(cfg)
 
@@ -213,7 +213,7 @@ def test_crafted_sessions_and_case_selection():
 
 def test_cli_quick_subset_writes_table(tmp_path):
     env = dict(os.environ, PYTHONPATH=str(REPO))
-    out = subprocess.run([sys.executable, "-m", "flows.stability", "quick=true", f"paths.reports={tmp_path}",
+    out = subprocess.run([sys.executable, "-m", "flows.studies.stability", "quick=true", f"paths.reports={tmp_path}",
                           "run_name=t"], cwd=REPO, env=env, capture_output=True, text=True, timeout=600, check=False)
     assert out.returncode == 0, out.stderr[-3000:]
     csv_path = tmp_path / "stability" / "t" / "stability.csv"

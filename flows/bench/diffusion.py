@@ -10,7 +10,8 @@ window's time is the largest timed run scaled by the FLOP ratio; its peak memory
 activations extrapolated linearly in frames from the two timed runs.  Then the default grid's diffusion rows:
 clips x (steps x step time of the padded sequence + VAE encode/decode of every frame), the padded sequence's step
 scaled from the window's by frames.  GPU lines are estimates (counted FLOPs / (datasheet peak x assumed
-utilization)), never measurements.
+utilization)), never measurements.  Config: ``conf/study/bench_diffusion.yaml`` (keys:
+:class:`conf.study.schema.DiffusionBenchConfig`).
 """
 from __future__ import annotations
 
@@ -18,13 +19,36 @@ import gc
 import os
 
 import hydra
-import torch
 from omegaconf import DictConfig
 
-from tasks.generation.masked_diffusion import temporal_windows
-from tasks.generation.step_cost import sd15_video_models, step_flops, time_step, time_vae, vae_flops, video_pipeline
+from conf.study.schema import register_study_configs
 
-_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
+register_study_configs()
+
+DTYPES = ("float32", "bfloat16", "float16")
+
+
+def check_config(cfg: DictConfig) -> None:
+    """One ``input error`` line naming the key and the fix, before any model is built."""
+    for bad in (d for d in cfg.dtypes if d not in DTYPES):
+        raise SystemExit(f"input error: dtypes: unknown dtype {bad!r}; one of {list(DTYPES)}")
+    for key in ("sizes", "frames_timed"):
+        if not cfg[key]:
+            raise SystemExit(f"input error: {key} is empty; give at least one value, e.g. {key}=[1]")
+        for bad in (v for v in cfg[key] if not v >= 1):
+            raise SystemExit(f"input error: {key} must be >= 1, got {bad}")
+    for bad in (s for s in cfg.sizes if s % 8):
+        raise SystemExit(f"input error: sizes: {bad} px is not a multiple of 8 (the VAE's factor); e.g. {bad - bad % 8}")
+    if max(cfg.frames_timed) > cfg.window:
+        raise SystemExit(f"input error: frames_timed {list(cfg.frames_timed)} exceeds window={cfg.window}; "
+                         "time fewer frames than the window")
+    if not 0 < cfg.gpus.utilization <= 1:
+        raise SystemExit(f"input error: gpus.utilization must be in (0, 1], got {cfg.gpus.utilization}")
+    g = cfg.grid
+    if not (g.clips >= 1 and g.frames >= 1 and int(g.steps * g.strength) >= 1 and 0 < g.strength <= 1
+            and 0 <= g.overlap < cfg.window):
+        raise SystemExit("input error: grid needs clips >= 1, frames >= 1, 0 < strength <= 1, steps x strength >= 1 "
+                         f"and 0 <= overlap < window; got {dict(g)} with window={cfg.window}")
 
 
 def _extrapolate(timed: dict[int, dict], flops: dict[int, int], window: int) -> tuple[float, float]:
@@ -40,6 +64,8 @@ def _extrapolate(timed: dict[int, dict], flops: dict[int, int], window: int) -> 
 
 
 def _grid_line(cfg: DictConfig, name: str, step_window_s: float, encode_s: float, decode_s: float) -> str:
+    from tasks.generation.masked_diffusion import temporal_windows
+
     g = cfg.grid
     padded = temporal_windows(g.frames, cfg.window, g.overlap)[-1][1]
     steps = int(g.steps * g.strength)
@@ -48,13 +74,25 @@ def _grid_line(cfg: DictConfig, name: str, step_window_s: float, encode_s: float
             f"{padded}, {steps} steps{', VAE both ways' if cfg.vae else ', VAE not timed'}) {clip:.4g} s; {g.clips} clips {clip * g.clips / 3600:.3g} h")
 
 
-@hydra.main(version_base="1.3", config_path="../../conf/bench", config_name="diffusion")
+@hydra.main(version_base="1.3", config_path="../../conf", config_name="study/bench_diffusion")
 def main(cfg: DictConfig) -> None:
+    check_config(cfg)
+    import torch
+
+    from tasks.generation.step_cost import (
+        sd15_video_models,
+        step_flops,
+        time_step,
+        time_vae,
+        vae_flops,
+        video_pipeline,
+    )
+
     torch.set_num_threads(int(os.environ.get("VIRSQUEEZER_TORCH_THREADS", cfg.threads)))
     print(f"torch threads {torch.get_num_threads()}, {os.cpu_count()} cores; wall seconds of single runs "
           "(no repetition: read them as +-30 % on a shared machine)", flush=True)
     for dtype_name in cfg.dtypes:
-        models = sd15_video_models(_DTYPES[dtype_name])
+        models = sd15_video_models(getattr(torch, dtype_name))
         params = models.parameters_m()
         print(f"[{dtype_name}] parameters (M): " + ", ".join(f"{k} {v:.0f}" for k, v in params.items()), flush=True)
         pipe = video_pipeline(models)

@@ -226,7 +226,8 @@ def missing_weights_message(missing: list[MissingModel]) -> str:
     """One header line plus one line per missing model: what it is, where it was expected, how to fetch it."""
     lines = [
         "Diffusion weights missing (nothing is downloaded at run time); on a machine with internet run the command "
-        "shown, then copy the folder it fills to the same path here:"
+        "shown (huggingface_hub's `hf` CLI), then copy the folder it fills to the same path here "
+        "(docs/tutorials/diffusion-weights.md, 'Download'):"
     ]
     for model in missing:
         lines.append(f"  {model.model} at {model.expected} ({model.problem}): {model.command}")

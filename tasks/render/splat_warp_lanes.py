@@ -15,7 +15,7 @@ the pure-Warp kernels (which CUDA runs, and which ``splat_warp.COMPOSITOR = "sca
 A CPU launch runs its threads one after the other, so the native code adds to the partials without atomics.
 Planes: forward ``sums`` (row, channel + transmittance, stride) and ``stop`` (row, stride); backward ``state``
 (row, 3 = T, behind, dL/dalpha, stride) and ``grad_sums`` (row, channel, stride); stride = ``plane_stride(width)``.
-Measured (``python -m flows.benchmark --render``, README "Renderer speed"): on a 2-core AMD EPYC (AVX-512), the
+Measured (``python -m flows.bench.render``, README "Renderer speed"): on a 2-core AMD EPYC (AVX-512), the
 compositing kernels of a 192 px frame of 3,400 Gaussians 1.37 -> 0.87 ms forward, 2.76 -> 1.54 ms backward.
 """
 

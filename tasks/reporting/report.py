@@ -20,11 +20,12 @@ from conf.hand import FINGERS
 from conf.mpm_schema import MPMConfig
 from tasks.core.artifacts import ArtifactError, ArtifactRef, read_artifact
 from tasks.core.scope import split_seed_scope
+from tasks.core.tables import markdown_table
 from tasks.physics.free_flight import rollout_flights
 from tasks.reporting.media_cache import MEDIA_DIR, MediaCache
+from tasks.reporting.render_knobs import report_section as render_knob_section
 from tasks.reporting.video_tables import paper_metric_reasons, table1, table3, video_metric_rows
 from tasks.reporting.watch import STYLE, SYNC_SCRIPT, object_html, object_media, overview_html
-from tasks.verification.render_convergence import report_section as render_knob_section
 
 
 def code_revision() -> str:
@@ -443,7 +444,6 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
         TABLE2,
         TRAJECTORY,
         html_table,
-        markdown_table,
         metric_rows,
         paper_layout,
         seed_note,
@@ -530,7 +530,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     omitted = [*left_out(refs), *effect_notes(refs)]
     md += ["## Left out of each scene, and why", "", *omitted, ""]
     if walls:
-        md += ["## Walls thinner than the grid resolves (python -m flows.stability)", "", *walls, ""]
+        md += ["## Walls thinner than the grid resolves (python -m flows.studies.stability)", "", *walls, ""]
     md += ["## Compute per step (tasks that ran in this run)", "", step_shares(df), ""]
     md += ["## Per-task table", "", "```", table.to_text(), "```", ""]
     for title, body in sections:
@@ -617,8 +617,6 @@ def step_shares(df) -> str:
     total = float(per["sum"].sum())
     rows = [[step, str(int(r["count"])), f"{r['sum']:.1f}", f"{100 * r['sum'] / max(total, 1e-12):.1f} %"]
             for step, r in per.iterrows()]
-    from tasks.reporting.report_tables import markdown_table
-
     return markdown_table(["step", "tasks", "compute (s)", "share"], rows)
 
 

@@ -144,16 +144,6 @@ def seed_note(df: pd.DataFrame) -> Optional[str]:
             "column is within the seed spread (|Δ mean| <= sqrt(std_a² + std_b²)), i.e. not resolved by these seeds.")
 
 
-def markdown_table(header: Sequence[str], rows: Sequence[Sequence[str]],
-                   best: Optional[Sequence[Sequence[bool]]] = None) -> str:
-    """A GitHub markdown table; cells flagged in ``best`` are bold."""
-    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    for i, row in enumerate(rows):
-        cells = [f"**{c}**" if best is not None and best[i][j] else str(c) for j, c in enumerate(row)]
-        out.append("| " + " | ".join(cells) + " |")
-    return "\n".join(out)
-
-
 def html_table(header: Sequence[str], rows: Sequence[Sequence[str]],
                best: Optional[Sequence[Sequence[bool]]] = None) -> str:
     """The same table as HTML; best cells bold."""

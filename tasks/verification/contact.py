@@ -15,7 +15,7 @@ slip :class:`~tasks.physics.mpm.solver.DirichletPoints`) and ``surface`` (floor 
 
 Both load slowly (quasi-static: loading time many times the bar-wave transit time) with a ramped plate speed, no
 gravity, 2 x 2 x 2 particles per cell.  :func:`hertz_case` and :func:`uniaxial_case` return the measured and
-closed-form forces; ``python -m flows.contact_study`` prints the error against the grid spacing and the run time.
+closed-form forces; ``python -m flows.studies.contact`` prints the error against the grid spacing and the run time.
 """
 from __future__ import annotations
 

@@ -1,9 +1,10 @@
-"""Error against run time (``python -m flows.convergence``): how far a cheaper solver setting's rollout is from
-a reference rollout at the finest affordable setting, and what it costs.
+"""Error against run time (``python -m flows.studies.convergence``): how far a cheaper solver setting's rollout is
+from a reference rollout at the finest affordable setting, and what it costs.
 
 Pure functions (numpy/pandas/matplotlib; no Prefect): the error measures between two rollouts of the same object
 and session, the Pareto front of (wall seconds, error), the observed convergence order, building one setting's
-config from the base config, and the report.  :mod:`flows.convergence` wires them to the cached pipeline steps.
+config from the base config, and the report.  :mod:`flows.studies.convergence` wires them to the cached pipeline
+steps.
 
 Error measures (all dimensionless):
 
@@ -33,13 +34,13 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from conf.convergence_schema import ERROR_COLUMNS
+from conf.study.convergence_schema import ERROR_COLUMNS
 
 NOT_SWEPT = (
     ("The render and effect knobs (render.width/height, render.frame_stride, refinement.iterations) have their "
-     "own study, python -m flows.render_convergence (every run report shows its latest tables); this one compares "
-     "the physics (the deformation chain) only.  generation.steps is not measured: its error needs the diffusion "
-     "weights, which are not on this machine."),
+     "own study, python -m flows.studies.render_convergence (every run report shows its latest tables); this one "
+     "compares the physics (the deformation chain) only.  generation.steps is not measured: its error needs the "
+     "diffusion weights, which are not on this machine."),
     ("`sampling.surface_points` (the number of 3D Gaussians, also the contact surface) is not swept: it changes "
     "the tracked points themselves, so there is nothing to compare positions against."),
     ("`mpm.cells_across` does not act in the rollout: the grid spacing is always `mpm.dx` when set, otherwise "
@@ -216,6 +217,16 @@ def setting_config(base: Any, overrides: Sequence[str], preset: Mapping[str, Any
         return OmegaConf.merge(*parts)
     except OmegaConfBaseException as exc:
         raise ConvergenceError(f"setting overrides {list(overrides)}: {str(exc).splitlines()[0]}") from None
+
+
+def spacing_overrides(spacing_mm: float | None) -> list[str]:
+    """The overrides of one particle spacing (mm), the grid refined with it (dx = 2 x spacing) at the convergence
+    study's mass scale s ~ (dt / dx)^2 (``conf/study/convergence.yaml``: target substeps per frame x dx = 1600 mm);
+    None: the default grid (4 mm, 100 substeps: a 4x larger mass scale)."""
+    if spacing_mm is None:
+        return []
+    return [f"sampling.particle_spacing={spacing_mm / 1000:g}",
+            f"mpm.target_substeps_per_frame={round(800 / spacing_mm)}"]
 
 
 PRESET_SECTIONS = ("sampling", "mpm", "simulation")  # what a preset may set; a setting equal there sits at it

@@ -1,9 +1,10 @@
-"""Error against run time of the render and effect knobs (``python -m flows.render_convergence``; issue 14):
+"""Error against run time of the render and effect knobs (``python -m flows.studies.render_convergence``; issue 14):
 what a cheaper G-buffer resolution, frame stride or eq. 7 refinement budget costs in fidelity, against a reference
 setting of the same knob, with the time the stage took.
 
-Pure functions (numpy/OpenCV; no Prefect): the error measures, the study's tables, writing the study and finding
-the latest one for the run report.  :mod:`flows.render_convergence` runs the cached steps per setting.
+Pure functions (numpy/OpenCV; no Prefect): the error measures, the study's tables and writing the study (the run
+report's section, :mod:`tasks.reporting.render_knobs`, reads the latest).  :mod:`flows.studies.render_convergence`
+runs the cached steps per setting.
 
 Knobs and error measures (images are the steps' 8-bit sRGB renders, compared in [0, 1]):
 
@@ -36,15 +37,11 @@ from typing import Any
 import cv2
 import numpy as np
 
+from tasks.core.tables import markdown_table
 from tasks.evaluation.video_quality import psnr_db
-from tasks.reporting.report_tables import markdown_table
 
 STUDY_DIR = "render_convergence"   # under paths.reports: <run>/render_knobs.json and render_knobs.md
 STUDY_FILE = "render_knobs.json"
-SECTION_TITLE = "Render and effect knobs: error against run time (python -m flows.render_convergence)"
-# the study of record (python -m flows.render_convergence on the default tomato), shown where a reports folder has
-# none of its own: every report states each setting's time and error
-RECORD = Path(__file__).resolve().parents[2] / "conf" / "render_knobs_measured.json"
 KNOBS = {  # knob -> (config key it sets, what its error compares, the stage whose time is reported)
     "resolution": ("render.width = render.height (px)", "G-buffer RGB resized to the reference's size", "gbuffer"),
     "frame_stride": ("render.frame_stride", "G-buffer RGB held between rendered frames, every simulated frame",
@@ -138,43 +135,6 @@ def write_study(report_dir: str | Path, rows: Sequence[Mapping[str, Any]], meta:
         f"- machine: {meta.get('machine')}; written {meta.get('written')}; times are the steps' compute seconds "
         "(a cached step keeps the time it took when computed)", "", knob_tables(rows), ""]))
     return path
-
-
-def latest_study(reports_root: str | Path) -> tuple[Path, dict] | None:
-    """The newest ``<reports_root>/render_convergence/*/render_knobs.json`` and its content (None: no study)."""
-    found = sorted(Path(reports_root).glob(f"{STUDY_DIR}/*/{STUDY_FILE}"), key=lambda p: p.stat().st_mtime)
-    for path in reversed(found):
-        try:
-            return path, json.loads(path.read_text())
-        except (OSError, ValueError):
-            continue
-    return None
-
-
-def current_settings(cfg: Mapping[str, Any]) -> dict[str, Any]:
-    """knob -> the value a run config sets (for marking "this run" in the study's tables)."""
-    render, refinement = cfg.get("render") or {}, cfg.get("refinement") or {}
-    return {"resolution": render.get("width"), "frame_stride": render.get("frame_stride"),
-            "refinement": refinement.get("iterations")}
-
-
-def report_section(cfg: Mapping[str, Any]) -> tuple[str, str] | None:
-    """The run report's (title, markdown): the latest study under the run's ``paths.reports`` (else the study of
-    record, ``RECORD``) with the default and this run's setting marked; None without ``paths.reports``."""
-    reports_root = (cfg.get("paths") or {}).get("reports")
-    if reports_root is None:
-        return None
-    found = latest_study(reports_root)
-    if found is None:
-        path, study = RECORD, json.loads(RECORD.read_text())
-        source = (f"From the study of record shipped with the code (`{RECORD.name}`); no study in this reports "
-                  "folder yet: `python -m flows.render_convergence` measures them on this machine")
-    else:
-        path, study = found
-        source = f"From `{path}`"
-    meta = study.get("meta", {})
-    return SECTION_TITLE, (f"{source} ({meta.get('object')}, {meta.get('variant')}; written {meta.get('written')}; "
-                           f"{meta.get('machine')}).\n\n" + knob_tables(study["rows"], current_settings(cfg)))
 
 
 # ----------------------------------------------------------------------------------------------- per-knob rows

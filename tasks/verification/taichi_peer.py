@@ -182,7 +182,7 @@ def build_peer(positions: np.ndarray, n_grid: int, dx: float, dt: float, E: floa
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Subprocess entry used by ``flows.benchmark``: run the peer on a saved scene, print one JSON line."""
+    """Subprocess entry used by ``flows.bench.mpm``: run the peer on a saved scene, print one JSON line."""
     import argparse
     import json
     import time
