@@ -17,13 +17,32 @@ class GenerationConfig:
     Diffusion img2img + depth ControlNet, confined by the mask; needs local weights), ``text_only`` (the same
     generator with the prompt only: the ablation "w/o physics-guided conditions"), ``none`` (no effect).
     weights: folder holding one diffusers-format folder per model (``stable_diffusion``, ``motion_adapter``,
-    ``controlnet_depth`` name them); nothing is downloaded.  prompt / negative_prompt: override the prompt built
+    ``controlnet_depth`` name them); nothing is downloaded (``python -m flows.weights check DIR`` lists what is
+    there and the ``hf download`` commands for what is missing).
+    stable_diffusion_single_file / motion_adapter_single_file / controlnet_depth_single_file: one original-format
+    checkpoint instead of that model's folder (an SD-1.5 fine-tune's LDM ``.safetensors``, AnimateDiff's
+    ``mm_sd_v15_v2.ckpt``, a ``control_*.pth``), relative to ``weights`` or absolute.
+    stable_diffusion_single_file_config / motion_adapter_single_file_config / controlnet_depth_single_file_config:
+    required with the single file, the local diffusers-format folder of its configs (and tokenizer: the repository
+    fetched with only ``--include "*.json" --include "*.txt"``), relative to ``weights`` or absolute.
+    prompt / negative_prompt: override the prompt built
     from the object and its effect.  steps: denoising steps; strength: img2img strength (share of the schedule
     run); guidance_scale: classifier-free guidance; controlnet_scale: weight of the depth condition; window /
     overlap: frames per motion-module window and frames shared by neighbouring windows; refine_pass: a per-frame
     SD ControlNet img2img pass at ``refine_strength`` after the video pass; seed: fixes the noise.
     device: auto (CUDA when present) | cpu | cuda; dtype: auto (float32 on CPU, float16 on CUDA) | float32 |
     float16 | bfloat16.
+    resolution: px, the longer side of the frames the diffusion pipelines run on (default 512, SD-1.5's training
+    size; the 192 px render alone would give it a 24 x 24 latent against the 64 x 64 it was trained on): the render,
+    mask and depth are resized to it and the generated frames back to the render's size before the exact composite
+    by the refined mask; null runs at the render's size.
+    vae_slicing: VAE encode / decode one image at a time (same result; auto: on).  vae_tiling: VAE in overlapping
+    tiles (changes pixels slightly; auto: on CUDA above 512 px).  attention: auto | sdpa (torch's fused attention) |
+    sliced (the lowest peak, slower) | default (diffusers' own choice); auto: sliced on CUDA under 12 GB, else sdpa.
+    cpu_offload: model CPU offload, each model on the GPU only while it runs (CUDA only, needs accelerate; auto: on
+    under 12 GB).
+    split_inference: FreeNoise split inference when the sequence spans several windows (auto: on); every memory
+    option's automatic choice (null / auto) is made by the device in tasks/generation/memory_options.py.
     """
 
     backend: str = "physics"
@@ -31,6 +50,12 @@ class GenerationConfig:
     stable_diffusion: str = "stable-diffusion"
     motion_adapter: str = "motion-adapter"
     controlnet_depth: str = "controlnet-depth"
+    stable_diffusion_single_file: Optional[str] = None
+    stable_diffusion_single_file_config: Optional[str] = None
+    motion_adapter_single_file: Optional[str] = None
+    motion_adapter_single_file_config: Optional[str] = None
+    controlnet_depth_single_file: Optional[str] = None
+    controlnet_depth_single_file_config: Optional[str] = None
     prompt: Optional[str] = None
     negative_prompt: Optional[str] = None
     steps: int = 20
@@ -44,6 +69,12 @@ class GenerationConfig:
     seed: int = 0
     device: str = "auto"
     dtype: str = "auto"
+    resolution: Optional[int] = 512
+    vae_slicing: Optional[bool] = None
+    vae_tiling: Optional[bool] = None
+    attention: str = "auto"
+    cpu_offload: Optional[bool] = None
+    split_inference: Optional[bool] = None
     weights_digest: Optional[str] = None  # set by the pre-flight check: identity of the weights (cache key)
 
 
@@ -97,6 +128,11 @@ def validate_generation(generation, refinement, video_metrics) -> None:
         (g.backend not in ("diffusers", "text_only") or bool(g.weights), "generation.weights",
          f"is required with generation={g.backend}: generation.weights=/path/to/models (a folder holding "
          f"{g.stable_diffusion}/, {g.motion_adapter}/ and {g.controlnet_depth}/)"),
+        *[(not getattr(g, f"{m}_single_file") or bool(getattr(g, f"{m}_single_file_config")),
+           f"generation.{m}_single_file_config",
+           f"is required with generation.{m}_single_file (the local diffusers-format config folder of that "
+           "checkpoint; without it diffusers fetches configs from the hub)")
+          for m in ("stable_diffusion", "motion_adapter", "controlnet_depth")],
         (g.steps >= 1, "generation.steps", f"must be >= 1, got {g.steps}"),
         (0 < g.strength <= 1, "generation.strength", f"must be in (0, 1], got {g.strength}"),
         (g.window >= 2 and 0 <= g.overlap < g.window, "generation.window/overlap",
@@ -104,6 +140,10 @@ def validate_generation(generation, refinement, video_metrics) -> None:
         (g.device in ("auto", "cpu", "cuda"), "generation.device", f"must be auto, cpu or cuda, got {g.device!r}"),
         (g.dtype in ("auto", "float32", "float16", "bfloat16"), "generation.dtype",
          f"must be auto, float32, float16 or bfloat16, got {g.dtype!r}"),
+        (g.resolution is None or (64 <= g.resolution <= 2048 and g.resolution % 8 == 0), "generation.resolution",
+         f"must be null or a multiple of 8 in [64, 2048] px, got {g.resolution}"),
+        (g.attention in ("auto", "sdpa", "sliced", "default"), "generation.attention",
+         f"must be auto, sdpa, sliced or default, got {g.attention!r}"),
         (r.iterations >= 0, "refinement.iterations", f"must be >= 0, got {r.iterations}"),
         (r.lr > 0, "refinement.lr", f"must be > 0, got {r.lr}"),
         (r.samples_per_iteration >= 1, "refinement.samples_per_iteration",

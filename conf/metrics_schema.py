@@ -71,6 +71,7 @@ class PaperMetricsConfig:
     amt_weights: path of AMT-S's checkpoint ``amt-s.pth`` (VBench motion smoothness);
     videophy_weights: folder of VideoPhy-2's rater ``videophy_2_auto`` (config.json, weights, tokenizer files;
     physical commonsense); unset (the default) = not computed, at no cost.  views: the views scored, ``all`` (their mean) or ``view0``.
+    device: where the metric networks run, ``auto`` (CUDA when present, as the renderer) | ``cpu`` | ``cuda``.
     weights_digest: set by the pre-flight check: content digest of the present weight files (cache key).
     """
 
@@ -78,10 +79,13 @@ class PaperMetricsConfig:
     amt_weights: Optional[str] = None
     videophy_weights: Optional[str] = None
     views: str = "all"
+    device: str = "auto"
     weights_digest: Optional[str] = None
 
 
 def validate_paper_metrics(cfg: Any) -> None:
     """Range checks of the ``paper_metrics`` group; raises ValueError naming the key."""
+    if cfg.device not in ("auto", "cpu", "cuda"):
+        raise ValueError(f"paper_metrics.device: must be auto, cpu or cuda, got {cfg.device!r}")
     if cfg.views not in PAPER_METRIC_VIEWS:
         raise ValueError(f"paper_metrics.views: must be all or view0, got {cfg.views!r}")

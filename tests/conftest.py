@@ -12,6 +12,7 @@ _SESSION_TMP = Path(tempfile.mkdtemp(prefix="virsqueezer-tests-"))
 # Prefect reads its settings at import: point its home at a throwaway folder before anything imports it.
 os.environ["VIRSQUEEZER_ARTIFACTS"] = str(_SESSION_TMP / "artifacts")
 (_SESSION_TMP / "artifacts" / ".prefect").mkdir(parents=True)
+os.environ["VIRSQUEEZER_DIGEST_CACHE"] = str(_SESSION_TMP / "file-digests.json")  # not the user's cache
 os.environ.setdefault("WARP_CACHE_PATH", str(Path.home() / ".cache" / "warp"))
 
 import flows  # noqa: E402,F401  (sets Prefect's defaults)

@@ -131,6 +131,59 @@ class OverheadBenchConfig:
     artifacts: Optional[str] = None
 
 
+@dataclass
+class DiffusionGridRows:
+    """The default evaluation grid's diffusion rows, as ``flows.bench.diffusion`` costs them (``conf/evaluate.yaml``,
+    ``conf/render``, ``conf/generation``).
+
+    clips: views generated (8 objects x 2 variants x 4 views; an upper bound: diffusers runs only where material is
+    released).  frames: rendered frames per view (3 s at 30 Hz, ``render.frame_stride`` 2).  overlap:
+    ``generation.overlap``.  steps: ``generation.steps``.  strength: ``generation.strength`` (the video pass runs
+    int(steps x strength) steps).
+    """
+
+    clips: int = 64
+    frames: int = 45
+    overlap: int = 4
+    steps: int = 20
+    strength: float = 0.75
+
+
+@dataclass
+class GPUPeaks:
+    """GPU figures of ``flows.bench.diffusion``: estimates (counted FLOPs / (peak x utilization)), never measured.
+
+    utilization: the assumed share of peak a diffusers UNet step sustains (not measured here).  peaks: dense 16-bit
+    tensor-core TFLOPS (fp32 accumulate) per GPU, from the vendors' datasheets.
+    """
+
+    utilization: float = 0.4
+    peaks: dict[str, float] = field(default_factory=lambda: {
+        "A100 (bf16, 312 TFLOPS)": 312.0, "RTX 4090 (fp16, 165 TFLOPS)": 165.0, "T4 (fp16, 65 TFLOPS)": 65.0})
+
+
+@dataclass
+class DiffusionBenchConfig:
+    """``python -m flows.bench.diffusion`` (one denoising step of the video generator with random weights of the real
+    sizes, and the default grid's diffusion rows derived from it).
+
+    sizes: square frame sides (px).  dtypes: ``float32``, ``bfloat16``, ``float16``.  frames_timed: frames actually
+    run per step (the window's cost is extrapolated from them by counted FLOPs).  window: frames of the motion
+    module's window (the figure reported).  vae: also time one VAE encode and decode per size and dtype.  threads:
+    torch threads (``VIRSQUEEZER_TORCH_THREADS`` overrides; the cores are shared, 1 is the stable figure).  grid: the
+    rows costed.  gpus: the GPU estimates' basis.
+    """
+
+    sizes: list[int] = field(default_factory=lambda: [256, 512])
+    dtypes: list[str] = field(default_factory=lambda: ["float32", "bfloat16"])
+    frames_timed: list[int] = field(default_factory=lambda: [1, 2])
+    window: int = 16
+    vae: bool = True
+    threads: int = 1
+    grid: DiffusionGridRows = field(default_factory=DiffusionGridRows)
+    gpus: GPUPeaks = field(default_factory=GPUPeaks)
+
+
 def register_study_configs() -> None:
     """Register every study's schema with Hydra's ConfigStore (``<name>_schema`` in each ``conf/study/<name>.yaml``;
     the convergence, render-knob and stability schemas by their own modules), and the pipeline's."""
@@ -146,5 +199,6 @@ def register_study_configs() -> None:
     store = ConfigStore.instance()
     for name, node in (("ball_schema", BallStudyConfig), ("fingers_schema", FingerStudyConfig),
                        ("contact_schema", ContactStudyConfig), ("bench_mpm_schema", MPMBenchConfig),
-                       ("bench_render_schema", RenderBenchConfig), ("bench_overhead_schema", OverheadBenchConfig)):
+                       ("bench_render_schema", RenderBenchConfig), ("bench_overhead_schema", OverheadBenchConfig),
+                       ("bench_diffusion_schema", DiffusionBenchConfig)):
         store.store(name=name, node=node)

@@ -336,11 +336,13 @@ def amt_midpoint(net: AMT, frame0: np.ndarray, frame1: np.ndarray) -> np.ndarray
     pad_y, pad_x = -h % _PAD_DIVISOR, -w % _PAD_DIVISOR
     pads = (pad_x // 2, pad_x - pad_x // 2, pad_y // 2, pad_y - pad_y // 2)
 
+    device = next(net.parameters()).device
+
     def tensor(frame: np.ndarray) -> torch.Tensor:
-        x = torch.from_numpy(np.ascontiguousarray(frame)).permute(2, 0, 1)[None].float() / 255.0
+        x = torch.from_numpy(np.ascontiguousarray(frame)).permute(2, 0, 1)[None].float().to(device) / 255.0
         return F.pad(x, pads, mode="replicate")
 
     with torch.inference_mode():
-        out = net(tensor(frame0), tensor(frame1), torch.full((1, 1, 1, 1), 0.5))
-    out = out[0, :, pads[2]:pads[2] + h, pads[0]:pads[0] + w]
+        out = net(tensor(frame0), tensor(frame1), torch.full((1, 1, 1, 1), 0.5, device=device))
+    out = out[0, :, pads[2]:pads[2] + h, pads[0]:pads[0] + w].cpu()
     return (out * 255.0).permute(1, 2, 0).numpy().clip(0, 255).astype(np.uint8)

@@ -13,9 +13,10 @@ PyTorch checkpoints of IQA-PyTorch (``musiq_spaq_ckpt-358bb6af.pth``, a flat sta
 * transformer: class token, 14 pre-norm blocks (6 heads, MLP 1152, GELU, LayerNorm eps 1e-6) with attention
   masked to the real patches, final LayerNorm, linear head on the class token (1 output: SPAQ's MOS, 0..100).
 
-VBench's imaging quality: every frame, as uint8 RGB, is resized (bilinear, no antialiasing) so that its longer side
-is 512 px when it is longer, divided by 255, scored by MUSIQ-SPAQ (inputs mapped to [-1, 1]); the video's score is
-the mean over its frames divided by 100.
+VBench's imaging quality: every frame, as uint8 RGB, is resized so that its longer side is 512 px when it is longer
+(torchvision's ``transforms.Resize`` on a uint8 tensor: bilinear WITH antialiasing, the default from torchvision 0.17,
+rounded back to uint8), divided by 255, scored by MUSIQ-SPAQ (inputs mapped to [-1, 1]); the video's score is the
+mean over its frames divided by 100.
 """
 from __future__ import annotations
 
@@ -30,7 +31,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["MUSIQ", "MusiqConfig", "load_musiq", "multiscale_patches", "musiq_frame_scores", "vbench_imaging_quality"]
+__all__ = ["MUSIQ", "MusiqConfig", "load_musiq", "multiscale_patches", "musiq_frame_scores", "vbench_imaging_quality",
+           "vbench_resize"]
 
 VBENCH_LONGER_SIDE_PX = 512
 
@@ -260,17 +262,24 @@ def load_musiq(path: str | Path) -> MUSIQ:
     return net.eval()
 
 
+def vbench_resize(frames: torch.Tensor) -> torch.Tensor:
+    """VBench's imaging-quality resize of (frame, 3, y, x) uint8-valued float frames: longer side down to 512 px when
+    it is longer, (int(scale h), int(scale w)), bilinear with antialiasing (torchvision's Resize), rounded to 8 bits."""
+    h, w = frames.shape[-2:]
+    if max(h, w) <= VBENCH_LONGER_SIDE_PX:
+        return frames
+    scale = VBENCH_LONGER_SIDE_PX / max(h, w)
+    resized = F.interpolate(frames, (int(scale * h), int(scale * w)), mode="bilinear", antialias=True)
+    return resized.round().clamp(0, 255)
+
+
 def musiq_frame_scores(video: np.ndarray, net: MUSIQ) -> np.ndarray:
     """MUSIQ score (the checkpoint's MOS scale, 0..100 for SPAQ) of every frame of a (frame, y, x, 3) uint8 sRGB video,
-    after VBench's resize: longer side down to 512 px (bilinear, no antialiasing, rounded to 8 bits) when it is
-    longer."""
-    frames = torch.from_numpy(np.ascontiguousarray(video)).permute(0, 3, 1, 2).float()
-    h, w = frames.shape[-2:]
-    if max(h, w) > VBENCH_LONGER_SIDE_PX:
-        scale = VBENCH_LONGER_SIDE_PX / max(h, w)
-        frames = F.interpolate(frames, (int(scale * h), int(scale * w)), mode="bilinear", antialias=False).round()
+    after VBench's resize (:func:`vbench_resize`), on the network's device."""
+    device = next(net.parameters()).device
+    frames = vbench_resize(torch.from_numpy(np.ascontiguousarray(video)).permute(0, 3, 1, 2).float())
     with torch.inference_mode():
-        return np.array([float(net(f[None] / 255.0)[0]) for f in frames])
+        return np.array([float(net(f[None].to(device) / 255.0)[0]) for f in frames])
 
 
 def vbench_imaging_quality(video: np.ndarray, net: MUSIQ) -> float:

@@ -32,19 +32,22 @@ from tasks.render.device import torch_device
 # to multiples of 16 of at least 128 px; smaller frames make the released model's lookup divide by zero)
 AMT_MIN_SIDE_PX = 128
 
+_FRAMES = ("Scored on the final frames as written (8-bit sRGB), not on frames decoded from the report's H.264 MP4 "
+           "as VBench and VideoPhy-2 read their inputs: compression artefacts are not in the score.")
 DEFINITIONS: dict[str, str] = {
     "imaging_quality_musiq": (
         "VBench imaging quality (1, in [0, 1], higher is better): MUSIQ with SPAQ weights on every frame (longer "
-        "side resized to 512 px when longer; RGB / 255), mean over the frames / 100; mean over the scored views."),
+        "side resized to 512 px when longer, bilinear with antialiasing as torchvision's Resize, rounded to 8 bits; "
+        "RGB / 255), mean over the frames / 100; mean over the scored views. " + _FRAMES),
     "motion_smoothness_amt": (
         "VBench motion smoothness (1, in [0, 1]): each odd frame predicted by AMT-S at t = 1/2 from its even "
         "neighbours (replicate padding to multiples of 16, uint8 by truncation), (255 - mean |odd - predicted|) / "
-        "255 on uint8 RGB; mean over the scored views."),
+        "255 on uint8 RGB; mean over the scored views. " + _FRAMES),
     "physical_commonsense": (
         "VideoPhy-2 physical commonsense (1-5, higher is better): the videophy_2_auto rater (mPLUG-Owl-Video 7B, "
-        "bfloat16) asked whether the video adheres to the physical laws, on 32 frames at the centres of equal segments "
-        "resized to 224 x 224 (CLIP normalisation), greedy answer parsed for its rating (0 when none); mean over "
-        "the scored views."),
+        "bfloat16, layer norms in float32) asked whether the video adheres to the physical laws, on 32 frames at the "
+        "centres of equal segments resized to 224 x 224 by torch (bicubic; the reference resizes with decord) (CLIP "
+        "normalisation), greedy answer parsed for its rating (0 when none); mean over the scored views. " + _FRAMES),
 }
 
 
@@ -68,6 +71,12 @@ def network(kind: str, path: Path):
                            f"{str(exc).splitlines()[0][:200]}); download the file named in the report again") from None
 
 
+def _on_device(net, device):
+    """The network (or the VideoPhy-2 rater's network) moved to ``device`` (a no-op when it is there)."""
+    (net.net if hasattr(net, "net") else net).to(device)
+    return net
+
+
 def paper_metrics(final: np.ndarray, cfg: dict[str, Any]) -> tuple[dict[str, float], dict[str, str],
                                                                     np.ndarray | None, dict[str, float]]:
     """The paper's metrics of one scene.  final: (view, frame, y, x, 3) uint8 sRGB or float linear RGB; cfg: the
@@ -77,6 +86,7 @@ def paper_metrics(final: np.ndarray, cfg: dict[str, Any]) -> tuple[dict[str, flo
     reasons: dict[str, str] = {}
     seconds: dict[str, float] = {}
     present = present_weights(cfg)
+    device = torch_device(cfg.get("device", "auto"))
     views = range(final.shape[0]) if cfg["views"] == "all" else [0]
     frame_scores = None
     for spec in PAPER_WEIGHTS:
@@ -90,7 +100,7 @@ def paper_metrics(final: np.ndarray, cfg: dict[str, Any]) -> tuple[dict[str, flo
                                     "(render.width/height)")
             continue
         t0 = time.perf_counter()
-        net = network(spec.metric, present[spec.metric])
+        net = _on_device(network(spec.metric, present[spec.metric]), device)
         scores = []
         for i, v in enumerate(views):
             video = to_srgb_uint8(final[v])
@@ -110,12 +120,12 @@ def paper_metrics(final: np.ndarray, cfg: dict[str, Any]) -> tuple[dict[str, flo
     return values, reasons, frame_scores, seconds
 
 
-@artifact_step("paper_metrics", inputs=("gbuffer", "effect"), reads=("paper_metrics", "render.device"),
+@artifact_step("paper_metrics", inputs=("gbuffer", "effect"), reads=("paper_metrics",),
                outputs=("musiq_frame_score?",))
 def paper_metrics_step(inputs, params):
     """Table 1's VBench imaging quality and motion smoothness and VideoPhy-2 physical commonsense of one scene, or
     why they were not computed."""
-    torch_device(params["render.device"])  # thread count
+    torch_device(params["paper_metrics"].get("device", "auto"))  # thread count
     g, effect = inputs["gbuffer"], inputs["effect"]
     final = final_video(effect, g)
     values, reasons, frame_scores, seconds = paper_metrics(final, dict(params["paper_metrics"]))

@@ -16,6 +16,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from tasks.core.hub import HubSource
+
 __all__ = ["PAPER_WEIGHTS", "PaperWeights", "absent_reason", "present_weights",
            "weights_identity"]
 
@@ -29,36 +31,44 @@ class PaperWeights:
     heading: str  # Table 1 column
     key: str  # config path naming the local file or folder
     file: str
-    source: str
+    source: str  # where the authors publish it
+    hub: HubSource  # the Hugging Face repository (and file) `hf download` fetches
     folder: bool = False
+
+    def command(self, path: str | Path) -> str:
+        """The ``hf download`` command that puts this checkpoint at ``path`` (a file's name must be ``file``: the
+        command keeps the repository's file name)."""
+        path = Path(path)
+        return self.hub.command(path if self.folder else path.parent)
 
     def reason(self, path: str | None) -> str | None:
         """The report's "not computed" line when the file is not at ``path`` (None when it is there)."""
         if not path:
-            return (f"not computed: weights not present ({self.key} is not set; download {self.file} from "
-                    f"{self.source} and run with {self.key}=/path/to/{self.file})")
+            return (f"not computed: weights not present ({self.key} is not set; fetch {self.file} with "
+                    f"`{self.command(Path('/path/to') / self.file)}` and run with {self.key}=/path/to/{self.file})")
+        rename = "" if self.folder or Path(path).name == self.file else f", then rename {self.file} to {Path(path).name}"
+        fetch = f"fetch it with `{self.command(path if self.folder else Path(path).parent / self.file)}`{rename}"
         if self.folder and not (Path(path).expanduser() / "config.json").is_file():
             return (f"not computed: weights not present (no folder with a config.json at {path}, named by "
-                    f"{self.key}; download the {self.file} folder from {self.source} to that path)")
+                    f"{self.key}; {fetch})")
         if not self.folder and not Path(path).expanduser().is_file():
-            return (f"not computed: weights not present (no file at {path}, named by {self.key}; download "
-                    f"{self.file} from {self.source} to that path)")
+            return f"not computed: weights not present (no file at {path}, named by {self.key}; {fetch})"
         return None
 
 
 PAPER_WEIGHTS: tuple[PaperWeights, ...] = (
     PaperWeights("imaging_quality_musiq", "VBench imaging quality (MUSIQ, SPAQ)", "paper_metrics.musiq_weights",
                  "musiq_spaq_ckpt-358bb6af.pth",
-                 "https://github.com/chaofengc/IQA-PyTorch/releases/download/v0.1-weights/musiq_spaq_ckpt-358bb6af.pth"),
+                 "https://github.com/chaofengc/IQA-PyTorch/releases/download/v0.1-weights/musiq_spaq_ckpt-358bb6af.pth",
+                 HubSource("chaofengc/IQA-PyTorch-Weights", files=("musiq_spaq_ckpt-358bb6af.pth",))),
     PaperWeights("motion_smoothness_amt", "VBench motion smoothness (AMT-S)", "paper_metrics.amt_weights", "amt-s.pth",
-                 "https://huggingface.co/lalala125/AMT/resolve/main/amt-s.pth"),
+                 "https://huggingface.co/lalala125/AMT/resolve/main/amt-s.pth",
+                 HubSource("lalala125/AMT", files=("amt-s.pth",))),
     PaperWeights("physical_commonsense", "Physical commonsense (VideoPhy-2 / VideoCon-Physics)",
                  "paper_metrics.videophy_weights", "videophy_2_auto",
-                 "https://huggingface.co/videophysics/videophy_2_auto", folder=True),
+                 "https://huggingface.co/videophysics/videophy_2_auto", HubSource("videophysics/videophy_2_auto"),
+                 folder=True),
 )
-
-# a folder's files up to this size are digested by content; larger (weight shards) by name, size and mtime
-_CONTENT_DIGEST_BYTES = 64 << 20
 
 
 def _path(cfg: Mapping[str, Any], spec: PaperWeights) -> str | None:
@@ -76,19 +86,17 @@ def present_weights(cfg: Mapping[str, Any]) -> dict[str, Path]:
 
 
 def _identity(path: Path) -> str:
-    """sha256 of a checkpoint file; of a folder: of its files' names with their sha256 (small files) or size and
-    mtime (weight shards above 64 MiB, so that a 14 GB folder is not re-read on every run)."""
+    """sha256 of a checkpoint file; of a folder: of its files' names with their sha256.  Digests are remembered
+    across runs by (path, size, mtime) (:mod:`tasks.core.digest_cache`), so a 14 GB folder is read once per
+    version, not on every run, and the key still follows the content."""
     import hashlib
 
-    from tasks.core.params import file_sha256
+    from tasks.core.digest_cache import file_digest
 
     if path.is_file():
-        return file_sha256(path)
-    parts = []
-    for f in sorted(p for p in path.rglob("*") if p.is_file()):
-        st = f.stat()
-        parts.append(f"{f.relative_to(path)}:" + (file_sha256(f) if st.st_size <= _CONTENT_DIGEST_BYTES
-                                                  else f"{st.st_size}:{st.st_mtime_ns}"))
+        return file_digest(path)
+    parts = [f"{f.relative_to(path)}:{file_digest(f)}" for f in sorted(p for p in path.rglob("*") if p.is_file()
+                                                                        and ".cache" not in p.parts)]
     return hashlib.sha256("\n".join(parts).encode()).hexdigest()
 
 

@@ -23,7 +23,10 @@ of the video, resized to 224 x 224, CLIP-normalised; the physical-commonsense pr
 BOS token; greedy decoding; the answer is parsed for the first of "zero".."five", "0".."5" it contains (else 0), the
 1-5 rating (5 = full compliance with physical laws).  The release (huggingface.co/videophysics/videophy_2_auto:
 ``config.json``, ``pytorch_model-0000?-of-00002.bin`` in bfloat16, ``tokenizer.model``) is run in bfloat16 like
-VideoPhy-2's inference, on the CPU.
+VideoPhy-2's inference, except the layer norms, which compute in float32 with float32 weights and return the input's
+dtype (mPLUG-Owl's ``LayerNormFp32``), on ``paper_metrics.device`` (CUDA when present).  Remaining difference: the
+reference decodes and resizes the MP4 with decord (FFmpeg's scaler); here the final frames are resized by torch
+(bicubic), before any MP4 encoding.
 """
 from __future__ import annotations
 
@@ -38,7 +41,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["CLIP_MEAN", "CLIP_STD", "MplugOwlVideo", "OwlConfig", "PROMPT_PHYSICS", "VideoPhyRater", "frame_indices",
+__all__ = ["CLIP_MEAN", "CLIP_STD", "MplugOwlVideo", "OwlConfig", "PROMPT_PHYSICS", "VideoPhyRater", "frame_indices", "keep_layer_norms_fp32",
            "load_videophy", "parse_rating", "video_pixels"]
 
 PROMPT_PHYSICS = (
@@ -301,11 +304,28 @@ class MplugOwlVideo(nn.Module):
     def prompt_embeddings(self, ids: list[int], pixels: torch.Tensor) -> torch.Tensor:
         """(1, len(ids), language width): the ids' embeddings, the run of negative ids (the video's positions)
         replaced by :meth:`video_embeddings`."""
-        tokens = torch.tensor([ids])
-        embeds = self.language_model.get_input_embeddings()(tokens.clamp(min=0))
+        table = self.language_model.get_input_embeddings()
+        tokens = torch.tensor([ids], device=table.weight.device)
+        embeds = table(tokens.clamp(min=0))
         start = ids.index(next(i for i in ids if i < 0))
         video = self.video_embeddings(pixels)
         return torch.cat([embeds[:, :start], video, embeds[:, start + video.shape[1]:]], dim=1)
+
+
+class LayerNormFp32(nn.LayerNorm):
+    """LayerNorm computed in float32 (weights kept float32), output in the input's dtype, as mPLUG-Owl's."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.layer_norm(x.float(), self.normalized_shape, self.weight.float(), self.bias.float(),
+                            self.eps).to(x.dtype)
+
+
+def keep_layer_norms_fp32(net: nn.Module) -> None:
+    """Every ``nn.LayerNorm`` of ``net`` becomes a :class:`LayerNormFp32` with float32 weights (names unchanged)."""
+    for module in net.modules():
+        if type(module) is nn.LayerNorm:
+            module.__class__ = LayerNormFp32
+            module.float()
 
 
 def frame_indices(total: int, count: int) -> np.ndarray:
@@ -354,12 +374,12 @@ class VideoPhyRater:
 
     def rate(self, video: np.ndarray) -> tuple[int, str]:
         """(1-5 rating, 0 when unparsable; the generated answer) of a (frame, y, x, 3) uint8 RGB video."""
-        dtype = self.net.query_tokens.dtype
-        pixels = video_pixels(video, self.frames, self.net.cfg.vision["image_size"]).to(dtype)
+        dtype, device = self.net.query_tokens.dtype, self.net.query_tokens.device
+        pixels = video_pixels(video, self.frames, self.net.cfg.vision["image_size"]).to(device, dtype)
         with torch.inference_mode():
             embeds = self.net.prompt_embeddings(self.prompt_ids(), pixels)
             out = self.net.language_model.generate(
-                inputs_embeds=embeds, attention_mask=torch.ones(embeds.shape[:2], dtype=torch.long),
+                inputs_embeds=embeds, attention_mask=torch.ones(embeds.shape[:2], dtype=torch.long, device=device),
                 max_new_tokens=self.max_new_tokens, do_sample=False,
                 pad_token_id=self.tokenizer.pad_token_id or 0, eos_token_id=self.tokenizer.eos_token_id)
         answer = self.tokenizer.decode(out[0].tolist(), skip_special_tokens=True)
@@ -405,4 +425,6 @@ def load_videophy(folder: str | Path, frames: int = 32, dtype: torch.dtype = tor
     if "language_model.lm_head.weight" not in state and cfg.text.get("tie_word_embeddings"):
         state["language_model.lm_head.weight"] = state["language_model.model.embed_tokens.weight"]
     net.load_state_dict(state, strict=True)
-    return VideoPhyRater(net.to(dtype).eval(), _tokenizer(folder), frames=frames)
+    net.to(dtype)
+    keep_layer_norms_fp32(net)
+    return VideoPhyRater(net.eval(), _tokenizer(folder), frames=frames)

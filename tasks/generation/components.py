@@ -9,7 +9,6 @@ offline and every loader runs with `local_files_only=True`; single-file checkpoi
 config folder because `from_single_file` otherwise fetches configs (diffusers issues #8752, #7902).
 """
 
-import hashlib
 import json
 import os
 from collections.abc import Mapping
@@ -29,9 +28,13 @@ from diffusers import (
 )
 from transformers import CLIPTextModel, CLIPTokenizer
 
-HASH_CHUNK_BYTES = 8 * 1024 * 1024
+from tasks.core.digest_cache import file_digest
+from tasks.core.hub import HubSource
+
 CONFIG_NAMES = ("model_index.json", "config.json", "scheduler_config.json")
-DOWNLOAD_PATTERNS = '--include "*.json" --include "*.txt" --include "*model.safetensors"'
+# what `from_pretrained` reads: configs, tokenizer files, full-precision safetensors (not the fp16 variants, the
+# original-format single files or the safety checker, which add GBs)
+_DIFFUSERS_FILES = ("*.json", "*.txt", "*model.safetensors")
 
 
 @dataclass(frozen=True)
@@ -68,6 +71,7 @@ class MissingModel:
     expected: Path
     problem: str
     fetch_to: Path
+    command: str  # the `hf download` command that fills fetch_to
 
 
 @dataclass
@@ -102,15 +106,20 @@ class _ModelSpec:
 
     key: str
     name: str
-    repo: str
+    source: HubSource
     parts: tuple[_Part, ...]
+
+    @property
+    def repo(self) -> str:
+        return self.source.repo
 
 
 _MODEL_SPECS = (
     _ModelSpec(
         "stable_diffusion",
         "an SD-1.5 base",
-        "stable-diffusion-v1-5/stable-diffusion-v1-5",
+        HubSource("stable-diffusion-v1-5/stable-diffusion-v1-5", include=_DIFFUSERS_FILES,
+                  exclude=("safety_checker/*",)),
         (
             _Part("", ("model_index.json",)),
             _Part("unet", ("config.json",), "diffusion_pytorch_model"),
@@ -123,18 +132,17 @@ _MODEL_SPECS = (
     _ModelSpec(
         "motion_adapter",
         "an AnimateDiff motion adapter",
-        "guoyww/animatediff-motion-adapter-v1-5-2",
+        HubSource("guoyww/animatediff-motion-adapter-v1-5-2", include=_DIFFUSERS_FILES),
         (_Part("", ("config.json",), "diffusion_pytorch_model"),),
     ),
     _ModelSpec(
         "controlnet_depth",
         "a depth ControlNet",
-        "lllyasviel/control_v11f1p_sd15_depth",
+        HubSource("lllyasviel/control_v11f1p_sd15_depth", include=_DIFFUSERS_FILES),
         (_Part("", ("config.json",), "diffusion_pytorch_model"),),
     ),
 )
 _TOKENIZER_EXTRAS = ("tokenizer_config.json", "special_tokens_map.json", "added_tokens.json")
-_hash_cache: dict[tuple[str, int, int], str] = {}
 
 
 def _resolve(folder: str, path: str) -> Path:
@@ -209,7 +217,8 @@ def check_weights(weights: DiffusionWeights) -> list[MissingModel]:
         found = _model_problem(weights, spec)
         if found is not None:
             fetch_to = _resolve(weights.folder, getattr(weights, spec.key).subfolder)
-            missing.append(MissingModel(spec.name, spec.repo, found[0], found[1], fetch_to))
+            missing.append(MissingModel(spec.name, spec.repo, found[0], found[1], fetch_to,
+                                        spec.source.command(fetch_to)))
     return missing
 
 
@@ -221,24 +230,14 @@ def missing_weights_message(missing: list[MissingModel]) -> str:
         "(docs/tutorials/diffusion-weights.md, 'Download'):"
     ]
     for model in missing:
-        lines.append(
-            f"  {model.model} at {model.expected} ({model.problem}): hf download {model.repo} "
-            f"{DOWNLOAD_PATTERNS} --local-dir {model.fetch_to}"
-        )
+        lines.append(f"  {model.model} at {model.expected} ({model.problem}): {model.command}")
     return "\n".join(lines)
 
 
 def file_sha256(path: Path) -> str:
-    """SHA-256 of a file's bytes, read in 8 MiB chunks; cached in memory by (path, size, mtime)."""
-    status = path.stat()
-    key = (str(path.resolve()), status.st_size, status.st_mtime_ns)
-    if key not in _hash_cache:
-        digest = hashlib.sha256()
-        with path.open("rb") as stream:
-            while chunk := stream.read(HASH_CHUNK_BYTES):
-                digest.update(chunk)
-        _hash_cache[key] = digest.hexdigest()
-    return _hash_cache[key]
+    """SHA-256 of a file's bytes, remembered across runs by (path, size, mtime) (:mod:`tasks.core.digest_cache`):
+    the ~7 GB of weights are read once per version, not on every run."""
+    return file_digest(path)
 
 
 def _part_files(root: Path, part: _Part, with_weights: bool) -> list[Path]:

@@ -4,7 +4,8 @@
   (screen-space fluid rendering) or fibrous stuffing - from the simulated particles, blended by the refined mask;
   labelled "physics-rendered" in every report;
 * ``diffusers`` (the method): AnimateDiff video-to-video + depth ControlNet (+ optional SD img2img pass) on the
-  simulated render, conditioned on the prompt and the mask-gated depth, confined by the refined mask;
+  simulated render, conditioned on the prompt and the mask-gated depth, confined by the refined mask; labelled by
+  what ran (:func:`diffusion_label`: "without img2img pass" unless that pass ran);
 * ``text_only`` (the ablation "w/o physics-guided conditions"): the same generator with the prompt only;
 * ``none``: no effect.
 
@@ -59,6 +60,8 @@ def diffusion_effect(generation: Mapping[str, Any], sim_srgb: np.ndarray, refine
     Diffusion works on sRGB-encoded images) from the simulated render ``sim_srgb`` (same layout), and run info.
 
     diffusers is imported here, not at the top: the default (physics) backend never loads it."""
+    from dataclasses import asdict
+
     from tasks.generation.components import auto_device_dtype, diffusion_weights, load_components_cached
     from tasks.generation.masked_diffusion import (
         DiffusionSettings,
@@ -66,14 +69,20 @@ def diffusion_effect(generation: Mapping[str, Any], sim_srgb: np.ndarray, refine
         generate_effect,
         generate_text_only,
     )
+    from tasks.generation.memory_options import apply_memory_options, choose_memory_options
 
     device, dtype = auto_device_dtype(generation["dtype"] == "bfloat16", generation["device"], generation["dtype"])
+    memory = choose_memory_options(device, generation["resolution"], generation["vae_slicing"],
+                                   generation["vae_tiling"], generation["attention"], generation["cpu_offload"],
+                                   generation["split_inference"])
     pipelines = build_effect_pipelines(load_components_cached(diffusion_weights(generation), device, dtype))
+    apply_memory_options(pipelines, memory, device)
     settings = DiffusionSettings(num_inference_steps=generation["steps"], strength=generation["strength"],
                                  guidance_scale=generation["guidance_scale"],
                                  controlnet_conditioning_scale=generation["controlnet_scale"],
                                  window=generation["window"], overlap=generation["overlap"], seed=generation["seed"],
-                                 refine_pass=generation["refine_pass"], refine_strength=generation["refine_strength"])
+                                 refine_pass=generation["refine_pass"], refine_strength=generation["refine_strength"],
+                                 resolution=generation["resolution"], memory=memory)
     out, infos = np.empty_like(sim_srgb), []
     n_views, n_frames, height, width = refined_mask.shape
     for v in range(n_views):
@@ -84,7 +93,22 @@ def diffusion_effect(generation: Mapping[str, Any], sim_srgb: np.ndarray, refine
                                            negative_prompt, settings)
         infos.append(info)
         report_progress(v + 1, n_views, unit="view")
-    return out, {"views": infos}
+    return out, {"views": infos, "memory": asdict(memory), "device": str(device), "dtype": str(dtype)}
+
+
+def diffusion_label(backend: str, info: Mapping[str, Any]) -> str:
+    """What the diffusion backend actually ran, from its run info: the passes that executed (the SD ControlNet
+    img2img pass only when it ran steps in some view), the pipeline's frame size and FreeNoise windows."""
+    views = info.get("views") or [{}]
+    height, width = views[0].get("resolution") or ["?", "?"]
+    windows = max(len(view.get("windows", [])) for view in views)
+    where = f"{width} x {height} px" + (f", FreeNoise over {windows} windows" if windows > 1 else "")
+    if backend == "text_only":
+        return f"text-only diffusion (AnimateDiff text-to-video, w/o physics-guided conditions; {where})"
+    refined = any(view.get("refine_steps_run", 0) > 0 for view in views)
+    passes = "AnimateDiff + depth ControlNet" + (" + SD ControlNet img2img pass" if refined
+                                                  else ", without img2img pass")
+    return f"diffusion ({passes}; {where})"
 
 
 @artifact_step("effect", inputs=("gbuffer", "conditions", "mpm_rollout", "mpm_particles", "material_oracle"),
@@ -124,8 +148,7 @@ def effect_step(inputs, params):
                                      cond["gated_depth"], text.prompt, text.negative_prompt)
         frames_out = np.clip(np.rint(out * 255.0), 0, 255).astype(np.uint8)
         info.update(prompt=text.prompt, negative_prompt=text.negative_prompt)
-        label = ("text-only diffusion (w/o physics-guided conditions)" if backend == "text_only"
-                 else "diffusion (AnimateDiff + SD img2img + depth ControlNet)")
+        label = diffusion_label(backend, info)
     if backend != "text_only":  # every pixel outside the refined mask is the simulated render, byte for byte
         frames_out = np.where(cond["refined_mask"][..., None], frames_out, g["rgb"])
     arrays = {"frames": Array(frames_out, ("view", "frame", "y", "x", "channel"), "1",

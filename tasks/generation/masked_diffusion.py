@@ -40,6 +40,7 @@ from diffusers import (
 )
 
 from tasks.generation.components import DiffusionComponents
+from tasks.generation.memory_options import MemoryOptions, set_attention, set_split_inference
 
 VAE_CHUNK_FRAMES = 16
 PIPELINE_SIZE_MULTIPLE = 8
@@ -56,6 +57,10 @@ class DiffusionSettings:
     window, overlap: frames per motion-module window and frames shared by neighbouring windows.
     seed: seeds every random draw (latent noise); equal seeds give identical frames.
     refine_pass, refine_strength: the per-frame SD ControlNet img2img pass and its strength (batches of `window`).
+    resolution: px, the longer side of the frames the pipelines run on (the conditions are resized to it and the
+    generated frames back to the render's size before the exact composite); None runs at the render's size.
+    SD-1.5 was trained at 512 px (a 64 x 64 latent); far smaller latents give it little room.
+    memory: attention processors and FreeNoise split inference applied per call (`memory_options`).
     """
 
     num_inference_steps: int = 20
@@ -67,6 +72,8 @@ class DiffusionSettings:
     seed: int = 0
     refine_pass: bool = False
     refine_strength: float = 0.3
+    resolution: int | None = None
+    memory: MemoryOptions = MemoryOptions()
 
 
 @dataclass
@@ -187,7 +194,10 @@ def _padded_size(pipelines: EffectPipelines, num_frames: int, height: int, width
 
 
 def _use_windows(pipe: AnimateDiffVideoToVideoControlNetPipeline | AnimateDiffPipeline, frames: int, settings):
-    """FreeNoise on the (shared) motion UNet when the sequence exceeds one window, off otherwise."""
+    """FreeNoise on the (shared) motion UNet when the sequence exceeds one window, off otherwise; then split
+    inference (only with FreeNoise) and the attention processors of `settings.memory` (FreeNoise rebuilds the motion
+    blocks with diffusers' default processors)."""
+    set_split_inference(pipe, settings.window, False)
     if frames > settings.window:
         pipe.enable_free_noise(
             context_length=settings.window,
@@ -196,7 +206,38 @@ def _use_windows(pipe: AnimateDiffVideoToVideoControlNetPipeline | AnimateDiffPi
         )
     else:
         pipe.disable_free_noise()
+    set_split_inference(pipe, settings.window, settings.memory.split_inference and frames > settings.window)
+    set_attention((pipe.unet,), settings.memory)
     pipe.unet.eval()
+
+
+def _resolution_size(height: int, width: int, resolution: int | None) -> tuple[int, int]:
+    """(height, width) scaled so that the longer side is `resolution` px (aspect kept, rounded); unchanged for None."""
+    if not resolution or max(height, width) == resolution:
+        return height, width
+    scale = resolution / max(height, width)
+    return max(1, round(height * scale)), max(1, round(width * scale))
+
+
+def _resize_frames(frames: np.ndarray, size: tuple[int, int], nearest: bool = False) -> np.ndarray:
+    """(frame, y, x[, c]) resized to `size` (y, x): area averaging down, bilinear up, nearest for masks."""
+    if frames.shape[1:3] == tuple(size):
+        return frames
+    import cv2
+
+    down = size[0] * size[1] < frames.shape[1] * frames.shape[2]
+    mode = cv2.INTER_NEAREST if nearest else cv2.INTER_AREA if down else cv2.INTER_LINEAR
+    dtype = frames.dtype
+    source = frames.astype(np.uint8) if dtype == np.bool_ else frames
+    out = np.stack([cv2.resize(frame, (size[1], size[0]), interpolation=mode) for frame in source])
+    return out.astype(dtype) if dtype == np.bool_ else np.clip(out, 0, 1) if not nearest else out
+
+
+def _to_resolution(rgb: np.ndarray, mask: np.ndarray, depth: np.ndarray, resolution: int | None):
+    """The G-buffer conditions at the pipeline's resolution (`_resolution_size`): rgb and depth resampled, the mask
+    by nearest neighbour (its pixels stay whole)."""
+    size = _resolution_size(*mask.shape[1:], resolution)
+    return _resize_frames(rgb, size), _resize_frames(mask, size, nearest=True), _resize_frames(depth, size)
 
 
 def _pass_timesteps(scheduler, num_inference_steps: int, strength: float) -> torch.Tensor:
@@ -341,12 +382,14 @@ def generate_effect(
     if settings.refine_pass:
         _check_settings(settings, pipelines, settings.refine_strength)
     started = time.perf_counter()
-    num_frames, height, width = mask.shape
-    # 2. Pad to a whole number of motion windows and a valid frame size.
+    num_frames = mask.shape[0]
+    # 2. Resize to the pipeline's resolution, pad to a whole number of motion windows and a valid frame size.
+    work_rgb, work_mask, work_depth = _to_resolution(rgb.astype(np.float32), mask, depth, settings.resolution)
+    height, width = work_mask.shape[1:]
     windows, frames, padded_height, padded_width = _padded_size(pipelines, num_frames, height, width, settings)
-    rgb_in = _pad(rgb.astype(np.float32), frames, padded_height, padded_width, "edge")
-    mask_in = _pad(mask, frames, padded_height, padded_width, False)
-    control = _pad(_depth_frames(depth), frames, padded_height, padded_width, "edge")
+    rgb_in = _pad(work_rgb, frames, padded_height, padded_width, "edge")
+    mask_in = _pad(work_mask, frames, padded_height, padded_width, False)
+    control = _pad(_depth_frames(work_depth), frames, padded_height, padded_width, "edge")
     generator = torch.Generator("cpu").manual_seed(settings.seed)
     # 3. Video pass: AnimateDiff + ControlNet depth, latent confinement, pixel composite by the mask.
     video, steps_run = _video_pass(pipelines, rgb_in, mask_in, control, prompt, negative_prompt, settings, generator)
@@ -358,13 +401,15 @@ def generate_effect(
             pipelines, result, mask_in, control, prompt, negative_prompt, settings, generator
         )
         result = np.where(mask_in[..., None], refined, rgb_in)
-    # 5. Crop the padding; outside the mask every pixel is the render's own value.
-    frames_out = np.where(mask[..., None], result[:num_frames, :height, :width], rgb.astype(np.float32))
+    # 5. Crop the padding, back to the render's size; outside the mask every pixel is the render's own value.
+    generated = _resize_frames(result[:num_frames, :height, :width], mask.shape[1:])
+    frames_out = np.where(mask[..., None], generated, rgb.astype(np.float32))
     info = {
         "steps_run": steps_run,
         "refine_steps_run": refine_steps_run,
         "windows": [list(window) for window in windows],
         "padded_shape": [frames, padded_height, padded_width],
+        "resolution": [height, width],
         "seconds": time.perf_counter() - started,
     }
     return frames_out.astype(np.float32), info
@@ -393,7 +438,9 @@ def generate_text_only(
         raise ValueError(f"need num_frames, height, width >= 1, got {num_frames}, {height}, {width}")
     _check_settings(settings, pipelines, 1.0)
     started = time.perf_counter()
-    # 2. Generate at the padded size, then crop.
+    # 2. Generate at the pipeline's resolution and the padded size, then crop and resize to the requested size.
+    out_size = (height, width)
+    height, width = _resolution_size(height, width, settings.resolution)
     windows, frames, padded_height, padded_width = _padded_size(pipelines, num_frames, height, width, settings)
     pipe = pipelines.text_to_video
     _use_windows(pipe, frames, settings)
@@ -413,6 +460,7 @@ def generate_text_only(
         "steps_run": len(pipe.scheduler.timesteps),
         "windows": [list(window) for window in windows],
         "padded_shape": [frames, padded_height, padded_width],
+        "resolution": [height, width],
         "seconds": time.perf_counter() - started,
     }
-    return output.frames[0][:num_frames, :height, :width].astype(np.float32), info
+    return _resize_frames(output.frames[0][:num_frames, :height, :width].astype(np.float32), out_size), info

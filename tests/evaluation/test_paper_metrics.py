@@ -23,8 +23,6 @@ from tests.evaluation.videos import noise_video
 TINY_MUSIQ = MusiqConfig(token_dim=8, hidden_size=16, mlp_dim=32, num_heads=1, num_layers=2)
 TINY_AMT = AmtConfig(channels=(8, 12, 16, 20), skip_channels=4, encoder_widths=(8, 16, 24), feature_dim=16,
                      hidden_dim=16, flow_dim=4, corr_dim=8, fc_dim=8)
-MUSIQ_URL = "https://github.com/chaofengc/IQA-PyTorch/releases/download/v0.1-weights/musiq_spaq_ckpt-358bb6af.pth"
-AMT_URL = "https://huggingface.co/lalala125/AMT/resolve/main/amt-s.pth"
 
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
@@ -106,21 +104,22 @@ def test_absent_weights_give_the_report_line_naming_what_to_fetch_and_where(tmp_
     values, reasons, frame_scores, seconds = paper_metrics(noise_video(5, 128, 144)[None], cfg)
     assert all(math.isnan(v) for v in values.values()) and frame_scores is None and seconds == {}
     assert reasons["imaging_quality_musiq"] == (
-        "not computed: weights not present (paper_metrics.musiq_weights is not set; download "
-        f"musiq_spaq_ckpt-358bb6af.pth from {MUSIQ_URL} and run with "
-        "paper_metrics.musiq_weights=/path/to/musiq_spaq_ckpt-358bb6af.pth)")
+        "not computed: weights not present (paper_metrics.musiq_weights is not set; fetch "
+        "musiq_spaq_ckpt-358bb6af.pth with `hf download chaofengc/IQA-PyTorch-Weights musiq_spaq_ckpt-358bb6af.pth "
+        "--local-dir /path/to` and run with paper_metrics.musiq_weights=/path/to/musiq_spaq_ckpt-358bb6af.pth)")
     assert reasons["motion_smoothness_amt"] == (
         f"not computed: weights not present (no file at {tmp_path}/nowhere/amt-s.pth, named by "
-        f"paper_metrics.amt_weights; download amt-s.pth from {AMT_URL} to that path)")
+        f"paper_metrics.amt_weights; fetch it with `hf download lalala125/AMT amt-s.pth --local-dir "
+        f"{tmp_path}/nowhere`)")
     assert reasons["physical_commonsense"] == (
-        "not computed: weights not present (paper_metrics.videophy_weights is not set; download videophy_2_auto from "
-        "https://huggingface.co/videophysics/videophy_2_auto and run with "
+        "not computed: weights not present (paper_metrics.videophy_weights is not set; fetch videophy_2_auto with "
+        "`hf download videophysics/videophy_2_auto --local-dir /path/to/videophy_2_auto` and run with "
         "paper_metrics.videophy_weights=/path/to/videophy_2_auto)")
     # a run that named no weight file has no paper_metrics artifact: the report gives the "not set" lines
     lines = paper_metric_reasons({})
     assert lines["VBench imaging quality (MUSIQ, SPAQ)"] == reasons["imaging_quality_musiq"]
     assert lines["VBench motion smoothness (AMT-S)"].startswith("not computed: weights not present "
-                                                                "(paper_metrics.amt_weights is not set; download")
+                                                                "(paper_metrics.amt_weights is not set; fetch")
 
 
 def test_the_step_scores_the_final_video_with_the_tiny_stand_ins_and_the_report_takes_its_values(tmp_path):

@@ -161,8 +161,8 @@ def test_absent_or_broken_folder_gives_one_line_naming_the_key(tmp_path):
     assert np.isnan(values["physical_commonsense"]) and seconds == {}
     assert reasons["physical_commonsense"] == (
         f"not computed: weights not present (no folder with a config.json at {tmp_path}/nowhere, named by "
-        "paper_metrics.videophy_weights; download the videophy_2_auto folder from "
-        "https://huggingface.co/videophysics/videophy_2_auto to that path)")
+        f"paper_metrics.videophy_weights; fetch it with `hf download videophysics/videophy_2_auto --local-dir "
+        f"{tmp_path}/nowhere`)")
     folder, _ = _release(tmp_path)
     (folder / "model.safetensors").unlink()
     with pytest.raises(RuntimeError) as err:
