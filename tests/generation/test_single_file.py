@@ -1,6 +1,6 @@
 """Single-file checkpoints given as config fields (generation.<model>_single_file and _single_file_config): tiny
 checkpoints written in the original layouts users hold (an LDM SD-1.5 ``.safetensors``, AnimateDiff's motion-module
-layout, lllyasviel's ControlNet layout; tests/single_file_export.py) load offline through diffusers' real
+layout, lllyasviel's ControlNet layout; tests/generation/single_file_export.py) load offline through diffusers' real
 ``from_single_file`` conversion with only a local config folder, every tensor equal to the components written."""
 from __future__ import annotations
 
@@ -11,7 +11,11 @@ import torch
 
 from conf.generation_schema import GenerationConfig, RefinementConfig, VideoMetricsConfig, validate_generation
 from tasks.generation.components import DiffusionWeights, check_weights, diffusion_weights, load_components
-from tests.generation.single_file_export import save_ldm_stable_diffusion, save_original_controlnet, save_original_motion_module
+from tests.generation.single_file_export import (
+    save_ldm_stable_diffusion,
+    save_original_controlnet,
+    save_original_motion_module,
+)
 from tests.generation.tiny_diffusion import save_diffusers_folders, tiny_components
 
 
