@@ -38,7 +38,8 @@ def test_each_report_video_decodes_to_the_expected_frames_and_size(prefect_serve
                                   step="gbuffer", scope="tomato").at(tmp_path / "artifacts"))
     views, frames, height, width = g["mask"].shape
     final, fps = decode_video(report / "tomato_full_final.mp4")
-    assert final.shape == (frames, height, width, 3) and fps == 15 / 5  # 15 Hz frames, every 5th rendered
+    # the watched video: view 0 beside the close-up, at the video resolution, each under a 20 px label
+    assert final.shape == (frames, 20 + 48, 2 * 48, 3) and fps == 15 / 5  # 15 Hz frames, every 5th rendered
     stages, _ = decode_video(report / "tomato_full_stages.mp4")
     label_px, columns = 20, 4  # render, conditions, final, refined 4D Gaussians
     assert stages.shape == (frames, views * (label_px + height), columns * width, 3)
