@@ -206,7 +206,8 @@ def _cached(step: StepTask, *, root: str, scope: str, params: dict, inputs: dict
             label: str) -> ArtifactRef:
     """The step's intact artifact on disk, found as its task's cache policy finds it (same key, same check,
     a damaged one removed with one warning line), without running anything."""
-    key = step_key(step.name, step.version, scope, params, {n: ref.at(root) for n, ref in inputs.items()})
+    key = step_key(step.name, step.version, scope, params, {n: ref.at(root) for n, ref in inputs.items()},
+                   step.spec.unkeyed)
     attrs = valid_artifact(artifact_path(root, scope, step.name, key), scope, step.name)
     if attrs is None:
         raise _MustRun(f"{label}/{step.name}")

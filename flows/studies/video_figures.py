@@ -19,9 +19,13 @@ import numpy as np
 
 from tasks.core.artifacts import ArtifactRef, read_artifact, read_group_attrs
 
+SKIP: set[str] = set()  # artifact folder names of BEFORE, left out of AFTER (an AFTER folder copied from BEFORE)
+
 
 def _artifacts(root: Path, scope: str, step: str):
     for path in sorted((root / scope / step).glob("*.zarr")):
+        if path.name in SKIP:
+            continue
         ref = ArtifactRef(rel=f"{scope}/{step}/{path.name}", digest=read_group_attrs(path)["digest"], step=step,
                           scope=scope).at(root)
         yield read_artifact(ref)
@@ -77,6 +81,9 @@ def main(before: str, after: str) -> None:
     for scope in ("tomato", "orange", "can", "plush_toy", "paper_cup", "rubber_duck", "clay", "rubber_ball"):
         for label, root, rows in (("before", Path(before), effect_rows), ("after", Path(after), effect_rows),
                                   ("after", Path(after), display_rows)):
+            SKIP.clear()
+            if label == "after":
+                SKIP.update(p.name for p in Path(before).glob(f"{scope}/*/*.zarr"))
             for r in rows(root, scope):
                 print(f"| {r['scene']} | {label} | {r['what']} | {r['components']:.0f} | {r['largest']:.2f} | "
                       f"{r['blobs']:.2f} |")

@@ -33,12 +33,10 @@ import torch
 
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
-from tasks.generation.effect import PARTICLE_RADIUS_FACTOR
-from tasks.generation.physics_effect import appearance_for_effect, render_effect
-from tasks.render.cameras import distance_for_object, look_at
+from tasks.generation.physics_effect import PARTICLE_RADIUS_FACTOR, appearance_for_effect, render_effect
+from tasks.render.cameras import distance_for_object, look_at, orbit_rig
 from tasks.render.colour import srgb_uint8_to_linear, to_srgb_uint8
 from tasks.render.device import torch_device
-from tasks.render.gbuffer import orbit_rig
 from tasks.render.hand import composite_hand, hand_sequence, render_hand
 from tasks.render.scene import drawn_covariances, frame_scene, released_appearance, rollout_particle_volumes
 from tasks.render.splat import rasterization
