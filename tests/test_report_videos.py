@@ -6,7 +6,7 @@ import shutil
 from pathlib import Path
 
 import pytest
-from test_pipeline_cache import SMALL
+from tests.test_pipeline_cache import SMALL
 
 
 @pytest.fixture(scope="module")

@@ -78,6 +78,21 @@ def project_particles(positions: np.ndarray, radii: np.ndarray | float, viewmat:
                               radius_px=K[0, 0] * radii[front] / z)
 
 
+def box_pixels(u: np.ndarray, v: np.ndarray, radius_px: np.ndarray, width: int, height: int
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every (particle, pixel) pair of the particles' screen boxes (centre (u, v) +- radius_px, clipped to the image):
+    ``(owner, px, py)`` int64 arrays, one row per pair."""
+    x0 = np.clip(np.floor(u - radius_px).astype(np.int64), 0, width)
+    x1 = np.clip(np.ceil(u + radius_px).astype(np.int64) + 1, 0, width)
+    y0 = np.clip(np.floor(v - radius_px).astype(np.int64), 0, height)
+    y1 = np.clip(np.ceil(v + radius_px).astype(np.int64) + 1, 0, height)
+    box_w, box_h = x1 - x0, np.maximum(y1 - y0, 0)
+    count = np.where(box_w > 0, box_w * box_h, 0)
+    owner = np.repeat(np.arange(len(count)), count)
+    local = np.arange(owner.size) - np.repeat(np.cumsum(count) - count, count)
+    return owner, x0[owner] + local % np.maximum(box_w[owner], 1), y0[owner] + local // np.maximum(box_w[owner], 1)
+
+
 def splat_sphere_impostors(particles: ProjectedParticles, surface_depth: np.ndarray
                            ) -> tuple[np.ndarray, np.ndarray]:
     """Sphere-impostor splatting (van der Laan, Green & Sainz, I3D 2009): z-buffered front depth and
@@ -90,16 +105,7 @@ def splat_sphere_impostors(particles: ProjectedParticles, surface_depth: np.ndar
     """
     height, width = surface_depth.shape
     # 1. enumerate the pixels of each particle's bounding box (one row per (particle, pixel) pair)
-    x0 = np.clip(np.floor(particles.u - particles.radius_px).astype(np.int64), 0, width)
-    x1 = np.clip(np.ceil(particles.u + particles.radius_px).astype(np.int64) + 1, 0, width)
-    y0 = np.clip(np.floor(particles.v - particles.radius_px).astype(np.int64), 0, height)
-    y1 = np.clip(np.ceil(particles.v + particles.radius_px).astype(np.int64) + 1, 0, height)
-    box_w, box_h = x1 - x0, np.maximum(y1 - y0, 0)
-    count = np.where(box_w > 0, box_w * box_h, 0)
-    owner = np.repeat(np.arange(len(count)), count)
-    local = np.arange(owner.size) - np.repeat(np.cumsum(count) - count, count)
-    px = x0[owner] + local % np.maximum(box_w[owner], 1)
-    py = y0[owner] + local // np.maximum(box_w[owner], 1)
+    owner, px, py = box_pixels(particles.u, particles.v, particles.radius_px, width, height)
     # 2. keep the pixel centres inside the disc and in front of the surface
     d2 = ((px + 0.5 - particles.u[owner]) ** 2 + (py + 0.5 - particles.v[owner]) ** 2) / particles.radius_px[owner] ** 2
     half_chord = particles.radius_m[owner] * np.sqrt(np.clip(1.0 - d2, 0.0, None))
@@ -142,16 +148,7 @@ def splat_ellipsoid_impostors(centres: np.ndarray, axes: np.ndarray, radii: np.n
     u = K[0, 0] * c[:, 0] / c[:, 2] + K[0, 2]
     v = K[1, 1] * c[:, 1] / c[:, 2] + K[1, 2]
     rad_px = K[0, 0] * rmax / (c[:, 2] - rmax)
-    x0 = np.clip(np.floor(u - rad_px).astype(np.int64), 0, width)
-    x1 = np.clip(np.ceil(u + rad_px).astype(np.int64) + 1, 0, width)
-    y0 = np.clip(np.floor(v - rad_px).astype(np.int64), 0, height)
-    y1 = np.clip(np.ceil(v + rad_px).astype(np.int64) + 1, 0, height)
-    box_w, box_h = x1 - x0, np.maximum(y1 - y0, 0)
-    count = np.where(box_w > 0, box_w * box_h, 0)
-    owner = np.repeat(np.arange(len(count)), count)
-    local = np.arange(owner.size) - np.repeat(np.cumsum(count) - count, count)
-    px = x0[owner] + local % np.maximum(box_w[owner], 1)
-    py = y0[owner] + local // np.maximum(box_w[owner], 1)
+    owner, px, py = box_pixels(u, v, rad_px, width, height)
     d = np.stack([(px + 0.5 - K[0, 2]) / K[0, 0], (py + 0.5 - K[1, 2]) / K[1, 1], np.ones(len(px))], -1)
     Ao = A[owner]
     Ad = np.einsum("nij,nj->ni", Ao, d)
