@@ -23,7 +23,8 @@ STEPS = ["object_model", "squeeze_signals", "signal_smoothing", "force_coefficie
          "appearance_refinement", "video_metrics", "llm_evaluation"]
 SMALL = ["sampling.surface_points=600", "sampling.particle_spacing=0.004", "signal.duration=1.5",
          "control.smoothing.frame_rate=15", "grid.variants=[full]", "mpm.target_substeps_per_frame=10", "runner=sequential",
-         "render.views=2", "render.width=32", "render.height=32", "render.frame_stride=5", "refinement.iterations=2",
+         "render.views=2", "render.width=32", "render.height=32", "render.frame_stride=5",
+         "render.video_width=48", "render.video_height=48", "refinement.iterations=2",
          "video_metrics.interpolator=dis", "video_metrics.brisque_max_frames=2"]
 
 

@@ -304,8 +304,7 @@ def artifact_steps() -> list[dict]:
     steps = []
     for path in sorted((ROOT / "tasks").rglob("*.py")):
         tree = ast.parse(path.read_text())
-        names = {t.id: n.value for n in tree.body if isinstance(n, ast.Assign) for t in n.targets
-                 if isinstance(t, ast.Name)}
+        names = _module_names(tree)
         for node in ast.walk(tree):
             if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 continue
@@ -325,6 +324,23 @@ def artifact_steps() -> list[dict]:
         return (STAGE_ORDER.index(stage) if stage in STAGE_ORDER else 99, pos if pos >= 0 else 10**9)
 
     return sorted(steps, key=order)
+
+
+def _module_names(tree: ast.Module, seen: frozenset[str] = frozenset()) -> dict[str, ast.AST]:
+    """The module-level names of a parsed module bound to a value: its own assignments and the names it imports
+    from another module of ours (``from tasks.x import NAME``, read from that module's source)."""
+    names: dict[str, ast.AST] = {t.id: n.value for n in tree.body if isinstance(n, ast.Assign) for t in n.targets
+                                 if isinstance(t, ast.Name)}
+    for n in tree.body:
+        if isinstance(n, ast.ImportFrom) and n.module and n.module.split(".")[0] in ("tasks", "conf") and not n.level:
+            source = ROOT.joinpath(*n.module.split(".")).with_suffix(".py")
+            if not source.exists() or n.module in seen:  # (an import cycle reads no further)
+                continue
+            theirs = _module_names(ast.parse(source.read_text()), seen | {n.module})
+            for alias in n.names:
+                if alias.name in theirs:
+                    names.setdefault(alias.asname or alias.name, theirs[alias.name])
+    return names
 
 
 def _static_names(node: ast.AST, names: dict[str, ast.AST]) -> list[str]:

@@ -21,11 +21,14 @@ import numpy as np
 
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
-from tasks.generation.physics_effect import appearance_for_effect, composite_effect, render_effect
+from tasks.generation.physics_effect import (
+    PARTICLE_RADIUS_FACTOR,
+    appearance_for_effect,
+    composite_effect,
+    render_effect,
+)
 from tasks.render.colour import srgb_uint8_to_linear, to_srgb_uint8
 from tasks.render.scene import rollout_particle_volumes
-
-PARTICLE_RADIUS_FACTOR = 0.75  # sphere radius of a released particle = this x cbrt(its volume): neighbours overlap
 
 
 def physics_effect(sim_rgb: np.ndarray, surface_depth: np.ndarray, refined_mask: np.ndarray,

@@ -20,6 +20,7 @@ from tasks.generation.impostors import EffectFrame
 from tasks.generation.strand_render import STUFFING, StuffingAppearance, render_stuffing
 
 EffectKind = Literal["liquid", "stuffing"]
+PARTICLE_RADIUS_FACTOR = 0.75  # sphere radius of a released particle = this x cbrt(its volume): neighbours overlap
 
 # the material oracle's effects that release interior material -> (renderer, appearance)
 EFFECT_APPEARANCES: dict[str, tuple[EffectKind, LiquidAppearance | StuffingAppearance]] = {
