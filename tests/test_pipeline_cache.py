@@ -20,7 +20,7 @@ from tasks.core.artifacts import read_group_attrs
 
 STEPS = ["object_model", "squeeze_signals", "signal_smoothing", "force_coefficients", "contact_patches",
          "dirichlet_field", "mpm_rollout", "deformation_metrics", "gbuffer", "conditions", "effect",
-         "appearance_refinement", "video_metrics", "llm_evaluation"]
+         "appearance_refinement", "video_metrics", "llm_evaluation", "display_video"]
 SMALL = ["sampling.surface_points=600", "sampling.particle_spacing=0.004", "signal.duration=1.5",
          "control.smoothing.frame_rate=15", "grid.variants=[full]", "mpm.target_substeps_per_frame=10", "runner=sequential",
          "render.views=2", "render.width=32", "render.height=32", "render.frame_stride=5",
@@ -369,9 +369,9 @@ def test_a_fully_cached_run_starts_no_server_or_workers_and_still_finds_a_damage
     warm = run_grid(compose_cfg, tmp_path, ["tomato"], ["runner=dask"])
     out = capsys.readouterr().out
     assert warm == {k: "cached" for k in first}
-    assert re.search(r"^every step is cached \(15 artifacts checked in [\d.]+ s\): no Prefect server or task "
+    assert re.search(r"^every step is cached \(17 artifacts checked in [\d.]+ s\): no Prefect server or task "
                      r"runner started, writing the report$", out, re.M), out
-    assert "[16/16] tomato llm_evaluation [full/physics]: cached" in out
+    assert "[16/17] tomato llm_evaluation [full/physics]: cached" in out
     assert step_warnings.take() == []
 
     [group] = artifact_of(tmp_path, "tomato", "deformation_metrics")

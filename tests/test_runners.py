@@ -39,12 +39,12 @@ def test_dask_local_cluster_gives_the_same_artifacts_and_metrics_as_sequential(p
         assert {r["status"] for r in rows} == {"ran"}
         per_variant = [(r["object"], r["step"]) for r in rows if r["variant"]]
         chain = ("mpm_rollout", "deformation_metrics", "gbuffer", "conditions", "effect", "appearance_refinement",
-                 "video_metrics", "llm_evaluation")
+                 "video_metrics", "llm_evaluation", "display_video")
         assert sorted(per_variant) == sorted((o, s) for o in ("clay", "rubber_ball") for s in chain
                                              for _ in ("full", "no_dirichlet"))
-        assert len([r for r in rows if not r["variant"]]) == 2 * 7  # shared steps: once per object
+        assert len([r for r in rows if not r["variant"]]) == 2 * 8  # shared steps (with mpm_particles): once per object
     assert _digests(tmp_path / "dask") == _digests(tmp_path / "sequential")
-    assert len(_digests(tmp_path / "dask")) == 2 * (7 + 2 * len(chain))
+    assert len(_digests(tmp_path / "dask")) == 2 * (8 + 2 * len(chain))
     metrics = {k: pd.read_parquet(Path(outs[k]["report"]) / "metrics.parquet") for k in outs}
     assert list(metrics["dask"].columns[:3]) == ["object", "seed", "variant"] and len(metrics["dask"]) == 4
     pd.testing.assert_frame_equal(metrics["dask"], metrics["sequential"])

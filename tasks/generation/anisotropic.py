@@ -41,6 +41,7 @@ class AnisotropySettings:
 
 
 YU_TURK = AnisotropySettings()
+BRIDGE_NEIGHBOURS = 3  # nearest neighbours a released particle is bridged to (bridge_particles)
 
 
 class Ellipsoids(NamedTuple):
@@ -84,3 +85,37 @@ def anisotropic_kernels(positions: np.ndarray, radii: np.ndarray | float,
     scale = settings.inflate * r * np.where(shaped, 1.0, settings.lonely_scale)
     centres = np.where(shaped[:, None], (1.0 - settings.smoothing) * x + settings.smoothing * mean, x)
     return Ellipsoids(centres, vectors, unit * scale[:, None])
+
+
+def bridge_particles(positions: np.ndarray, radii: np.ndarray | float, reach: float
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """More render particles than simulation particles, along the released flow (rendering only): between each
+    particle and each of its ``BRIDGE_NEIGHBOURS`` nearest neighbours closer than ``reach`` x their mean radius
+    whose spheres leave a gap (centres farther apart than 1.5 radii), render particles evenly spaced on the segment
+    joining them, one per 1.5 radii of its length, with the smaller of the two radii.  Particles that the simulation keeps together (a stream, a sheet, a puddle spread
+    on the table) then draw as one body; particles farther apart stay separate drops.
+
+    positions (n, 3) m, radii (n,) or scalar m.  Returns ``(positions, radii)`` of the originals followed by the
+    bridges, (n + m, 3) and (n + m,) m."""
+    x = np.asarray(positions, np.float64)
+    r = np.broadcast_to(np.asarray(radii, np.float64), (len(x),)).copy()
+    if len(x) < 2:
+        return x, r
+    k = min(BRIDGE_NEIGHBOURS, len(x) - 1)
+    dist, near = cKDTree(x).query(x, k=k + 1, distance_upper_bound=reach * float(np.max(r)))
+    i = np.repeat(np.arange(len(x)), k)
+    j, dist = near[:, 1:].ravel(), dist[:, 1:].ravel()
+    found = np.isfinite(dist)
+    i, j, dist = i[found], j[found], dist[found]
+    i, j = np.minimum(i, j), np.maximum(i, j)
+    unique = np.unique(i * len(x) + j, return_index=True)[1]  # a pair found from both ends is bridged once
+    i, j, dist = i[unique], j[unique], dist[unique]
+    mean_r = 0.5 * (r[i] + r[j])
+    keep = (dist < reach * mean_r) & (dist > 1.5 * mean_r)
+    i, j, dist, mean_r = i[keep], j[keep], dist[keep], mean_r[keep]
+    count = np.ceil(dist / (1.5 * mean_r)).astype(np.int64) - 1  # inner points per segment
+    owner = np.repeat(np.arange(len(i)), count)
+    step = np.arange(owner.size) - np.repeat(np.cumsum(count) - count, count) + 1
+    t = step / (count[owner] + 1.0)
+    bridges = x[i[owner]] + t[:, None] * (x[j[owner]] - x[i[owner]])
+    return np.concatenate([x, bridges]), np.concatenate([r, np.minimum(r[i], r[j])[owner]])

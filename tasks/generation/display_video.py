@@ -24,6 +24,7 @@ Outputs ``frames`` (view, frame, y, x, 3) 8-bit sRGB, the close-up last; ``effec
 """
 from __future__ import annotations
 
+import time
 from collections.abc import Mapping
 from typing import Any
 
@@ -33,7 +34,12 @@ import torch
 
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
-from tasks.generation.physics_effect import PARTICLE_RADIUS_FACTOR, appearance_for_effect, render_effect
+from tasks.generation.physics_effect import (
+    PARTICLE_RADIUS_FACTOR,
+    appearance_for_effect,
+    liquid_kernels,
+    render_effect,
+)
 from tasks.render.cameras import distance_for_object, look_at, orbit_rig
 from tasks.render.colour import srgb_uint8_to_linear, to_srgb_uint8
 from tasks.render.device import torch_device
@@ -105,13 +111,41 @@ def render_display_frame(scene_arrays: dict[str, np.ndarray], cams: dict[str, An
     return {"rgb": colors[..., :3].cpu().numpy(), "alpha": alpha, "depth": np.where(alpha > 0.5, depth, np.inf)}
 
 
+class StageClock:
+    """CPU seconds (``time.process_time``) per stage of the display step, for the cost benchmark
+    (``flows/bench/video.py``); ``None`` in the step: nothing is timed."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = {}
+        self._t = time.process_time()
+
+    def lap(self, stage: str) -> None:
+        """Charge the CPU time since the last lap to ``stage``."""
+        now = time.process_time()
+        self.seconds[stage] = self.seconds.get(stage, 0.0) + now - self._t
+        self._t = now
+
+
+def _lap(clock: StageClock | None, stage: str) -> None:
+    if clock is not None:
+        clock.lap(stage)
+
+
 @artifact_step("display_video",
-               inputs=("object_model", "signal_smoothing", "mpm_rollout", "material_oracle", "gbuffer", "conditions",
+               inputs=("object_model", "signal_smoothing", "mpm_particles", "mpm_rollout", "gbuffer", "conditions",
                        "effect"),
                reads=("render", "generation.backend", "generation.seed"),
                outputs=("frames", "effect_coverage", "viewmats", "Ks"))
 def display_video_step(inputs, params):
     """The watched videos: every orbit view and the close-up at the video resolution, with the hand (module doc)."""
+    return display_video(inputs, params)
+
+
+def display_video(inputs: Mapping[str, Any], params: Mapping[str, Any], clock: StageClock | None = None
+                  ) -> tuple[dict[str, Array], dict[str, Any]]:
+    """The display step's arrays and attrs from its input artifacts and parameters (:func:`display_video_step`);
+    ``clock``: CPU seconds per stage (surface, liquid kernels, released material, hand, encode; the close-up's
+    apart), for the benchmark."""
     render, backend = params["render"], params["generation.backend"]
     obj, rollout, g, cond, effect = (inputs[k] for k in ("object_model", "mpm_rollout", "gbuffer", "conditions",
                                                          "effect"))
@@ -129,17 +163,19 @@ def display_video_step(inputs, params):
     background = np.asarray(render["background"], np.float32)
     # the released material and how it is drawn
     visible = g["released_visible"]
-    volumes = rollout_particle_volumes(obj.arrays, len(rollout["particle_material"]))
+    volumes = rollout_particle_volumes(inputs["mpm_particles"].arrays, len(rollout["particle_material"]))
+    radii = PARTICLE_RADIUS_FACTOR * np.cbrt(volumes)
     has_release = bool(g.attrs["has_released_material"]) and backend != "none"
     physics = has_release and backend == "physics" and "frames" in effect
     generated = has_release and not physics and "frames" in effect
-    kind_look = appearance_for_effect(g.attrs["effect"]) if physics else None
+    kind, appearance = appearance_for_effect(g.attrs["effect"]) if physics else (None, None)
     look = released_appearance(render, g.attrs.get("released_material"))
     hands = hand_sequence(signals, frames) if render["hand"] else None
     skin = np.asarray(render["hand_colour"], np.float64)
     covariances = drawn_covariances(rollout["gaussian_covariances"][frames], obj["gaussian_scales"])
     out = np.zeros((n_views, len(frames), height, width, 3), np.uint8)
     coverage = np.zeros((n_views, len(frames), height, width), np.float32)
+    _lap(clock, "set-up")
     for f in range(len(frames)):
         # 1. the object's surface (with the released Gaussians only where nothing else draws them)
         blobs = visible[f] & (not physics) & (g.attrs["has_released_material"])
@@ -148,14 +184,17 @@ def display_video_step(inputs, params):
                             np.asarray(look["color"]), float(look["opacity"]))
         base = render_display_frame(scene._asdict(), cams, background, device)
         rgb, alpha, depth = base["rgb"], base["alpha"], base["depth"]
+        _lap(clock, "surface Gaussians")
+        shown = rollout["particle_positions"][frames[f]][visible[f]]
+        kernels = liquid_kernels(kind, shown, radii[visible[f]]) if physics and len(shown) else None
+        _lap(clock, "liquid kernels")
         for v in range(n_views):
+            where = " (close-up)" if v >= n_orbit else ""
             image, a, z = rgb[v], alpha[v], depth[v]
             # 2. the released material
-            if physics and visible[f].any():
-                kind, appearance = kind_look
-                shown = rollout["particle_positions"][frames[f]][visible[f]]
-                drawn = render_effect(kind, shown, PARTICLE_RADIUS_FACTOR * np.cbrt(volumes[visible[f]]),
-                                      viewmats[v], Ks[v], image, z, appearance, params["generation.seed"])
+            if physics and len(shown):
+                drawn = render_effect(kind, shown, radii[visible[f]], viewmats[v], Ks[v], image, z, appearance,
+                                      params["generation.seed"], kernels)
                 image = drawn.rgb
                 coverage[v, f] = drawn.coverage
                 a = np.maximum(a, drawn.coverage)
@@ -165,11 +204,14 @@ def display_video_step(inputs, params):
                 frame = srgb_uint8_to_linear(_resize(effect["frames"][v, f], width, height, cv2.INTER_CUBIC))
                 image = image + mask[..., None] * (frame - image)
                 coverage[v, f] = mask
+            _lap(clock, "released material" + where)
             # 3. the hand
             if hands is not None:
                 layer = render_hand(hands[f], viewmats[v], Ks[v], width, height, skin)
                 image = composite_hand(image, a, z, background, layer)
+            _lap(clock, "hand" + where)
             out[v, f] = to_srgb_uint8(image)
+            _lap(clock, "encode")
         report_progress(f + 1, len(frames))
     dims = ("view", "frame", "y", "x")
     arrays = {"frames": Array(out, dims + ("channel",), "1", "the watched video, 8-bit sRGB (close-up last)"),

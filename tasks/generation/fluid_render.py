@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from tasks.generation.anisotropic import YU_TURK, AnisotropySettings, anisotropic_kernels
+from tasks.generation.anisotropic import YU_TURK, AnisotropySettings, Ellipsoids, anisotropic_kernels
 from tasks.generation.impostors import (
     EffectFrame,
     check_frame_inputs,
@@ -176,14 +176,15 @@ def shade_liquid(background_rgb: np.ndarray, depth: np.ndarray, thickness: np.nd
 def render_liquid(positions: np.ndarray, radii: np.ndarray | float, viewmat: np.ndarray, K: np.ndarray,
                   background_rgb: np.ndarray, surface_depth: np.ndarray,
                   appearance: LiquidAppearance = JUICE,
-                  kernels: AnisotropySettings | None = YU_TURK) -> EffectFrame:
+                  kernels: AnisotropySettings | Ellipsoids | None = YU_TURK) -> EffectFrame:
     """Screen-space fluid rendering of one frame of released liquid (van der Laan et al. 2009; module doc).
 
     positions: (particle, xyz) world metres; radii: (particle,) or scalar metres; viewmat (4, 4) world-to-camera,
     K (3, 3): see :mod:`tasks.generation.impostors`; background_rgb: (y, x, 3) linear RGB in [0, 1], the render
     the liquid is seen against (and refracts); surface_depth: (y, x) metres of the object's surface without the
-    released material (+inf where none): particles behind it are hidden; kernels: the anisotropic kernels' settings
-    (None: a sphere per particle of its radius).
+    released material (+inf where none): particles behind it are hidden; kernels: the anisotropic kernels' settings,
+    or the kernels themselves (:func:`tasks.generation.anisotropic.anisotropic_kernels` of ``positions``, world
+    coordinates: computed once per frame, they serve every view), or None (a sphere per particle of its radius).
     Returns an :class:`EffectFrame`: rgb equals ``background_rgb`` (as float32) outside the coverage; depth is the
     smoothed liquid depth where covered; coverage is 1 where liquid is seen, else 0.
     """
@@ -195,8 +196,7 @@ def render_liquid(positions: np.ndarray, radii: np.ndarray | float, viewmat: np.
         depth, thickness = splat_sphere_impostors(particles, surface_depth)
         radius_px = float(np.median(particles.radius_px)) if len(particles.index) else 0.5
     else:
-        ellipsoids = anisotropic_kernels(np.asarray(positions, np.float64)[particles.index], particles.radius_m,
-                                         kernels)
+        ellipsoids = kernels if isinstance(kernels, Ellipsoids) else anisotropic_kernels(positions, radii, kernels)
         depth, thickness, radius_px = splat_ellipsoid_impostors(*ellipsoids, viewmat, K, surface_depth)
     covered = np.isfinite(depth)
     if not covered.any():

@@ -78,14 +78,16 @@ def project_particles(positions: np.ndarray, radii: np.ndarray | float, viewmat:
                               radius_px=K[0, 0] * radii[front] / z)
 
 
-def box_pixels(u: np.ndarray, v: np.ndarray, radius_px: np.ndarray, width: int, height: int
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every (particle, pixel) pair of the particles' screen boxes (centre (u, v) +- radius_px, clipped to the image):
-    ``(owner, px, py)`` int64 arrays, one row per pair."""
+def box_pixels(u: np.ndarray, v: np.ndarray, radius_px: np.ndarray, width: int, height: int,
+               radius_y_px: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every (particle, pixel) pair of the particles' screen boxes (centre (u, v) +- radius_px along x and
+    +- radius_y_px (default radius_px) along y, clipped to the image): ``(owner, px, py)`` int64 arrays, one row per
+    pair."""
+    radius_y_px = radius_px if radius_y_px is None else radius_y_px
     x0 = np.clip(np.floor(u - radius_px).astype(np.int64), 0, width)
     x1 = np.clip(np.ceil(u + radius_px).astype(np.int64) + 1, 0, width)
-    y0 = np.clip(np.floor(v - radius_px).astype(np.int64), 0, height)
-    y1 = np.clip(np.ceil(v + radius_px).astype(np.int64) + 1, 0, height)
+    y0 = np.clip(np.floor(v - radius_y_px).astype(np.int64), 0, height)
+    y1 = np.clip(np.ceil(v + radius_y_px).astype(np.int64) + 1, 0, height)
     box_w, box_h = x1 - x0, np.maximum(y1 - y0, 0)
     count = np.where(box_w > 0, box_w * box_h, 0)
     owner = np.repeat(np.arange(len(count)), count)
@@ -145,22 +147,31 @@ def splat_ellipsoid_impostors(centres: np.ndarray, axes: np.ndarray, radii: np.n
     if len(c) == 0:
         return depth.reshape(height, width), thickness.reshape(height, width), 1.0
     A = np.einsum("nik,nk,njk->nij", q, 1.0 / r ** 2, q)
-    u = K[0, 0] * c[:, 0] / c[:, 2] + K[0, 2]
-    v = K[1, 1] * c[:, 1] / c[:, 2] + K[1, 2]
-    rad_px = K[0, 0] * rmax / (c[:, 2] - rmax)
-    owner, px, py = box_pixels(u, v, rad_px, width, height)
-    d = np.stack([(px + 0.5 - K[0, 2]) / K[0, 0], (py + 0.5 - K[1, 2]) / K[1, 1], np.ones(len(px))], -1)
-    Ao = A[owner]
-    Ad = np.einsum("nij,nj->ni", Ao, d)
-    a = np.sum(d * Ad, axis=1)
-    b = np.sum(Ad * c[owner], axis=1)
-    cc = np.einsum("ni,nij,nj->n", c, A, c)[owner] - 1.0
+    spread = np.einsum("nik,nk,njk->nij", q, r ** 2, q)  # A^-1: the ellipsoid's extent along x is sqrt(spread_xx)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    u, v = fx * c[:, 0] / c[:, 2] + cx, fy * c[:, 1] / c[:, 2] + cy
+    z_near = c[:, 2] - rmax
+    # screen box: a point c + e of the ellipsoid projects |u - u_c| = |fx e_x - (u_c - cx) e_z| / (c_z + e_z) from
+    # the centre's pixel, at most (fx E_x + |u_c - cx| E_z) / z_near with E the ellipsoid's extents along the axes
+    extent = np.sqrt(np.einsum("nii->ni", spread))
+    half_x = (fx * extent[:, 0] + np.abs(u - cx) * extent[:, 2]) / z_near + 1.0
+    half_y = (fy * extent[:, 1] + np.abs(v - cy) * extent[:, 2]) / z_near + 1.0
+    owner, px, py = box_pixels(u, v, half_x, width, height, half_y)
+    # the ray x = t d, d = (dx, dy, 1): a = d^T A d, b = d^T A c, per pair from six + three per-ellipsoid numbers
+    dx, dy = (px + 0.5 - cx) / fx, (py + 0.5 - cy) / fy
+    Ac = np.einsum("nij,nj->ni", A, c)
+    cc = np.einsum("ni,ni->n", c, Ac)[owner] - 1.0
+    a = (A[owner, 0, 0] * dx * dx + A[owner, 1, 1] * dy * dy + A[owner, 2, 2]
+         + 2.0 * (A[owner, 0, 1] * dx * dy + A[owner, 0, 2] * dx + A[owner, 1, 2] * dy))
+    b = Ac[owner, 0] * dx + Ac[owner, 1] * dy + Ac[owner, 2]
     disc = b * b - a * cc
-    root = np.sqrt(np.clip(disc, 0.0, None))
+    hit = disc > 0
+    owner, px, py, a, b, disc, dx, dy = (x[hit] for x in (owner, px, py, a, b, disc, dx, dy))
+    root = np.sqrt(disc)
     t_front = (b - root) / a
-    chord = 2.0 * root / a * np.linalg.norm(d, axis=1)
-    keep = (disc > 0) & (t_front > near_m) & (t_front < surface_depth[py, px])
+    chord = 2.0 * root / a * np.sqrt(dx * dx + dy * dy + 1.0)
+    keep = (t_front > near_m) & (t_front < surface_depth[py, px])
     pixel = (py * width + px)[keep]
     np.minimum.at(depth, pixel, t_front[keep])
     thickness += np.bincount(pixel, weights=chord[keep], minlength=height * width)
-    return depth.reshape(height, width), thickness.reshape(height, width), float(np.median(rad_px))
+    return depth.reshape(height, width), thickness.reshape(height, width), float(np.median(fx * rmax / z_near))

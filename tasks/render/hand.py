@@ -218,52 +218,57 @@ def _pixel_rays(K: np.ndarray, x0: int, x1: int, y0: int, y1: int) -> np.ndarray
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
-def _capsule_hits(rd: np.ndarray, a: np.ndarray, b: np.ndarray, r: float, focal: float
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Ray (from the camera centre, unit directions rd (..., 3)) against one capsule a-b of radius r, camera coords.
+def _capsule_hits(rx: np.ndarray, ry: np.ndarray, rz: np.ndarray, a: np.ndarray, b: np.ndarray, r: float,
+                  focal: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rays from the camera centre (unit directions, components rx, ry, rz (...)) against one capsule a-b (3,) of
+    radius r, camera coords (Quilez's ray-capsule intersection), component by component.
 
     Returns depth (...,) m (camera z of the front hit; +inf where missed, and for fringe pixels within one pixel of
-    the silhouette the z of the closest point), normal (..., 3) unit, coverage (...,) in [0, 1]."""
+    the silhouette the z of the closest point), the unit normal's components nx, ny, nz (...) (fringe: facing the
+    camera) and coverage (...,) in [0, 1]."""
     ba = b - a
     baba = float(ba @ ba)
-    oa = -a
-    bard = rd @ ba
-    baoa = float(ba @ oa)
-    rdoa = rd @ oa
-    oaoa = float(oa @ oa)
-    # body of the cylinder (Quilez's ray-capsule intersection)
-    A = baba - bard ** 2
+    baoa = -float(ba @ a)
+    oaoa = float(a @ a)
+    bard = rx * ba[0] + ry * ba[1] + rz * ba[2]
+    rdoa = -(rx * a[0] + ry * a[1] + rz * a[2])
+    # body of the cylinder
+    A = baba - bard * bard
     B = baba * rdoa - baoa * bard
-    C = baba * oaoa - baoa ** 2 - r * r * baba
+    C = baba * oaoa - baoa * baoa - r * r * baba
     h = B * B - A * C
+    safe = np.abs(A) > 1e-18
     with np.errstate(invalid="ignore", divide="ignore"):
-        t_body = (-B - np.sqrt(np.maximum(h, 0.0))) / np.where(np.abs(A) > 1e-18, A, 1e-18)
+        t_body = (-B - np.sqrt(np.maximum(h, 0.0))) / np.where(safe, A, 1e-18)
     y = baoa + t_body * bard
-    body = (h >= 0) & (y > 0) & (y < baba) & (np.abs(A) > 1e-18)
+    body = (h >= 0) & (y > 0) & (y < baba) & safe
     # end spheres: the one on the side the body test failed
-    t_caps = np.full(rd.shape[:-1], np.inf)
+    t_caps = None
     for centre in (a, b):
-        bc = rd @ centre
+        bc = rx * centre[0] + ry * centre[1] + rz * centre[2]
         h2 = bc * bc - (float(centre @ centre) - r * r)
         t = np.where(h2 >= 0, bc - np.sqrt(np.maximum(h2, 0.0)), np.inf)
-        t_caps = np.minimum(t_caps, t)
+        t_caps = t if t_caps is None else np.minimum(t_caps, t)
     t = np.where(body, np.minimum(t_body, t_caps), t_caps)
-    t = np.where(t > 0, t, np.inf)
-    hit = np.isfinite(t)
-    p = rd * np.where(hit, t, 0.0)[..., None]
-    s = np.clip(((p - a) @ ba) / max(baba, 1e-18), 0.0, 1.0)
-    normal = _unit(p - (a + s[..., None] * ba))
-    # anti-aliased silhouette: distance between the ray and the axis segment
-    pa, pb = a - (rd @ a)[..., None] * rd, ba - (rd @ ba)[..., None] * rd  # components across the ray
-    denom = np.sum(pb * pb, axis=-1)
-    s_near = np.clip(-np.sum(pa * pb, axis=-1) / np.maximum(denom, 1e-18), 0.0, 1.0)
-    closest = a + s_near[..., None] * ba
-    gap = np.linalg.norm(pa + s_near[..., None] * pb, axis=-1)
-    z_near = np.maximum(closest[..., 2], 1e-6)
+    hit = (t > 0) & np.isfinite(t)
+    t = np.where(hit, t, 0.0)
+    px, py, pz = rx * t, ry * t, rz * t
+    s = np.clip(((px - a[0]) * ba[0] + (py - a[1]) * ba[1] + (pz - a[2]) * ba[2]) / max(baba, 1e-18), 0.0, 1.0)
+    nx, ny, nz = px - (a[0] + s * ba[0]), py - (a[1] + s * ba[1]), pz - (a[2] + s * ba[2])
+    norm = np.maximum(np.sqrt(nx * nx + ny * ny + nz * nz), 1e-12)
+    nx, ny, nz = np.where(hit, nx / norm, 0.0), np.where(hit, ny / norm, 0.0), np.where(hit, nz / norm, -1.0)
+    # anti-aliased silhouette: distance between the ray and the axis segment (components across the ray)
+    rda = rx * a[0] + ry * a[1] + rz * a[2]
+    pax, pay, paz = a[0] - rda * rx, a[1] - rda * ry, a[2] - rda * rz
+    pbx, pby, pbz = ba[0] - bard * rx, ba[1] - bard * ry, ba[2] - bard * rz
+    denom = np.maximum(pbx * pbx + pby * pby + pbz * pbz, 1e-18)
+    s_near = np.clip(-(pax * pbx + pay * pby + paz * pbz) / denom, 0.0, 1.0)
+    gx, gy, gz = pax + s_near * pbx, pay + s_near * pby, paz + s_near * pbz
+    gap = np.sqrt(gx * gx + gy * gy + gz * gz)
+    z_near = np.maximum(a[2] + s_near * ba[2], 1e-6)
     coverage = np.clip(0.5 + (r - gap) * focal / z_near, 0.0, 1.0)
-    depth = np.where(hit, t * rd[..., 2], np.where(coverage > 0, z_near - r, np.inf))
-    normal = np.where(hit[..., None], normal, np.array([0.0, 0.0, -1.0]))  # fringe: facing the camera
-    return depth, normal, coverage
+    depth = np.where(hit, t * rz, np.where(coverage > 0, z_near - r, np.inf))
+    return depth, nx, ny, nz, coverage
 
 
 def shade_skin(normal: np.ndarray, colour: np.ndarray, view: np.ndarray) -> np.ndarray:
@@ -281,41 +286,45 @@ _RAYS: dict[tuple, np.ndarray] = {}
 def render_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
                 colour: np.ndarray) -> HandLayer:
     """The hand's capsules in one camera (module doc): world-to-camera ``viewmat`` (4, 4), intrinsics ``K`` (3, 3) px,
-    ``colour`` (3,) linear RGB.  Each capsule is intersected over its projected bounding box only."""
+    ``colour`` (3,) linear RGB.  Each capsule is intersected over its projected bounding box only (component
+    arrays, no per-pixel vectors), z-buffered across capsules."""
     viewmat, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
-    depth = np.full((height, width), np.inf)
-    coverage = np.zeros((height, width))
-    normal = np.zeros((height, width, 3))
-    normal[..., 2] = -1.0
-    a_cam = capsules.a @ viewmat[:3, :3].T + viewmat[:3, 3]
-    b_cam = capsules.b @ viewmat[:3, :3].T + viewmat[:3, 3]
     focal = float(K[0, 0])
     key = (K.tobytes(), width, height)
     if key not in _RAYS:  # one camera's rays serve every frame
         if len(_RAYS) > 8:
             _RAYS.clear()
-        _RAYS[key] = _pixel_rays(K, 0, width, 0, height)
-    rays = _RAYS[key]
-    for a, b, r in zip(a_cam, b_cam, capsules.radius):
-        if min(a[2], b[2]) - r <= 1e-3:  # behind or through the camera: not drawn
+        _RAYS[key] = np.moveaxis(_pixel_rays(K, 0, width, 0, height), -1, 0).copy()
+    rx, ry, rz = _RAYS[key]
+    depth = np.full((height, width), np.inf)
+    coverage = np.zeros((height, width))
+    normal = np.zeros((3, height, width))
+    normal[2] = -1.0
+    a_cam = capsules.a @ viewmat[:3, :3].T + viewmat[:3, 3]
+    b_cam = capsules.b @ viewmat[:3, :3].T + viewmat[:3, 3]
+    for a, b, r in zip(a_cam, b_cam, np.asarray(capsules.radius, np.float64)):
+        near = min(a[2], b[2]) - r
+        if near <= 1e-3:  # behind or through the camera: not drawn
             continue
         ends = np.stack([a, b])
         uv = ends[:, :2] / ends[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
-        pad = r * focal / (ends[:, 2].min() - r) + 2
+        pad = r * focal / near + 2
         x0, y0 = np.floor(uv.min(axis=0) - pad).astype(int)
         x1, y1 = np.ceil(uv.max(axis=0) + pad).astype(int) + 1
         x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
         if x0 >= x1 or y0 >= y1:
             continue
         box = (slice(y0, y1), slice(x0, x1))
-        d, n, c = _capsule_hits(rays[box], a, b, float(r), focal)
+        d, nx, ny, nz, c = _capsule_hits(rx[box], ry[box], rz[box], a, b, float(r), focal)
         nearer = d < depth[box]
         depth[box] = np.where(nearer, d, depth[box])
-        normal[box] = np.where(nearer[..., None], n, normal[box])
+        for k, n in enumerate((nx, ny, nz)):
+            normal[k][box] = np.where(nearer, n, normal[k][box])
         coverage[box] = np.maximum(coverage[box], c)
     rgb = np.zeros((height, width, 3), np.float32)
     drawn = coverage > 0
-    rgb[drawn] = shade_skin(normal[drawn], np.asarray(colour, np.float64), rays[drawn])
+    view = np.stack([rx[drawn], ry[drawn], rz[drawn]], -1)
+    rgb[drawn] = shade_skin(np.stack([n[drawn] for n in normal], -1), np.asarray(colour, np.float64), view)
     return HandLayer(rgb, depth.astype(np.float32), coverage.astype(np.float32))
 
 
