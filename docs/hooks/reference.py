@@ -9,7 +9,7 @@
   the input files and the arrays it writes.  The declarations are read from the source with ``ast`` (nothing under
   ``tasks/`` is imported), so the page follows the code wherever a step module lives.
 
-The functions are plain Python so that ``tests/test_docs.py`` checks the same output the site shows.
+The functions are plain Python so that ``tests/flows/test_docs.py`` checks the same output the site shows.
 """
 from __future__ import annotations
 
@@ -304,7 +304,7 @@ def artifact_steps() -> list[dict]:
     steps = []
     for path in sorted((ROOT / "tasks").rglob("*.py")):
         tree = ast.parse(path.read_text())
-        names = _module_names(tree)
+        names = {**_imported_names(tree), **_module_names(tree)}
         for node in ast.walk(tree):
             if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 continue
@@ -326,21 +326,22 @@ def artifact_steps() -> list[dict]:
     return sorted(steps, key=order)
 
 
-def _module_names(tree: ast.Module, seen: frozenset[str] = frozenset()) -> dict[str, ast.AST]:
-    """The module-level names of a parsed module bound to a value: its own assignments and the names it imports
-    from another module of ours (``from tasks.x import NAME``, read from that module's source)."""
-    names: dict[str, ast.AST] = {t.id: n.value for n in tree.body if isinstance(n, ast.Assign) for t in n.targets
-                                 if isinstance(t, ast.Name)}
+def _module_names(tree: ast.Module) -> dict[str, ast.AST]:
+    """A module's top-level ``NAME = value`` bindings, unevaluated."""
+    return {t.id: n.value for n in tree.body if isinstance(n, ast.Assign) for t in n.targets if isinstance(t, ast.Name)}
+
+
+def _imported_names(tree: ast.Module) -> dict[str, ast.AST]:
+    """The bindings of ``from tasks.x import NAME`` at a module's top level, read from that module's source (a step
+    may declare its outputs with a tuple its helper module defines)."""
+    out: dict[str, ast.AST] = {}
     for n in tree.body:
-        if isinstance(n, ast.ImportFrom) and n.module and n.module.split(".")[0] in ("tasks", "conf") and not n.level:
-            source = ROOT.joinpath(*n.module.split(".")).with_suffix(".py")
-            if not source.exists() or n.module in seen:  # (an import cycle reads no further)
-                continue
-            theirs = _module_names(ast.parse(source.read_text()), seen | {n.module})
-            for alias in n.names:
-                if alias.name in theirs:
-                    names.setdefault(alias.asname or alias.name, theirs[alias.name])
-    return names
+        if isinstance(n, ast.ImportFrom) and n.module and n.module.split(".")[0] == "tasks" and not n.level:
+            path = ROOT.joinpath(*n.module.split(".")).with_suffix(".py")
+            if path.exists():
+                bound = _module_names(ast.parse(path.read_text()))
+                out.update({a.asname or a.name: bound[a.name] for a in n.names if a.name in bound})
+    return out
 
 
 def _static_names(node: ast.AST, names: dict[str, ast.AST]) -> list[str]:
