@@ -7,7 +7,7 @@ import shutil
 
 import numpy as np
 
-from tests.test_pipeline_cache import SMALL
+from tests.small_runs import SMALL
 
 COMPARED = ("gbuffer", "conditions", "effect", "appearance_refinement", "video_metrics", "deformation_metrics")
 
