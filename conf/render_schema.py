@@ -30,6 +30,10 @@ class RenderConfig:
     pixel belongs to the released material.
     depth_normalisation: ``sequence`` (inverse depth scaled to [0, 1] over the whole clip: no brightness flicker)
     or ``frame`` (per frame, as the MiDaS annotator).
+    hand: draw the glove's hand (capsules from the recorded fingertips, palm pose and flexion) in the videos;
+    hand_colour: its linear RGB (a neutral skin tone).  video_width, video_height: pixels of the watched videos
+    (every orbit view plus, with ``closeup``, one view framing the fingers' contact region so that its four
+    fingertips span ``closeup_fill`` of the width).
     released: appearance of released interior material, keyed by a word of the oracle's interior material name
     (``regular cola`` -> ``cola``, ``tomato juice / locular pulp`` -> ``tomato``, ``loose polyester fibrefill``
     -> ``fibrefill``); the first key contained in the name wins, others use ``released_default``.
@@ -59,6 +63,13 @@ class RenderConfig:
         "stuffing": ReleasedAppearance(color=[0.93, 0.91, 0.86], opacity=0.95, effect="stuffing"),
     })
     released_default: ReleasedAppearance = field(default_factory=ReleasedAppearance)
+    # the watched videos (step display_video; the G-buffer above, eq. 6 and every metric never see these)
+    hand: bool = True
+    hand_colour: list[float] = field(default_factory=lambda: [0.75, 0.46, 0.33])
+    video_width: int = 384
+    video_height: int = 384
+    closeup: bool = True
+    closeup_fill: float = 0.8
 
 
 def validate_render(cfg) -> None:
@@ -72,6 +83,11 @@ def validate_render(cfg) -> None:
         (16 <= r.width <= 4096 and 16 <= r.height <= 4096, "render.width/height",
          f"must be in [16, 4096] px, got {r.width} x {r.height}"),
         (r.frame_stride >= 1, "render.frame_stride", f"must be >= 1, got {r.frame_stride}"),
+        (16 <= r.video_width <= 4096 and 16 <= r.video_height <= 4096, "render.video_width/video_height",
+         f"must be in [16, 4096] px, got {r.video_width} x {r.video_height}"),
+        (len(r.hand_colour) == 3 and all(0 <= c <= 1 for c in r.hand_colour), "render.hand_colour",
+         f"must be three linear RGB values in [0, 1], got {list(r.hand_colour)}"),
+        (0 < r.closeup_fill <= 1, "render.closeup_fill", f"must be in (0, 1], got {r.closeup_fill}"),
         (len(r.background) == 3, "render.background", f"must be three linear RGB values, got {list(r.background)}"),
         (0 < r.mask_threshold < 1, "render.mask_threshold", f"must be in (0, 1), got {r.mask_threshold}"),
         (r.depth_normalisation in ("sequence", "frame"), "render.depth_normalisation",

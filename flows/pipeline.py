@@ -18,7 +18,8 @@ Per object, variant and effect backend (``grid.backends``, default ``[generation
 Tables 1 and 3:
 
     effect -> appearance_refinement (eq. 7) -> video_metrics; llm_evaluation; paper_metrics (only when a
-    ``paper_metrics`` weight file is named: the paper's VBench metrics)
+    ``paper_metrics`` weight file is named: the paper's VBench metrics); display_video (the watched videos: every
+    view and a close-up at the video resolution with the hand drawn; nothing scores them)
 
 Per object and variant, the report's media (videos, contact sheet, figures) are made on the task runner as soon as
 the artifacts they show exist (:func:`tasks.reporting.report.cache_scene_media`), so that the report build after
@@ -57,6 +58,7 @@ from tasks.evaluation.llm_evaluation import llm_evaluation_step
 from tasks.evaluation.paper_metrics import paper_metrics_step
 from tasks.evaluation.video_metrics import video_metrics_step
 from tasks.generation.appearance_refinement import appearance_refinement_step
+from tasks.generation.display_video import display_video_step
 from tasks.generation.effect import effect_step
 from tasks.physics.material_oracle import material_oracle_step
 from tasks.physics.mpm_particles import mpm_particles_step
@@ -77,7 +79,7 @@ PER_OBJECT: tuple[StepTask, ...] = (
 )
 PER_VARIANT: tuple[StepTask, ...] = (mpm_rollout_step, deformation_metrics_step, gbuffer_step, conditions_step)
 PER_BACKEND: tuple[StepTask, ...] = (effect_step, appearance_refinement_step, video_metrics_step,
-                                     llm_evaluation_step, paper_metrics_step)
+                                     llm_evaluation_step, paper_metrics_step, display_video_step)
 STEPS: tuple[StepTask, ...] = PER_OBJECT + PER_VARIANT + PER_BACKEND
 STAGE_OF: dict[str, str] = {s.name: s.compute.__module__.split(".")[1] for s in STEPS}  # e.g. gbuffer -> render
 
@@ -206,7 +208,8 @@ def _cached(step: StepTask, *, root: str, scope: str, params: dict, inputs: dict
             label: str) -> ArtifactRef:
     """The step's intact artifact on disk, found as its task's cache policy finds it (same key, same check,
     a damaged one removed with one warning line), without running anything."""
-    key = step_key(step.name, step.version, scope, params, {n: ref.at(root) for n, ref in inputs.items()})
+    key = step_key(step.name, step.version, scope, params, {n: ref.at(root) for n, ref in inputs.items()},
+                   step.spec.unkeyed)
     attrs = valid_artifact(artifact_path(root, scope, step.name, key), scope, step.name)
     if attrs is None:
         raise _MustRun(f"{label}/{step.name}")

@@ -9,8 +9,9 @@ from tasks.core.artifacts import read_group_attrs
 # the per-object control chain (object model -> dirichlet_field) on a coarse sampling: seconds per step
 CONTROL_SIZES = ["sampling.surface_points=600", "sampling.particle_spacing=0.004", "signal.duration=1.5",
                  "control.smoothing.frame_rate=15"]
-# two 32 x 32 views of every fifth frame, two refinement iterations, the cheap video metrics
+# two 32 x 32 views of every fifth frame (48 x 48 watched videos), two refinement iterations, the cheap video metrics
 RENDER_SIZES = ["render.views=2", "render.width=32", "render.height=32", "render.frame_stride=5",
+                "render.video_width=48", "render.video_height=48",
                 "refinement.iterations=2", "video_metrics.interpolator=dis", "video_metrics.brisque_max_frames=2"]
 # one variant, a short rollout, the sequential runner
 SMALL = [*CONTROL_SIZES, "grid.variants=[full]", "mpm.target_substeps_per_frame=10", "runner=sequential",

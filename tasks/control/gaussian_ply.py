@@ -12,8 +12,12 @@ Stored values are the optimiser's raw parameters; this module converts to and fr
 * ``rotations`` (N, 4) 1, unit quaternions ``w, x, y, z`` (w first, as in the reference code), stored as is
   (the reader normalises them);
 * ``opacities`` (N,) 1 in (0, 1), stored as ``logit(opacity)``;
-* ``colors`` (N, 3) 1, linear RGB, stored as the degree-0 spherical-harmonic coefficient
-  ``f_dc = (rgb - 0.5) / C0`` with ``C0 = 0.28209479177387814`` (the SH band-0 constant);
+* ``colors`` (N, 3) 1, linear RGB.  3DGS files and every splat viewer take ``0.5 + C0 f_dc`` as the *display*
+  (sRGB-encoded) colour, so the writer stores ``f_dc = (srgb(rgb) - 0.5) / C0`` and the reader returns
+  ``linear(clip(0.5 + C0 f_dc, 0, 1))`` (IEC 61966-2-1 transfer function, :func:`srgb_to_linear` /
+  :func:`linear_to_srgb`), ``C0 = 0.28209479177387814`` (the SH band-0 constant); the display colour itself is
+  returned as ``display_colors``.  Higher SH bands (view-dependent colour) are read as ``sh_rest`` and not used by
+  the pipeline (a user's PLY is rendered view-independently with its band-0 colour);
 * ``f_rest`` are the higher SH bands, channel-major (all coefficients of R, then G, then B), so
   ``f_rest_{c * K + j}`` is coefficient ``j`` of channel ``c`` with ``K = (sh_degree + 1)^2 - 1``.  The writer
   stores zeros (a view-independent, degree-0 export) for ``sh_degree`` 3 by default so that viewers expecting
@@ -32,7 +36,8 @@ import numpy as np
 
 from tasks.core.excerpt import excerpt
 
-__all__ = ["C0", "GaussianPlyError", "write_gaussian_ply", "read_gaussian_ply", "REQUIRED_PROPERTIES"]
+__all__ = ["C0", "GaussianPlyError", "write_gaussian_ply", "read_gaussian_ply", "REQUIRED_PROPERTIES",
+           "REFERENCE_PROPERTIES", "srgb_to_linear", "linear_to_srgb"]
 
 C0 = 0.28209479177387814  # SH band-0 constant 1 / (2 sqrt(pi))
 
@@ -40,6 +45,25 @@ REQUIRED_PROPERTIES: tuple[str, ...] = (
     "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
     "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3",
 )
+
+# The reference 3DGS layout (Kerbl et al. 2023, scene/gaussian_model.py construct_list_of_attributes) at SH degree 3
+REFERENCE_PROPERTIES: tuple[str, ...] = (
+    "x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", *(f"f_rest_{i}" for i in range(45)),
+    "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3",
+)
+
+
+def srgb_to_linear(srgb: Any) -> np.ndarray:
+    """Linear RGB of sRGB-encoded values in [0, 1] (IEC 61966-2-1; input clipped to [0, 1])."""
+    c = np.clip(np.asarray(srgb, dtype=np.float64), 0.0, 1.0)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def linear_to_srgb(linear: Any) -> np.ndarray:
+    """sRGB encoding of linear RGB in [0, 1] (IEC 61966-2-1; input clipped to [0, 1])."""
+    c = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * c ** (1.0 / 2.4) - 0.055)
+
 
 _PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -87,7 +111,7 @@ def write_gaussian_ply(
         scales: (N, 3) m, per-axis standard deviations (> 0), stored as ``log``.
         rotations: (N, 4) 1, quaternions ``w, x, y, z`` (normalised before writing).
         opacities: (N,) 1 in (0, 1), stored as ``logit``.
-        colors: (N, 3) 1, linear RGB, stored as ``f_dc = (rgb - 0.5) / C0``.
+        colors: (N, 3) 1, linear RGB, stored as ``f_dc = (srgb(rgb) - 0.5) / C0`` (the display colour).
         normals: optional (N, 3) 1, stored in ``nx, ny, nz`` (zeros when omitted, as the reference code does).
         sh_degree: SH degree of the layout; ``3 * ((sh_degree + 1)^2 - 1)`` zero ``f_rest_*`` values are written.
     Returns:
@@ -128,7 +152,7 @@ def write_gaussian_ply(
         data[c] = means[:, i]
         data[f"n{c}"] = normals[:, i]
     for i in range(3):
-        data[f"f_dc_{i}"] = (colors[:, i] - 0.5) / C0
+        data[f"f_dc_{i}"] = (linear_to_srgb(colors[:, i]) - 0.5) / C0
         data[f"scale_{i}"] = np.log(scales[:, i])
     data["opacity"] = _logit(opacities)
     rot = rotations / qn
@@ -192,7 +216,8 @@ def read_gaussian_ply(path: str | Path) -> dict[str, np.ndarray]:
 
     Returns a dict with ``means`` (N, 3) m, ``scales`` (N, 3) m (``exp`` of the stored log-scales),
     ``rotations`` (N, 4) 1 (normalised quaternions, w first), ``opacities`` (N,) 1 (sigmoid of the stored
-    logits), ``colors`` (N, 3) 1 (``0.5 + C0 * f_dc``, *not* clipped: SH colours may leave [0, 1]),
+    logits), ``colors`` (N, 3) 1 (linear RGB of the display colour ``0.5 + C0 * f_dc`` clipped to [0, 1]),
+    ``display_colors`` (N, 3) 1 (``0.5 + C0 * f_dc`` itself, sRGB, *not* clipped: SH colours may leave [0, 1]),
     ``normals`` (N, 3) 1 (the stored nx, ny, nz or zeros) and ``sh_rest`` (N, K, 3) 1 (higher SH bands,
     coefficient-major after un-doing the channel-major storage; K = 0 when absent), all float32.
 
@@ -275,7 +300,8 @@ def read_gaussian_ply(path: str | Path) -> dict[str, np.ndarray]:
         "scales": np.exp(log_s).astype(f32),
         "rotations": (rot / qn).astype(f32),
         "opacities": _sigmoid(col["opacity"]).astype(f32),
-        "colors": (0.5 + C0 * f_dc).astype(f32),
+        "colors": srgb_to_linear(0.5 + C0 * f_dc).astype(f32),
+        "display_colors": (0.5 + C0 * f_dc).astype(f32),
         "normals": normals.astype(f32),
         "sh_rest": sh_rest.astype(f32),
     }

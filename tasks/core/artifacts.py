@@ -536,3 +536,16 @@ def directory_size(path: str | Path) -> int:
             except OSError:
                 pass
     return total
+
+
+def newest_artifact(root: str | Path, scope: str, step: str) -> Artifact:
+    """The newest complete artifact of ``step`` for ``scope`` under the store ``root`` (read-only; for studies and
+    benchmarks that re-run part of a scene from a store that ran it once)."""
+    root = Path(root)
+    for path in sorted((root / scope / step).glob("*.zarr"), key=lambda p: p.stat().st_mtime, reverse=True):
+        attrs = read_group_attrs(path)
+        if attrs.get("complete"):
+            ref = ArtifactRef(rel=f"{scope}/{step}/{path.name}", digest=attrs["digest"], step=step, scope=scope)
+            return read_artifact(ref.at(root))
+    raise ArtifactError(f"{root / scope / step}: no complete artifact: run `python -m flows.squeeze object={scope} "
+                        f"paths.artifacts={root}` first")

@@ -80,6 +80,7 @@ class StepSpec:
     reads: tuple[str, ...] = ()
     files: tuple[str, ...] = ()
     outputs: tuple[str, ...] = ()
+    unkeyed: tuple[str, ...] = ()
 
     @property
     def per_variant(self) -> bool:
@@ -95,8 +96,34 @@ class StepSpec:
                                   f"missing {missing}, undeclared {extra}")
 
 
-def step_key(step: str, version: str, scope: str, params: Mapping[str, Any], inputs: Mapping[str, ArtifactRef]) -> str:
-    """The cache key of one step run: what it is, what code, which config values, which input contents."""
+def keyed_params(params: Mapping[str, Any], unkeyed: tuple[str, ...] = ()) -> dict[str, Any]:
+    """``params`` without the ``unkeyed`` config paths (e.g. ``mpm.threads`` inside the declared ``mpm``): values that
+    choose how a step runs (a thread count), not what it computes beyond float round-off, so that every flow running
+    the same scene hits the same cache entry whatever its thread count."""
+    out = dict(params)
+    for path in unkeyed:
+        head, _, rest = path.partition(".")
+        for declared in list(out):
+            if path == declared:
+                out.pop(declared)
+            elif path.startswith(declared + ".") and isinstance(out[declared], Mapping):
+                parts = path[len(declared) + 1:].split(".")
+                node = out[declared] = dict(out[declared])
+                for part in parts[:-1]:
+                    if not isinstance(node.get(part), Mapping):
+                        break
+                    node[part] = dict(node[part])
+                    node = node[part]
+                else:
+                    node.pop(parts[-1], None)
+    return out
+
+
+def step_key(step: str, version: str, scope: str, params: Mapping[str, Any], inputs: Mapping[str, ArtifactRef],
+             unkeyed: tuple[str, ...] = ()) -> str:
+    """The cache key of one step run: what it is, what code, which config values (less the ``unkeyed`` ones), which
+    input contents."""
+    params = keyed_params(params, unkeyed)
     return digest_of(
         {
             "step": step,
@@ -144,9 +171,11 @@ class ArtifactCachePolicy(CachePolicy):
 
     step: str = ""
     version: str = ""
+    unkeyed: tuple[str, ...] = ()
 
     def compute_key(self, task_ctx: TaskRunContext, inputs: dict[str, Any], flow_parameters: dict[str, Any], **kwargs: Any) -> Optional[str]:
-        key = step_key(self.step, self.version, inputs["scope"], inputs["params"], inputs.get("inputs") or {})
+        key = step_key(self.step, self.version, inputs["scope"], inputs["params"], inputs.get("inputs") or {},
+                       self.unkeyed)
         path = artifact_path(inputs["root"], inputs["scope"], self.step, key)
         if valid_artifact(path, inputs["scope"], self.step) is None:
             _drop_record(task_ctx, key)
@@ -273,7 +302,7 @@ def _execute(step: StepTask, root: str, scope: str, params: dict, inputs: dict[s
              label: str) -> ArtifactRef:
     name = step.name
     inputs = {producer: ref.at(root) for producer, ref in inputs.items()}  # this run's folder, wherever written
-    key = step_key(name, step.version, scope, params, inputs)
+    key = step_key(name, step.version, scope, params, inputs, step.spec.unkeyed)
     path = artifact_path(root, scope, name, key)
     attrs = valid_artifact(path, scope, name)
     if attrs is not None:  # the artifact survived although its cache record did not (e.g. result storage wiped)
@@ -295,9 +324,12 @@ def _execute(step: StepTask, root: str, scope: str, params: dict, inputs: dict[s
 
 
 def artifact_step(name: str, *, inputs: tuple[str, ...] = (), reads: tuple[str, ...] = (),
-                  files: tuple[str, ...] = (), outputs: tuple[str, ...] = ()) -> Callable[[ComputeFn], StepTask]:
-    """Decorator: declare a pure step function and expose it as a cached Prefect task (see module docstring)."""
-    spec = StepSpec(name=name, inputs=tuple(inputs), reads=tuple(reads), files=tuple(files), outputs=tuple(outputs))
+                  files: tuple[str, ...] = (), outputs: tuple[str, ...] = (),
+                  unkeyed: tuple[str, ...] = ()) -> Callable[[ComputeFn], StepTask]:
+    """Decorator: declare a pure step function and expose it as a cached Prefect task (see module docstring).
+    ``unkeyed``: paths inside ``reads`` the step sees but its cache key leaves out (:func:`keyed_params`)."""
+    spec = StepSpec(name=name, inputs=tuple(inputs), reads=tuple(reads), files=tuple(files), outputs=tuple(outputs),
+                    unkeyed=tuple(unkeyed))
 
     def decorate(compute: ComputeFn) -> StepTask:
         module = compute.__module__
@@ -315,7 +347,7 @@ def artifact_step(name: str, *, inputs: tuple[str, ...] = (), reads: tuple[str, 
             run,
             name=name,
             task_run_name=f"{name}[{{label}}]",
-            cache_policy=ArtifactCachePolicy(step=name, version=version),
+            cache_policy=ArtifactCachePolicy(step=name, version=version, unkeyed=spec.unkeyed),
             persist_result=True,
             result_serializer="json",
             cache_result_in_memory=False,

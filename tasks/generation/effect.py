@@ -22,11 +22,15 @@ import numpy as np
 
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
-from tasks.generation.physics_effect import appearance_for_effect, composite_effect, render_effect
+from tasks.generation.physics_effect import (
+    PARTICLE_RADIUS_FACTOR,
+    appearance_for_effect,
+    composite_effect,
+    liquid_kernels,
+    render_effect,
+)
 from tasks.render.colour import srgb_uint8_to_linear, to_srgb_uint8
 from tasks.render.scene import rollout_particle_volumes
-
-PARTICLE_RADIUS_FACTOR = 0.75  # sphere radius of a released particle = this x cbrt(its volume): neighbours overlap
 
 
 def physics_effect(sim_rgb: np.ndarray, surface_depth: np.ndarray, refined_mask: np.ndarray,
@@ -46,9 +50,10 @@ def physics_effect(sim_rgb: np.ndarray, surface_depth: np.ndarray, refined_mask:
         shown = visible[f]
         if not shown.any():
             continue
+        kernels = liquid_kernels(kind, particle_positions[f][shown], radii[shown])  # shared by the views
         for v in range(n_views):
             frame = render_effect(kind, particle_positions[f][shown], radii[shown], viewmats[v], Ks[v],
-                                  sim_rgb[v, f], surface_depth[v, f], appearance, seed)
+                                  sim_rgb[v, f], surface_depth[v, f], appearance, seed, kernels)
             out[v, f] = composite_effect(sim_rgb[v, f], frame.rgb, refined_mask[v, f])
         report_progress(f + 1, n_frames)
     return out

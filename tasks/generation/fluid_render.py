@@ -4,7 +4,9 @@ backend of paper sec. 3.3 (``generation=physics``).
 Method: van der Laan, Green & Sainz, "Screen Space Fluid Rendering with Curvature Flow", I3D 2009, and Green,
 "Screen Space Fluid Rendering for Games", GDC 2010:
 
-1. splat particles as sphere impostors: front depth (z-buffer) and thickness (summed chords);
+1. splat particles as impostors: front depth (z-buffer) and thickness (summed chords) - by default the anisotropic
+   kernels of Yu & Turk (TOG 2013, :mod:`tasks.generation.anisotropic`), which stretch along a stream and flatten
+   in a puddle so that close particles draw one continuous body; ``kernels=None``: one sphere per particle;
 2. smooth the depth with a bilateral filter (background at far, so the silhouette is kept);
 3. normals from the smoothed depth (view-space positions, one-sided differences across the silhouette);
 4. shade: Beer-Lambert absorption through the thickness, a turbid body colour, refraction of the background by a
@@ -21,7 +23,14 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from tasks.generation.impostors import EffectFrame, check_frame_inputs, project_particles, splat_sphere_impostors
+from tasks.generation.anisotropic import YU_TURK, AnisotropySettings, Ellipsoids, anisotropic_kernels
+from tasks.generation.impostors import (
+    EffectFrame,
+    check_frame_inputs,
+    project_particles,
+    splat_ellipsoid_impostors,
+    splat_sphere_impostors,
+)
 
 
 @dataclass(frozen=True)
@@ -48,6 +57,9 @@ JUICE = LiquidAppearance(absorption_per_m=(30.0, 150.0, 500.0), body_colour=(0.9
 COLA = LiquidAppearance(absorption_per_m=(200.0, 400.0, 700.0), body_colour=(0.09, 0.03, 0.01), turbidity=0.15)
 
 
+# bilateral filter's spatial sigma cap (px): in a close-up a particle spans tens of pixels and an uncapped kernel
+# cost 0.9 s per pass at 384 px; the anisotropic kernels already make the surface smooth at that scale
+MAX_SMOOTHING_SIGMA_PX = 4.0
 _BOX_MARGIN_PX = 8  # least background kept around the liquid's bounding box (refraction lookups, filter support)
 
 
@@ -67,8 +79,10 @@ def smooth_depth(depth: np.ndarray, covered: np.ndarray, sigma_depth_m: float, s
         return np.full(depth.shape, np.inf, np.float32)
     far = float(depth[covered].max()) + 20.0 * sigma_depth_m
     smoothed = np.where(covered, depth, far).astype(np.float32)
+    sigma_space_px = min(sigma_space_px, MAX_SMOOTHING_SIGMA_PX)
+    diameter = 2 * int(np.ceil(1.5 * sigma_space_px)) + 1  # cv2's default (-1) grows the kernel to 6 sigma
     for _ in range(iterations):
-        smoothed = cv2.bilateralFilter(smoothed, -1, sigma_depth_m, sigma_space_px)
+        smoothed = cv2.bilateralFilter(smoothed, diameter, sigma_depth_m, sigma_space_px)
     return np.where(covered, smoothed, np.inf).astype(np.float32)
 
 
@@ -161,26 +175,34 @@ def shade_liquid(background_rgb: np.ndarray, depth: np.ndarray, thickness: np.nd
 
 def render_liquid(positions: np.ndarray, radii: np.ndarray | float, viewmat: np.ndarray, K: np.ndarray,
                   background_rgb: np.ndarray, surface_depth: np.ndarray,
-                  appearance: LiquidAppearance = JUICE) -> EffectFrame:
+                  appearance: LiquidAppearance = JUICE,
+                  kernels: AnisotropySettings | Ellipsoids | None = YU_TURK) -> EffectFrame:
     """Screen-space fluid rendering of one frame of released liquid (van der Laan et al. 2009; module doc).
 
     positions: (particle, xyz) world metres; radii: (particle,) or scalar metres; viewmat (4, 4) world-to-camera,
     K (3, 3): see :mod:`tasks.generation.impostors`; background_rgb: (y, x, 3) linear RGB in [0, 1], the render
     the liquid is seen against (and refracts); surface_depth: (y, x) metres of the object's surface without the
-    released material (+inf where none): particles behind it are hidden.
+    released material (+inf where none): particles behind it are hidden; kernels: the anisotropic kernels' settings,
+    or the kernels themselves (:func:`tasks.generation.anisotropic.anisotropic_kernels` of ``positions``, world
+    coordinates: computed once per frame, they serve every view), or None (a sphere per particle of its radius).
     Returns an :class:`EffectFrame`: rgb equals ``background_rgb`` (as float32) outside the coverage; depth is the
     smoothed liquid depth where covered; coverage is 1 where liquid is seen, else 0.
     """
     height, width = check_frame_inputs(background_rgb, surface_depth)
     background = background_rgb.astype(np.float32)
     particles = project_particles(positions, radii, viewmat, K)
-    # 1. sphere impostors: z-buffered depth and thickness
-    depth, thickness = splat_sphere_impostors(particles, surface_depth)
+    # 1. impostors (anisotropic kernels or spheres): z-buffered depth and thickness
+    if kernels is None or len(particles.index) == 0:
+        depth, thickness = splat_sphere_impostors(particles, surface_depth)
+        radius_px = float(np.median(particles.radius_px)) if len(particles.index) else 0.5
+    else:
+        ellipsoids = kernels if isinstance(kernels, Ellipsoids) else anisotropic_kernels(positions, radii, kernels)
+        depth, thickness, radius_px = splat_ellipsoid_impostors(*ellipsoids, viewmat, K, surface_depth)
     covered = np.isfinite(depth)
     if not covered.any():
         return EffectFrame(background, surface_depth.astype(np.float32), np.zeros((height, width), np.float32))
     # 2. crop to the liquid's bounding box, with room for the bilateral filter and the refraction lookups
-    radius_m, radius_px = float(np.median(particles.radius_m)), max(float(np.median(particles.radius_px)), 0.5)
+    radius_m, radius_px = float(np.median(particles.radius_m)), max(radius_px, 0.5)
     margin = max(_BOX_MARGIN_PX, int(np.ceil(1.5 * radius_px)) + 1)
     rows, cols = np.flatnonzero(covered.any(axis=1)), np.flatnonzero(covered.any(axis=0))
     top, left = max(rows[0] - margin, 0), max(cols[0] - margin, 0)

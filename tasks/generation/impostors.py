@@ -78,6 +78,23 @@ def project_particles(positions: np.ndarray, radii: np.ndarray | float, viewmat:
                               radius_px=K[0, 0] * radii[front] / z)
 
 
+def box_pixels(u: np.ndarray, v: np.ndarray, radius_px: np.ndarray, width: int, height: int,
+               radius_y_px: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every (particle, pixel) pair of the particles' screen boxes (centre (u, v) +- radius_px along x and
+    +- radius_y_px (default radius_px) along y, clipped to the image): ``(owner, px, py)`` int64 arrays, one row per
+    pair."""
+    radius_y_px = radius_px if radius_y_px is None else radius_y_px
+    x0 = np.clip(np.floor(u - radius_px).astype(np.int64), 0, width)
+    x1 = np.clip(np.ceil(u + radius_px).astype(np.int64) + 1, 0, width)
+    y0 = np.clip(np.floor(v - radius_y_px).astype(np.int64), 0, height)
+    y1 = np.clip(np.ceil(v + radius_y_px).astype(np.int64) + 1, 0, height)
+    box_w, box_h = x1 - x0, np.maximum(y1 - y0, 0)
+    count = np.where(box_w > 0, box_w * box_h, 0)
+    owner = np.repeat(np.arange(len(count)), count)
+    local = np.arange(owner.size) - np.repeat(np.cumsum(count) - count, count)
+    return owner, x0[owner] + local % np.maximum(box_w[owner], 1), y0[owner] + local // np.maximum(box_w[owner], 1)
+
+
 def splat_sphere_impostors(particles: ProjectedParticles, surface_depth: np.ndarray
                            ) -> tuple[np.ndarray, np.ndarray]:
     """Sphere-impostor splatting (van der Laan, Green & Sainz, I3D 2009): z-buffered front depth and
@@ -90,16 +107,7 @@ def splat_sphere_impostors(particles: ProjectedParticles, surface_depth: np.ndar
     """
     height, width = surface_depth.shape
     # 1. enumerate the pixels of each particle's bounding box (one row per (particle, pixel) pair)
-    x0 = np.clip(np.floor(particles.u - particles.radius_px).astype(np.int64), 0, width)
-    x1 = np.clip(np.ceil(particles.u + particles.radius_px).astype(np.int64) + 1, 0, width)
-    y0 = np.clip(np.floor(particles.v - particles.radius_px).astype(np.int64), 0, height)
-    y1 = np.clip(np.ceil(particles.v + particles.radius_px).astype(np.int64) + 1, 0, height)
-    box_w, box_h = x1 - x0, np.maximum(y1 - y0, 0)
-    count = np.where(box_w > 0, box_w * box_h, 0)
-    owner = np.repeat(np.arange(len(count)), count)
-    local = np.arange(owner.size) - np.repeat(np.cumsum(count) - count, count)
-    px = x0[owner] + local % np.maximum(box_w[owner], 1)
-    py = y0[owner] + local // np.maximum(box_w[owner], 1)
+    owner, px, py = box_pixels(particles.u, particles.v, particles.radius_px, width, height)
     # 2. keep the pixel centres inside the disc and in front of the surface
     d2 = ((px + 0.5 - particles.u[owner]) ** 2 + (py + 0.5 - particles.v[owner]) ** 2) / particles.radius_px[owner] ** 2
     half_chord = particles.radius_m[owner] * np.sqrt(np.clip(1.0 - d2, 0.0, None))
@@ -111,3 +119,59 @@ def splat_sphere_impostors(particles: ProjectedParticles, surface_depth: np.ndar
     np.minimum.at(depth, pixel, front[keep])
     thickness = np.bincount(pixel, weights=2.0 * half_chord[keep], minlength=height * width)
     return depth.reshape(height, width), thickness.reshape(height, width)
+
+
+def splat_ellipsoid_impostors(centres: np.ndarray, axes: np.ndarray, radii: np.ndarray, viewmat: np.ndarray,
+                              K: np.ndarray, surface_depth: np.ndarray, near_m: float = 1e-3
+                              ) -> tuple[np.ndarray, np.ndarray, float]:
+    """Ellipsoid impostors (the anisotropic kernels of :mod:`tasks.generation.anisotropic`): z-buffered front depth
+    and summed thickness, exact per pixel-centre ray.
+
+    centres (n, 3) world m; axes (n, 3, 3) unit principal directions (columns), world; radii (n, 3) m; viewmat,
+    K: the camera (module doc); surface_depth (y, x) m: fragments at or behind it are hidden.  For a ray x = t d
+    (d = ((u - cx) / fx, (v - cy) / fy, 1), so t is the camera depth) and an ellipsoid (x - c)^T A (x - c) = 1,
+    A = Q diag(radii^-2) Q^T: a t^2 - 2 b t + (c^T A c - 1) = 0 with a = d^T A d, b = d^T A c; the front is at
+    (b - sqrt(b^2 - a (c^T A c - 1))) / a, the chord (t2 - t1) |d| long.
+    Returns ``(depth, thickness, median screen radius px)``: (y, x) float64 metres (depth +inf where nothing)."""
+    height, width = surface_depth.shape
+    viewmat, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
+    rot = viewmat[:3, :3]
+    c = np.asarray(centres, np.float64) @ rot.T + viewmat[:3, 3]
+    q = np.einsum("ij,njk->nik", rot, np.asarray(axes, np.float64))
+    r = np.asarray(radii, np.float64)
+    rmax = r.max(axis=1)
+    front = c[:, 2] - rmax > near_m
+    c, q, r, rmax = c[front], q[front], r[front], rmax[front]
+    depth = np.full(height * width, np.inf)
+    thickness = np.zeros(height * width)
+    if len(c) == 0:
+        return depth.reshape(height, width), thickness.reshape(height, width), 1.0
+    A = np.einsum("nik,nk,njk->nij", q, 1.0 / r ** 2, q)
+    spread = np.einsum("nik,nk,njk->nij", q, r ** 2, q)  # A^-1: the ellipsoid's extent along x is sqrt(spread_xx)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    u, v = fx * c[:, 0] / c[:, 2] + cx, fy * c[:, 1] / c[:, 2] + cy
+    z_near = c[:, 2] - rmax
+    # screen box: a point c + e of the ellipsoid projects |u - u_c| = |fx e_x - (u_c - cx) e_z| / (c_z + e_z) from
+    # the centre's pixel, at most (fx E_x + |u_c - cx| E_z) / z_near with E the ellipsoid's extents along the axes
+    extent = np.sqrt(np.einsum("nii->ni", spread))
+    half_x = (fx * extent[:, 0] + np.abs(u - cx) * extent[:, 2]) / z_near + 1.0
+    half_y = (fy * extent[:, 1] + np.abs(v - cy) * extent[:, 2]) / z_near + 1.0
+    owner, px, py = box_pixels(u, v, half_x, width, height, half_y)
+    # the ray x = t d, d = (dx, dy, 1): a = d^T A d, b = d^T A c, per pair from six + three per-ellipsoid numbers
+    dx, dy = (px + 0.5 - cx) / fx, (py + 0.5 - cy) / fy
+    Ac = np.einsum("nij,nj->ni", A, c)
+    cc = np.einsum("ni,ni->n", c, Ac)[owner] - 1.0
+    a = (A[owner, 0, 0] * dx * dx + A[owner, 1, 1] * dy * dy + A[owner, 2, 2]
+         + 2.0 * (A[owner, 0, 1] * dx * dy + A[owner, 0, 2] * dx + A[owner, 1, 2] * dy))
+    b = Ac[owner, 0] * dx + Ac[owner, 1] * dy + Ac[owner, 2]
+    disc = b * b - a * cc
+    hit = disc > 0
+    owner, px, py, a, b, disc, dx, dy = (x[hit] for x in (owner, px, py, a, b, disc, dx, dy))
+    root = np.sqrt(disc)
+    t_front = (b - root) / a
+    chord = 2.0 * root / a * np.sqrt(dx * dx + dy * dy + 1.0)
+    keep = (t_front > near_m) & (t_front < surface_depth[py, px])
+    pixel = (py * width + px)[keep]
+    np.minimum.at(depth, pixel, t_front[keep])
+    thickness += np.bincount(pixel, weights=chord[keep], minlength=height * width)
+    return depth.reshape(height, width), thickness.reshape(height, width), float(np.median(fx * rmax / z_near))

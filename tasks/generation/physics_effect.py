@@ -15,11 +15,15 @@ from typing import Literal
 import cv2
 import numpy as np
 
+from tasks.generation.anisotropic import YU_TURK, Ellipsoids, anisotropic_kernels, bridge_particles
 from tasks.generation.fluid_render import COLA, JUICE, LiquidAppearance, render_liquid
 from tasks.generation.impostors import EffectFrame
 from tasks.generation.strand_render import STUFFING, StuffingAppearance, render_stuffing
 
 EffectKind = Literal["liquid", "stuffing"]
+PARTICLE_RADIUS_FACTOR = 0.75  # sphere radius of a released particle = this x cbrt(its volume): neighbours overlap
+# released liquid particles closer than this many radii are bridged by render particles (docs/results/videos.md)
+LIQUID_BRIDGE_REACH = 4.0
 
 # the material oracle's effects that release interior material -> (renderer, appearance)
 EFFECT_APPEARANCES: dict[str, tuple[EffectKind, LiquidAppearance | StuffingAppearance]] = {
@@ -31,27 +35,44 @@ EFFECT_APPEARANCES: dict[str, tuple[EffectKind, LiquidAppearance | StuffingAppea
 
 def render_effect(kind: EffectKind, positions: np.ndarray, radii: np.ndarray | float, viewmat: np.ndarray,
                   K: np.ndarray, background_rgb: np.ndarray, surface_depth: np.ndarray,
-                  appearance: LiquidAppearance | StuffingAppearance | None = None, seed: int = 0) -> EffectFrame:
+                  appearance: LiquidAppearance | StuffingAppearance | None = None, seed: int = 0,
+                  kernels: Ellipsoids | None = None) -> EffectFrame:
     """One frame of the released material, rendered by its kind (paper sec. 3.3, weight-free backend).
 
     kind: "liquid" (screen-space fluid rendering) or "stuffing" (fibrous strands); positions: (particle, xyz) world
     metres of the released particles; radii: (particle,) or scalar metres; viewmat: (4, 4) world-to-camera (x right,
     y down, z forward); K: (3, 3) pixels; background_rgb: (y, x, 3) linear RGB in [0, 1], the simulated render;
     surface_depth: (y, x) metres of the object's surface without the released material, +inf where none;
-    appearance: defaults to juice for a liquid and cream fibrefill for stuffing; seed: fixes the strands.
+    appearance: defaults to juice for a liquid and cream fibrefill for stuffing; seed: fixes the strands; kernels:
+    a liquid's anisotropic kernels of ``positions`` (:func:`liquid_kernels`, once per frame for every view; None:
+    computed here).
     Returns (rgb (y, x, 3), depth (y, x) metres, coverage (y, x) in [0, 1]) as an :class:`EffectFrame`.
     """
     if kind == "liquid":
         appearance = JUICE if appearance is None else appearance
         if not isinstance(appearance, LiquidAppearance):
             raise ValueError(f"kind 'liquid' needs a LiquidAppearance, got {type(appearance).__name__}")
-        return render_liquid(positions, radii, viewmat, K, background_rgb, surface_depth, appearance)
+        return render_liquid(positions, radii, viewmat, K, background_rgb, surface_depth, appearance,
+                             YU_TURK if kernels is None else kernels)
     if kind == "stuffing":
         appearance = STUFFING if appearance is None else appearance
         if not isinstance(appearance, StuffingAppearance):
             raise ValueError(f"kind 'stuffing' needs a StuffingAppearance, got {type(appearance).__name__}")
         return render_stuffing(positions, radii, viewmat, K, background_rgb, surface_depth, appearance, seed)
     raise ValueError(f"effect kind {kind!r} is unknown: use 'liquid' or 'stuffing'")
+
+
+def liquid_kernels(kind: EffectKind, positions: np.ndarray, radii: np.ndarray | float,
+                   bridge_reach: float = LIQUID_BRIDGE_REACH) -> Ellipsoids | None:
+    """The kernels a liquid is drawn with, in world coordinates, one computation per frame shared by every view
+    (None for stuffing): the released particles bridged to their neighbours within ``bridge_reach`` radii
+    (:func:`tasks.generation.anisotropic.bridge_particles`; 0: no bridges), then Yu & Turk's anisotropic kernels
+    (TOG 2013, :func:`tasks.generation.anisotropic.anisotropic_kernels`)."""
+    if kind != "liquid":
+        return None
+    if bridge_reach > 0:
+        positions, radii = bridge_particles(positions, radii, bridge_reach)
+    return anisotropic_kernels(positions, radii, YU_TURK)
 
 
 def composite_effect(sim_rgb: np.ndarray, effect_rgb: np.ndarray, refined_mask: np.ndarray) -> np.ndarray:

@@ -3,7 +3,9 @@
 Per frame: the object's surface Gaussians as the MPM deformed them (covariance F Sigma F^T decomposed into per-axis
 scales and a rotation) with their colours and opacities, followed by the released particles visible in that frame
 with the appearance refined by eq. 7 (per-axis scales along the world axes, no rotation).  Written with
-:func:`tasks.control.gaussian_ply.write_gaussian_ply` (Inria layout, SH degree 0).
+:func:`tasks.control.gaussian_ply.write_gaussian_ply` in the reference 3DGS layout (SH degree 3 with the 45
+``f_rest_*`` zeros: the colour is view-independent; normals ``nx ny nz`` present, zero), colours as display sRGB,
+so the official loader and web splat viewers show the colours our renderer shows.
 """
 from __future__ import annotations
 
@@ -48,5 +50,5 @@ def write_ply_sequence(out_dir: str | Path, surface_positions: np.ndarray, surfa
             np.concatenate([surface_positions[f], particle_positions[f][shown]]),
             np.concatenate([scales, released_scales[shown]]), np.concatenate([quats, identity]),
             np.clip(np.concatenate([surface_opacities, released_opacities[shown]]), 1e-4, 1 - 1e-4),
-            np.concatenate([surface_colors, released_colors[shown]]), sh_degree=0))
+            np.concatenate([surface_colors, released_colors[shown]])))
     return paths

@@ -216,6 +216,9 @@ ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_
                inputs=("object_model", "mpm_particles", "signal_smoothing", "force_coefficients", "contact_patches",
                        "dirichlet_field", "material_oracle"),
                reads=("mpm", "simulation", "variant.boundary"),
+               # the thread count splits the same particle kernel (results agree to float32 round-off): flows.squeeze
+               # / flows.export (2 threads) reuse flows.evaluate's rollouts (1 thread per worker) and vice versa
+               unkeyed=("mpm.threads",),
                outputs=ROLLOUT_OUTPUTS)
 def mpm_rollout_step(inputs, params):
     """The squeeze simulated with MLS-MPM (eqs. 4-5) under the eq. 3 field (``variant.boundary=dirichlet``: particle

@@ -5,6 +5,9 @@ Conventions (gsplat / OpenCV): world z is up; a camera looks along its +z axis w
 point at the image centre, pixel (x, y) covering [x, x + 1) x [y, y + 1).
 """
 
+from collections.abc import Mapping
+from typing import Any
+
 import numpy as np
 
 WORLD_UP = np.array([0.0, 0.0, 1.0])
@@ -83,3 +86,12 @@ def project_points(points: np.ndarray, viewmat: np.ndarray, K: np.ndarray) -> tu
     depth = cam[:, 2]
     uv = (cam @ K[:2, :].T) / depth[:, None]
     return uv, depth
+
+
+def orbit_rig(render: Mapping[str, Any], bbox_min: np.ndarray, bbox_max: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """viewmats (view, 4, 4) and Ks (view, 3, 3) of ``render.views`` cameras around the object's rest box, at the
+    distance where its bounding sphere spans ``render.fill`` of the image width."""
+    lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
+    radius = distance_for_object(0.5 * (hi - lo), render["fov_deg"], render["fill"])
+    return orbit_cameras(0.5 * (lo + hi), radius, render["views"], render["elevation_deg"], render["fov_deg"],
+                         render["width"], render["height"], render["azimuth0_deg"])

@@ -19,16 +19,13 @@ released material renders its surface only (its mask is 0 everywhere) and says s
 """
 from __future__ import annotations
 
-from collections.abc import Mapping
-from typing import Any
-
 import numpy as np
 import torch
 
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
 from tasks.physics.labels import INTERIOR
-from tasks.render.cameras import distance_for_object, orbit_cameras
+from tasks.render.cameras import orbit_rig
 from tasks.render.colour import to_srgb_uint8
 from tasks.render.device import torch_device
 from tasks.render.scene import (
@@ -39,15 +36,6 @@ from tasks.render.scene import (
     rollout_particle_volumes,
 )
 from tasks.render.splat import rasterization
-
-
-def orbit_rig(render: Mapping[str, Any], bbox_min: np.ndarray, bbox_max: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """viewmats (view, 4, 4) and Ks (view, 3, 3) of ``render.views`` cameras around the object's rest box, at the
-    distance where its bounding sphere spans ``render.fill`` of the image width."""
-    lo, hi = np.asarray(bbox_min, float), np.asarray(bbox_max, float)
-    radius = distance_for_object(0.5 * (hi - lo), render["fov_deg"], render["fill"])
-    return orbit_cameras(0.5 * (lo + hi), radius, render["views"], render["elevation_deg"], render["fov_deg"],
-                         render["width"], render["height"], render["azimuth0_deg"])
 
 
 def render_gbuffer(surface_positions: np.ndarray, surface_covariances: np.ndarray, surface_colors: np.ndarray,

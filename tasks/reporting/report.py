@@ -25,7 +25,7 @@ from tasks.physics.free_flight import rollout_flights
 from tasks.reporting.media_cache import MEDIA_DIR, MediaCache
 from tasks.reporting.render_knobs import report_section as render_knob_section
 from tasks.reporting.video_tables import paper_metric_reasons, table1, table3, video_metric_rows
-from tasks.reporting.watch import STYLE, SYNC_SCRIPT, object_html, object_media, overview_html
+from tasks.reporting.watch import STYLE, SYNC_SCRIPT, object_html, object_media, overview_html, overview_sheet
 
 
 def code_revision() -> str:
@@ -397,7 +397,7 @@ def scene_figures(cache: MediaCache, obj: str, variant: str, pair: Mapping[str, 
 
 # The steps whose artifacts the media of one scene show (videos, contact sheet, signal and scene figures)
 SCENE_MEDIA_INPUTS = ("signal_smoothing", "force_coefficients", "contact_patches", "mpm_rollout", "gbuffer",
-                      "conditions", "effect", "appearance_refinement")
+                      "conditions", "effect", "appearance_refinement", "display_video")
 
 
 def cache_scene_media(obj: str, obj_refs: Mapping[str, Any], variant: str, root: str, first: bool) -> int:
@@ -421,6 +421,15 @@ def cache_scene_media(obj: str, obj_refs: Mapping[str, Any], variant: str, root:
         if first:
             _figure(cache, "control", control_figure, obj, obj_refs, Path(scratch) / f"{obj}_control.png")
     return cache.made
+
+
+def _first_scene(obj_refs: Mapping[str, Any]) -> dict[str, Any]:
+    """The references the overview contact sheet reads of one object: its first variant's G-buffer, rollout and
+    first backend's display video."""
+    variant = next(iter(obj_refs.get("variants", {}).values()), {})
+    backend = next(iter(variant.get("backends", {}).values()), {})
+    return {"gbuffer": variant.get("gbuffer"), "mpm_rollout": variant.get("mpm_rollout"),
+            "display_video": backend.get("display_video")}
 
 
 def _embed(png: Path) -> str:
@@ -487,6 +496,9 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
                          for title, *_ in video_tables})
     cache = MediaCache(media_cache)
     media = [m for m in (object_media(obj, refs[obj], report_dir, cache) for obj in refs) if m is not None]
+    sheet_inputs = {f"{obj}/{k}": ref for obj in refs for k, ref in _first_scene(refs[obj]).items()}
+    sheet = cache.get(report_dir / "contact_sheet.png", cache.key("overview_sheet", {}, sheet_inputs),
+                      lambda p: overview_sheet(refs, p))
     figures: dict[str, list[Path]] = {}
     for obj in refs:
         name, seed = split_seed_scope(obj)
@@ -513,6 +525,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     warned = [f"- {r.object} {r.step}{f' [{r.variant}]' if r.variant else ''}: {r.warning}"
               for r in table.rows if r.warning]
     md += ["## Warnings", "", *warned, ""] if warned else []
+    md += ["![rest, peak squeeze, after release of every object](contact_sheet.png)", ""] if sheet else []
     md += ["## Watch the squeezes", "", "Open `index.html` for the videos: per object and variant the simulated "
            "render, the conditions of eq. 6, the final composite and the refined 4D Gaussians, with the control "
            "signals in sync.  Files: " + ", ".join(f"`{s.stages_video.name}`" for m in media for s in m.scenes
@@ -558,8 +571,12 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
                                                  or "none stated") + "</p>"]
     body += ["<h2>Warnings</h2>", "<ul>" + "".join(f"<li>{html.escape(w[2:])}</li>" for w in warned) + "</ul>"
              ] if warned else []
+    if sheet:
+        body += ["<h2>The squeezes at a glance: rest, peak squeeze, after release (view 1, the hand drawn)</h2>",
+                 f'<p><img alt="contact sheet" style="max-width:100%" src="{_embed(sheet)}"></p>']
     if media:
-        body += ["<h2>Overview: the final video of every squeeze (view 0)</h2>", overview_html(media, labels)]
+        body += ["<h2>Overview: the watched video of every squeeze (view 0 and the close-up of the contact)</h2>",
+                 overview_html(media, labels)]
     for title, header, rows, best in tables + video_tables:
         body += [f"<h2>{html.escape(title)}</h2>", html_table(header, rows, best) if rows else "<p>(no metrics)</p>"]
         body += [f"<p>{html.escape(captions[title])}</p>"] if title in captions and rows else []

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import matplotlib.pyplot as plt
 import numpy as np
 
@@ -130,23 +131,44 @@ def scene_media(obj: str, variant: str, pair: Mapping[str, Any], backend_refs: M
         if effect.attrs.get("skipped"):
             media.notes.append(f"effect skipped: {effect.attrs['skipped']}")
     inputs = {"gbuffer": pair["gbuffer"], "conditions": pair["conditions"], "effect": refs.get("effect"),
-              "appearance_refinement": refs.get("appearance_refinement")}
+              "appearance_refinement": refs.get("appearance_refinement"), "display_video": refs.get("display_video")}
     params = {"obj": obj, "variant": variant, "fps": fps, "h264": encoder_available("libx264")}  # else WebP
     keys = {kind: cache.key(kind, params, inputs) for kind in ("stages_video", "final_video")}
     columns = None
-    if any(cache.lookup(k) is None for k in keys.values()):
+    if cache.lookup(keys["stages_video"]) is None or (cache.lookup(keys["final_video"]) is None
+                                                      and refs.get("display_video") is None):
         columns = _scene_frames(pair, refs)
         if columns is None:
             return None
     media.stages_video = cache.get(out_dir / f"{obj}_{variant}_stages.mp4", keys["stages_video"],
                                    lambda p: _stages_video(columns, p, fps))
     media.final_video = cache.get(out_dir / f"{obj}_{variant}_final.mp4", keys["final_video"],
-                                  lambda p: encode_video(columns["final composite"][0], p, fps))
+                                  lambda p: _final_video(refs.get("display_video"), columns, p, fps))
     ref = refs.get("appearance_refinement")
     media.loss_plot = cache.get(out_dir / f"{obj}_{variant}_refinement.png",
                                 cache.key("loss_plot", {"obj": obj, "variant": variant}, {"appearance_refinement": ref}),
                                 lambda p: _loss_plot(obj, variant, ref, p))
     return media
+
+
+def watched_video(display_ref) -> tuple[np.ndarray, list[str]] | None:
+    """The display step's frames (view, frame, y, x, 3) uint8 sRGB (orbit views at the video resolution, close-up
+    last, the hand drawn) and the views' names, or None when it was not made."""
+    display = _load(display_ref, ["frames"])
+    if display is None or "frames" not in display:
+        return None
+    return display["frames"], list(display.attrs.get("views") or [f"view {v}" for v in range(len(display["frames"]))])
+
+
+def _final_video(display_ref, columns: Mapping[str, np.ndarray] | None, path: Path, fps: float) -> Path:
+    """The watched final video: view 0 beside the close-up at the video resolution with the hand (display step),
+    else the final composite of view 0 at the G-buffer resolution."""
+    watched = watched_video(display_ref)
+    if watched is None:
+        return encode_video(columns["final composite"][0], path, fps)
+    frames, names = watched
+    shown = [0, len(frames) - 1] if len(frames) > 1 else [0]
+    return encode_video(side_by_side([frames[v] for v in shown], [names[v] for v in shown]), path, fps)
 
 
 def moments(strain: np.ndarray, event: Mapping[str, Any], frame_index: np.ndarray) -> dict[str, int]:
@@ -163,11 +185,41 @@ def _contact_sheet(first: Mapping[str, Any], path: Path) -> Path | None:
     g = _load(first.get("gbuffer"), ["rgb", "frame_index"])
     rollout = _load(first.get("mpm_rollout"), ["squeeze_strain"])
     backend_refs = next(iter(first.get("backends", {}).values()), {})
-    effect = _load(backend_refs.get("effect"), ["frames"])
-    final = final_video(effect, g)
+    watched = watched_video(backend_refs.get("display_video"))
+    if watched is not None:  # the watched video: every view and the close-up, with the hand
+        final, names = watched
+    else:
+        final = final_video(_load(backend_refs.get("effect"), ["frames"]), g)
+        names = [f"view {v}" for v in range(final.shape[0])]
     picks = moments(rollout["squeeze_strain"], rollout.attrs.get("threshold_event") or {}, g["frame_index"])
-    sheet = contact_sheet(final[:, list(picks.values())], [f"view {v}" for v in range(final.shape[0])],
-                          list(picks))
+    sheet = contact_sheet(final[:, list(picks.values())], names, list(picks))
+    plt.imsave(path, sheet)
+    return path
+
+
+def overview_sheet(refs: Mapping[str, Mapping[str, Any]], path: Path, view: int = 1, tile_px: int = 192
+                   ) -> Path | None:
+    """One row per object, columns rest / peak squeeze / after release (or end): orbit view ``view`` of the watched
+    video (hand visible) of each object's first variant and backend, tiles resized to ``tile_px``."""
+    rows, labels = [], []
+    for obj, obj_refs in refs.items():
+        variant = next(iter(obj_refs.get("variants", {}).values()), None)
+        if variant is None:
+            continue
+        backend = next(iter(variant.get("backends", {}).values()), {})
+        watched = watched_video(backend.get("display_video"))
+        g = _load(variant.get("gbuffer"), ["frame_index"])
+        rollout = _load(variant.get("mpm_rollout"), ["squeeze_strain"])
+        if watched is None or g is None or rollout is None:
+            continue
+        frames = watched[0][min(view, len(watched[0]) - 1)]
+        picks = list(moments(rollout["squeeze_strain"], rollout.attrs.get("threshold_event") or {},
+                             g["frame_index"]).values())
+        rows.append([cv2.resize(frames[f], (tile_px, tile_px), interpolation=cv2.INTER_AREA) for f in picks])
+        labels.append(obj)
+    if not rows:
+        return None
+    sheet = contact_sheet(np.asarray(rows), labels, ["rest", "peak squeeze", "after release / end"])
     plt.imsave(path, sheet)
     return path
 
@@ -197,8 +249,9 @@ def object_media(obj: str, obj_refs: Mapping[str, Any], out_dir: Path, cache: Me
         return None
     if scenes_only:
         return media
+    first_backend = next(iter(first.get("backends", {}).values()), {})
     sheet_inputs = {"gbuffer": first.get("gbuffer"), "mpm_rollout": first.get("mpm_rollout"),
-                    "effect": next(iter(first.get("backends", {}).values()), {}).get("effect")}
+                    "effect": first_backend.get("effect"), "display_video": first_backend.get("display_video")}
     media.contact_sheet = cache.get(out_dir / f"{obj}_contact_sheet.png",
                                     cache.key("contact_sheet", {"obj": obj}, sheet_inputs),
                                     lambda p: _contact_sheet(first, p))
@@ -247,13 +300,13 @@ def video_tag(path: Path, obj: str, width: int, controls: bool = True) -> str:
 
 
 def overview_html(media: list[ObjectMedia], labels: Mapping[str, str]) -> str:
-    """One row per object, the variants side by side (final composite, view 0)."""
+    """One row per object, the variants side by side (the watched video: view 0 and the close-up, with the hand)."""
     variants = list(dict.fromkeys(s.variant for m in media for s in m.scenes))
     head = "".join(f"<th>{html.escape(labels.get(v, v))}</th>" for v in variants)
     rows = []
     for m in media:
         by = {s.variant: s for s in m.scenes}
-        cells = "".join(f"<td>{video_tag(by[v].final_video, m.obj, 220, controls=False)}</td>" if v in by
+        cells = "".join(f"<td>{video_tag(by[v].final_video, m.obj, 440, controls=False)}</td>" if v in by
                         and by[v].final_video else "<td>-</td>" for v in variants)
         rows.append(f"<tr><th>{html.escape(m.obj)}</th>{cells}</tr>")
     return f"<table class='overview'><tr><th>object</th>{head}</tr>{''.join(rows)}</table>"

@@ -425,14 +425,18 @@ def test_ply_round_trip_exact_to_float32(tmp_path):
     assert all(f"property float {nm}" in header for nm in names)
     back = read_gaussian_ply(path)
     assert np.array_equal(back["means"], g["means"])  # stored as is: bit exact
-    for key in ("scales", "rotations", "opacities", "colors"):
+    for key in ("scales", "rotations", "opacities"):
         assert back[key].dtype == np.float32
         np.testing.assert_allclose(back[key], g[key], rtol=2e-6, atol=2e-7, err_msg=key)
+    np.testing.assert_allclose(back["colors"], g["colors"], atol=2e-6)  # through sRGB and back, float32 f_dc
     assert back["sh_rest"].shape == (257, 15, 3) and not back["sh_rest"].any()
     # stored values are the raw parameters of the Inria layout
     dtype = np.dtype([(nm, "<f4") for nm in names])
     raw = np.frombuffer(path.read_bytes()[len(header) + len("end_header\n"):], dtype=dtype)
-    np.testing.assert_allclose(raw["f_dc_0"], (g["colors"][:, 0] - 0.5) / C0, rtol=1e-6, atol=1e-6)
+    # f_dc holds the display (sRGB) colour, as 3DGS viewers read it; the reader returns linear RGB
+    srgb = np.where(g["colors"][:, 0] <= 0.0031308, 12.92 * g["colors"][:, 0],
+                    1.055 * g["colors"][:, 0].astype(np.float64) ** (1 / 2.4) - 0.055)
+    np.testing.assert_allclose(raw["f_dc_0"], (srgb - 0.5) / C0, rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(raw["scale_1"], np.log(g["scales"][:, 1]), rtol=1e-6)
     np.testing.assert_allclose(1 / (1 + np.exp(-raw["opacity"])), g["opacities"], rtol=1e-6)
 
@@ -449,7 +453,8 @@ def test_ply_reader_accepts_ascii_and_extra_elements(tmp_path):
     np.testing.assert_allclose(g["means"], [[0.1, 0.2, 0.3], [1, 2, 3]], rtol=1e-6)
     np.testing.assert_allclose(g["opacities"], [0.5, 1 / (1 + np.exp(-2))], rtol=1e-6)
     np.testing.assert_allclose(g["rotations"][1], [0, 0, 0, 1])
-    np.testing.assert_allclose(g["colors"][1], 0.5 + C0, rtol=1e-6)
+    np.testing.assert_allclose(g["display_colors"][1], 0.5 + C0, rtol=1e-6)  # the file's display colour
+    np.testing.assert_allclose(g["colors"][1], ((0.5 + C0 + 0.055) / 1.055) ** 2.4, rtol=1e-6)  # read as linear
 
 
 def test_malformed_ply_errors_name_file_and_fix(tmp_path):

@@ -31,7 +31,7 @@ def test_dask_local_cluster_gives_the_same_artifacts_and_metrics_as_sequential(p
         assert {r["status"] for r in rows} == {"ran"}
         per_variant = [(r["object"], r["step"]) for r in rows if r["variant"]]
         chain = ("mpm_rollout", "deformation_metrics", "gbuffer", "conditions", "effect", "appearance_refinement",
-                 "video_metrics", "llm_evaluation")
+                 "video_metrics", "llm_evaluation", "display_video")
         assert sorted(per_variant) == sorted((o, s) for o in ("clay", "rubber_ball") for s in chain
                                              for _ in ("full", "no_dirichlet"))
         shared = ("object_model", "squeeze_signals", "signal_smoothing", "force_coefficients", "contact_patches",

@@ -39,7 +39,8 @@ def test_each_report_video_decodes_to_the_expected_frames_and_size(prefect_serve
                                   step="gbuffer", scope="tomato").at(tmp_path / "artifacts"))
     views, frames, height, width = g["mask"].shape
     final, fps = decode_video(report / "tomato_full_final.mp4")
-    assert final.shape == (frames, height, width, 3) and fps == 15 / 5  # 15 Hz frames, every 5th rendered
+    # the watched video: view 0 beside the close-up, at the video resolution, each under a 20 px label
+    assert final.shape == (frames, 20 + 48, 2 * 48, 3) and fps == 15 / 5  # 15 Hz frames, every 5th rendered
     stages, _ = decode_video(report / "tomato_full_stages.mp4")
     label_px, columns = 20, 4  # render, conditions, final, refined 4D Gaussians
     assert stages.shape == (frames, views * (label_px + height), columns * width, 3)
@@ -86,7 +87,7 @@ def test_a_second_report_build_encodes_nothing_and_gives_the_same_page(tmp_path,
 def test_scene_media_made_on_a_worker_are_the_report_s_own(tmp_path, compose_cfg, monkeypatch, tomato_artifacts):
     """The media of a scene made ahead (as the flow does on its task runner while other scenes still simulate)
     are exactly those a report build makes: same cache entries, and the report build then encodes no video and
-    draws only the metric bars (which need every variant's metrics)."""
+    draws only the metric bars (which need every variant's metrics) and the all-object contact sheet."""
     import tasks.reporting.watch as watch
     from flows.pipeline import PER_BACKEND, PER_OBJECT, PER_VARIANT, run_object_local
     from flows.runtime import RunTable
@@ -111,9 +112,9 @@ def test_scene_media_made_on_a_worker_are_the_report_s_own(tmp_path, compose_cfg
     # a second variant's task makes its scene's media alone (the object's own go with the first variant): stages
     # and final videos, rollout, snapshots, the released material's flight and the refinement figure
     assert cache_scene_media("tomato", refs["tomato"], "full", str(root), first=False) == 6
-    # the first variant's task adds the object's own (signals, control, contact sheet): all but the scene's 6 and the
-    # metric bars
-    assert cache_scene_media("tomato", refs["tomato"], "full", str(root), first=True) == len(made_by_report) - 7
+    # the first variant's task adds the object's own (signals, control, contact sheet): all but the scene's 6, the
+    # metric bars and the all-object contact sheet (both need every object)
+    assert cache_scene_media("tomato", refs["tomato"], "full", str(root), first=True) == len(made_by_report) - 8
     ahead = {p.name for p in (root / ".media").iterdir()}
     encoded = []
     real_encode = watch.encode_video
@@ -121,7 +122,7 @@ def test_scene_media_made_on_a_worker_are_the_report_s_own(tmp_path, compose_cfg
     report = build("report")
     assert encoded == [], "the report build encoded a video the scene's media task had made"
     assert {p.name for p in (root / ".media").iterdir()} - ahead == made_by_report - ahead and \
-        len(made_by_report - ahead) == 1  # the metric bars
+        len(made_by_report - ahead) == 2  # the metric bars and the all-object contact sheet
     assert (report / "index.html").read_text().count("<video") == 2
     for medium in ("tomato_full_stages.mp4", "tomato_full_final.mp4", "tomato_contact_sheet.png"):
         assert (report / medium).read_bytes() == (tmp_path / "reference" / medium).read_bytes()

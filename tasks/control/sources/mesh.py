@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from tasks.control.gaussian_ply import srgb_to_linear
 from tasks.control.geometry import crossing_triangle_pairs
 from tasks.control.object_config import ObjectModelError
 from tasks.control.sources.base import SampledSource, fit_transform
@@ -112,8 +113,7 @@ class MeshSource(SampledSource):
                 return None
         except Exception:  # a visual trimesh cannot convert: fall back to the procedural pattern
             return None
-        srgb = np.clip(srgb, 0, 1)
-        return np.where(srgb <= 0.04045, srgb / 12.92, ((srgb + 0.055) / 1.055) ** 2.4)
+        return srgb_to_linear(srgb)  # the file's colours are display sRGB, as a PLY's f_dc (gaussian_ply)
 
     def candidates(self, n, rng):
         if n >= len(self.dense_pts):

@@ -1,0 +1,351 @@
+"""The glove's hand drawn from the recorded control signals (paper sec. 3.1: flexion, fingertip positions, palm
+pose), for the videos only: the G-buffer of eq. 6 and every metric stay the object's alone.
+
+Geometry (:func:`hand_capsules`): every bone is a capsule (a segment swept by a sphere), so the whole hand is one
+list of capsules:
+
+* five fingers as articulated chains knuckle -> 3 phalanges -> the *recorded* fingertip (the thumb: its base ->
+  metacarpal-free 3-bone chain).  The chain ends exactly at the recorded fingertip: where a patch tore in the
+  simulation or a finger is lifted, the drawing follows the recording, not the simulation.  A finger's bone
+  lengths are fixed over the clip (its longest knuckle-to-tip distance x ``SLACK``), so when the tip comes closer
+  the finger bends: the recorded flexion decides how the bend is shared between the three joints (an open finger
+  bends at the knuckle, a flexed one curls at the two distal joints as well), and the bend bulges away from the
+  grasp centre (the fingers wrap around the object);
+* a palm of four metacarpal capsules from the wrist to the four knuckles, side by side so that they fuse into a
+  slab, a thumb metacarpal and a short forearm behind the wrist; the palm pose (position, orientation: z towards the object, x from the thumb towards
+  the fingers) places the wrist and the knuckles, the knuckles lined up with their fingers' recorded tips.
+
+Rasterisation (:func:`render_hand`): exact ray-capsule intersection per pixel (front depth, normal), z-buffered
+across capsules, with an anti-aliased silhouette from the distance between the pixel's ray and the capsule's axis
+(coverage = clip(0.5 + (r - distance) f / z, 0, 1): a one-pixel ramp).  Shading: Lambert + ambient in a neutral skin
+colour with a soft Blinn-Phong sheen.  :func:`composite_hand` puts the hand into a rendered frame by depth: a finger
+in front of the object occludes it, a finger behind it is hidden (the object's semi-transparent rim lets it show
+through as much as the object's alpha allows).
+
+Units: metres, pixels, linear RGB in [0, 1].  Cameras as in :mod:`tasks.render.cameras` (OpenCV: x right, y down,
+z forward; pixel (x, y) covers [x, x + 1) x [y, y + 1)).
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import NamedTuple
+
+import numpy as np
+
+from conf.hand import FINGERS, N_FINGERS
+
+# m, capsule radii per finger (thumb .. pinky), proximal and distal phalanx
+FINGER_RADII = np.array([[0.0100, 0.0090], [0.0085, 0.0075], [0.0088, 0.0078], [0.0083, 0.0073], [0.0075, 0.0065]])
+PHALANX_SHARES = np.array([0.45, 0.30, 0.25])  # bone lengths as shares of the finger's length (proximal first)
+SLACK = 1.06  # a finger's length = its longest knuckle-to-tip distance over the clip x this: never straight
+METACARPAL_RADIUS = 0.0115  # m: four side by side fuse into the palm
+WRIST_RADIUS = 0.017  # m, the forearm's
+FOREARM_M = 0.06  # m of forearm drawn behind the wrist
+PALM_LENGTH_M = (0.020, 0.065)  # wrist-to-knuckle length range, m (scaled to the recorded hand)
+
+
+class Capsules(NamedTuple):
+    """Capsules: segment ends a, b (n, 3) m and radius (n,) m, world coordinates."""
+
+    a: np.ndarray
+    b: np.ndarray
+    radius: np.ndarray
+
+
+class HandLayer(NamedTuple):
+    """The hand in one camera: rgb (y, x, 3) linear RGB (shaded, not premultiplied), depth (y, x) m (camera z of the
+    nearest capsule; +inf where none), coverage (y, x) in [0, 1] (anti-aliased silhouette)."""
+
+    rgb: np.ndarray
+    depth: np.ndarray
+    coverage: np.ndarray
+
+
+def quaternion_matrix(q: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotation matrices of unit quaternions (..., 4) w, x, y, z (the recording's palm orientation)."""
+    q = np.asarray(q, np.float64)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    return np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+                     np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+                     np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+
+
+def joint_weights(flexion: float) -> np.ndarray:
+    """How a finger's bend is shared by its three joints (knuckle, middle, distal; sum 1) at ``flexion`` in [0, 1]:
+    an open finger bends mostly at the knuckle, a fully flexed one evenly."""
+    f = float(np.clip(flexion, 0.0, 1.0))
+    w = (1.0 - f) * np.array([0.7, 0.2, 0.1]) + f * np.array([1.0, 1.0, 1.0]) / 3.0
+    return w / w.sum()
+
+
+def _planar_chain(lengths: np.ndarray, weights: np.ndarray, bend: float) -> np.ndarray:
+    """Joint positions (4, 2) of a planar chain starting at the origin along +x, turning by ``bend`` x weights at its
+    joints (towards +y)."""
+    heading = np.cumsum(bend * weights)
+    steps = lengths[:, None] * np.stack([np.cos(heading), np.sin(heading)], -1)
+    return np.vstack([np.zeros(2), np.cumsum(steps, axis=0)])
+
+
+def finger_chain(knuckle: np.ndarray, tip: np.ndarray, length: float, flexion: float,
+                 bulge: np.ndarray) -> np.ndarray:
+    """The four joints (knuckle, middle, distal, tip) (4, 3) m of a finger of total ``length`` m whose chain ends at
+    the recorded ``tip``: the total bend is the one at which the chain's end lies |tip - knuckle| from the knuckle
+    (bisection; the end distance falls monotonically with the bend for shares of ``joint_weights``), the joints turn
+    in the plane of (tip - knuckle, ``bulge``), the chain's middle bulging towards ``bulge``.  A tip farther than
+    ``length`` gets a straight finger stretched to reach it."""
+    knuckle, tip = np.asarray(knuckle, np.float64), np.asarray(tip, np.float64)
+    chord = tip - knuckle
+    d = float(np.linalg.norm(chord))
+    lengths = PHALANX_SHARES * length
+    weights = joint_weights(flexion)
+    if d < 1e-9:
+        return np.stack([knuckle] * 4)
+    if d >= length:
+        return knuckle + np.outer(np.r_[0.0, np.cumsum(PHALANX_SHARES)], chord)
+    lo, hi = 0.0, 5.0  # rad: the end distance falls from length (straight) towards 0 as the finger curls
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if np.linalg.norm(_planar_chain(lengths, weights, mid)[-1]) > d else (lo, mid)
+    pts = _planar_chain(lengths, weights, 0.5 * (lo + hi))
+    end = pts[-1]
+    # rotate the plane so that the chain's end lies on +x: its joints then bulge to -y
+    c, s = end / np.linalg.norm(end)
+    pts = pts @ np.array([[c, -s], [s, c]])
+    pts *= d / np.linalg.norm(pts[-1])
+    e1 = chord / d
+    e2 = bulge - e1 * float(bulge @ e1)
+    if np.linalg.norm(e2) < 1e-9:
+        e2 = np.cross(e1, [0.0, 0.0, 1.0]) if abs(e1[2]) < 0.9 else np.cross(e1, [1.0, 0.0, 0.0])
+    e2 = _unit(e2)
+    return knuckle + np.outer(pts[:, 0], e1) - np.outer(pts[:, 1], e2)
+
+
+def hand_frame(palm_position: np.ndarray, palm_orientation: np.ndarray, fingertips: np.ndarray,
+               rest_tips: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Wrist (3,), the five finger bases (finger, 3) (the thumb's base first, then the four knuckles) and the
+    palm's inward direction (3,), m, world: from the palm pose of one frame and the rest fingertips of the clip.
+
+    The palm length (wrist to knuckles, along the palm's x axis) is 0.55 x the median reach of the four fingers'
+    rest tips along x, within ``PALM_LENGTH_M``; each knuckle sits at the component of its rest tip across the palm
+    (the palm's y axis, within +-4 cm), so every finger starts in line with its own tip; the palm's back is
+    ``METACARPAL_RADIUS`` behind the palm position (which the recording puts on the palm's skin)."""
+    rot = quaternion_matrix(palm_orientation)
+    x, y, z = rot[:, 0], rot[:, 1], rot[:, 2]
+    centre = np.asarray(palm_position, np.float64) - z * METACARPAL_RADIUS
+    rel = np.asarray(rest_tips, np.float64) - centre
+    reach = float(np.median(rel[1:] @ x))
+    length = float(np.clip(0.55 * reach, *PALM_LENGTH_M))
+    across = np.clip(rel @ y, -0.04, 0.04)
+    knuckles = centre + x * (0.5 * length) + np.outer(across, y)
+    wrist = centre - x * (0.5 * length)
+    thumb = centre - x * (0.1 * length) + y * np.clip(across[0], -0.02, 0.02) + z * (0.4 * METACARPAL_RADIUS)
+    knuckles[0] = thumb
+    return wrist, knuckles, z
+
+
+def hand_capsules(fingertips: np.ndarray, palm_position: np.ndarray, palm_orientation: np.ndarray,
+                  flexion: np.ndarray, grasp_centre: np.ndarray, rest_tips: np.ndarray,
+                  finger_lengths: np.ndarray) -> Capsules:
+    """The capsules of the hand in one frame (module doc): per finger 3 phalanges (fingers thumb .. pinky), then four
+    metacarpals (wrist -> index .. pinky knuckle), a thumb metacarpal and the forearm.
+
+    fingertips (finger, 3) m, palm_position (3,) m, palm_orientation (4,) wxyz, flexion (finger,) in [0, 1],
+    grasp_centre (3,) m (the bend bulges away from it), rest_tips (finger, 3) m (the clip's first frame, which
+    places the knuckles), finger_lengths (finger,) m (:func:`finger_lengths`)."""
+    wrist, bases, inward = hand_frame(palm_position, palm_orientation, fingertips, rest_tips)
+    a, b, r = [], [], []
+    for k in range(N_FINGERS):
+        tip = np.asarray(fingertips[k], np.float64)
+        bulge = 0.5 * (bases[k] + tip) - np.asarray(grasp_centre, np.float64)
+        joints = finger_chain(bases[k], tip, float(finger_lengths[k]), float(flexion[k]), bulge - 0.3 * inward *
+                              np.linalg.norm(bulge))
+        radii = np.interp([0.0, 0.5, 1.0], [0.0, 1.0], FINGER_RADII[k])
+        a += list(joints[:3])
+        b += list(joints[1:])
+        r += list(radii)
+    for k in range(1, N_FINGERS):  # metacarpals: the palm
+        a.append(wrist + 0.35 * (bases[k] - bases[1:].mean(axis=0)))
+        b.append(bases[k])
+        r.append(METACARPAL_RADIUS)
+    a.append(wrist)  # thumb metacarpal
+    b.append(bases[0])
+    r.append(FINGER_RADII[0, 0])
+    along = _unit(bases[1:].mean(axis=0) - wrist)  # the forearm leaves the wrist away from the fingers
+    a.append(wrist - 0.3 * METACARPAL_RADIUS * along)
+    b.append(wrist - FOREARM_M * along)
+    r.append(WRIST_RADIUS)
+    return Capsules(np.array(a), np.array(b), np.array(r))
+
+
+def finger_lengths(fingertips: np.ndarray, palm_position: np.ndarray, palm_orientation: np.ndarray) -> np.ndarray:
+    """(finger,) m: each finger's length for the whole clip, its longest base-to-tip distance x ``SLACK``.
+
+    fingertips (frame, finger, 3) m, palm_position (frame, 3) m, palm_orientation (frame, 4) wxyz."""
+    tips = np.asarray(fingertips, np.float64)
+    longest = np.zeros(tips.shape[1])
+    for f in range(len(tips)):
+        _, bases, _ = hand_frame(palm_position[f], palm_orientation[f], tips[f], tips[0])
+        longest = np.maximum(longest, np.linalg.norm(tips[f] - bases, axis=1))
+    return SLACK * longest
+
+
+def hand_sequence(signals: Mapping[str, np.ndarray], frames: np.ndarray) -> list[Capsules]:
+    """The hand's capsules at the given signal frames (the rendered frames' indices; clipped to the recording).
+
+    ``signals``: the ``signal_smoothing`` artifact (or any mapping with ``fingertip_positions`` (frame, finger, 3) m,
+    ``palm_position`` (frame, 3) m, ``palm_orientation`` (frame, 4), ``flexion`` (frame, finger) and
+    ``grasp_centre`` (frame, 3) m)."""
+    tips, palm, quat = (np.asarray(signals[k], np.float64) for k in ("fingertip_positions", "palm_position",
+                                                                        "palm_orientation"))
+    flexion, centre = np.asarray(signals["flexion"], np.float64), np.asarray(signals["grasp_centre"], np.float64)
+    if tips.shape[1:] != (len(FINGERS), 3):
+        raise ValueError(f"fingertip_positions must be (frame, {len(FINGERS)}, 3) m, got {tips.shape}")
+    lengths = finger_lengths(tips, palm, quat)
+    index = np.clip(np.asarray(frames, int), 0, len(tips) - 1)
+    return [hand_capsules(tips[f], palm[f], quat[f], flexion[f], centre[f], tips[0], lengths) for f in index]
+
+
+def _pixel_rays(K: np.ndarray, x0: int, x1: int, y0: int, y1: int) -> np.ndarray:
+    """Unit ray directions (y, x, 3), camera coordinates, through the pixel centres of the box [x0, x1) x [y0, y1)."""
+    u = (np.arange(x0, x1) + 0.5 - K[0, 2]) / K[0, 0]
+    v = (np.arange(y0, y1) + 0.5 - K[1, 2]) / K[1, 1]
+    d = np.stack(np.broadcast_arrays(u[None, :], v[:, None], np.ones((1, 1))), -1)
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def _capsule_hits(rx: np.ndarray, ry: np.ndarray, rz: np.ndarray, a: np.ndarray, b: np.ndarray, r: float,
+                  focal: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Rays from the camera centre (unit directions, components rx, ry, rz (...)) against one capsule a-b (3,) of
+    radius r, camera coords (Quilez's ray-capsule intersection), component by component.
+
+    Returns depth (...,) m (camera z of the front hit; +inf where missed, and for fringe pixels within one pixel of
+    the silhouette the z of the closest point), the unit normal's components nx, ny, nz (...) (fringe: facing the
+    camera) and coverage (...,) in [0, 1]."""
+    ba = b - a
+    baba = float(ba @ ba)
+    baoa = -float(ba @ a)
+    oaoa = float(a @ a)
+    bard = rx * ba[0] + ry * ba[1] + rz * ba[2]
+    rdoa = -(rx * a[0] + ry * a[1] + rz * a[2])
+    # body of the cylinder
+    A = baba - bard * bard
+    B = baba * rdoa - baoa * bard
+    C = baba * oaoa - baoa * baoa - r * r * baba
+    h = B * B - A * C
+    safe = np.abs(A) > 1e-18
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t_body = (-B - np.sqrt(np.maximum(h, 0.0))) / np.where(safe, A, 1e-18)
+    y = baoa + t_body * bard
+    body = (h >= 0) & (y > 0) & (y < baba) & safe
+    # end spheres: the one on the side the body test failed
+    t_caps = None
+    for centre in (a, b):
+        bc = rx * centre[0] + ry * centre[1] + rz * centre[2]
+        h2 = bc * bc - (float(centre @ centre) - r * r)
+        t = np.where(h2 >= 0, bc - np.sqrt(np.maximum(h2, 0.0)), np.inf)
+        t_caps = t if t_caps is None else np.minimum(t_caps, t)
+    t = np.where(body, np.minimum(t_body, t_caps), t_caps)
+    hit = (t > 0) & np.isfinite(t)
+    t = np.where(hit, t, 0.0)
+    px, py, pz = rx * t, ry * t, rz * t
+    s = np.clip(((px - a[0]) * ba[0] + (py - a[1]) * ba[1] + (pz - a[2]) * ba[2]) / max(baba, 1e-18), 0.0, 1.0)
+    nx, ny, nz = px - (a[0] + s * ba[0]), py - (a[1] + s * ba[1]), pz - (a[2] + s * ba[2])
+    norm = np.maximum(np.sqrt(nx * nx + ny * ny + nz * nz), 1e-12)
+    nx, ny, nz = np.where(hit, nx / norm, 0.0), np.where(hit, ny / norm, 0.0), np.where(hit, nz / norm, -1.0)
+    # anti-aliased silhouette: distance between the ray and the axis segment (components across the ray)
+    rda = rx * a[0] + ry * a[1] + rz * a[2]
+    pax, pay, paz = a[0] - rda * rx, a[1] - rda * ry, a[2] - rda * rz
+    pbx, pby, pbz = ba[0] - bard * rx, ba[1] - bard * ry, ba[2] - bard * rz
+    denom = np.maximum(pbx * pbx + pby * pby + pbz * pbz, 1e-18)
+    s_near = np.clip(-(pax * pbx + pay * pby + paz * pbz) / denom, 0.0, 1.0)
+    gx, gy, gz = pax + s_near * pbx, pay + s_near * pby, paz + s_near * pbz
+    gap = np.sqrt(gx * gx + gy * gy + gz * gz)
+    z_near = np.maximum(a[2] + s_near * ba[2], 1e-6)
+    coverage = np.clip(0.5 + (r - gap) * focal / z_near, 0.0, 1.0)
+    depth = np.where(hit, t * rz, np.where(coverage > 0, z_near - r, np.inf))
+    return depth, nx, ny, nz, coverage
+
+
+def shade_skin(normal: np.ndarray, colour: np.ndarray, view: np.ndarray) -> np.ndarray:
+    """Lambert + ambient + a soft Blinn-Phong sheen, camera coordinates (light from the upper left, camera side)."""
+    light = _unit(np.array([-0.4, -0.7, -0.6]))
+    n_l = np.clip(normal @ light, 0.0, None)[..., None]
+    half = _unit(light - view)
+    spec = 0.12 * np.clip(np.sum(normal * half, axis=-1), 0.0, None)[..., None] ** 24
+    return np.clip(np.asarray(colour) * (0.38 + 0.62 * n_l) + spec, 0.0, 1.0)
+
+
+_RAYS: dict[tuple, np.ndarray] = {}
+
+
+def render_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
+                colour: np.ndarray) -> HandLayer:
+    """The hand's capsules in one camera (module doc): world-to-camera ``viewmat`` (4, 4), intrinsics ``K`` (3, 3) px,
+    ``colour`` (3,) linear RGB.  Each capsule is intersected over its projected bounding box only (component
+    arrays, no per-pixel vectors), z-buffered across capsules."""
+    viewmat, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
+    focal = float(K[0, 0])
+    key = (K.tobytes(), width, height)
+    if key not in _RAYS:  # one camera's rays serve every frame
+        if len(_RAYS) > 8:
+            _RAYS.clear()
+        _RAYS[key] = np.moveaxis(_pixel_rays(K, 0, width, 0, height), -1, 0).copy()
+    rx, ry, rz = _RAYS[key]
+    depth = np.full((height, width), np.inf)
+    coverage = np.zeros((height, width))
+    normal = np.zeros((3, height, width))
+    normal[2] = -1.0
+    a_cam = capsules.a @ viewmat[:3, :3].T + viewmat[:3, 3]
+    b_cam = capsules.b @ viewmat[:3, :3].T + viewmat[:3, 3]
+    for a, b, r in zip(a_cam, b_cam, np.asarray(capsules.radius, np.float64)):
+        near = min(a[2], b[2]) - r
+        if near <= 1e-3:  # behind or through the camera: not drawn
+            continue
+        ends = np.stack([a, b])
+        uv = ends[:, :2] / ends[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
+        pad = r * focal / near + 2
+        x0, y0 = np.floor(uv.min(axis=0) - pad).astype(int)
+        x1, y1 = np.ceil(uv.max(axis=0) + pad).astype(int) + 1
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+        if x0 >= x1 or y0 >= y1:
+            continue
+        box = (slice(y0, y1), slice(x0, x1))
+        d, nx, ny, nz, c = _capsule_hits(rx[box], ry[box], rz[box], a, b, float(r), focal)
+        nearer = d < depth[box]
+        depth[box] = np.where(nearer, d, depth[box])
+        for k, n in enumerate((nx, ny, nz)):
+            normal[k][box] = np.where(nearer, n, normal[k][box])
+        coverage[box] = np.maximum(coverage[box], c)
+    rgb = np.zeros((height, width, 3), np.float32)
+    drawn = coverage > 0
+    view = np.stack([rx[drawn], ry[drawn], rz[drawn]], -1)
+    rgb[drawn] = shade_skin(np.stack([n[drawn] for n in normal], -1), np.asarray(colour, np.float64), view)
+    return HandLayer(rgb, depth.astype(np.float32), coverage.astype(np.float32))
+
+
+def composite_hand(scene_rgb: np.ndarray, scene_alpha: np.ndarray, scene_depth: np.ndarray,
+                   background: np.ndarray, hand: HandLayer) -> np.ndarray:
+    """The hand put into a rendered frame by depth (linear RGB (y, x, 3) in, out).
+
+    scene_rgb: the frame composited over ``background`` (3,); scene_alpha (y, x): its opacity; scene_depth (y, x) m:
+    depth of what the frame shows (+inf or 0 where nothing).  Where the hand is nearer (or nothing is drawn):
+    ``cov hand + (1 - cov) scene``; where it is behind: it replaces the background only,
+    ``scene + (1 - alpha) cov (hand - background)``."""
+    drawn = hand.coverage > 0
+    if not drawn.any():
+        return scene_rgb.astype(np.float32)
+    out = scene_rgb.astype(np.float32).copy()
+    cov = hand.coverage[drawn][:, None]
+    seen = scene_depth[drawn]
+    seen = np.where((seen > 0) & np.isfinite(seen), seen, np.inf)
+    front = (hand.depth[drawn] <= seen)[:, None]
+    rgb, hand_rgb = out[drawn], hand.rgb[drawn]
+    over = cov * hand_rgb + (1.0 - cov) * rgb
+    under = rgb + (1.0 - scene_alpha[drawn][:, None]) * cov * (hand_rgb - np.asarray(background, np.float32))
+    out[drawn] = np.where(front, over, under)
+    return out

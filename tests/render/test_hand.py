@@ -1,0 +1,83 @@
+"""The hand drawn from the recorded signals: exact capsule depth and silhouette, depth compositing with the object,
+fingers that end at the recorded fingertips with their bone lengths kept."""
+from __future__ import annotations
+
+import numpy as np
+
+from tasks.render.cameras import look_at
+from tasks.render.hand import Capsules, HandLayer, composite_hand, finger_chain, hand_sequence, render_hand
+
+W = H = 64
+FOCAL = 64.0
+K = np.array([[FOCAL, 0.0, W / 2], [0.0, FOCAL, H / 2], [0.0, 0.0, 1.0]])
+CAMERA = look_at(np.array([0.0, -0.5, 0.0]), np.zeros(3))  # at y = -0.5 m looking along +y, z up
+
+
+def test_a_capsule_across_the_view_has_its_front_at_z_minus_r_and_a_one_pixel_silhouette():
+    r = 0.02
+    layer = render_hand(Capsules(np.array([[-0.1, 0.0, 0.0]]), np.array([[0.1, 0.0, 0.0]]), np.array([r])), CAMERA,
+                        K, W, H, np.array([0.7, 0.5, 0.4]))
+    # the pixel rows straddling the axis, their centres half a pixel (0.5 / f x 0.5 m) off it: the ray hits the
+    # cylinder's front at depth 0.5 - sqrt(r^2 - offset^2) (to the ray's slant, ~1e-5 m)
+    centre = layer.depth[H // 2 - 1:H // 2 + 1, W // 2]
+    offset = 0.5 / FOCAL * 0.5
+    assert np.allclose(centre, 0.5 - np.sqrt(r * r - offset * offset), atol=3e-5)
+    # the silhouette: half-height r f / (z - r)... within a pixel; coverage 1 inside, 0 two pixels outside
+    half_px = FOCAL * r / 0.5
+    column = layer.coverage[:, W // 2]
+    assert column[H // 2] == 1.0 and column[int(H / 2 + half_px + 2)] == 0.0 and column[int(H / 2 - half_px - 3)] == 0.0
+    assert abs(column.sum() - 2 * half_px) < 1.0  # the anti-aliased area is the true height to within a pixel
+    # shading lit by the light from the upper left: the upper half brighter than the lower
+    assert layer.rgb[H // 2 - 3, W // 2].sum() > layer.rgb[H // 2 + 3, W // 2].sum()
+
+
+def test_a_finger_in_front_occludes_and_behind_is_hidden():
+    scene = np.full((4, 4, 3), 0.2, np.float32)
+    alpha = np.ones((4, 4), np.float32)
+    depth = np.full((4, 4), 0.5, np.float32)
+    hand_rgb = np.full((4, 4, 3), 0.8, np.float32)
+    front = HandLayer(hand_rgb, np.full((4, 4), 0.4, np.float32), np.ones((4, 4), np.float32))
+    behind = HandLayer(hand_rgb, np.full((4, 4), 0.6, np.float32), np.ones((4, 4), np.float32))
+    background = np.array([1.0, 1.0, 1.0])
+    np.testing.assert_array_equal(composite_hand(scene, alpha, depth, background, front), hand_rgb)
+    np.testing.assert_array_equal(composite_hand(scene, alpha, depth, background, behind), scene)
+    # behind a half-transparent rim the hand replaces the background's share: 0.2 + 0.5 (0.8 - 1.0)
+    half = composite_hand(scene, np.full((4, 4), 0.5, np.float32), depth, background, behind)
+    np.testing.assert_allclose(half, 0.1, atol=1e-6)
+    # where nothing is drawn (depth inf) the hand is in front
+    np.testing.assert_array_equal(composite_hand(scene, alpha * 0, np.full((4, 4), np.inf), background, behind),
+                                  hand_rgb)
+
+
+def test_a_finger_chain_ends_at_the_recorded_tip_with_its_bone_lengths_and_bends_more_when_closer():
+    knuckle, length = np.zeros(3), 0.08
+    bends = []
+    for d in (0.07, 0.05):
+        tip = np.array([d, 0.0, 0.0])
+        joints = finger_chain(knuckle, tip, length, 0.5, np.array([0.0, 0.0, 1.0]))
+        np.testing.assert_allclose(joints[-1], tip, atol=1e-9)
+        np.testing.assert_allclose(np.linalg.norm(np.diff(joints, axis=0), axis=1).sum(), length, rtol=1e-6)
+        assert (joints[1:3, 2] > 0).all()  # the bend bulges towards the given side
+        bends.append(joints[1:3, 2].max())
+    assert bends[1] > bends[0]
+    # a tip beyond reach: a straight finger to it
+    far = finger_chain(knuckle, np.array([0.1, 0.0, 0.0]), length, 0.5, np.array([0.0, 0.0, 1.0]))
+    np.testing.assert_allclose(far[:, 1:], 0.0, atol=1e-12)
+
+
+def test_the_drawn_fingertips_follow_the_recording_frame_by_frame():
+    """A lifted finger (its recorded tip moving away) is drawn lifted: every finger's last capsule ends at its
+    recorded tip in every frame, whatever the simulation did."""
+    n = 5
+    rng = np.random.default_rng(0)
+    tips0 = np.array([[-0.04, 0.0, 0.005], [0.04, 0.0, 0.015], [0.04, 0.0, 0.005], [0.04, 0.0, -0.005],
+                      [0.04, 0.0, -0.015]])
+    tips = np.repeat(tips0[None], n, 0) + rng.normal(0, 0.001, (n, 5, 3))
+    tips[:, 1, 0] += np.linspace(0.0, 0.03, n)  # the index finger lifts off
+    q = np.array([np.cos(np.pi / 4), 0.0, 0.0, np.sin(np.pi / 4)])  # palm z (towards the object) = +y
+    signals = {"fingertip_positions": tips, "palm_position": np.tile([0.0, -0.05, 0.0], (n, 1)),
+               "palm_orientation": np.tile(q, (n, 1)), "flexion": np.full((n, 5), 0.4),
+               "grasp_centre": np.zeros((n, 3))}
+    hands = hand_sequence(signals, np.arange(n))
+    for f, caps in enumerate(hands):
+        np.testing.assert_allclose(caps.b[2:15:3], tips[f], atol=1e-9)  # distal phalanges end at the tips
