@@ -13,6 +13,9 @@ sec. 3.2-3.3 and Table 2:
 
     mpm_rollout -> deformation_metrics; gbuffer -> conditions (eq. 6)
 
+(a force-matched variant, the default ``no_dirichlet``: force_calibration -> mpm_rollout with its constant,
+:func:`variant_chain`)
+
 Per object, variant and effect backend (``grid.backends``, default ``[generation.backend]``), sec. 3.3 and
 Tables 1 and 3:
 
@@ -57,6 +60,7 @@ from tasks.evaluation.paper_metrics import paper_metrics_step
 from tasks.evaluation.video_metrics import video_metrics_step
 from tasks.generation.appearance_refinement import appearance_refinement_step
 from tasks.generation.effect import effect_step
+from tasks.physics.force_calibration import force_calibration_step, force_matched_rollout_step
 from tasks.physics.material_oracle import material_oracle_step
 from tasks.physics.mpm_rollout import mpm_rollout_step
 from tasks.render.conditions import conditions_step
@@ -77,7 +81,19 @@ PER_VARIANT: tuple[StepTask, ...] = (mpm_rollout_step, deformation_metrics_step,
 PER_BACKEND: tuple[StepTask, ...] = (effect_step, appearance_refinement_step, video_metrics_step,
                                      llm_evaluation_step, paper_metrics_step)
 STEPS: tuple[StepTask, ...] = PER_OBJECT + PER_VARIANT + PER_BACKEND
-STAGE_OF: dict[str, str] = {s.name: s.compute.__module__.split(".")[1] for s in STEPS}  # e.g. gbuffer -> render
+STAGE_OF: dict[str, str] = {s.name: s.compute.__module__.split(".")[1]
+                            for s in STEPS + (force_calibration_step,)}  # e.g. gbuffer -> render
+# a force-driven variant whose push is calibrated (variant.force_match != none, the force-matched no_dirichlet):
+# the rollout is preceded by the calibration and takes its constant (tasks/physics/force_calibration.py)
+FORCE_MATCHED_ROLLOUT: tuple[StepTask, ...] = (force_calibration_step, force_matched_rollout_step)
+
+
+def variant_chain(variant: DictConfig | None, per_variant: tuple[StepTask, ...] = PER_VARIANT) -> tuple[StepTask, ...]:
+    """The per-variant steps of ``variant``: ``per_variant`` (a leading part of :data:`PER_VARIANT`), with the
+    rollout replaced by :data:`FORCE_MATCHED_ROLLOUT` for a force-matched variant."""
+    if variant is None or variant.get("force_match", "none") == "none":
+        return per_variant
+    return tuple(x for s in per_variant for x in (FORCE_MATCHED_ROLLOUT if s is mpm_rollout_step else (s,)))
 
 
 def _reads_generation(step: StepTask) -> bool:
@@ -110,6 +126,7 @@ def check_wiring(per_object: tuple[StepTask, ...] = PER_OBJECT, per_variant: tup
 
 
 check_wiring()
+check_wiring(per_variant=variant_chain(OmegaConf.create({"force_match": "indentation"})))
 
 
 def with_seed(cfg: DictConfig, seed: int) -> DictConfig:
@@ -166,7 +183,7 @@ def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], 
     out: dict[tuple[str, str], Any] = {(name, ""): fut for name, fut in shared.items()}
     for variant in variants:
         available = dict(shared)
-        for step in per_variant:
+        for step in variant_chain(variant, per_variant):
             available[step.name] = call(
                 step, params=step_params(step, cfg, obj, variant), inputs={n: available[n] for n in step.spec.inputs},
                 label=f"{scope}[{variant.name}]", **kw)
@@ -258,7 +275,7 @@ def run_object_local(cfg: DictConfig, obj: DictConfig, variant: DictConfig | Non
     """Run one object's chain (and one variant's, when given) without Prefect, up to step ``until`` (tests,
     notebooks).  Same keys and artifacts as the flow."""
     refs: dict[str, ArtifactRef] = {}
-    for step in PER_OBJECT + (PER_VARIANT + PER_BACKEND if variant is not None else ()):
+    for step in PER_OBJECT + (variant_chain(variant) + PER_BACKEND if variant is not None else ()):
         if not wanted(step, cfg):
             continue
         refs[step.name] = step.run_local(root=str(root), scope=seed_scope(obj.name, int(cfg.sampling.seed)),
