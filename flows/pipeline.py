@@ -155,7 +155,8 @@ def missing_backends(cfg: DictConfig) -> dict[str, str]:
 def wanted(step: StepTask, cfg: DictConfig) -> bool:
     """False for the paper-metrics step when no weight file is named (``paper_metrics``): it is not run at all."""
     pm = cfg.paper_metrics
-    return step is not paper_metrics_step or bool(pm.musiq_weights or pm.amt_weights or pm.videophy_weights)
+    return step is not paper_metrics_step or bool(pm.musiq_weights or pm.amt_weights or pm.videophy_weights
+                                          or pm.videocon_weights)
 
 
 def variant_key(variant: str, backend: str | None = None) -> str:
