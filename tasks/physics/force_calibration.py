@@ -20,9 +20,10 @@ touched.  Here K is calibrated per object (``variant.force_match``):
 Why not the other criterion the issue names (the force's peak total = the full run's peak total finger reaction):
 the Dirichlet fingers' reactions are not converged at the default grid (the standard preset's reaction error is
 26 %, README) and carry the inertia of the mass-scaled shell the pins accelerate (the full orange's peak total
-reaction is 138 N at its rupture, with the shell's mass x45); measured (docs/results/force-matched-ablation.md),
-the reaction-matched constants reach 0.2-6x the prescribed peak indentation depending on the object.  The
-indentation is what Table 2 compares (shapes), and the prescribed one needs no simulated reaction.
+reaction is 98 N normal to its patches, with the shell's mass x45).  Measured on the default grid
+(docs/results/force-matched-ablation.md), the reaction-matched constants are 0.18x (orange) to 10x (rubber duck)
+the indentation-matched ones and would dent the objects 0.18x to more than 4.8x (paper cup) as deep as eq. 3
+prescribes.  The indentation is what Table 2 compares (shapes), and the prescribed one needs no simulated reaction.
 
 The calibrated rollout is :data:`force_matched_rollout_step`, the same simulation as
 :data:`tasks.physics.mpm_rollout.mpm_rollout_step` with ``force_per_coefficient`` = the calibrated K; it is wired

@@ -134,6 +134,17 @@ def paper_layout(df: pd.DataFrame, metrics: Sequence[tuple[str, str, bool]], obj
     return header, rows, best
 
 
+def with_paper_rows(title: str, header: list[str], rows: list[list[str]], best: list[list[bool]],
+                    objects: Sequence[str]) -> tuple[str, list[str], list[list[str]], list[list[bool]]]:
+    """A Table 2 (``title``, header, rows, bold flags) with the paper's Table 2 appended as a reference block
+    labelled "paper (their metric definitions are not published)", in our object columns, never bold."""
+    from tasks.reporting.paper_reference import TABLE2 as PAPER_TABLE2
+    from tasks.reporting.paper_reference import object_rows
+
+    paper, flags = object_rows(PAPER_TABLE2, objects)
+    return title, header, list(rows) + paper, list(best) + flags
+
+
 def seed_note(df: pd.DataFrame) -> Optional[str]:
     """The caption line of a table of several seeds' runs (None with one seed)."""
     seeds = sorted(set(df["seed"])) if len(df) and "seed" in df.columns else []
