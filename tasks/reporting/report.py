@@ -447,8 +447,8 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
         metric_rows,
         paper_layout,
         seed_note,
-        with_paper_rows,
         stored_definitions,
+        with_paper_rows,
         write_metric_files,
     )
 

@@ -17,7 +17,7 @@ def test_table2_gets_the_papers_rows_in_our_object_order_never_bold():
     title, header, rows, best = with_paper_rows("T2", *paper_layout(df, TABLE2, ["clay", "can"], labels),
                                                 ["clay", "can"])
     assert header == ["Method", "Metric", "clay", "can", "Avg."]
-    ours, paper = rows[:8], rows[8:]
+    paper = rows[8:]
     assert len(paper) == 8 and all(r[0].startswith(PAPER_LABEL) for r in paper)
     assert not any(any(b) for b in best[8:]) and any(any(b) for b in best[:8])
     # the paper's Table 2: w/o Dirichlet BDC-T clay 0.73, can 0.85, Avg. 0.764; full mIoU clay 0.65, can 0.70, 0.669
