@@ -5,7 +5,7 @@ Per object (default grid, ``sampling.seed``): the full variant's rollout (cached
 ``max_t sum_k |R_k . n_k|``; the reaction-matched constant is that over the peak total push coefficient,
 ``K_R = max_t sum_k |R_k . n_k| / max_t sum_k c_k,t`` (the force mode's total normal push is ``K sum_k c_k,t``
 before its balance).  The force-driven squeeze pushed with K_R over the calibration window
-(:func:`tasks.physics.force_calibration.peak_indentation`) reaches a peak indentation that is compared with the
+(:func:`tasks.physics.force_match.peak_indentation`) reaches a peak indentation that is compared with the
 prescribed one, and with the indentation-matched constant of the ``force_calibration`` step (the default
 ``no_dirichlet``).  Without ``+simulate=true`` the indentation at K_R is read off the calibration runs' (K, peak
 indentation) curve (log-log interpolation; NaN outside the range the runs spanned) instead of simulated.  Prints
@@ -48,7 +48,7 @@ def main(overrides: list[str]) -> None:
 
     from flows.pipeline import evaluate_config, run_object_local
     from flows.selection import selected_objects
-    from tasks.physics.force_calibration import calibration_window, peak_indentation
+    from tasks.physics.force_match import calibration_window, peak_indentation
 
     out = next((o.split("=", 1)[1] for o in overrides if o.startswith("+out=")), None)
     simulate = "+simulate=true" in overrides

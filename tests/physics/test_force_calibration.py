@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from tasks.physics.force_calibration import calibrate, calibration_window
+from tasks.physics.force_match import calibrate, calibration_window
 from tasks.physics.mpm import ForcePatch, Material, MPMSolver
 
 
