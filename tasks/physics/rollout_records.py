@@ -98,6 +98,7 @@ class FrameRecord:
     flight: Optional[FlightRecord] = None
     openings: Optional[tuple[np.ndarray, np.ndarray]] = None  # torn surface points (point,), their finger (point,)
     beneath: Optional[np.ndarray] = None  # (particle,) int32: the finger pushing it through its opening, -1 none
+    stopped_after: Optional[int] = None  # the last frame run when the caller stopped the run early (run_frames)
 
 
 @dataclass
