@@ -304,8 +304,7 @@ def artifact_steps() -> list[dict]:
     steps = []
     for path in sorted((ROOT / "tasks").rglob("*.py")):
         tree = ast.parse(path.read_text())
-        names = {t.id: n.value for n in tree.body if isinstance(n, ast.Assign) for t in n.targets
-                 if isinstance(t, ast.Name)}
+        names = {**_imported_names(tree), **_assigned_names(tree)}
         for node in ast.walk(tree):
             if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 continue
@@ -325,6 +324,28 @@ def artifact_steps() -> list[dict]:
         return (STAGE_ORDER.index(stage) if stage in STAGE_ORDER else 99, pos if pos >= 0 else 10**9)
 
     return sorted(steps, key=order)
+
+
+def _assigned_names(tree: ast.Module) -> dict[str, ast.AST]:
+    return {t.id: n.value for n in tree.body if isinstance(n, ast.Assign) for t in n.targets if isinstance(t, ast.Name)}
+
+
+def _imported_names(tree: ast.Module, depth: int = 3) -> dict[str, ast.AST]:
+    """Module-level names a module imports from another of ours (``from tasks.x import NAME``), bound to the value
+    they are assigned in that module, with the names that value uses from there (a declaration shared by two steps,
+    e.g. the rollout's outputs)."""
+    out: dict[str, ast.AST] = {}
+    for node in tree.body:
+        if depth and isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            path = ROOT.joinpath(*node.module.split(".")).with_suffix(".py")
+            if not path.exists():
+                continue
+            source_tree = ast.parse(path.read_text())
+            assigned = _assigned_names(source_tree)
+            if any(a.name in assigned for a in node.names):
+                out.update({**_imported_names(source_tree, depth - 1), **assigned})
+                out.update({a.asname: assigned[a.name] for a in node.names if a.asname and a.name in assigned})
+    return out
 
 
 def _static_names(node: ast.AST, names: dict[str, ast.AST]) -> list[str]:

@@ -12,7 +12,7 @@ import math
 
 from tasks.core.step import artifact_step, report_progress
 from tasks.physics.force_match import force_matched_rollout
-from tasks.physics.mpm_rollout import ROLLOUT_OUTPUTS
+from tasks.physics.rollout_records import ROLLOUT_OUTPUTS
 
 
 def _finite_or_none(x: float) -> float | None:

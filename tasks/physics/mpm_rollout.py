@@ -90,9 +90,9 @@ from tasks.physics.rollout_fingers import (
     particle_pins,
 )
 from tasks.physics.rollout_records import (
-    FLIGHT_ARRAYS,
     FLIGHT_FRAMES,
     FLIGHT_SAMPLE_SUBSTEPS,
+    ROLLOUT_OUTPUTS,
     STATS_KEYS,
     FlightRecord,
     FrameRecord,
@@ -207,16 +207,6 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
     solver.close_quasi_static_contact()  # the run ends: a contact still loaded is judged too
     rec.labels = mid
     return rec
-
-
-ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_J", "particle_von_mises",
-                   "gaussian_positions", "gaussian_covariances", "gaussian_rotations", "reaction_force",
-                   "applied_force", "feedback_force", "squeeze_strain", "dirichlet_tracking_error",
-                   "predicted_squeeze_strain", "substeps", "dt_min", "courant", "max_speed", "j_min", "j_max",
-                   "kinetic_energy", "internal_energy", "plastic_dissipation", "ke_ie_ratio", "ke_ie_contact",
-                   "energy_growth",
-                   "plastic_strain?", "released?",
-                   *(f"{k}?" for k in FLIGHT_ARRAYS))
 
 
 @artifact_step("mpm_rollout",

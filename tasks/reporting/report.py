@@ -444,6 +444,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     from tasks.reporting.report_tables import (
         TABLE2,
         TRAJECTORY,
+        force_match_note,
         html_table,
         metric_rows,
         paper_layout,
@@ -485,6 +486,9 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     ]
     note, n_seeds = seed_note(metrics), len(set(metrics["seed"])) if len(metrics) else 1
     captions = {title: note for title, *_ in tables} if note else {}
+    strength = force_match_note(refs, labels)  # the ablation's input strength, under Table 2
+    if strength and tables[0][2]:
+        captions[tables[0][0]] = " ".join(x for x in (captions.get(tables[0][0]), strength) if x)
     if n_seeds > 1:
         captions.update({title: f"Mean over the {n_seeds} sampling seeds (per-seed rows in metrics.csv)."
                          for title, *_ in video_tables})

@@ -41,6 +41,35 @@ def metric_rows(refs: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def force_match_note(refs: Mapping[str, Mapping[str, Any]], labels: Mapping[str, str]) -> Optional[str]:
+    """Table 2's note on the ablation's input strength: for each force-matched variant (its rollout's
+    ``force_calibration`` attribute, :mod:`tasks.physics.force_matched_rollout`) the calibrated K per object and its
+    peak indentation against the prescribed one; None when no variant is force-matched."""
+    found: dict[str, list[str]] = {}
+    rtol: dict[str, float] = {}
+    for key, obj_refs in refs.items():
+        for variant, vrefs in obj_refs.get("variants", {}).items():
+            ref = vrefs.get("mpm_rollout")
+            try:
+                cal = read_group_attrs(ref.path)["attrs"].get("force_calibration") if ref is not None else None
+            except ArtifactError:
+                cal = None
+            if not cal:
+                continue
+            reached = cal.get("reached_indentation")
+            rtol[variant] = float(cal["rtol"])
+            found.setdefault(variant, []).append(
+                f"{key} K {cal['force_per_coefficient']:.4g} N (peak {reached if reached is None else f'{reached:.3f}'}"
+                f" / {cal['target_indentation']:.3f}{'' if cal['converged'] else ', not converged'})")
+    if not found:
+        return None
+    return " ".join(
+        f"Input strength: {labels.get(v, v)} is force-matched: its push's constant K (N per unit eq. 1 coefficient) is "
+        f"calibrated per object so that its peak indentation under the fingers, up to the prescribed peak's frame, "
+        f"equals the prescribed one (the full method's), within {100 * rtol[v]:g} %: the same input strength, reached by "
+        f"force instead of imposed; " + "; ".join(items) + "." for v, items in found.items())
+
+
 def stored_definitions(refs: Mapping[str, Mapping[str, Any]], step: str) -> dict[str, str]:
     """The metric definitions stored with the first ``step`` artifact of a run (per-variant or per-backend; they
     travel with the code version)."""
