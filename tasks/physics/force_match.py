@@ -218,7 +218,7 @@ def force_matched_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str,
     rollout's arrays and attributes, the calibration and each run's wall seconds."""
     regions = squeeze_regions(obj_attrs, field_, patches, len(times))
     last, target = calibration_window(regions.predicted)
-    rollouts: dict[float, tuple[dict[str, Array], dict[str, Any]]] = {}
+    rollouts: dict[float, tuple[float, Any]] = {}  # K -> (peak, rollout) of the closest whole-session run so far
     seconds: list[float] = []
 
     def indentation(k: float) -> float:
@@ -226,8 +226,10 @@ def force_matched_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str,
         d, out = force_driven_run(obj, obj_attrs, field_, forces, patches, times, materials, mpm, sim, k, last, target,
                                   rtol)
         seconds.append(time.perf_counter() - start)
-        if out is not None:
-            rollouts[k] = out
+        if out is not None and math.isfinite(d) and d > 0 and (  # (a window ending with the session: every run)
+                not rollouts or abs(math.log(d / target)) < abs(math.log(next(iter(rollouts.values()))[0] / target))):
+            rollouts.clear()
+            rollouts[k] = (d, out)
         if progress is not None:
             progress(len(seconds), max_runs)
         return d
@@ -235,8 +237,8 @@ def force_matched_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str,
     cal = calibrate(indentation, target, first_constant, rtol=rtol, max_runs=max_runs)
     if cal.constant not in rollouts:  # not converged: the closest run over the whole session
         start = time.perf_counter()
-        rollouts[cal.constant] = mpm_rollout(obj, obj_attrs, field_, forces, patches, times, materials, mpm,
-                                             {**sim, "force_per_coefficient": cal.constant}, "force")
+        rollouts[cal.constant] = (cal.reached, mpm_rollout(obj, obj_attrs, field_, forces, patches, times, materials,
+                                                           mpm, {**sim, "force_per_coefficient": cal.constant}, "force"))
         seconds.append(time.perf_counter() - start)
-    arrays, attrs = rollouts[cal.constant]
+    arrays, attrs = rollouts[cal.constant][1]
     return arrays, attrs, cal, seconds
