@@ -9,7 +9,7 @@
   the input files and the arrays it writes.  The declarations are read from the source with ``ast`` (nothing under
   ``tasks/`` is imported), so the page follows the code wherever a step module lives.
 
-The functions are plain Python so that ``tests/test_docs.py`` checks the same output the site shows.
+The functions are plain Python so that ``tests/flows/test_docs.py`` checks the same output the site shows.
 """
 from __future__ import annotations
 
@@ -304,7 +304,7 @@ def artifact_steps() -> list[dict]:
     steps = []
     for path in sorted((ROOT / "tasks").rglob("*.py")):
         tree = ast.parse(path.read_text())
-        names = {**_imported_names(tree), **_assigned_names(tree)}
+        names = {**_imported_names(tree), **_module_names(tree)}
         for node in ast.walk(tree):
             if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 continue
@@ -326,7 +326,8 @@ def artifact_steps() -> list[dict]:
     return sorted(steps, key=order)
 
 
-def _assigned_names(tree: ast.Module) -> dict[str, ast.AST]:
+def _module_names(tree: ast.Module) -> dict[str, ast.AST]:
+    """A module's top-level ``NAME = value`` bindings, unevaluated."""
     return {t.id: n.value for n in tree.body if isinstance(n, ast.Assign) for t in n.targets if isinstance(t, ast.Name)}
 
 
@@ -336,12 +337,13 @@ def _imported_names(tree: ast.Module, depth: int = 3) -> dict[str, ast.AST]:
     e.g. the rollout's outputs)."""
     out: dict[str, ast.AST] = {}
     for node in tree.body:
-        if depth and isinstance(node, ast.ImportFrom) and node.module and not node.level:
+        if depth and isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "tasks" \
+                and not node.level:
             path = ROOT.joinpath(*node.module.split(".")).with_suffix(".py")
             if not path.exists():
                 continue
             source_tree = ast.parse(path.read_text())
-            assigned = _assigned_names(source_tree)
+            assigned = _module_names(source_tree)
             if any(a.name in assigned for a in node.names):
                 out.update({**_imported_names(source_tree, depth - 1), **assigned})
                 out.update({a.asname: assigned[a.name] for a in node.names if a.asname and a.name in assigned})
