@@ -21,7 +21,8 @@ from tasks.evaluation.videophy import (
     share_rated_at_least,
     video_pixels,
 )
-from tests.test_videophy import SPECIAL, _config, _video
+from tests.evaluation.test_videophy import SPECIAL, _config
+from tests.evaluation.videos import noise_video
 
 
 def _release(tmp_path):
@@ -69,7 +70,7 @@ def _one_thread():
 
 
 def test_a_yes_answer_scores_above_a_no_answer_on_the_zero_one_scale(tmp_path):
-    folder, video = _release(tmp_path), _video()
+    folder, video = _release(tmp_path), noise_video(40, 48, 64)
     scores, answers = {}, {}
     for word in ("Yes", "No"):
         rater = load_videophy(folder, frames=4, dtype=torch.float32)
