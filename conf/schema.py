@@ -182,7 +182,7 @@ class VariantConfig:
     label: str = ""  # how the report names the variant (Table 2's "Method" column); default: name
     boundary: str = "dirichlet"  # dirichlet | force
     # force variants only: how the push's one constant K (N per unit eq. 1 coefficient) is set per object
-    # (tasks/physics/force_calibration.py): indentation = calibrated so that the force-driven peak indentation under
+    # (tasks/physics/force_match.py): indentation = calibrated so that the force-driven peak indentation under
     # the patches equals the eq. 3 field's prescribed one (within force_match_rtol, in at most force_match_runs
     # calibration runs from object.force_per_coefficient; a rejected run stops at the prescribed peak's frame, the
     # accepted one is the rollout); none = simulation.force_per_coefficient as given
