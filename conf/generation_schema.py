@@ -107,15 +107,17 @@ class VideoMetricsConfig:
     DIS); smoothness_views: the views scored for motion smoothness, ``all`` (their mean) or
     ``view0`` (the view of the report's overview; 4x cheaper); brisque_max_frames: frames sampled for BRISQUE;
     change_threshold: sRGB change in [0, 1] above which a pixel counts as changed by the generator;
-    multiview_dilation_px: dilation of the mask for the held-out view error; coupling_max_lag_frames: largest lag
-    of the effect behind the force tried.
+    multiview_dilation_px: dilation of the refined mask for the held-out view error; 0 (default): the refined mask
+    only (a dilation adds pixels outside the effect that are the simulated render in both images and inflate the
+    PSNR: 8 px, about 3x the mask, read the can 21.2 dB instead of 16.1); coupling_max_lag_frames: largest lag of
+    the effect behind the force tried.
     """
 
     interpolator: str = "dis"
     smoothness_views: str = "all"
     brisque_max_frames: int = 8
     change_threshold: float = 0.05
-    multiview_dilation_px: int = 8
+    multiview_dilation_px: int = 0
     coupling_max_lag_frames: int = 3
 
 

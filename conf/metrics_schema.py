@@ -70,7 +70,9 @@ class PaperMetricsConfig:
     musiq_weights: path of MUSIQ's SPAQ checkpoint ``musiq_spaq_ckpt-358bb6af.pth`` (VBench imaging quality);
     amt_weights: path of AMT-S's checkpoint ``amt-s.pth`` (VBench motion smoothness);
     videophy_weights: folder of VideoPhy-2's rater ``videophy_2_auto`` (config.json, weights, tokenizer files;
-    physical commonsense); unset (the default) = not computed, at no cost.  views: the views scored, ``all`` (their mean) or ``view0``.
+    physical commonsense as the share of videos rated >= 4, and the mean 1-5 rating); videocon_weights: folder of
+    VideoCon-Physics ``videocon_physics`` (the same architecture; physical commonsense as P(Yes) / (P(Yes) +
+    P(No))); unset (the default) = not computed, at no cost.  views: the views scored, ``all`` (their mean) or ``view0``.
     device: where the metric networks run, ``auto`` (CUDA when present, as the renderer) | ``cpu`` | ``cuda``.
     weights_digest: set by the pre-flight check: content digest of the present weight files (cache key).
     """
@@ -78,6 +80,7 @@ class PaperMetricsConfig:
     musiq_weights: Optional[str] = None
     amt_weights: Optional[str] = None
     videophy_weights: Optional[str] = None
+    videocon_weights: Optional[str] = None
     views: str = "all"
     device: str = "auto"
     weights_digest: Optional[str] = None

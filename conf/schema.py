@@ -75,6 +75,9 @@ class ObjectConfig:
     material: MaterialOverrides = field(default_factory=MaterialOverrides)
     session: str = "ramp_hold_release"  # default synthetic squeeze session (see SignalConfig.session)
     eta: Optional[float] = None  # m per unit force coefficient: this object's eq. 3 scaling (None: control.displacement.eta)
+    # N per unit force coefficient: the first guess of the force-matched calibration (variant.force_match), this
+    # object's calibrated constant on the default grid, seed 0 (None: simulation.force_per_coefficient)
+    force_per_coefficient: Optional[float] = None
 
 
 # ----------------------------------------------------------------------------------------------- signal
@@ -172,11 +175,20 @@ class VariantConfig:
     """A method variant (paper Table 2): ``full`` imposes the displacement field as Dirichlet boundary
     conditions; ``no_dirichlet`` ("VirSqueezer w/o Dirichlet Boundary Constraint", PhysGaussian-style) pushes
     with a per-finger force estimated from the flexion instead (balanced so the fingers' forces sum to zero:
-    ``simulation.force_balance``)."""
+    ``simulation.force_balance``), its one constant calibrated per object (``force_match``) so that it pushes as
+    hard as the full method; ``no_dirichlet_uncalibrated`` pushes with ``simulation.force_per_coefficient``."""
 
     name: str = "full"
     label: str = ""  # how the report names the variant (Table 2's "Method" column); default: name
     boundary: str = "dirichlet"  # dirichlet | force
+    # force variants only: how the push's one constant K (N per unit eq. 1 coefficient) is set per object
+    # (tasks/physics/force_match.py): indentation = calibrated so that the force-driven peak indentation under
+    # the patches equals the eq. 3 field's prescribed one (within force_match_rtol, in at most force_match_runs
+    # calibration runs from object.force_per_coefficient; a rejected run stops at the prescribed peak's frame, the
+    # accepted one is the rollout); none = simulation.force_per_coefficient as given
+    force_match: str = "none"
+    force_match_rtol: float = 0.1
+    force_match_runs: int = 8
 
 
 @dataclass
@@ -197,7 +209,9 @@ class SimulationConfig:
     fluid_tait_exponent: gamma of the interior fluid's Tait equation of state p = K / gamma (J^-gamma - 1); 1
         keeps the sound speed constant under compression (water's gamma = 7 doubles it at J = 0.8, which an
         explicit step sized for the rest state does not survive in a squeezed, sealed can).
-    force_per_coefficient: N per unit force coefficient c (force mode, the no_dirichlet variant).
+    force_per_coefficient: N per unit force coefficient c (force mode): the push of ``no_dirichlet_uncalibrated``
+        and the first guess of the force-matched calibration of ``no_dirichlet`` (``variant.force_match``) for an
+        object without its own ``object.force_per_coefficient``.
     force_balance: how the force mode's finger forces (N) are balanced: ``wrench`` (default) takes their net force
         off the fingers in proportion to their magnitudes, so they sum to 0 N, then their net moment about the
         centres of their patches by the least change of the same weights (each as far as the grip's friction
@@ -519,6 +533,14 @@ def _validate_pipeline(cfg: Any) -> None:
     for variant in ([cfg.variant] if cfg.variant is not None else [cfg.variants[n] for n in cfg.grid.variants]):
         need(variant.boundary in ("dirichlet", "force"), f"variant {variant.name!r} boundary",
              f"must be dirichlet or force, got {variant.boundary!r}")
+        need(variant.force_match in ("indentation", "none"), f"variant {variant.name!r} force_match",
+             f"must be indentation or none, got {variant.force_match!r}")
+        need(variant.force_match == "none" or variant.boundary == "force", f"variant {variant.name!r} force_match",
+             f"calibrates a force-driven push: set boundary=force or force_match=none (got boundary="
+             f"{variant.boundary!r})")
+        need(variant.force_match_rtol > 0 and variant.force_match_runs >= 1, f"variant {variant.name!r} force_match",
+             f"needs force_match_rtol > 0 and force_match_runs >= 1, got {variant.force_match_rtol}, "
+             f"{variant.force_match_runs}")
     try:
         validate_metrics(cfg.metrics)
         validate_render(cfg.render)

@@ -14,6 +14,9 @@ sec. 3.2-3.3 and Table 2:
 
     mpm_rollout -> deformation_metrics; gbuffer -> conditions (eq. 6)
 
+(a force-matched variant, the default ``no_dirichlet``: its mpm_rollout calibrates its push's constant first,
+:func:`variant_chain`)
+
 Per object, variant and effect backend (``grid.backends``, default ``[generation.backend]``), sec. 3.3 and
 Tables 1 and 3:
 
@@ -60,6 +63,7 @@ from tasks.evaluation.video_metrics import video_metrics_step
 from tasks.generation.appearance_refinement import appearance_refinement_step
 from tasks.generation.display_video import display_video_step
 from tasks.generation.effect import effect_step
+from tasks.physics.force_matched_rollout import force_matched_rollout_step
 from tasks.physics.material_oracle import material_oracle_step
 from tasks.physics.mpm_particles import mpm_particles_step
 from tasks.physics.mpm_rollout import mpm_rollout_step
@@ -82,6 +86,15 @@ PER_BACKEND: tuple[StepTask, ...] = (effect_step, appearance_refinement_step, vi
                                      llm_evaluation_step, paper_metrics_step, display_video_step)
 STEPS: tuple[StepTask, ...] = PER_OBJECT + PER_VARIANT + PER_BACKEND
 STAGE_OF: dict[str, str] = {s.name: s.compute.__module__.split(".")[1] for s in STEPS}  # e.g. gbuffer -> render
+
+
+def variant_chain(variant: DictConfig | None, per_variant: tuple[StepTask, ...] = PER_VARIANT) -> tuple[StepTask, ...]:
+    """The per-variant steps of ``variant``: ``per_variant`` (a leading part of :data:`PER_VARIANT`), with the
+    rollout replaced by the force-matched one (:mod:`tasks.physics.force_matched_rollout`: the force-driven push's
+    constant calibrated, then the rollout) for a variant with ``force_match != none``."""
+    if variant is None or variant.get("force_match", "none") == "none":
+        return per_variant
+    return tuple(force_matched_rollout_step if s is mpm_rollout_step else s for s in per_variant)
 
 
 def _reads_generation(step: StepTask) -> bool:
@@ -114,6 +127,7 @@ def check_wiring(per_object: tuple[StepTask, ...] = PER_OBJECT, per_variant: tup
 
 
 check_wiring()
+check_wiring(per_variant=variant_chain(OmegaConf.create({"force_match": "indentation"})))
 
 
 def with_seed(cfg: DictConfig, seed: int) -> DictConfig:
@@ -142,7 +156,8 @@ def missing_backends(cfg: DictConfig) -> dict[str, str]:
 def wanted(step: StepTask, cfg: DictConfig) -> bool:
     """False for the paper-metrics step when no weight file is named (``paper_metrics``): it is not run at all."""
     pm = cfg.paper_metrics
-    return step is not paper_metrics_step or bool(pm.musiq_weights or pm.amt_weights or pm.videophy_weights)
+    return step is not paper_metrics_step or bool(pm.musiq_weights or pm.amt_weights or pm.videophy_weights
+                                          or pm.videocon_weights)
 
 
 def variant_key(variant: str, backend: str | None = None) -> str:
@@ -170,7 +185,7 @@ def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], 
     out: dict[tuple[str, str], Any] = {(name, ""): fut for name, fut in shared.items()}
     for variant in variants:
         available = dict(shared)
-        for step in per_variant:
+        for step in variant_chain(variant, per_variant):
             available[step.name] = call(
                 step, params=step_params(step, cfg, obj, variant), inputs={n: available[n] for n in step.spec.inputs},
                 label=f"{scope}[{variant.name}]", **kw)
@@ -263,7 +278,7 @@ def run_object_local(cfg: DictConfig, obj: DictConfig, variant: DictConfig | Non
     """Run one object's chain (and one variant's, when given) without Prefect, up to step ``until`` (tests,
     notebooks).  Same keys and artifacts as the flow."""
     refs: dict[str, ArtifactRef] = {}
-    for step in PER_OBJECT + (PER_VARIANT + PER_BACKEND if variant is not None else ()):
+    for step in PER_OBJECT + (variant_chain(variant) + PER_BACKEND if variant is not None else ()):
         if not wanted(step, cfg):
             continue
         refs[step.name] = step.run_local(root=str(root), scope=seed_scope(obj.name, int(cfg.sampling.seed)),

@@ -174,7 +174,7 @@ def preflight(cfg: DictConfig) -> None:
             raise SystemExit(f"input error: generation.weights: {missing_weights_message(missing)}")
         cfg.generation.weights_digest = digest_of(weights_identity(weights))
     # 7. the paper metrics' weight files
-    if cfg.paper_metrics.musiq_weights or cfg.paper_metrics.amt_weights or cfg.paper_metrics.videophy_weights:
+    if any(cfg.paper_metrics.get(k) for k in ("musiq_weights", "amt_weights", "videophy_weights", "videocon_weights")):
         from tasks.core.artifacts import digest_of
         from tasks.evaluation.paper_weights import weights_identity
 

@@ -51,6 +51,22 @@ class FingerStudyConfig(Config):
 
 
 @dataclass
+class ForceMatchStudyConfig(Config):
+    """``python -m flows.studies.force_match`` (reaction- vs indentation-matched constants of the force-driven
+    ablation, docs/results/force-matched-ablation.md).
+
+    objects: the objects run.  simulate: simulate the force-driven squeeze at the reaction-matched constant over the
+    calibration window (one windowed rollout per object) instead of reading its indentation off the calibration
+    runs.  out: folder of ``force_match_study.md`` and ``.csv``.  The runs' artifacts: ``paths.artifacts``.
+    """
+
+    objects: list[str] = field(default_factory=lambda: ["can", "plush_toy", "rubber_duck", "clay", "tomato", "orange",
+                                                        "rubber_ball", "paper_cup"])
+    simulate: bool = False
+    out: str = "reports/force_match"
+
+
+@dataclass
 class ContactStudyConfig:
     """``python -m flows.studies.contact`` (grid vs surface contact against closed forms).
 
@@ -198,6 +214,7 @@ def register_study_configs() -> None:
     register_stability_config()
     store = ConfigStore.instance()
     for name, node in (("ball_schema", BallStudyConfig), ("fingers_schema", FingerStudyConfig),
+                       ("force_match_schema", ForceMatchStudyConfig),
                        ("contact_schema", ContactStudyConfig), ("bench_mpm_schema", MPMBenchConfig),
                        ("bench_render_schema", RenderBenchConfig), ("bench_overhead_schema", OverheadBenchConfig),
                        ("bench_diffusion_schema", DiffusionBenchConfig)):

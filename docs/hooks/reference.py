@@ -331,16 +331,22 @@ def _module_names(tree: ast.Module) -> dict[str, ast.AST]:
     return {t.id: n.value for n in tree.body if isinstance(n, ast.Assign) for t in n.targets if isinstance(t, ast.Name)}
 
 
-def _imported_names(tree: ast.Module) -> dict[str, ast.AST]:
-    """The bindings of ``from tasks.x import NAME`` at a module's top level, read from that module's source (a step
-    may declare its outputs with a tuple its helper module defines)."""
+def _imported_names(tree: ast.Module, depth: int = 3) -> dict[str, ast.AST]:
+    """Module-level names a module imports from another of ours (``from tasks.x import NAME``), bound to the value
+    they are assigned in that module, with the names that value uses from there (a declaration shared by two steps,
+    e.g. the rollout's outputs)."""
     out: dict[str, ast.AST] = {}
-    for n in tree.body:
-        if isinstance(n, ast.ImportFrom) and n.module and n.module.split(".")[0] == "tasks" and not n.level:
-            path = ROOT.joinpath(*n.module.split(".")).with_suffix(".py")
-            if path.exists():
-                bound = _module_names(ast.parse(path.read_text()))
-                out.update({a.asname or a.name: bound[a.name] for a in n.names if a.name in bound})
+    for node in tree.body:
+        if depth and isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "tasks" \
+                and not node.level:
+            path = ROOT.joinpath(*node.module.split(".")).with_suffix(".py")
+            if not path.exists():
+                continue
+            source_tree = ast.parse(path.read_text())
+            assigned = _module_names(source_tree)
+            if any(a.name in assigned for a in node.names):
+                out.update({**_imported_names(source_tree, depth - 1), **assigned})
+                out.update({a.asname: assigned[a.name] for a in node.names if a.asname and a.name in assigned})
     return out
 
 

@@ -2,7 +2,8 @@
 sec. 4.1, Table 1): VBench imaging quality (MUSIQ, SPAQ weights; :mod:`tasks.evaluation.musiq`) and VBench motion
 smoothness (AMT-S; :mod:`tasks.evaluation.amt` with the protocol of
 :func:`tasks.evaluation.video_quality.vfi_smoothness`), by VBench's recipes, and VideoPhy-2 physical commonsense
-(:mod:`tasks.evaluation.videophy`, VideoPhy-2's recipe), on the final video of each scored view
+(:mod:`tasks.evaluation.videophy`: VideoPhy-2's autorater as the share of videos rated >= 4 with its mean rating
+beside it, VideoCon-Physics as P(Yes) / (P(Yes) + P(No)), both on the paper's [0, 1] scale), on the final video of each scored view
 (``paper_metrics.views``), mean over the views.  The checkpoints are read from the files named in ``paper_metrics``
 (:mod:`tasks.evaluation.paper_weights`); a metric whose file is absent is NaN with the report's "not computed:
 weights not present (...)" line, and costs nothing.
@@ -22,9 +23,9 @@ from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
 from tasks.evaluation.amt import amt_midpoint, load_amt
 from tasks.evaluation.musiq import load_musiq, musiq_frame_scores
-from tasks.evaluation.paper_weights import PAPER_WEIGHTS, absent_reason, present_weights
+from tasks.evaluation.paper_weights import PAPER_WEIGHTS, RATING_COLUMN, absent_reason, present_weights
 from tasks.evaluation.video_quality import to_srgb_uint8, vfi_smoothness
-from tasks.evaluation.videophy import load_videophy
+from tasks.evaluation.videophy import load_videophy, share_rated_at_least
 from tasks.generation.final_video import final_video
 from tasks.render.device import torch_device
 
@@ -44,10 +45,18 @@ DEFINITIONS: dict[str, str] = {
         "neighbours (replicate padding to multiples of 16, uint8 by truncation), (255 - mean |odd - predicted|) / "
         "255 on uint8 RGB; mean over the scored views. " + _FRAMES),
     "physical_commonsense": (
-        "VideoPhy-2 physical commonsense (1-5, higher is better): the videophy_2_auto rater (mPLUG-Owl-Video 7B, "
-        "bfloat16, layer norms in float32) asked whether the video adheres to the physical laws, on 32 frames at the "
-        "centres of equal segments resized to 224 x 224 by torch (bicubic; the reference resizes with decord) (CLIP "
-        "normalisation), greedy answer parsed for its rating (0 when none); mean over the scored views. " + _FRAMES),
+        "Physical commonsense, VideoPhy-2 recipe (1, in [0, 1], the paper's scale): the share of scored videos (views) "
+        "that the videophy_2_auto rater (mPLUG-Owl-Video 7B, bfloat16, layer norms in float32) rates >= 4 of 5 when "
+        "asked whether the video adheres to the physical laws, on 32 frames at the centres of equal segments resized "
+        "to 224 x 224 by torch (bicubic; the reference resizes with decord) (CLIP normalisation), greedy answer parsed "
+        "for its rating (0 when none). " + _FRAMES),
+    "physical_commonsense_rating": (
+        "VideoPhy-2 autorater mean rating (1-5, higher is better): the mean over the scored views of the same "
+        "ratings (VideoPhy-2's own scale, not the paper's)."),
+    "physical_commonsense_videocon": (
+        "Physical commonsense, VideoCon-Physics recipe (1, in [0, 1], the paper's scale): P(Yes) / (P(Yes) + P(No)) "
+        "of the next token after VideoPhy's prompt 'Does this video follow the physical laws?' (videocon_physics, "
+        "same architecture and frames as above); mean over the scored views. " + _FRAMES),
 }
 
 
@@ -55,7 +64,7 @@ DEFINITIONS: dict[str, str] = {
 def _network(kind: str, path: Path, size: int, mtime_ns: int):
     """The loaded network of a checkpoint file or folder (cached per version within a process)."""
     return {"imaging_quality_musiq": load_musiq, "motion_smoothness_amt": load_amt,
-            "physical_commonsense": load_videophy}[kind](path)
+            "physical_commonsense": load_videophy, "physical_commonsense_videocon": load_videophy}[kind](path)
 
 
 def network(kind: str, path: Path):
@@ -91,8 +100,12 @@ def paper_metrics(final: np.ndarray, cfg: dict[str, Any]) -> tuple[dict[str, flo
     frame_scores = None
     for spec in PAPER_WEIGHTS:
         values[spec.metric] = math.nan
+        if spec.metric == "physical_commonsense":
+            values[RATING_COLUMN[0]] = math.nan
         if spec.metric not in present:
             reasons[spec.metric] = absent_reason(cfg, spec)
+            if spec.metric == "physical_commonsense":
+                reasons[RATING_COLUMN[0]] = reasons[spec.metric]
             continue
         if spec.metric == "motion_smoothness_amt" and min(-(-n // 16) * 16 for n in final.shape[2:4]) < AMT_MIN_SIDE_PX:
             reasons[spec.metric] = (f"not computed: frames of {final.shape[3]} x {final.shape[2]} px are below AMT-S's "
@@ -108,12 +121,17 @@ def paper_metrics(final: np.ndarray, cfg: dict[str, Any]) -> tuple[dict[str, flo
                 scores.append(musiq_frame_scores(video, net))
             elif spec.metric == "physical_commonsense":
                 scores.append(net.rate(video)[0])
+            elif spec.metric == "physical_commonsense_videocon":
+                scores.append(net.p_yes(video))
             else:
                 scores.append(vfi_smoothness(video, functools.partial(amt_midpoint, net)))
             report_progress(i + 1, len(views), unit="view")
         if spec.metric == "imaging_quality_musiq":
             frame_scores = np.stack(scores)
             values[spec.metric] = float(frame_scores.mean(axis=1).mean() / 100.0)
+        elif spec.metric == "physical_commonsense":  # the paper's [0, 1] scale, and VideoPhy-2's 1-5 beside it
+            values[spec.metric] = share_rated_at_least(scores, 4)
+            values[RATING_COLUMN[0]] = float(np.mean(scores))
         else:
             values[spec.metric] = float(np.mean(scores))
         seconds[spec.metric] = time.perf_counter() - t0

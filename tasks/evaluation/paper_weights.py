@@ -7,7 +7,9 @@ are absent (paper sec. 4.1, Table 1).  Nothing here downloads anything.
   by ``paper_metrics.amt_weights``;
 * VideoPhy-2 physical commonsense: the release folder ``videophy_2_auto`` (``config.json``, weights, tokenizer
   files; mPLUG-Owl-Video 7B, about 14 GB in bfloat16, :mod:`tasks.evaluation.videophy`), named by
-  ``paper_metrics.videophy_weights``.
+  ``paper_metrics.videophy_weights``;
+* VideoCon-Physics physical commonsense (VideoPhy's P(Yes) / (P(Yes) + P(No)) scorer, the same architecture): the
+  release folder ``videocon_physics``, named by ``paper_metrics.videocon_weights``.
 """
 from __future__ import annotations
 
@@ -64,11 +66,18 @@ PAPER_WEIGHTS: tuple[PaperWeights, ...] = (
     PaperWeights("motion_smoothness_amt", "VBench motion smoothness (AMT-S)", "paper_metrics.amt_weights", "amt-s.pth",
                  "https://huggingface.co/lalala125/AMT/resolve/main/amt-s.pth",
                  HubSource("lalala125/AMT", files=("amt-s.pth",))),
-    PaperWeights("physical_commonsense", "Physical commonsense (VideoPhy-2 / VideoCon-Physics)",
+    PaperWeights("physical_commonsense", "Physical commonsense [0, 1]: VideoPhy-2 autorater, share of videos rated >= 4",
                  "paper_metrics.videophy_weights", "videophy_2_auto",
                  "https://huggingface.co/videophysics/videophy_2_auto", HubSource("videophysics/videophy_2_auto"),
                  folder=True),
+    PaperWeights("physical_commonsense_videocon",
+                 "Physical commonsense [0, 1]: VideoCon-Physics, P(Yes) / (P(Yes) + P(No))",
+                 "paper_metrics.videocon_weights", "videocon_physics",
+                 "https://huggingface.co/videophysics/videocon_physics", HubSource("videophysics/videocon_physics"),
+                 folder=True),
 )
+# a second value of the VideoPhy-2 rater's weights (same run): its mean 1-5 rating, on VideoPhy-2's own scale
+RATING_COLUMN = ("physical_commonsense_rating", "VideoPhy-2 autorater mean rating (1-5)")
 
 
 def _path(cfg: Mapping[str, Any], spec: PaperWeights) -> str | None:

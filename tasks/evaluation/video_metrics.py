@@ -7,8 +7,10 @@ on every run and without downloaded weights, metrics defined exactly in :mod:`ta
 * temporal flicker, motion smoothness (RIFE or DIS interpolation; ``video_metrics.smoothness_views=view0``
   scores view 0 only), imaging quality (BRISQUE proxy): means over the views of the final video (the generated frames, or the simulated render when no effect was generated);
 * what the physics lets us measure exactly: fidelity outside the refined mask (PSNR/SSIM against the simulated
-  render: exact by construction), effect placement (IoU of the changed pixels with the refined mask), multi-view
-  consistency of the refined 4D Gaussians in held-out views, and the control coupling of the effect's visible
+  render: exact by construction for a backend that composites the render outside the mask), effect placement (IoU
+  of the changed pixels with the refined mask), multi-view consistency of the 4D Gaussians in held-out views over
+  the refined mask (``video_metrics.multiview_dilation_px``, default 0: no dilation) before the refinement (0
+  iterations) and after it, with the gain, and the control coupling of the effect's visible
   area with the force coefficients of the fingers that caused the release.
 
 A metric that does not apply gets NaN and a reason in ``reasons`` (e.g. no released material: no effect metrics).
@@ -38,6 +40,7 @@ from tasks.render.device import torch_device
 
 VIDEO_METRICS = ("temporal_flicker", "motion_smoothness", "imaging_quality_brisque", "outside_mask_psnr_db",
                  "outside_mask_ssim", "effect_placement_iou", "multiview_psnr_db", "multiview_mae",
+                 "multiview_psnr_db_initial", "multiview_psnr_gain_db",
                  "control_coupling_pearson", "control_coupling_spearman", "control_coupling_lag_frames")
 
 
@@ -51,10 +54,11 @@ def json_metric(x: float | None) -> float | str | None:
 
 def video_metrics(final: np.ndarray, simulated: np.ndarray, refined_mask: np.ndarray, has_effect: bool,
                   refined_rgb: np.ndarray | None, held_out_views: list[int], force_coefficients: np.ndarray,
-                  release_fingers: list[int], cfg: dict[str, Any]) -> tuple[dict[str, float], dict[str, str],
-                                                                               dict[str, np.ndarray], str]:
+                  release_fingers: list[int], cfg: dict[str, Any], initial_rgb: np.ndarray | None = None
+                  ) -> tuple[dict[str, float], dict[str, str], dict[str, np.ndarray], str]:
     """All metrics of one scene.  final, simulated, refined_rgb: (view, frame, y, x, 3) uint8 sRGB; refined_mask
-    (view, frame, y, x) bool; force_coefficients (frame, finger) at the rendered frames.  Returns (values,
+    (view, frame, y, x) bool; force_coefficients (frame, finger) at the rendered frames; initial_rgb (held-out view,
+    frame, y, x, 3): the 4D Gaussians before refinement in the ``held_out_views``.  Returns (values,
     reasons for NaN values, per-frame arrays, the motion-smoothness interpolator used)."""
     values: dict[str, float] = {}
     reasons: dict[str, str] = {}
@@ -74,7 +78,8 @@ def video_metrics(final: np.ndarray, simulated: np.ndarray, refined_mask: np.nda
     effect_keys = ("outside_mask_psnr_db", "outside_mask_ssim", "effect_placement_iou", "control_coupling_pearson",
                    "control_coupling_spearman", "control_coupling_lag_frames")
     if not has_effect:
-        for key in effect_keys + ("multiview_psnr_db", "multiview_mae"):
+        for key in effect_keys + ("multiview_psnr_db", "multiview_mae", "multiview_psnr_db_initial",
+                                  "multiview_psnr_gain_db"):
             values[key], reasons[key] = math.nan, "no effect generated for this scene"
         return values, reasons, per_frame, smooth[0].interpolator
     fid = masked_fidelity(final.reshape(-1, *final.shape[2:]), simulated.reshape(-1, *simulated.shape[2:]),
@@ -88,8 +93,16 @@ def video_metrics(final: np.ndarray, simulated: np.ndarray, refined_mask: np.nda
         mv = multiview_consistency(refined_rgb[held_out_views], final[held_out_views],
                                    refined_mask[held_out_views], cfg["multiview_dilation_px"])
         values["multiview_psnr_db"], values["multiview_mae"] = mv.psnr_db, mv.mae
+        if initial_rgb is not None:  # the same held-out views before refinement (0 iterations)
+            mv0 = multiview_consistency(initial_rgb, final[held_out_views], refined_mask[held_out_views],
+                                        cfg["multiview_dilation_px"])
+            values["multiview_psnr_db_initial"] = mv0.psnr_db
+            values["multiview_psnr_gain_db"] = mv.psnr_db - mv0.psnr_db
+        else:
+            for key in ("multiview_psnr_db_initial", "multiview_psnr_gain_db"):
+                values[key], reasons[key] = math.nan, "no 0-iteration render of the held-out views (older artifact)"
     else:
-        for key in ("multiview_psnr_db", "multiview_mae"):
+        for key in ("multiview_psnr_db", "multiview_mae", "multiview_psnr_db_initial", "multiview_psnr_gain_db"):
             values[key] = math.nan
             reasons[key] = "no refined 4D Gaussians or no held-out view (refinement.held_out_views)"
     fingers = [FINGERS[k] for k in release_fingers] or None
@@ -126,7 +139,7 @@ def video_metrics_step(inputs, params):
     values, reasons, per_frame, interpolator = video_metrics(
         final, g["rgb"], cond["refined_mask"], has_effect, refined["rgb"] if "rgb" in refined else None,
         list(refined.attrs.get("held_out_views") or []), forces, list(g.attrs.get("release_fingers") or []),
-        dict(params["video_metrics"]))
+        dict(params["video_metrics"]), refined["rgb_initial"] if "rgb_initial" in refined else None)
     arrays = {"effect_area_px": Array(per_frame["effect_area_px"], ("frame",), "px",
                                       "refined-mask area summed over the views")}
     if "effect_placement_iou" in per_frame:

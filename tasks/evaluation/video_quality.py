@@ -84,7 +84,14 @@ DEFINITIONS: dict[str, str] = {
         "frames where either set is non-empty."),
     "multiview_psnr_db": (
         "Multi-view consistency, PSNR (dB): 10 log10(1 / MSE) of the refined Gaussians rendered in held-out "
-        "views against the generated frames there, sRGB in [0, 1], over the dilated effect mask when given."),
+        "views (never trained on) against the generated frames there, sRGB in [0, 1], over the refined effect mask "
+        "(dilated by video_metrics.multiview_dilation_px, default 0: the mask only)."),
+    "multiview_psnr_db_initial": (
+        "Multi-view consistency before refinement, PSNR (dB): the same with the 4D Gaussians at 0 iterations (the "
+        "G-buffer's look of the released material) rendered in the same held-out views over the same pixels."),
+    "multiview_psnr_gain_db": (
+        "Multi-view consistency gain (dB): multiview_psnr_db - multiview_psnr_db_initial, what eq. 7's refinement "
+        "changed in views it never saw (negative: it made them worse)."),
     "multiview_mae": (
         "Multi-view consistency, MAE (1, sRGB in [0, 1], lower is better): mean absolute error of the same "
         "renders against the generated held-out frames over the same pixels."),

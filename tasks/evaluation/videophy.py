@@ -21,7 +21,10 @@ language model is transformers' ``LlamaForCausalLM`` (attribute ``language_model
 VideoPhy-2's scoring recipe (``VIDEOPHY2/inference.py``, ``template.py``): 32 frames at the centres of equal segments
 of the video, resized to 224 x 224, CLIP-normalised; the physical-commonsense prompt (:data:`PROMPT_PHYSICS`) with a
 BOS token; greedy decoding; the answer is parsed for the first of "zero".."five", "0".."5" it contains (else 0), the
-1-5 rating (5 = full compliance with physical laws).  The release (huggingface.co/videophysics/videophy_2_auto:
+1-5 rating (5 = full compliance with physical laws); on the paper's [0, 1] scale the share of videos rated >= 4
+(:func:`share_rated_at_least`).  VideoCon-Physics (the same architecture, VideoPhy's release
+huggingface.co/videophysics/videocon_physics) answers Yes / No to :data:`PROMPT_VIDEOCON`; its score is
+P(Yes) / (P(Yes) + P(No)) of the next token (:meth:`VideoPhyRater.p_yes`), in [0, 1].  The release (huggingface.co/videophysics/videophy_2_auto:
 ``config.json``, ``pytorch_model-0000?-of-00002.bin`` in bfloat16, ``tokenizer.model``) is run in bfloat16 like
 VideoPhy-2's inference, except the layer norms, which compute in float32 with float32 weights and return the input's
 dtype (mPLUG-Owl's ``LayerNormFp32``), on ``paper_metrics.device`` (CUDA when present).  Remaining difference: the
@@ -41,8 +44,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-__all__ = ["CLIP_MEAN", "CLIP_STD", "MplugOwlVideo", "OwlConfig", "PROMPT_PHYSICS", "VideoPhyRater", "frame_indices", "keep_layer_norms_fp32",
-           "load_videophy", "parse_rating", "video_pixels"]
+__all__ = ["CLIP_MEAN", "CLIP_STD", "MplugOwlVideo", "OwlConfig", "PROMPT_PHYSICS", "PROMPT_VIDEOCON", "VideoPhyRater",
+           "frame_indices", "keep_layer_norms_fp32", "load_videophy", "parse_rating", "share_rated_at_least",
+           "video_pixels"]
 
 PROMPT_PHYSICS = (
     "The following is a conversation between a curious human and an AI assistant. "
@@ -50,6 +54,14 @@ PROMPT_PHYSICS = (
     "Human: <|video|>\n"
     "Human: Does this video adhere to the physical laws? "
     "Rate the video on a scale from 1 to 5, where 5 means full compliance and 1 means significant violations.\n"
+    "AI: ")
+# VideoCon-Physics' physical-commonsense prompt (videophy ``entailment_inference.py`` inputs: the VideoPhy physics
+# question, answered Yes / No; note "human and AI assistant", without "an")
+PROMPT_VIDEOCON = (
+    "The following is a conversation between a curious human and AI assistant. "
+    "The assistant gives helpful, detailed, and polite answers to the user's questions.\n"
+    "Human: <|video|>\n"
+    "Human: Does this video follow the physical laws?\n"
     "AI: ")
 VIDEO_TOKEN = "<|video|>"
 CLIP_MEAN = (0.48145466, 0.4578275, 0.40821073)
@@ -342,6 +354,13 @@ def video_pixels(video: np.ndarray, frames: int, size: int) -> torch.Tensor:
     return x.permute(1, 0, 2, 3)[None]
 
 
+def share_rated_at_least(ratings: list[int] | np.ndarray, threshold: int = 4) -> float:
+    """The share (in [0, 1]) of videos rated >= ``threshold`` (VideoPhy-2 reports physical commonsense as the share of
+    videos its autorater scores >= 4 of 5); NaN without ratings."""
+    r = np.asarray(ratings)
+    return float((r >= threshold).mean()) if r.size else float("nan")
+
+
 def parse_rating(answer: str) -> int:
     """VideoPhy-2's parse of a generated answer: the first rating word or digit it contains, else 0."""
     text = answer.lower().strip()
@@ -371,6 +390,20 @@ class VideoPhyRater:
             elif chunk:
                 ids += self.tokenizer(chunk, add_special_tokens=False)["input_ids"]
         return ids
+
+    def p_yes(self, video: np.ndarray, prompt: str = PROMPT_VIDEOCON) -> float:
+        """VideoCon-Physics' score of a (frame, y, x, 3) uint8 RGB video, in [0, 1]: the next-token probabilities
+        after the prompt, P(Yes) / (P(Yes) + P(No)), "Yes" and "No" the first token of each word without special
+        tokens (videophy ``entailment_inference.py``: ``get_entail``).  No text is generated or parsed."""
+        yes = self.tokenizer.encode("Yes", add_special_tokens=False)[0]
+        no = self.tokenizer.encode("No", add_special_tokens=False)[0]
+        dtype, device = self.net.query_tokens.dtype, self.net.query_tokens.device
+        pixels = video_pixels(video, self.frames, self.net.cfg.vision["image_size"]).to(device, dtype)
+        with torch.inference_mode():
+            embeds = self.net.prompt_embeddings(self.prompt_ids(prompt), pixels)
+            logits = self.net.language_model(inputs_embeds=embeds).logits[0, -1].float()
+        prob = torch.softmax(logits, dim=-1)
+        return float(prob[yes] / (prob[yes] + prob[no]))
 
     def rate(self, video: np.ndarray) -> tuple[int, str]:
         """(1-5 rating, 0 when unparsable; the generated answer) of a (frame, y, x, 3) uint8 RGB video."""

@@ -12,7 +12,8 @@ L_rec is the mean absolute error in linear RGB over the refined mask dilated by 
 released material is and may appear; elsewhere the generated frame is the simulated render by construction).
 Each Adam iteration renders ``samples_per_iteration`` (view, frame) pairs drawn at random from the training views
 and the frames that show released material, instead of all of them.  ``held_out_views`` are never trained on:
-the video metrics measure the multi-view consistency of the refined 4D Gaussians there.
+the video metrics measure the multi-view consistency of the 4D Gaussians there, before (``rgb_initial``: 0
+iterations) and after the refinement.
 """
 from __future__ import annotations
 
@@ -129,8 +130,8 @@ def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
                inputs=("gbuffer", "conditions", "effect", "mpm_rollout", "object_model", "mpm_particles"),
                reads=("refinement", "render.background", "render.released", "render.released_default",
                       "render.device"),
-               outputs=("rgb?", "released_index?", "released_color?", "released_opacity?", "released_scale?",
-                        "loss?"))
+               outputs=("rgb?", "rgb_initial?", "released_index?", "released_color?", "released_opacity?",
+                        "released_scale?", "loss?"))
 def appearance_refinement_step(inputs, params):
     """Eq. 7: fit the released particles' colour, opacity and per-axis scale to the generated frames."""
     g, cond, effect = inputs["gbuffer"], inputs["conditions"], inputs["effect"]
@@ -177,11 +178,16 @@ def appearance_refinement_step(inputs, params):
             return float(pair_loss(frozen, theta, targets, weights, viewmats, Ks, background, pairs))
 
     before = {"train": objective(train_pairs), "held_out": objective(held_pairs)}
+    height, width = g["rgb"].shape[2:4]
+    # the held-out views before refinement (0 iterations): the multi-view consistency's baseline
+    with torch.no_grad():
+        initial = (np.stack([render_frame(frozen, theta, f, viewmats[held_out], Ks[held_out], width, height,
+                                          background).cpu().numpy() for f in range(len(frames_sim))], axis=1)
+                   if held_out else None)
     curve = refine(frozen, theta, targets, weights, viewmats, Ks, background, train_views, frames, r["iterations"],
                    r["lr"], r["samples_per_iteration"], r["seed"])
     after = {"train": objective(train_pairs), "held_out": objective(held_pairs)}
     # 4. the refined 4D Gaussians rendered in every view and frame
-    height, width = g["rgb"].shape[2:4]
     with torch.no_grad():
         rgb = np.stack([render_frame(frozen, theta, f, viewmats, Ks, width, height, background).cpu().numpy()
                         for f in range(len(frames_sim))], axis=1)
@@ -196,6 +202,10 @@ def appearance_refinement_step(inputs, params):
         "loss": Array(np.asarray(curve, np.float32), ("iteration",), "1",
                       "L_rec of the sampled pairs: mean |R - I*| in the region"),
     }
+    if initial is not None:
+        arrays["rgb_initial"] = Array(to_srgb_uint8(initial), ("held_out_view", "frame", "y", "x", "channel"), "1",
+                                      "renders of the initial 4D Gaussians (0 iterations) in the held-out views "
+                                      "(attrs held_out_views), 8-bit sRGB")
     attrs: dict[str, Any] = {"skipped": None, "train_views": train_views, "held_out_views": held_out,
                              "loss_before": before, "loss_after": after,
                              "renders": len(curve) * r["samples_per_iteration"]}

@@ -74,7 +74,7 @@ simulated |reaction_k| clipped (``reaction``; ``auto`` picks it with collider fi
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping, Optional
 
 import numpy as np
 
@@ -90,9 +90,9 @@ from tasks.physics.rollout_fingers import (
     particle_pins,
 )
 from tasks.physics.rollout_records import (
-    FLIGHT_ARRAYS,
     FLIGHT_FRAMES,
     FLIGHT_SAMPLE_SUBSTEPS,
+    ROLLOUT_OUTPUTS,
     STATS_KEYS,
     FlightRecord,
     FrameRecord,
@@ -124,9 +124,12 @@ def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
 
 def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, np.ndarray], forces: np.ndarray,
                patches: Mapping[str, np.ndarray], times: np.ndarray, sim: Mapping[str, Any],
-               boundary: str) -> FrameRecord:
+               boundary: str, keep_going: Optional[Callable[[int, np.ndarray], bool]] = None) -> FrameRecord:
     """Stage 2: the frame loop.  Per frame: the boundary condition (Dirichlet points or force patches), one
-    solver frame, the record, and the threshold release the first time a finger's strain reaches the threshold."""
+    solver frame, the record, and the threshold release the first time a finger's strain reaches the threshold.
+    ``keep_going(f, strain)`` (optional; ``strain`` the (frame, finger) squeeze strains recorded so far) is asked
+    after each frame but the last: False stops the run there (``stopped_after = f``; the later frames stay unset),
+    as the force-matched calibration (:mod:`tasks.physics.force_match`) stops a run it will not use."""
     solver, reg, slot = scene.solver, scene.regions, scene.slot
     T, threshold = len(times), scene.oracle.squeeze_threshold
     rec = allocate_record(scene, T, len(obj["surface_points"]))
@@ -197,19 +200,13 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
                 rec.event["pushed_beneath"] = int((rec.beneath >= 0).sum())
             rec.flight = FlightRecord.start(solver, mid)
             rec.flight.sample(solver, float(times[f]), boundary_points(bc, push, scene.frame_dt))
+        # 5. the caller's stop
+        if keep_going is not None and f < T - 1 and not keep_going(f, rec.strain):
+            rec.stopped_after = f
+            break
     solver.close_quasi_static_contact()  # the run ends: a contact still loaded is judged too
     rec.labels = mid
     return rec
-
-
-ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_J", "particle_von_mises",
-                   "gaussian_positions", "gaussian_covariances", "gaussian_rotations", "reaction_force",
-                   "applied_force", "feedback_force", "squeeze_strain", "dirichlet_tracking_error",
-                   "predicted_squeeze_strain", "substeps", "dt_min", "courant", "max_speed", "j_min", "j_max",
-                   "kinetic_energy", "internal_energy", "plastic_dissipation", "ke_ie_ratio", "ke_ie_contact",
-                   "energy_growth",
-                   "plastic_strain?", "released?",
-                   *(f"{k}?" for k in FLIGHT_ARRAYS))
 
 
 @artifact_step("mpm_rollout",

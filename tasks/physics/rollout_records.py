@@ -98,6 +98,7 @@ class FrameRecord:
     flight: Optional[FlightRecord] = None
     openings: Optional[tuple[np.ndarray, np.ndarray]] = None  # torn surface points (point,), their finger (point,)
     beneath: Optional[np.ndarray] = None  # (particle,) int32: the finger pushing it through its opening, -1 none
+    stopped_after: Optional[int] = None  # the last frame run when the caller stopped the run early (run_frames)
 
 
 @dataclass
@@ -307,6 +308,15 @@ FLIGHT_ARRAYS = {  # name: (axes, unit, description) of the flight recorder's ar
     "released_flight_particle": (("loose",), "1", "index on the particle axis"),
     "released_flight_mass": (("loose",), "kg", "inertial (mass-scaled)"),
     "released_flight_physical_mass": (("loose",), "kg", "")}
+# the rollout artifact's arrays (mpm_rollout_step and the force-matched variant's step; ``?``: optional)
+ROLLOUT_OUTPUTS = ("time", "particle_positions", "particle_material", "particle_J", "particle_von_mises",
+                   "gaussian_positions", "gaussian_covariances", "gaussian_rotations", "reaction_force",
+                   "applied_force", "feedback_force", "squeeze_strain", "dirichlet_tracking_error",
+                   "predicted_squeeze_strain", "substeps", "dt_min", "courant", "max_speed", "j_min", "j_max",
+                   "kinetic_energy", "internal_energy", "plastic_dissipation", "ke_ie_ratio", "ke_ie_contact",
+                   "energy_growth",
+                   "plastic_strain?", "released?",
+                   *(f"{k}?" for k in FLIGHT_ARRAYS))
 
 
 def _flight_arrays(flight: dict[str, np.ndarray]) -> dict[str, Array]:

@@ -41,6 +41,35 @@ def metric_rows(refs: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def force_match_note(refs: Mapping[str, Mapping[str, Any]], labels: Mapping[str, str]) -> Optional[str]:
+    """Table 2's note on the ablation's input strength: for each force-matched variant (its rollout's
+    ``force_calibration`` attribute, :mod:`tasks.physics.force_matched_rollout`) the calibrated K per object and its
+    peak indentation against the prescribed one; None when no variant is force-matched."""
+    found: dict[str, list[str]] = {}
+    rtol: dict[str, float] = {}
+    for key, obj_refs in refs.items():
+        for variant, vrefs in obj_refs.get("variants", {}).items():
+            ref = vrefs.get("mpm_rollout")
+            try:
+                cal = read_group_attrs(ref.path)["attrs"].get("force_calibration") if ref is not None else None
+            except ArtifactError:
+                cal = None
+            if not cal:
+                continue
+            reached = cal.get("reached_indentation")
+            rtol[variant] = float(cal["rtol"])
+            found.setdefault(variant, []).append(
+                f"{key} K {cal['force_per_coefficient']:.4g} N (peak {reached if reached is None else f'{reached:.3f}'}"
+                f" / {cal['target_indentation']:.3f}{'' if cal['converged'] else ', not converged'})")
+    if not found:
+        return None
+    return " ".join(
+        f"Input strength: {labels.get(v, v)} is force-matched: its push's constant K (N per unit eq. 1 coefficient) is "
+        f"calibrated per object so that its peak indentation under the fingers, up to the prescribed peak's frame, "
+        f"equals the prescribed one (the full method's), within {100 * rtol[v]:g} %: the same input strength, reached by "
+        f"force instead of imposed; " + "; ".join(items) + "." for v, items in found.items())
+
+
 def stored_definitions(refs: Mapping[str, Mapping[str, Any]], step: str) -> dict[str, str]:
     """The metric definitions stored with the first ``step`` artifact of a run (per-variant or per-backend; they
     travel with the code version)."""
@@ -68,11 +97,12 @@ def write_metric_files(df: pd.DataFrame, report_dir: Path) -> list[Path]:
     return [csv, parquet]
 
 
-def seed_statistics(df: pd.DataFrame, variant: str, key: str, objects: Sequence[str]
-                    ) -> tuple[list[float], list[float], int]:
+def seed_statistics(df: pd.DataFrame, variant: str, key: str, objects: Sequence[str],
+                    averaged: Optional[Sequence[str]] = None) -> tuple[list[float], list[float], int]:
     """Per object, then for the average over the objects: the mean and the sample standard deviation (ddof 1; NaN
     with one seed) of metric ``key`` of ``variant`` over the seeds that ran, and the number of seeds.  The Avg.
-    column is the mean over the objects where the metric is defined, taken per seed, then over the seeds."""
+    column is the mean over the objects ``averaged`` (default: those where the metric is defined), taken per seed,
+    then over the seeds."""
     sub = df[df["variant"] == variant] if len(df) else df
     seeds = sorted(set(sub["seed"])) if len(sub) else []
     per_seed = np.full((max(len(seeds), 1), len(objects) + 1), np.nan)
@@ -81,7 +111,8 @@ def seed_statistics(df: pd.DataFrame, variant: str, key: str, objects: Sequence[
         for j, obj in enumerate(objects):
             if obj in rows.index and key in rows.columns:
                 per_seed[i, j] = float(rows.loc[obj, key])
-        finite = per_seed[i, :-1][np.isfinite(per_seed[i, :-1])]
+        row = per_seed[i, :-1] if averaged is None else per_seed[i, [objects.index(o) for o in averaged]]
+        finite = row[np.isfinite(row)]
         per_seed[i, -1] = finite.mean() if len(finite) else np.nan
     counts = np.isfinite(per_seed).sum(axis=0)
     means = [float(np.nanmean(c)) if n else math.nan for c, n in zip(per_seed.T, counts)]
@@ -101,7 +132,8 @@ def paper_layout(df: pd.DataFrame, metrics: Sequence[tuple[str, str, bool]], obj
     """The paper's Table 2 shape: rows (method, metric), columns objects + Avg.
 
     Returns the header, the cell texts and, per cell, whether it is the best value of its metric and column
-    across variants (bold in the paper).  Avg is the mean over the objects where the metric is defined.  With
+    across variants (bold in the paper).  Avg is the mean over the objects where every variant has the metric (a
+    value without counterpart is no comparison), marked ``(n of N)`` when that is not every object.  With
     more than one seed a cell is ``mean ± std`` over the seeds (:func:`seed_statistics`) and the best is taken on
     the means; a cell marked ``≈`` is within the seed spread of the best variant's (:func:`within_spread`): that
     difference is not resolved by the seeds that ran."""
@@ -110,7 +142,10 @@ def paper_layout(df: pd.DataFrame, metrics: Sequence[tuple[str, str, bool]], obj
         return header, [], []
     df = df if "seed" in df.columns else df.assign(seed=0)
     variants = [v for v in labels if v in set(df["variant"])]
-    stats = {(v, key): seed_statistics(df, v, key, objects) for v in variants for key, _, _ in metrics}
+    defined = {(v, key): seed_statistics(df, v, key, objects)[0][:-1] for v in variants for key, _, _ in metrics}
+    common = {key: [o for j, o in enumerate(objects) if all(math.isfinite(defined[(v, key)][j]) for v in variants)]
+              for key, _, _ in metrics}
+    stats = {(v, key): seed_statistics(df, v, key, objects, common[key]) for v in variants for key, _, _ in metrics}
     rows, best = [], []
     for v in variants:
         for key, name, higher in metrics:
@@ -129,9 +164,22 @@ def paper_layout(df: pd.DataFrame, metrics: Sequence[tuple[str, str, bool]], obj
                     if any(within_spread(x, sd, *others[w]) for w in rivals):
                         text += " ≈"
                 cells.append(text)
+            if len(common[key]) < len(objects) and math.isfinite(means[-1]):
+                cells[-1] += f" ({len(common[key])} of {len(objects)})"
             rows.append([labels[v], name, *cells])
             best.append(flags)
     return header, rows, best
+
+
+def with_paper_rows(title: str, header: list[str], rows: list[list[str]], best: list[list[bool]],
+                    objects: Sequence[str]) -> tuple[str, list[str], list[list[str]], list[list[bool]]]:
+    """A Table 2 (``title``, header, rows, bold flags) with the paper's Table 2 appended as a reference block
+    labelled "paper (their metric definitions are not published)", in our object columns, never bold."""
+    from tasks.reporting.paper_reference import TABLE2 as PAPER_TABLE2
+    from tasks.reporting.paper_reference import object_rows
+
+    paper, flags = object_rows(PAPER_TABLE2, objects)
+    return title, header, list(rows) + paper, list(best) + flags
 
 
 def seed_note(df: pd.DataFrame) -> Optional[str]:

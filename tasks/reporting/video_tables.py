@@ -15,24 +15,33 @@ from typing import Any
 import pandas as pd
 
 from tasks.core.artifacts import ArtifactError, read_group_attrs
-from tasks.evaluation.paper_weights import PAPER_WEIGHTS
+from tasks.evaluation.paper_weights import PAPER_WEIGHTS, RATING_COLUMN
+from tasks.reporting.paper_reference import TABLE3 as PAPER_TABLE3
+from tasks.reporting.paper_reference import object_rows, table1_rows
 
 # (column, heading, higher is better)
 VIDEO_COLUMNS = (
     ("temporal_flicker", "Temporal flicker", True),
     ("motion_smoothness", "Motion smoothness (RIFE/DIS interp.)", True),
     ("imaging_quality_brisque", "Imaging quality (BRISQUE proxy)", True),
-    ("outside_mask_psnr_db", "Fidelity outside mask PSNR (dB)", True),
-    ("outside_mask_ssim", "Fidelity outside mask SSIM", True),
+    ("outside_mask_psnr_db", "Fidelity outside mask PSNR (dB) = render by construction", True),
+    ("outside_mask_ssim", "Fidelity outside mask SSIM = render by construction", True),
     ("effect_placement_iou", "Effect placement IoU", True),
-    ("multiview_psnr_db", "Multi-view consistency PSNR (dB)", True),
+    ("multiview_psnr_db_initial", "Multi-view PSNR, held-out views, refined mask, 0 iterations (dB)", True),
+    ("multiview_psnr_db", "Multi-view PSNR, held-out views, refined mask, after eq. 7 (dB)", True),
+    ("multiview_psnr_gain_db", "Multi-view PSNR gain of eq. 7 (dB)", True),
     ("control_coupling_pearson", "Control coupling (Pearson)", True),
     ("llm_visual_quality", "LLM visual quality (1-5)", True),
     ("llm_motion_realism", "LLM motion realism (1-5)", True),
     ("llm_motion_consistency", "LLM motion consistency (1-5)", True),
 )
-# the paper's metrics computed where their weights are present (tasks.evaluation.paper_metrics)
-PAPER_COLUMNS = tuple((spec.metric, spec.heading, True) for spec in PAPER_WEIGHTS)
+# columns that equal the render by construction for every backend that composites it back outside the mask (the
+# physics effect, diffusers): never bolded, never a win (only text_only paints outside the mask)
+BY_CONSTRUCTION = frozenset({"outside_mask_psnr_db", "outside_mask_ssim"})
+# the paper's metrics computed where their weights are present (tasks.evaluation.paper_metrics); the VideoPhy-2
+# rater's mean 1-5 rating follows its [0, 1] share
+PAPER_COLUMNS = tuple(c for spec in PAPER_WEIGHTS for c in (
+    ((spec.metric, spec.heading, True),) + ((RATING_COLUMN + (True,),) if spec.metric == "physical_commonsense" else ())))
 # the paper's metrics never computed in a run
 PAPER_ONLY = {
     "Human evaluation (1-5)": "not collected in this run (python -m flows.human_study builds the blinded kit)",
@@ -67,6 +76,7 @@ def video_metric_rows(refs: Mapping[str, Mapping[str, Any]]) -> pd.DataFrame:
                 metrics.update({f"llm_{q}": scores.get(q) for q in ("visual_quality", "motion_realism",
                                                                     "motion_consistency")})
                 metrics.update({k: paper_values.get(k) for k, _, _ in PAPER_COLUMNS})
+                metrics.update({k: math.nan for k, _, _ in VIDEO_COLUMNS if k not in metrics})  # older artifacts
                 rows.append({"object": obj, "seed": seed, "variant": variant, "backend": backend,
                              **{k: (math.nan if v is None else float(v)) for k, v in metrics.items()}})
     return pd.DataFrame(rows)
@@ -107,52 +117,89 @@ def _cell(x: float) -> str:
     return "n/a" if not math.isfinite(x) else f"{x:.3f}"
 
 
+def per_object(df: pd.DataFrame, key: str) -> dict[tuple[str, str], dict[str, float]]:
+    """(variant, backend) -> object -> metric ``key`` (mean over the seeds; NaN where it does not apply)."""
+    out: dict[tuple[str, str], dict[str, float]] = {}
+    if df.empty:
+        return out
+    for (variant, backend), sub in df.groupby(["variant", "backend"], sort=False):
+        vals = sub[key] if key in sub else pd.Series(math.nan, index=sub.index)
+        out[(variant, backend)] = {o: _mean(list(v)) for o, v in vals.groupby(sub["object"], sort=False)}
+    return out
+
+
+def common_objects(values: Mapping[tuple[str, str], Mapping[str, float]]) -> list[str]:
+    """The objects where every compared method has a value (a cell without counterpart is no comparison)."""
+    methods = list(values.values())
+    if not methods:
+        return []
+    return [o for o in methods[0] if all(not math.isnan(m.get(o, math.nan)) for m in methods)]
+
+
+def _best_flags(vals: list[float], higher: bool, key: str) -> list[bool]:
+    """Best of a column of ``vals`` (one per method): only when every method has a value, the column is not true by
+    construction, and there is more than one method."""
+    if key in BY_CONSTRUCTION or len(vals) < 2 or any(math.isnan(x) for x in vals):
+        return [False] * len(vals)
+    top = max(vals) if higher else min(vals)
+    return [x == top for x in vals]
+
+
 def table1(df: pd.DataFrame, labels: Mapping[str, str], backends_missing: Mapping[str, str]
            ) -> tuple[list[str], list[list[str]], list[list[bool]]]:
-    """Table 1 layout: one row per method that ran (mean over objects where a metric applies), then the methods
-    that could not run with the reason; columns our metrics and the paper's (n/a, reason in the caption)."""
+    """Table 1 layout: one row per method that ran, each column the mean over the objects where *every* method has
+    a value (the last row counts them), bold the best only where every method has one and never in a column true
+    by construction; then the methods that could not run with the reason, and the paper's rows (never bold)."""
     columns = VIDEO_COLUMNS + PAPER_COLUMNS
     header = ["Method", *(name for _, name, _ in columns), *PAPER_ONLY]
-    rows, values = [], []
+    rows, best = [], []
     if not df.empty:
-        for (variant, backend), sub in df.groupby(["variant", "backend"], sort=False):
-            vals = [_mean(list(sub[key])) if key in sub else math.nan for key, _, _ in columns]
-            values.append(vals)
-            rows.append([method_label(labels.get(variant, variant), backend), *map(_cell, vals),
-                         *("n/a" for _ in PAPER_ONLY)])
-    best = []
-    for vals in values:
-        flags = [False]
-        for col, (key, _, higher) in enumerate(columns):
-            column = [v[col] for v in values if not math.isnan(v[col])]
-            x = vals[col]
-            flags.append(len(column) > 1 and not math.isnan(x) and x == (max(column) if higher else min(column)))
-        best.append(flags + [False] * len(PAPER_ONLY))
+        methods = list(dict.fromkeys(zip(df["variant"], df["backend"])))
+        table = {m: [] for m in methods}
+        counts = []
+        for key, _, higher in columns:
+            values = per_object(df, key)
+            common = common_objects(values)
+            means = [_mean([values[m][o] for o in common]) if common else math.nan for m in methods]
+            for m, x in zip(methods, means):
+                table[m].append(x)
+            counts.append(len(common))
+            for m, flag in zip(methods, _best_flags(means, higher, key)):
+                table[m].append(flag)
+        for m in methods:
+            vals, flags = table[m][0::2], table[m][1::2]
+            rows.append([method_label(labels.get(m[0], m[0]), m[1]), *map(_cell, vals), *("n/a" for _ in PAPER_ONLY)])
+            best.append([False, *flags, *(False for _ in PAPER_ONLY)])
+        rows.append(["objects averaged (where every method above has a value)", *(str(n) for n in counts),
+                     *("-" for _ in PAPER_ONLY)])
+        best.append([False] * len(header))
     for backend, reason in backends_missing.items():
         rows.append([f"(not run) {BACKEND_LABELS.get(backend, backend)}: {reason}",
                      *("n/a" for _ in columns), *("n/a" for _ in PAPER_ONLY)])
         best.append([False] * len(header))
-    return header, rows, best
+    paper_rows, paper_best = table1_rows([k for k, _, _ in columns], len(PAPER_ONLY))
+    return header, rows + paper_rows, best + paper_best
 
 
 def table3(df: pd.DataFrame, objects: list[str], labels: Mapping[str, str]
            ) -> tuple[list[str], list[list[str]], list[list[bool]]]:
-    """Table 3 layout: rows (method, metric), columns the objects and the average over the objects where the
-    metric applies; best method per column and metric in bold.  With several seeds a cell is the mean over the
-    seeds (the spread is in Table 2 and in ``metrics.csv``)."""
+    """Table 3 layout: rows (method, metric), columns the objects and the average over the objects where every
+    method has a value; bold the best per column only where every method has a value (never in a column true by
+    construction).  With several seeds a cell is the mean over the seeds (the spread is in Table 2 and in
+    ``metrics.csv``).  The paper's Table 3 follows as a reference block (never bold)."""
     header = ["Method", "Metric", *objects, "Avg."]
+    paper_rows, paper_best = object_rows(PAPER_TABLE3, objects)
     if df.empty:
-        return header, [], []
-    keys = ["variant", "backend", "object"]
-    table = df.groupby(keys, sort=False).agg({k: lambda x: _mean(list(x)) for k in df.columns if k not in keys + ["seed"]})
+        return header, paper_rows, paper_best
     methods = list(dict.fromkeys(zip(df["variant"], df["backend"])))
     columns = VIDEO_COLUMNS + tuple(c for c in PAPER_COLUMNS if c[0] in df and df[c[0]].notna().any())
     values = {}
-    for variant, backend in methods:
-        for key, _, _ in columns:
-            vals = [float(table.loc[(variant, backend, o), key]) if (variant, backend, o) in table.index else math.nan
-                    for o in objects]
-            values[(variant, backend, key)] = vals + [_mean(vals)]
+    for key, _, _ in columns:
+        per = per_object(df, key)
+        common = common_objects({m: {o: per[m].get(o, math.nan) for o in objects} for m in methods})
+        for m in methods:
+            vals = [per[m].get(o, math.nan) for o in objects]
+            values[(*m, key)] = vals + [_mean([per[m][o] for o in common]) if common else math.nan]
     rows, best = [], []
     for variant, backend in methods:
         for key, name, higher in columns:
@@ -160,10 +207,7 @@ def table3(df: pd.DataFrame, objects: list[str], labels: Mapping[str, str]
             rows.append([method_label(labels.get(variant, variant), backend), name, *map(_cell, vals)])
             flags = [False, False]
             for col, x in enumerate(vals):
-                column = [values[(v, b, key)][col] for v, b in methods if not math.isnan(values[(v, b, key)][col])]
-                flags.append(len(methods) > 1 and not math.isnan(x) and len(column) > 1
-                             and x == (max(column) if higher else min(column)))
+                column = [values[(v, b, key)][col] for v, b in methods]
+                flags.append(_best_flags(column, higher, key)[methods.index((variant, backend))])
             best.append(flags)
-    return header, rows, best
-
-
+    return header, rows + paper_rows, best + paper_best

@@ -139,9 +139,11 @@ def test_the_step_scores_the_final_video_with_the_tiny_stand_ins_and_the_report_
     assert art["musiq_frame_score"].shape == (1, 5)
     assert metrics["imaging_quality_musiq"] == pytest.approx(art["musiq_frame_score"].mean() / 100.0)
     assert 0.0 <= metrics["motion_smoothness_amt"] <= 1.0 and metrics["physical_commonsense"] is None
-    assert set(art.attrs["reasons"]) == {"physical_commonsense"}
+    assert set(art.attrs["reasons"]) == {"physical_commonsense", "physical_commonsense_rating",
+                                         "physical_commonsense_videocon"}
     refs = {"o": {"variants": {"full": {"backends": {"physics": {"paper_metrics": ref}}}}}}
-    assert set(paper_metric_reasons(refs)) == {"Physical commonsense (VideoPhy-2 / VideoCon-Physics)",
+    assert set(paper_metric_reasons(refs)) == {"Physical commonsense [0, 1]: VideoPhy-2 autorater, share of videos rated >= 4",
+                                                 "Physical commonsense [0, 1]: VideoCon-Physics, P(Yes) / (P(Yes) + P(No))",
                                                "Human evaluation (1-5)"}
     import pandas as pd
 

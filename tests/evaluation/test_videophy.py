@@ -186,18 +186,21 @@ def test_the_step_rates_the_final_video_and_the_report_fills_the_column(tmp_path
               "render.device": "cpu"}
     ref = paper_metrics_step.run_local(root=str(root), scope="o", params=params, inputs={"gbuffer": g, "effect": e})
     attrs = read_artifact(ref).attrs
-    rating = attrs["metrics"]["physical_commonsense"]
+    share, rating = attrs["metrics"]["physical_commonsense"], attrs["metrics"]["physical_commonsense_rating"]
     assert rating in {0, 1, 2, 3, 4, 5} and "physical_commonsense" not in attrs["reasons"]
+    assert share == (1.0 if rating >= 4 else 0.0)  # one scored view: the share rated >= 4 is 0 or 1
     assert attrs["seconds"]["physical_commonsense"] > 0
     refs = {"o": {"variants": {"full": {"backends": {"physics": {"paper_metrics": ref}}}}}}
-    assert "Physical commonsense (VideoPhy-2 / VideoCon-Physics)" not in paper_metric_reasons(refs)
+    heading = "Physical commonsense [0, 1]: VideoPhy-2 autorater, share of videos rated >= 4"
+    assert heading not in paper_metric_reasons(refs)
     import pandas as pd
 
     df = pd.DataFrame([{"object": "o", "variant": "full", "backend": "physics",
                         **{k: (np.nan if attrs["metrics"][k] is None else attrs["metrics"][k])
                            for k, _, _ in PAPER_COLUMNS}}])
     header, rows, _ = table1(df, {"full": "Full"}, {})
-    assert rows[0][header.index("Physical commonsense (VideoPhy-2 / VideoCon-Physics)")] == f"{rating:.3f}"
+    assert rows[0][header.index(heading)] == f"{share:.3f}"
+    assert rows[0][header.index("VideoPhy-2 autorater mean rating (1-5)")] == f"{rating:.3f}"
 
 
 def test_only_a_named_folder_runs_the_step_and_preflight_keys_it(tmp_path, compose_cfg):

@@ -87,13 +87,14 @@ def test_config_reference_lists_every_key_with_the_main_jobs_value(reference):
 
 
 def test_artifact_reference_matches_the_live_step_declarations(reference):
-    from flows.pipeline import STEPS
+    from flows.pipeline import STEPS, force_matched_rollout_step  # a variant's rollout: a second mpm_rollout step
 
-    generated = {s["name"]: s for s in reference.artifact_steps()}
     assert [s["name"] for s in reference.artifact_steps()][:3] == ["object_model", "squeeze_signals",
                                                                     "signal_smoothing"]
-    for step in STEPS:
-        doc = generated[step.spec.name]
+    by_function = {s["function"]: s for s in reference.artifact_steps()}
+    for step in STEPS + (force_matched_rollout_step,):
+        doc = by_function[step.compute.__name__]
+        assert doc["name"] == step.spec.name
         assert tuple(doc.get("inputs", ())) == step.spec.inputs
         assert tuple(doc.get("reads", ())) == step.spec.reads
         assert tuple(doc.get("outputs", ())) == step.spec.outputs

@@ -22,29 +22,67 @@ def _rows():
     ])
 
 
-def test_table1_averages_over_the_objects_where_a_metric_applies_and_marks_the_best():
-    header, rows, best = table1(_rows(), LABELS, {"diffusers": "weights not present"})
+def test_table1_averages_only_over_objects_where_every_method_has_a_value():
+    """Known answers: flicker is defined for both methods on both objects (full 0.85, w/o Dirichlet 0.90: bold);
+    placement IoU only where both have an effect (the can: 0.6 against 0.5, full bold; the full tomato's 0.8 has no
+    counterpart and is not averaged in); the outside-mask PSNR has no counterpart at all (n/a, not a win)."""
+    rows_in = _rows()
+    rows_in.loc[2, "effect_placement_iou"] = 0.5  # w/o Dirichlet: an effect on the can only
+    header, rows, best = table1(rows_in, LABELS, {"diffusers": "weights not present"})
     assert header[0] == "Method" and header[-len(PAPER_ONLY):] == list(PAPER_ONLY)
     col = {name: i for i, name in enumerate(header)}
-    full, ablation, missing = rows
+    full, ablation, counted, missing = rows[:4]
     assert full[0] == "Full VirSqueezer, physics-rendered effect"
     assert full[col["Temporal flicker"]] == "0.850" and ablation[col["Temporal flicker"]] == "0.900"
-    assert full[col["Effect placement IoU"]] == "0.700"  # mean over the two objects
-    assert full[col["Fidelity outside mask PSNR (dB)"]] == "inf"  # identical pixels outside the mask
-    assert ablation[col["Effect placement IoU"]] == "n/a"  # no effect in that variant
     assert best[1][col["Temporal flicker"]] and not best[0][col["Temporal flicker"]]
+    iou = col["Effect placement IoU"]
+    assert (full[iou], ablation[iou], counted[iou]) == ("0.600", "0.500", "1")
+    assert best[0][iou] and not best[1][iou]
+    psnr = next(i for h, i in col.items() if h.startswith("Fidelity outside mask PSNR"))
+    assert full[psnr] == ablation[psnr] == "n/a" and counted[psnr] == "0" and not best[0][psnr]
     assert missing[0].startswith("(not run) diffusion effect: weights not present")
     assert set(missing[1:]) == {"n/a"}
 
 
-def test_table3_has_a_row_per_method_and_metric_and_the_average_column():
+def test_by_construction_columns_say_so_in_their_header_and_are_never_bold():
+    """The composited render gives PSNR inf / SSIM 1 outside the mask; a text-only generator that paints outside it
+    scores 30 dB: the higher value is not bolded, and both headers say why."""
+    base = {k: math.nan for k, _, _ in VIDEO_COLUMNS}
+    df = pd.DataFrame([
+        {"object": "can", "variant": "full", "backend": "physics", **base, "outside_mask_psnr_db": math.inf,
+         "outside_mask_ssim": 1.0},
+        {"object": "can", "variant": "full", "backend": "text_only", **base, "outside_mask_psnr_db": 30.0,
+         "outside_mask_ssim": 0.9}])
+    for header, _, best in (table1(df, LABELS, {}), table3(df, ["can"], LABELS)):
+        names = [h for h in header if "Fidelity outside mask" in h] or None
+        if names:
+            assert all(h.endswith("= render by construction") for h in names) and len(names) == 2
+    header, rows, best = table1(df, LABELS, {})
+    for i, h in enumerate(header):
+        if h.startswith("Fidelity outside mask"):
+            assert rows[0][i] in ("inf", "1.000") and not best[0][i] and not best[1][i]
+    header, rows, best = table3(df, ["can"], LABELS)
+    for r, b in zip(rows, best):
+        if r[1].startswith("Fidelity outside mask"):
+            assert r[1].endswith("= render by construction") and not any(b)
+
+
+def test_table3_has_a_row_per_method_and_metric_the_common_average_and_the_papers_block():
     header, rows, best = table3(_rows(), ["can", "tomato"], LABELS)
     assert header == ["Method", "Metric", "can", "tomato", "Avg."]
-    assert len(rows) == 2 * len(VIDEO_COLUMNS)
+    ours = [r for r in rows if not r[0].startswith("paper")]
+    assert len(ours) == 2 * len(VIDEO_COLUMNS)
     flicker_full = next(r for r in rows if r[0].startswith("Full") and r[1] == "Temporal flicker")
     assert flicker_full[2:] == ["0.900", "0.800", "0.850"]
     i = rows.index(flicker_full)
     assert best[i][2:] == [False, False, False]  # w/o Dirichlet is steadier on both objects
+    iou_full = next(r for r in rows if r[0].startswith("Full") and r[1] == "Effect placement IoU")
+    assert iou_full[2:] == ["0.600", "0.800", "n/a"]  # no counterpart in w/o Dirichlet: no average, no bold
+    assert not any(best[rows.index(iou_full)])
+    paper = [(r, b) for r, b in zip(rows, best) if r[0].startswith("paper (their metric definitions are not published)")]
+    assert len(paper) == 8 and not any(any(b) for _, b in paper)
+    pc = next(r for r, _ in paper if r[0].endswith("Full VirSqueezer") and r[1] == "Physical Commonsense")
+    assert pc[2:] == ["0.368", "0.372", "0.366"]  # the paper's can, tomato and its own eight-object average
 
 
 def test_table3_of_several_seeds_is_the_mean_over_the_seeds():
@@ -55,7 +93,7 @@ def test_table3_of_several_seeds_is_the_mean_over_the_seeds():
     flicker_full = next(r for r in rows if r[0].startswith("Full") and r[1] == "Temporal flicker")
     assert flicker_full[2:] == ["0.850", "0.750", "0.800"]
     psnr_full = next(r for r in rows if r[0].startswith("Full") and r[1].startswith("Fidelity outside mask PSNR"))
-    assert psnr_full[2:] == ["inf", "inf", "inf"]
+    assert psnr_full[2:] == ["inf", "inf", "n/a"]  # w/o Dirichlet has no effect: no common object to average
 
 
 def test_study_items_are_the_final_videos_of_the_chosen_variants(tmp_path):
