@@ -27,7 +27,6 @@ import torch
 
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
-from tasks.physics.labels import INTERIOR
 from tasks.render.cameras import distance_for_object, orbit_cameras
 from tasks.render.colour import to_srgb_uint8
 from tasks.render.device import torch_device
@@ -35,8 +34,8 @@ from tasks.render.scene import (
     drawn_covariances,
     frame_scene,
     released_appearance,
-    released_visibility,
     rollout_particle_volumes,
+    rollout_released_visibility,
 )
 from tasks.render.splat import rasterization
 
@@ -108,9 +107,7 @@ def gbuffer_step(inputs, params):
     viewmats, Ks = orbit_rig(render, obj.attrs["bbox_min"], obj.attrs["bbox_max"])
     n_particles = len(rollout["particle_material"])
     event = rollout.attrs.get("threshold_event") or {}
-    released = rollout["released"] if "released" in rollout else np.zeros(n_particles, bool)
-    released = released & (rollout["particle_material"] == INTERIOR)
-    visible = released_visibility(released, event.get("frame") if event.get("crossed") else None, n_sim)[frames]
+    visible = rollout_released_visibility(rollout, event, n_sim)[frames]
     interior = (materials.get("interior") or {}).get("name")
     look = released_appearance(render, interior)
     # 2. render
