@@ -141,8 +141,12 @@ class SqueezeViewer:
         self.plots = []
         with gui.add_folder("Controls (eq. 1)"):
             for title, values in (("flexion", first.flexion), ("force coefficient", first.force_coefficients)):
-                self.plots.append((values, gui.add_uplot(self._plot_data(values, 0), self._plot_series(),
-                                                          title=f"{title} ({first.label})", aspect=1.6)))
+                self.plots.append((values, gui.add_uplot(
+                    self._plot_data(values, 0), self._plot_series(), title=f"{title} ({first.label})", aspect=1.4,
+                    scales={"x": {"time": False, "auto": True},  # a fixed y range: the marker series is NaN but
+                            "y": {"auto": False, "range": [min(0.0, float(values.min())),  # at one instant
+                                                           1.05 * max(1.0, float(values.max()))]}},
+                    axes=({"label": "t (s)"}, {}), legend={"show": False})))
 
         self.slider.on_update(lambda _: self.set_frame(int(self.slider.value)))
         self.play.on_update(lambda _: self._playing.set() if self.play.value else self._playing.clear())
@@ -170,7 +174,7 @@ class SqueezeViewer:
     def _plot_data(self, values: np.ndarray, frame: int) -> tuple[np.ndarray, ...]:
         t = self.scenes[0].time
         marker = np.full(len(t), np.nan)
-        marker[frame] = float(np.max(values))
+        marker[frame] = float(np.max(values[frame]))  # on the highest finger's curve
         return (t, *(values[:, i] for i in range(values.shape[1])), marker)
 
     # ------------------------------------------------------------------------------------------------ frames
@@ -210,7 +214,7 @@ class SqueezeViewer:
         node.fingers = _segments(scn, node.fingers, f"{root}/hand/fingers", hand_segments(scene, frame) + off,
                                  _FINGER_RGB, show_hand)
         if node.palm is None:
-            node.palm = scn.add_frame(f"{root}/hand/palm", axes_length=0.02, axes_radius=0.0012)
+            node.palm = scn.add_frame(f"{root}/hand/palm", axes_length=0.012, axes_radius=0.0008)
         node.palm.position, node.palm.wxyz = scene.palm_position[frame] + off, scene.palm_orientation[frame]
         node.palm.visible = show_hand
         outline = patch_outlines(scene, frame) + off
@@ -292,30 +296,76 @@ def _segments(scn: Any, handle: Any, name: str, segments: np.ndarray, colors: An
     return handle
 
 
-def browser_screenshot(url: str, out: str | Path, width: int = 1280, height: int = 800, wait_ms: int = 20000,
-                       browser: str = "chromium") -> Path:
-    """A PNG of the viewer page at ``url`` as headless Chromium draws it (WebGL through SwiftShader, no GPU),
-    after ``wait_ms`` of the page's (virtual) time.  The browser runs in its own process group, ended when done."""
+def browser_screenshot(url: str, out: str | Path, width: int = 1280, height: int = 800, timeout_s: float = 120.0,
+                       ready_text: str = "t = ", browser: str = "chromium") -> Path:
+    """A PNG of the viewer page at ``url`` as headless Chromium draws it (WebGL through SwiftShader, no GPU).
+
+    Driven over the DevTools protocol: the page is opened, the capture waits until the GUI shows ``ready_text``
+    (the clock line: the scene's messages have arrived) and then until two captures 1 s apart are identical (the
+    canvas has drawn and the fade-in is over).  The browser runs in its own process group, ended when done."""
+    import asyncio
+    import base64
+    import json
     import os
     import signal
     import subprocess
     import tempfile
+    import urllib.request
+
+    import websockets
 
     out = Path(out).resolve()
     out.parent.mkdir(parents=True, exist_ok=True)
+
+    async def drive(ws_url: str) -> bytes:
+        async with websockets.connect(ws_url, max_size=None) as ws:
+            ids = iter(range(1, 1 << 30))
+
+            async def call(method: str, **params: Any) -> dict:
+                key = next(ids)
+                await ws.send(json.dumps({"id": key, "method": method, "params": params}))
+                while True:
+                    reply = json.loads(await ws.recv())
+                    if reply.get("id") == key:
+                        if "error" in reply:
+                            raise RuntimeError(f"{browser} {method}: {reply['error']}")
+                        return reply["result"]
+
+            await call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1,
+                       mobile=False)
+            await call("Page.navigate", url=url)
+            text = json.dumps(ready_text)
+            while not (await call("Runtime.evaluate", expression=f"document.body.innerText.includes({text})",
+                                  returnByValue=True))["result"].get("value"):
+                await asyncio.sleep(0.5)
+            previous = None
+            while True:
+                await asyncio.sleep(1.0)
+                shot = base64.b64decode((await call("Page.captureScreenshot", format="png"))["data"])
+                if shot == previous:
+                    return shot
+                previous = shot
+
     with tempfile.TemporaryDirectory(prefix="viewer-chromium-") as profile:
         cmd = [browser, "--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-               "--hide-scrollbars", "--no-first-run", f"--user-data-dir={profile}", f"--window-size={width},{height}",
-               f"--virtual-time-budget={wait_ms}", f"--screenshot={out}", url]
+               "--hide-scrollbars", "--no-first-run", f"--user-data-dir={profile}", "--remote-debugging-port=0",
+               f"--window-size={width},{height}", "about:blank"]
         proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
         try:
-            proc.wait(timeout=60 + wait_ms / 1000)
+            port_file, deadline = Path(profile) / "DevToolsActivePort", time.monotonic() + 30
+            while not port_file.exists() or not port_file.read_text().strip():
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    raise RuntimeError(f"{browser} did not open its DevTools port (exit code {proc.poll()})")
+                time.sleep(0.1)
+            port = int(port_file.read_text().split()[0])
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/json/list", timeout=10) as reply:
+                page = next(t for t in json.load(reply) if t["type"] == "page")
+            png = asyncio.run(asyncio.wait_for(drive(page["webSocketDebuggerUrl"]), timeout_s))
         finally:
             try:
                 os.killpg(proc.pid, signal.SIGKILL)  # the browser's helpers (zygote, GPU process) with it
             except ProcessLookupError:
                 pass
             proc.wait()
-    if not out.exists():
-        raise RuntimeError(f"{browser} wrote no screenshot of {url}")
+    out.write_bytes(png)
     return out
