@@ -197,11 +197,7 @@ class SqueezeViewer:
 
     def _draw(self, k: int, node: _SceneNodes, frame: int) -> None:
         scene, scn, root = node.scene, self.server.scene, f"/{k}"
-        splats = frame_splats(scene, frame, node.offset)
-        if not self.show["released material"].value and splats.n_released:
-            keep = len(splats.centers) - splats.n_released
-            splats = type(splats)(splats.centers[:keep], splats.covariances[:keep], splats.rgbs[:keep],
-                                  splats.opacities[:keep], 0)
+        splats = frame_splats(scene, frame, node.offset, released=self.show["released material"].value)
         if node.splats is None:
             node.splats = scn.add_gaussian_splats(f"{root}/gaussians", splats.centers, splats.covariances,
                                                   splats.rgbs, splats.opacities, scale=SPLAT_UNIT)
@@ -256,6 +252,9 @@ class SqueezeViewer:
         for frame in range(self.scenes[0].n_frames):
             self.set_frame(frame, force=True)
             serializer.insert_sleep(period)
+        # the scene's first messages hold views of the live splat buffers (updated in place): back to frame 0,
+        # so that the recording starts (and loops) from the rest state, not from the last frame
+        self.set_frame(0, force=True)
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(serializer.as_html())
@@ -297,12 +296,13 @@ def _segments(scn: Any, handle: Any, name: str, segments: np.ndarray, colors: An
 
 
 def browser_screenshot(url: str, out: str | Path, width: int = 1280, height: int = 800, timeout_s: float = 120.0,
-                       ready_text: str = "t = ", browser: str = "chromium") -> Path:
+                       ready_text: str = "t = ", after_s: float | None = None, browser: str = "chromium") -> Path:
     """A PNG of the viewer page at ``url`` as headless Chromium draws it (WebGL through SwiftShader, no GPU).
 
-    Driven over the DevTools protocol: the page is opened, the capture waits until the GUI shows ``ready_text``
-    (the clock line: the scene's messages have arrived) and then until two captures 1 s apart are identical (the
-    canvas has drawn and the fade-in is over).  The browser runs in its own process group, ended when done."""
+    Driven over the DevTools protocol: the page is opened, the capture waits until the page shows ``ready_text``
+    (the GUI's clock line: the scene's messages have arrived) and then until two captures 1 s apart are identical
+    (the canvas has drawn and the fade-in is over) or, with ``after_s``, that many seconds (a recording that plays
+    on never settles).  The browser runs in its own process group, ended when done."""
     import asyncio
     import base64
     import json
@@ -338,6 +338,9 @@ def browser_screenshot(url: str, out: str | Path, width: int = 1280, height: int
             while not (await call("Runtime.evaluate", expression=f"document.body.innerText.includes({text})",
                                   returnByValue=True))["result"].get("value"):
                 await asyncio.sleep(0.5)
+            if after_s is not None:
+                await asyncio.sleep(after_s)
+                return base64.b64decode((await call("Page.captureScreenshot", format="png"))["data"])
             previous = None
             while True:
                 await asyncio.sleep(1.0)

@@ -154,7 +154,9 @@ def full_covariances(packed: np.ndarray) -> np.ndarray:
 class FrameSplats:
     """The Gaussians of one frame as sent to the client, in :data:`SPLAT_UNIT` (cm): centers (N, 3),
     covariances (N, 3, 3) cm^2, rgbs (N, 3) in [0, 1] (display colour), opacities (N, 1); the surface's first,
-    then the released particles visible in the frame (``n_released`` of them)."""
+    then every particle the squeeze ever releases, transparent (opacity 0) where not drawn in this frame (a
+    constant count: each frame is one same-sized buffer, which viser updates in place and its recordings replay);
+    ``n_released`` of them are drawn."""
 
     centers: np.ndarray
     covariances: np.ndarray
@@ -163,19 +165,21 @@ class FrameSplats:
     n_released: int
 
 
-def frame_splats(scene: SqueezeScene, frame: int, offset: np.ndarray | None = None) -> FrameSplats:
-    """The splats of ``frame`` (surface, then the visible released particles), shifted by ``offset`` (3,) m (the
-    side-by-side comparison).  Colours go from linear RGB to the display's sRGB (the client blends in sRGB)."""
+def frame_splats(scene: SqueezeScene, frame: int, offset: np.ndarray | None = None,
+                 released: bool = True) -> FrameSplats:
+    """The splats of ``frame`` (surface, then the released particles, drawn where visible and ``released``),
+    shifted by ``offset`` (3,) m (the side-by-side comparison).  Colours go from linear RGB to the display's sRGB
+    (the client blends in sRGB)."""
     shift = np.zeros(3) if offset is None else np.asarray(offset, float)
-    shown = scene.released_visible[frame]
-    n = int(shown.sum())
-    centers = np.concatenate([scene.gaussian_positions[frame], scene.released_positions[frame][shown]]) + shift
-    sigma2 = (scene.released_sigma[shown] ** 2)[:, None, None] * np.eye(3)
+    shown = scene.released_visible[frame] & released
+    n = len(shown)
+    centers = np.concatenate([scene.gaussian_positions[frame], scene.released_positions[frame]]) + shift
+    sigma2 = (scene.released_sigma ** 2)[:, None, None] * np.eye(3)
     cov = np.concatenate([full_covariances(scene.gaussian_covariances[frame]), sigma2])
     rgbs = np.concatenate([scene.gaussian_colors, np.broadcast_to(scene.released_color, (n, 3))])
-    opacities = np.concatenate([scene.gaussian_opacities, np.full(n, scene.released_opacity)])
+    opacities = np.concatenate([scene.gaussian_opacities, np.where(shown, scene.released_opacity, 0.0)])
     return FrameSplats((centers / SPLAT_UNIT).astype(np.float32), (cov / SPLAT_UNIT**2).astype(np.float32),
-                       linear_to_srgb(rgbs), opacities.astype(np.float32)[:, None], n)
+                       linear_to_srgb(rgbs), opacities.astype(np.float32)[:, None], int(shown.sum()))
 
 
 def hand_segments(scene: SqueezeScene, frame: int) -> np.ndarray:

@@ -80,7 +80,8 @@ def test_the_scene_is_the_rollouts_and_the_recordings(cached, scenes):
         for frame in range(scene.n_frames):
             splats = frame_splats(scene, frame)
             expected = released if event["crossed"] and frame >= event["frame"] else 0
-            assert splats.n_released == expected and len(splats.centers) == n_surface + expected
+            assert splats.n_released == expected == int((splats.opacities[n_surface:] > 0).sum())
+            assert len(splats.centers) == n_surface + released  # one buffer size for every frame
             np.testing.assert_allclose(splats.centers[:n_surface] * SPLAT_UNIT, rollout["gaussian_positions"][frame],
                                        atol=1e-7)
             np.testing.assert_array_equal(scene.fingertips[frame], smoothed["fingertip_positions"][frame])
@@ -145,8 +146,10 @@ def test_a_real_server_serves_the_scene_to_real_clients(scenes):
             time.sleep(0.05)
         after = viewer.nodes[0].splats.centers
         n_surface = len(scenes[0].gaussian_colors)
-        assert len(after) == n_surface + scenes[0].released_visible[-1].sum() > len(before) == n_surface
-        assert np.abs(after[:n_surface] - before).max() > 0.01  # cm: the squeezed surface moved
+        assert len(after) == len(before) == n_surface + scenes[0].released_visible[-1].sum()
+        assert np.abs(after[:n_surface] - before[:n_surface]).max() > 0.01  # cm: the squeezed surface moved
+        opacity = viewer.nodes[0].splats.opacities[n_surface:]  # uint8: the released juice is drawn now
+        assert opacity.min() > 0
         served = viewer.slider._impl.props._marks  # the marks the client draws under the slider
         assert [m.value for m in served if m.label == "rupture"] == [rupture]
     finally:
@@ -176,3 +179,49 @@ def test_headless_chromium_draws_the_object(scenes, tmp_path):
     red = (centre[..., 0] - centre[..., 1] > 60) & (centre[..., 0] > 120)
     assert red.mean() > 0.5, f"centre colour {centre.reshape(-1, 3).mean(axis=0)}"
     assert shot[:40].reshape(-1, 3).mean() > 200  # the sky above stays the background's
+
+
+def _read_recording(path: Path) -> dict:
+    """The messages of a self-contained viser recording (viser's layout: the base64 scene in the page, an 8-byte
+    size, then zstd of [8-byte msgpack length][msgpack][binary buffers])."""
+    import base64
+    import re
+
+    import msgspec
+    import zstandard
+
+    data = base64.b64decode(re.search(r'__VISER_EMBED_DATA__="([^"]+)"', path.read_text())[1])
+    inner = zstandard.ZstdDecompressor().decompressobj().decompress(data[8:])
+    return msgspec.msgpack.decode(inner[8:8 + int.from_bytes(inner[:8], "little")])
+
+
+def test_the_recording_holds_every_frame_and_plays_without_a_server(scenes, tmp_path):
+    viewer = _viewer(scenes)
+    try:
+        path = viewer.record(tmp_path / "tomato.html", speed=0.5)
+    finally:
+        viewer.stop()
+    doc = _read_recording(path)
+    n = scenes[0].n_frames
+    assert doc["durationSeconds"] == pytest.approx(n / (scenes[0].frame_rate * 0.5))
+    for k in range(len(scenes)):  # frame 0 in the scene's first state, then one splat update per frame, back to 0
+        updates = [t for t, m in doc["messages"] if m.get("name") == f"/{k}/gaussians"
+                   and m["type"] == "SceneNodeUpdateMessage"]
+        moving = sum(1 for f in range(1, n) if not np.array_equal(scenes[k].gaussian_positions[f],
+                                                                   scenes[k].gaussian_positions[f - 1]))
+        assert len(updates) == moving + 1 and updates == sorted(updates)
+
+
+def test_the_frame_update_benchmark_counts_what_a_client_receives(scenes):
+    from tasks.reporting.viewer_benchmark import measure_frame_updates
+
+    viewer = _viewer(scenes)
+    try:
+        cost = measure_frame_updates(viewer)
+    finally:
+        viewer.stop()
+    n_gaussians = len(scenes[0].gaussian_colors) + int(scenes[0].released_visible.any(axis=0).sum())
+    assert cost.gaussians == n_gaussians and len(cost.server_ms) == scenes[0].n_frames
+    # a frame where the squeeze moves sends both scenes' splat buffers (32 B per Gaussian) and the small layers
+    assert cost.bytes_received.max() >= 32 * sum(len(node.splats.centers) for node in viewer.nodes)
+    assert (cost.server_ms > 0).all()
