@@ -87,8 +87,13 @@ def task_overrides() -> list[str]:
 
 
 def recording_path(cfg: DictConfig) -> Path:
-    """Where ``record=true`` writes: ``recording``, else ``<paths.reports>/viewer/<object>_<variant>.html``."""
-    return Path(cfg.recording or Path(cfg.paths.reports) / "viewer" / f"{cfg.object.name}_{cfg.variant.name}.html")
+    """Where ``record=true`` writes: ``recording``, else ``<paths.reports>/viewer/<scope>_<variant>.html`` (which
+    the run reports in ``paths.reports`` link)."""
+    from tasks.core.scope import seed_scope
+    from tasks.reporting.viewer_scene import recording_name
+
+    scope = seed_scope(cfg.object.name, int(cfg.sampling.seed if cfg.seed is None else cfg.seed))
+    return Path(cfg.recording or Path(cfg.paths.reports) / "viewer" / recording_name(scope, cfg.variant.name))
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="view")

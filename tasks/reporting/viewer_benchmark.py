@@ -67,7 +67,7 @@ class _Client:
 class FrameUpdateCost:
     """Per frame update (every frame of the squeeze once, in order): server ms and bytes received."""
 
-    gaussians: int  # splats per scene and frame (surface + every released particle)
+    gaussians: int  # splats per frame, all scenes (surface + every released particle)
     server_ms: np.ndarray
     bytes_received: np.ndarray
 
@@ -94,4 +94,4 @@ def measure_frame_updates(viewer: SqueezeViewer) -> FrameUpdateCost:
             sent[k] = client.settle() - before
     finally:
         client.close()
-    return FrameUpdateCost(len(viewer.nodes[0].splats.centers), ms, sent)
+    return FrameUpdateCost(sum(len(node.splats.centers) for node in viewer.nodes), ms, sent)

@@ -36,6 +36,12 @@ FORCE_ARROW_M_PER_N = 0.002  # m of arrow per N of reaction force (2 mm/N)
 _IJ = ((0, 0, 0, 1, 1, 2), (0, 1, 2, 1, 2, 2))  # xx xy xz yy yz zz
 
 
+def recording_name(scope: str, variant: str) -> str:
+    """The file name of a squeeze's offline recording (``python -m flows.view record=true``), in
+    ``<paths.reports>/viewer/``, where the run reports link it from: ``<scope>_<variant>.html``."""
+    return f"{scope}_{variant}.html"
+
+
 @dataclass(frozen=True)
 class SqueezeScene:
     """One squeeze (object, variant, seed) as the viewer draws it; arrays are per simulated frame (leading axis).

@@ -220,8 +220,22 @@ def test_the_frame_update_benchmark_counts_what_a_client_receives(scenes):
         cost = measure_frame_updates(viewer)
     finally:
         viewer.stop()
-    n_gaussians = len(scenes[0].gaussian_colors) + int(scenes[0].released_visible.any(axis=0).sum())
+    n_gaussians = sum(len(s.gaussian_colors) + int(s.released_visible.any(axis=0).sum()) for s in scenes)
     assert cost.gaussians == n_gaussians and len(cost.server_ms) == scenes[0].n_frames
     # a frame where the squeeze moves sends both scenes' splat buffers (32 B per Gaussian) and the small layers
     assert cost.bytes_received.max() >= 32 * sum(len(node.splats.centers) for node in viewer.nodes)
     assert (cost.server_ms > 0).all()
+
+
+def test_the_report_links_the_recordings_written_beside_it(tmp_path):
+    from tasks.reporting.report import viewer_lines
+
+    report = tmp_path / "reports" / "evaluate-1"
+    refs = {"tomato": {"variants": {"full": {}, "no_dirichlet": {}}}, "can@seed1": {"variants": {"full": {}}}}
+    assert "none written yet" in viewer_lines(report, refs)[0]
+    (tmp_path / "reports" / "viewer").mkdir(parents=True)
+    for name in ("tomato_no_dirichlet.html", "can@seed1_full.html", "clay_full.html"):
+        (tmp_path / "reports" / "viewer" / name).write_text("<html></html>")
+    line = viewer_lines(report, refs)[0]
+    assert line.endswith(": [tomato no_dirichlet](../viewer/tomato_no_dirichlet.html), "
+                         "[can@seed1 full](../viewer/can@seed1_full.html).")
