@@ -215,8 +215,8 @@ def nest(steps: dict[tuple[str, str], Any]) -> dict[str, Any]:
     return tree
 
 
-class _MustRun(Exception):
-    """A step of the grid has no intact artifact on disk."""
+class NotCached(LookupError):
+    """A step has no intact artifact on disk; the message names it as ``<scope>[<variant>]/<step>``."""
 
 
 def _cached(step: StepTask, *, root: str, scope: str, params: dict, inputs: dict[str, ArtifactRef],
@@ -227,9 +227,19 @@ def _cached(step: StepTask, *, root: str, scope: str, params: dict, inputs: dict
                    step.spec.unkeyed)
     attrs = valid_artifact(artifact_path(root, scope, step.name, key), scope, step.name)
     if attrs is None:
-        raise _MustRun(f"{label}/{step.name}")
+        raise NotCached(f"{label}/{step.name}")
     return ArtifactRef(rel=artifact_rel(scope, step.name, key), digest=attrs["digest"], step=step.name, scope=scope,
                        compute_seconds=float(attrs.get("compute_seconds", 0.0))).at(root)
+
+
+def cached_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], scope: str,
+                  until: str) -> dict[tuple[str, str], ArtifactRef]:
+    """One object's artifacts keyed as :func:`submit_object`'s futures, the per-variant chain up to step ``until``
+    (no effect backend), each found on disk as the cached tasks find it, without running anything; raises
+    :class:`NotCached` naming the first step that has no intact artifact."""
+    names = [s.name for s in PER_VARIANT]
+    return submit_object(cfg, obj, variants, backends=[], per_variant=PER_VARIANT[:names.index(until) + 1],
+                         scope=scope, call=_cached)
 
 
 def cached_grid(cfg: DictConfig) -> dict[str, dict[tuple[str, str], ArtifactRef]] | None:
@@ -240,7 +250,7 @@ def cached_grid(cfg: DictConfig) -> dict[str, dict[tuple[str, str], ArtifactRef]
         return {seed_scope(obj.name, seed): submit_object(with_seed(cfg, seed), obj, selected_variants(cfg),
                                                           scope=seed_scope(obj.name, seed), call=_cached)
                 for obj in selected_objects(cfg) for seed in selected_seeds(cfg)}
-    except _MustRun:
+    except NotCached:
         return None
 
 

@@ -24,7 +24,6 @@ import torch
 
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
-from tasks.physics.labels import INTERIOR
 from tasks.render.cameras import orbit_rig
 from tasks.render.colour import to_srgb_uint8
 from tasks.render.device import torch_device
@@ -32,8 +31,8 @@ from tasks.render.scene import (
     drawn_covariances,
     frame_scene,
     released_appearance,
-    released_visibility,
     rollout_particle_volumes,
+    rollout_released_visibility,
 )
 from tasks.render.splat import rasterization
 
@@ -96,9 +95,7 @@ def gbuffer_step(inputs, params):
     viewmats, Ks = orbit_rig(render, obj.attrs["bbox_min"], obj.attrs["bbox_max"])
     n_particles = len(rollout["particle_material"])
     event = rollout.attrs.get("threshold_event") or {}
-    released = rollout["released"] if "released" in rollout else np.zeros(n_particles, bool)
-    released = released & (rollout["particle_material"] == INTERIOR)
-    visible = released_visibility(released, event.get("frame") if event.get("crossed") else None, n_sim)[frames]
+    visible = rollout_released_visibility(rollout, event, n_sim)[frames]
     interior = (materials.get("interior") or {}).get("name")
     look = released_appearance(render, interior)
     # 2. render

@@ -11,6 +11,8 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
+from tasks.physics.labels import INTERIOR
+
 # sigma = RELEASED_SCALE_FACTOR * cbrt(particle volume). On a lattice of spacing s = cbrt(V), isotropic Gaussians
 # with sigma = k s sum to sum_i exp(-|x - p_i|^2 / (2 sigma^2)) = (2 pi)^(3/2) k^3 (1 + ripple(x)) (Poisson
 # summation), |ripple| ~ 6 exp(-2 pi^2 k^2): 0.5 % at k = 0.6, 4 % at k = 0.5, 28 % at k = 0.4.
@@ -69,6 +71,25 @@ def released_visibility(released: np.ndarray, release_frame: int | None, n_frame
     if release_frame is None:
         return np.zeros((n_frames, len(released)), dtype=bool)
     return (np.arange(n_frames) >= release_frame)[:, None] & released[None, :]
+
+
+def rollout_released_visibility(rollout: Mapping[str, Any], threshold_event: Mapping[str, Any] | None,
+                                n_frames: int) -> np.ndarray:
+    """(frame, particle) bool: the rollout's released interior material drawn in each simulated frame.
+
+    rollout: the ``mpm_rollout`` arrays (``particle_material``, ``released`` when the scene has one);
+    threshold_event: its ``threshold_event`` attribute (the frame of the rupture when ``crossed``).  Only interior
+    particles (label INTERIOR) are drawn, from the rupture frame on (:func:`released_visibility`)."""
+    material = np.asarray(rollout["particle_material"])
+    released = np.asarray(rollout["released"], bool) if "released" in rollout else np.zeros(len(material), bool)
+    return released_visibility(released & (material == INTERIOR), rupture_frame(threshold_event), n_frames)
+
+
+def rupture_frame(threshold_event: Mapping[str, Any] | None) -> int | None:
+    """The simulated frame at which the squeeze crossed the material's threshold (the shell ruptured and the
+    interior was released), from the rollout's ``threshold_event`` attribute; None when it never did."""
+    event = threshold_event or {}
+    return int(event["frame"]) if event.get("crossed") else None
 
 
 def frame_scene(surface_positions: np.ndarray, surface_covariances: np.ndarray, surface_colors: np.ndarray,

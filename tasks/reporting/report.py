@@ -436,6 +436,21 @@ def _embed(png: Path) -> str:
     return "data:image/png;base64," + base64.b64encode(png.read_bytes()).decode()
 
 
+def viewer_lines(report_dir: Path, refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
+    """The report's pointer to the interactive 4D viewer, with links to the offline recordings of this run's
+    scenes that ``python -m flows.view record=true`` wrote beside the report (``../viewer/``)."""
+    from tasks.reporting.viewer_scene import recording_name
+
+    folder = report_dir.parent / "viewer"
+    found = [(scope, variant, folder / recording_name(scope, variant)) for scope, obj_refs in refs.items()
+             for variant in obj_refs.get("variants", {})]
+    links = [f"[{scope} {variant}](../viewer/{path.name})" for scope, variant, path in found if path.exists()]
+    return ["Look at a squeeze from anywhere, scrub its time and compare the variants in the browser: "
+            "`python -m flows.view object=<name>` with this run's overrides (docs/tutorials/viewer.md); "
+            "`record=true` writes a recording that plays without a server"
+            + (": " + ", ".join(links) if links else " (none written yet for this run's scenes)") + ".", ""]
+
+
 def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: Mapping[str, Mapping[str, Any]],
                      wall_seconds: float, variants: Optional[Mapping[str, str]] = None,
                      sections: Optional[list[tuple[str, str]]] = None,
@@ -537,6 +552,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
            "render, the conditions of eq. 6, the final composite and the refined 4D Gaussians, with the control "
            "signals in sync.  Files: " + ", ".join(f"`{s.stages_video.name}`" for m in media for s in m.scenes
                                                   if s.stages_video), ""]
+    md += viewer_lines(report_dir, refs)
     for title, header, rows, best in tables + video_tables:
         md += [f"## {title}", "", markdown_table(header, rows, best) if rows else "(no metrics: see the task table)", ""]
         md += [captions[title], ""] if title in captions and rows else []
