@@ -61,7 +61,9 @@ from tasks.core.artifacts import (
 from tasks.core.code_version import code_version, module_file
 from tasks.core.environment import check_step_identity, package_versions, process_label
 from tasks.core.params import Params
-from tasks.core.records import record_storage
+from tasks.core.records import atomic_record_writes
+
+atomic_record_writes()  # Prefect's cache records replaced at once, never seen half-written (tasks.core.records)
 
 log = get_logger("virsqueezer")
 
@@ -225,7 +227,6 @@ class StepTask:
     origin: str = field(default_factory=process_label, repr=False)
     source: str | None = field(default=None, repr=False)
     packages: tuple = field(default_factory=package_versions, repr=False)
-    _by_root: dict = field(default_factory=dict, repr=False)  # the task with the record storage of each root
 
     @property
     def name(self) -> str:
@@ -233,13 +234,9 @@ class StepTask:
 
     def submit(self, *, root: str, scope: str, params: Mapping[str, Any], inputs: Mapping[str, Any] | None = None,
                label: str = ""):
-        """Submit to the flow's task runner; ``inputs`` (keyed by producing step) may hold futures.  The cache
-        record is kept under ``root`` and written atomically (:mod:`tasks.core.records`)."""
-        root = str(root)
-        if root not in self._by_root:
-            self._by_root[root] = self.task.with_options(result_storage=record_storage(root))
-        return self._by_root[root].submit(root=root, scope=scope, params=dict(params), inputs=self._inputs(inputs),
-                                          label=label or scope)
+        """Submit to the flow's task runner; ``inputs`` (keyed by producing step) may hold futures."""
+        return self.task.submit(root=str(root), scope=scope, params=dict(params), inputs=self._inputs(inputs),
+                                label=label or scope)
 
     def run_local(self, *, root: str, scope: str, params: Mapping[str, Any],
                   inputs: Mapping[str, ArtifactRef] | None = None, label: str = "") -> ArtifactRef:
