@@ -48,11 +48,12 @@ def sweep_job() -> Iterator[None]:
     if job_dir is None:
         yield
         return
+    Path(job_dir, FAILED).unlink(missing_ok=True)  # a job run again in its old folder
     try:
         yield
     except (Exception, SystemExit) as exc:  # noqa: BLE001 - whatever stops the job is its reason
-        if isinstance(exc, SystemExit) and exc.code in (None, 0):
-            return
+        if isinstance(exc, SystemExit) and not isinstance(exc.code, str):
+            raise  # an exit status, not a refusal with its reason (e.g. a stop): the sweep stops too
         text = str(exc.code if isinstance(exc, SystemExit) else exc) or type(exc).__name__
         line = text.splitlines()[0]
         Path(job_dir, FAILED).write_text(line + "\n")
