@@ -67,7 +67,7 @@ class MPMConfig:
             ``contact: surface`` (both act where the material touches).  Not the default: it lost Table 2 on the
             rubber ball, clay and rubber duck (README, known limits; ``python -m flows.studies.fingers``).
         thin_walls: how a hollow object's wall thinner than the grid spacing ``dx`` (sampled on its mid-surface in
-            ``sampling.thin_wall_layers`` Gauss layers, :mod:`tasks.control.object_model`) carries stress.
+            ``sampling.thin_wall_layers`` Gauss layers, :mod:`tasks.physics.particle_fill`) carries stress.
             ``membrane`` (default; up to ``membrane_max_thickness`` of a cell): its elastic particles
             (fixed-corotated, neo-Hookean) have no normal stress on the wall, as a thin shell (plane stress;
             :func:`tasks.physics.mpm.constitutive.membrane_F`), and its von Mises particles return-map in plane
@@ -89,7 +89,7 @@ class MPMConfig:
             0.6 and 1.03x / 1.34x at 0.375 (the default grid); README, known limits.
         wall_fibres: a membrane wall sampled in two Gauss layers (``sampling.thin_wall_layers: 2``) keeps the
             distance between its layers at each point, Kirchhoff-Love's inextensible normal fibre
-            (:func:`tasks.physics.mpm.kernels.k_wall_fibres`, after every substep's advection).  The grid cannot
+            (:func:`tasks.physics.mpm.kernels.walls.k_wall_fibres`, after every substep's advection).  The grid cannot
             resolve the wall's thickness and its plane-stress particles carry no normal stress, so nothing else keeps
             it: the rubber ball between two flats had its layers closed to 11 % of their distance under the flats at
             4 mm, its bending lever arm with them, and read 0.35-0.56x the FE of the hollow sphere at dx 4 mm (with
@@ -99,7 +99,7 @@ class MPMConfig:
         wall_normal_stiffness: kappa, dimensionless: an elastic (fixed-corotated, neo-Hookean) membrane particle's
             F_E keeps the normal stretch its grid gives it, and its stress, its plane-stress projection's, gains a
             stiffness kappa x 2 mu against that stretch's departure from the plane-stress one
-            (:func:`tasks.physics.mpm.kernels.wall_normal_energy`; no Poisson coupling, so no volumetric locking).
+            (:func:`tasks.physics.mpm.kernels.walls.wall_normal_energy`; no Poisson coupling, so no volumetric locking).
             0: F_E is stored projected and the normal velocity gradient across the wall costs nothing, and two
             particle layers across a wall then leave the grid velocity modes that move the particles at no strain
             energy: a clamped two-layer strip crept under its weight at every grid alignment (1.10x -> 1.39x its
@@ -110,7 +110,7 @@ class MPMConfig:
             work of its own: at 1 the rubber duck's rollout tripped the energy guard.  Von Mises walls keep their
             plane-stress return.
         wall_stencil: ``shared``: the two Gauss layers of a membrane wall use the stencil of their mid-surface
-            (:func:`tasks.physics.mpm.kernels.particle_stencil`); ``own``: each its own.  With their own, layers on
+            (:func:`tasks.physics.mpm.kernels.walls.particle_stencil`); ``own``: each its own.  With their own, layers on
             either side of a plane of cell centres spread over four node layers across the wall, which leaves
             the grid modes above even to a solid: a 3 mm solid strip there crept, a quarter cell away it settled.
         finger_friction: Coulomb coefficient of the collider fingertips (0 = frictionless, < 0 = no slip while
@@ -120,7 +120,7 @@ class MPMConfig:
             density x ``mass_scale``); ``global`` (every density x s, s the smallest factor >= 1 for which the
             elastic CFL of the non-fluid materials needs at most ``target_substeps_per_frame`` substeps per output
             frame, fixed at the first frame: s = max(1, (c_p frame_dt / (N C dx))^2), see
-            :func:`tasks.physics.mpm.solver.mass_scale_for`; ``auto`` is its former name); ``selective`` (the same
+            :func:`tasks.physics.mpm.mass_scaling.mass_scale_for`; ``auto`` is its former name); ``selective`` (the same
             s, but only for the materials that deform quasi-statically, ``Material.is_mass_scaled``: every
             model but fluids unless a material says otherwise; released material and fluids keep their physical
             inertia, as Abaqus/Explicit variable mass scaling by element set or LS-DYNA selective mass scaling).
@@ -143,7 +143,7 @@ class MPMConfig:
             frictionless, non-sticking contact at the nodes both carry mass on (normal from the body's mass
             gradient; approaching normal velocities become the centre-of-mass one, momentum-conserving; a released
             material with a ``cohesion``, the torn-out stuffing, also holds a separation up to it in tension; see
-            :func:`tasks.physics.mpm.kernels.k_field_contact`).  Fingers (Dirichlet, force patches) act on the body
+            :func:`tasks.physics.mpm.kernels.grid.k_field_contact`).  Fingers (Dirichlet, force patches) act on the body
             field.  False: one shared field (the former behaviour).
         mass_scale: the factor s of ``manual`` (>= 1, dimensionless).
         target_substeps_per_frame: N of ``global`` and ``selective``: substeps per output frame the elastic CFL
@@ -155,8 +155,8 @@ class MPMConfig:
             force coefficients of a force-driven squeeze, ``variant.boundary=force``: Dirichlet fingers hold the
             body, whose free slowest mode then does not exist); under ``selective`` each scaled material is bounded
             by its own T1, which bounds the composite body's (see
-            :func:`tasks.physics.mpm.solver.material_mass_scales`); it costs sqrt(s_cfl / s) times the substeps
-            where it binds (see :func:`tasks.physics.mpm.solver.mass_scale_for`).  Hollow bodies rock slower than T1
+            :func:`tasks.physics.mpm.mass_scaling.material_mass_scales`); it costs sqrt(s_cfl / s) times the substeps
+            where it binds (see :func:`tasks.physics.mpm.mass_scaling.mass_scale_for`).  Hollow bodies rock slower than T1
             (the force-driven ball needs k = 2.5 to stay quasi-static, the duck 1.5); 2.5 in the project's defaults
             (sweep and cost per scene: ``conf/mpm/default.yaml``, README known limits).
         quasi_static_damping: local damping coefficient a in [0, 1) (0 = off): dynamic relaxation of the materials the
@@ -173,7 +173,7 @@ class MPMConfig:
             gravitational, so falling released material gains nothing) exceeds the reference frame's plus the
             boundary work put in since (the positive part of each frame's work) by more than this fraction of the
             run's energy scale raises SimulationError naming object, frame, time and the materials whose energy
-            grew (see :class:`tasks.physics.mpm.solver.EnergyBudget`).  The energy scale is the largest of the
+            grew (see :class:`tasks.physics.mpm.diagnostics.EnergyBudget`).  The energy scale is the largest of the
             kinetic + internal energy at the reference frames, the work put in, the change of gravitational energy
             and the weight of the whole body lifted by one grid cell (sum m g dx: smaller exchanges, e.g. a body
             settling on the floor, are below what the grid resolves); it never contains the energy being checked.

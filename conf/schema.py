@@ -162,7 +162,7 @@ class SamplingConfig:
     # the thickness's Gauss points +-t / (2 sqrt 3), half the volume each, so that with mpm.thin_walls=membrane the
     # wall carries bending; 3 = three layers at 0, +-sqrt(3/5) t / 2 with 8/18, 5/18, 5/18 of the volume, which
     # also integrate a strain quadratic through the wall (a wall near a cell's thickness; README, known limits)
-    # (tasks/control/object_model.py)
+    # (tasks/physics/particle_fill.py)
     thin_wall_layers: int = 2
 
 
@@ -203,7 +203,7 @@ class SimulationConfig:
         centres of their patches by the least change of the same weights (each as far as the grip's friction
         allows; a poke, no two fingers pushing against each other, is left to the table); ``fingers`` the net
         force alone; ``none`` pushes each finger along its inward patch normal unchanged
-        (``tasks.physics.mpm_rollout.balanced_push``).  A hand squeezing an object is a closed force loop (the
+        (``tasks.physics.rollout_fingers.balanced_push``).  A hand squeezing an object is a closed force loop (the
         table carries only the object's weight); unbalanced, the fingers' net push (1.8 N at the force-driven plush
         toy's contact, 4.7x its weight) swayed the toy on the table, made its squeeze dynamic (KE/IE 0.133 > 0.1: a
         quasi-static warning) and tipped it over; with the force alone balanced, the moment left (0.028 N m two
@@ -266,7 +266,7 @@ class SimulationConfig:
         flew apart (43 pieces).
     seam_opening: where the interior is packed stuffing, the torn fabric opens at the release as a hole of this
         fraction of ``release_radius`` (the fabric folded into the ring around it,
-        ``tasks.physics.mpm_rollout.seam_opening``) instead of the torn patch staying as a lid over the opening
+        ``tasks.physics.rupture_release.seam_opening``) instead of the torn patch staying as a lid over the opening
         (fruit skins keep the peel-back alone).  0.6 (default, 12 mm at release_radius 20 mm; 0.7 and 0.8 moved the
         stuffing's outward reach by < 1 mm).  0: the torn patch, one continuum in the grid, stays a lid over the opening and the stuffing stops
         under it within ~8 ms (5 mm).  The full plush toy's substeps 10,403 -> 9,004 with both (the loose foam's

@@ -141,7 +141,8 @@ def preflight(cfg: DictConfig) -> None:
     for key, obj in object_entries(cfg):
         if obj.geometry.kind in ("mesh", "ply"):
             from tasks.control.gaussian_ply import GaussianPlyError
-            from tasks.control.object_model import ObjectModelError, check_geometry_file
+            from tasks.control.object_config import ObjectModelError
+            from tasks.control.sources.by_kind import check_geometry_file
 
             try:
                 fitted = check_geometry_file(obj.geometry.kind, obj.geometry.path, list(obj.geometry.size))

@@ -62,7 +62,7 @@ def main(cfg: DictConfig) -> None:
         raise SystemExit(f"input error: modes: unknown finger mode {bad!r}; one of {list(MODES)}")
     for bad in (v for v in cfg.spacings if not v > 0):
         raise SystemExit(f"input error: spacings: a particle spacing must be > 0 mm, got {bad:g}")
-    from tasks.physics.mpm.solver import SimulationError
+    from tasks.physics.mpm import SimulationError
 
     lines = [f"# Finger modes on Table 2 ({datetime.now():%Y-%m-%d %H:%M}, {platform.node()}, Warp CPU)", "",
              "Full variant, default grid config (`conf/evaluate.yaml`) plus the mode's overrides: "

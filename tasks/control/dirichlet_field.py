@@ -77,7 +77,9 @@ def dirichlet_field(
         ``displacement`` (frame, point, xyz) m, zero where unconstrained; ``weight`` (frame, point) 1 =
         max_k phi_k; ``constrained`` (frame, point) bool = weight >= min_weight; ``finger`` (frame, point) int8
         = argmax_k phi_k on constrained points, else -1; ``surface_points`` (point, xyz) m, the rest positions
-        (so :func:`constrained_points` can build targets from the field alone).
+        (so :func:`constrained_points` can build targets from the field alone); ``amplitude`` (frame, finger) m =
+        eta c_k,t of each contributing (active) patch, 0 for the others: the travel of the patch centre along d_k,
+        which collider fingertips follow (:func:`tasks.physics.rollout_fingers.fingertip_travel`).
     """
     X = as_numpy(surface_points)
     C = as_numpy(patch_centers)
@@ -134,6 +136,7 @@ def dirichlet_field(
     constrained = (weight >= np.float32(min_weight)) & (weight > 0)
     disp[~constrained] = 0.0
     finger[~constrained] = -1
+    amplitude = np.where(use, eta * c, 0.0)
     return {
         "displacement": Array(disp.astype(np.float32), ("frame", "point", "xyz"), "m",
                               "target displacement of each surface point (eq. 3); 0 where unconstrained"),
@@ -141,6 +144,8 @@ def dirichlet_field(
         "constrained": Array(constrained, ("frame", "point"), "1", "weight >= min_weight (and > 0): Dirichlet point"),
         "finger": Array(finger, ("frame", "point"), "1", "argmax_k phi_k on constrained points, else -1"),
         "surface_points": Array(X.astype(np.float32), ("point", "xyz"), "m", "rest positions of the surface samples"),
+        "amplitude": Array(amplitude.astype(np.float32), ("frame", "finger"), "m",
+                           "eta c_k,t of each active patch (its centre's travel along d_k), 0 for an inactive one"),
     }
 
 
@@ -163,7 +168,7 @@ def constrained_points(field: Mapping[str, Any], frame: int, surface_points=None
 
 @artifact_step("dirichlet_field", inputs=("object_model", "contact_patches", "force_coefficients"),
                reads=("control.displacement", "object.eta"),
-               outputs=("displacement", "weight", "constrained", "finger", "surface_points"))
+               outputs=("displacement", "weight", "constrained", "finger", "surface_points", "amplitude"))
 def dirichlet_field_step(inputs, params):
     """Eq. 3: target displacement of the surface points, the Dirichlet data of the MPM.  The object's own ``eta``
     (m per unit force coefficient) wins over ``control.displacement.eta`` when set."""

@@ -90,7 +90,7 @@ DEFINITIONS: dict[str, str] = {
     "peak_feedback_force": "peak_feedback_force (N, per finger) = max_t feedback_force[t, k] (glove resistance).",
     "max_ke_ie_in_contact": (
         "max_ke_ie_in_contact (1) = the largest value of the quasi-static check's measure (mass scaling, "
-        "tasks/physics/mpm/solver.py) over the contacts it judges: sum KE / sum (IE + plastic work dissipated so far, "
+        "tasks/physics/mpm/mass_scaling.py) over the contacts it judges: sum KE / sum (IE + plastic work dissipated so far, "
         "Abaqus' ALLIE) of the mass-scaled material over "
         "the checked frames of one contact, a frame being checked when a finger loads the object, past the "
         "contact's first frames and before a rupture; NaN when no contact is judged (no mass scaling, no contact)."),
@@ -409,7 +409,7 @@ def deformation_metrics(rollout: Mapping[str, np.ndarray], rollout_attrs: Mappin
 
     Inputs are the artifacts' arrays (mappings name -> numpy): ``rollout`` (mpm_rollout) with its attrs
     ``rollout_attrs``, ``field`` (dirichlet_field), ``forces`` (force_coefficients), ``contacts``
-    (contact_patches), ``frames`` (signal_smoothing), ``obj`` (object_model); ``params`` the ``metrics`` config
+    (contact_patches), ``frames`` (signal_smoothing), ``obj`` (mpm_particles); ``params`` the ``metrics`` config
     (:class:`conf.metrics_schema.MetricsConfig` values).
 
     Returns the per-frame arrays ``bdc_s_iou``, ``miou_iou``, ``volume_ratio``, ``nonrigid_displacement_rms``,
@@ -495,7 +495,7 @@ def deformation_metrics(rollout: Mapping[str, np.ndarray], rollout_attrs: Mappin
 
 @artifact_step("deformation_metrics",
                inputs=("mpm_rollout", "dirichlet_field", "force_coefficients", "contact_patches", "signal_smoothing",
-                       "object_model"),
+                       "mpm_particles"),
                reads=("metrics",),
                outputs=("bdc_s_iou", "miou_iou", "nonrigid_displacement_rms", "volume_ratio", "sensed_trajectory",
                         "reconstructed_trajectory"))
@@ -504,4 +504,4 @@ def deformation_metrics_step(inputs, params):
     r = inputs["mpm_rollout"]
     return deformation_metrics(r.arrays, r.attrs, inputs["dirichlet_field"].arrays,
                                inputs["force_coefficients"].arrays, inputs["contact_patches"].arrays,
-                               inputs["signal_smoothing"].arrays, inputs["object_model"].arrays, params["metrics"])
+                               inputs["signal_smoothing"].arrays, inputs["mpm_particles"].arrays, params["metrics"])

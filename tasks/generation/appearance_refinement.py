@@ -126,7 +126,7 @@ def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
 
 
 @artifact_step("appearance_refinement",
-               inputs=("gbuffer", "conditions", "effect", "mpm_rollout", "object_model"),
+               inputs=("gbuffer", "conditions", "effect", "mpm_rollout", "object_model", "mpm_particles"),
                reads=("refinement", "render.background", "render.released", "render.released_default",
                       "render.device"),
                outputs=("rgb?", "released_index?", "released_color?", "released_opacity?", "released_scale?",
@@ -143,7 +143,7 @@ def appearance_refinement_step(inputs, params):
     frames_sim = g["frame_index"]
     visible_all = g["released_visible"]
     index = np.flatnonzero(visible_all.any(axis=0))
-    volumes = rollout_particle_volumes(obj.arrays, len(rollout["particle_material"]))[index]
+    volumes = rollout_particle_volumes(inputs["mpm_particles"].arrays, len(rollout["particle_material"]))[index]
     look = released_appearance({"released": params["render.released"],
                                 "released_default": params["render.released_default"]}, g.attrs["released_material"])
 

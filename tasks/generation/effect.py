@@ -87,7 +87,7 @@ def diffusion_effect(generation: Mapping[str, Any], sim_srgb: np.ndarray, refine
     return out, {"views": infos}
 
 
-@artifact_step("effect", inputs=("gbuffer", "conditions", "mpm_rollout", "object_model", "material_oracle"),
+@artifact_step("effect", inputs=("gbuffer", "conditions", "mpm_rollout", "mpm_particles", "material_oracle"),
                reads=("generation", "object.display_name", "object.description"),
                outputs=("frames?",))
 def effect_step(inputs, params):
@@ -104,9 +104,9 @@ def effect_step(inputs, params):
     # 2. generate
     if backend == "physics":
         sim_rgb = srgb_uint8_to_linear(g["rgb"])
-        rollout, obj = inputs["mpm_rollout"], inputs["object_model"]
+        rollout, particles = inputs["mpm_rollout"], inputs["mpm_particles"]
         frames = g["frame_index"]
-        volumes = rollout_particle_volumes(obj.arrays, len(rollout["particle_material"]))
+        volumes = rollout_particle_volumes(particles.arrays, len(rollout["particle_material"]))
         visible = g["released_visible"]
         out = physics_effect(sim_rgb, g["surface_depth"], cond["refined_mask"], rollout["particle_positions"][frames],
                              PARTICLE_RADIUS_FACTOR * np.cbrt(volumes), visible, g["viewmats"], g["Ks"],

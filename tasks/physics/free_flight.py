@@ -31,7 +31,7 @@ STENCIL_REACH = 2  # two quadratic B-spline stencils (3 nodes per axis) share a 
 
 def stencil_bases(x: np.ndarray, origin: np.ndarray, dx: float) -> np.ndarray:
     """(n, 3) int: the lowest node of each particle's quadratic B-spline stencil, ``floor((x - origin)/dx - 0.5)``
-    (the solver's :func:`tasks.physics.mpm.solver.bspline_stencil`); ``x`` (n, 3) m, ``origin`` (3,) m the grid's
+    (the solver's :func:`tasks.physics.mpm.boundary.bspline_stencil`); ``x`` (n, 3) m, ``origin`` (3,) m the grid's
     node 0, ``dx`` m."""
     return np.floor((np.asarray(x, np.float64) - np.asarray(origin, np.float64)) / dx - 0.5).astype(np.int64)
 
@@ -54,7 +54,7 @@ def shares_node(bases: np.ndarray, holder_bases: np.ndarray) -> np.ndarray:
 
 def held_by_boundary(bases: np.ndarray, dims: np.ndarray, padding: int,
                      floor_node: float | np.ndarray) -> np.ndarray:
-    """(n,) bool: stencils reaching a node the grid update constrains (:func:`tasks.physics.mpm.kernels.
+    """(n,) bool: stencils reaching a node the grid update constrains (:func:`tasks.physics.mpm.kernels.grid.
     fixed_boundaries`): a wall node (within ``padding`` nodes of a face of the ``dims`` grid) or a floor node
     (z index <= ``floor_node``, the table's height in grid units, a scalar or one per stencil; -inf: no table or,
     for that particle, none on the grid)."""
@@ -69,7 +69,7 @@ TABLE_GAP = 0.25  # a particle touches the table plane when its surface is withi
 def touches_table(z: np.ndarray, radius: np.ndarray, height: float) -> np.ndarray:
     """(n,) bool: particles (centre heights ``z`` (n,) m, ``radius`` (n,) m: half their undeformed spacing) whose
     surface z - radius is within ``TABLE_GAP`` radius of the table plane at ``height`` m, or below it: the ones the
-    plane collider is acting on (:func:`tasks.physics.mpm.kernels.contact_velocity` pushes a particle whose gap would
+    plane collider is acting on (:func:`tasks.physics.mpm.kernels.contact.contact_velocity` pushes a particle whose gap would
     close within the substep; a resting one keeps a gap of ~0)."""
     return np.asarray(z) - np.asarray(radius) - height <= TABLE_GAP * np.asarray(radius)
 

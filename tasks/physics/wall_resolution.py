@@ -1,7 +1,7 @@
 """Can the MPM grid resolve an object's wall?  A pure check of wall thickness against the grid spacing.
 
 A hollow object whose wall is thinner than the grid spacing ``dx`` is sampled on the wall's mid-surface, the
-particles carrying area x thickness of volume (:mod:`tasks.control.object_model`), so its mass and membrane stiffness
+particles carrying area x thickness of volume (:mod:`tasks.physics.particle_fill`), so its mass and membrane stiffness
 E t are physical: by default in two layers at the thickness's Gauss points, which in plane stress
 (``mpm.thin_walls: membrane``) carry its bending for the curvatures the grid's field represents (over half a cell
 thick, three layers, ``sampling.thin_wall_layers: 3``, which the finding then advises: two leave the grid's strain
@@ -58,32 +58,6 @@ class WallFinding:
 
     def as_dict(self) -> dict:
         return asdict(self)
-
-
-def gauss_layers(layers: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
-    """A thin wall's particle layers through its thickness t (``sampling.thin_wall_layers``): each layer's height
-    above the mid-surface / t, in the order outer, inner[, middle], and its share of the wall's volume.  One layer
-    on the mid-surface; two or three at the Gauss-Legendre points of [-t/2, t/2], +-1 / (2 sqrt 3) with 1/2 each, or
-    +-sqrt(3/5) / 2 with 5/18 and 0 with 8/18: exact for a strain linear (two) or also quadratic (three) through
-    the wall."""
-    if layers == 1:
-        return (0.0,), (1.0,)
-    if layers == 2:
-        h = 1.0 / (2.0 * math.sqrt(3.0))
-        return (h, -h), (0.5, 0.5)
-    if layers == 3:
-        h = 0.5 * math.sqrt(0.6)
-        return (h, -h, 0.0), (5.0 / 18.0, 5.0 / 18.0, 8.0 / 18.0)
-    raise ValueError(f"a thin wall has 1, 2 or 3 Gauss layers, got {layers}")
-
-
-def gauss_layer_face(layers: int) -> float:
-    """A wall's outer Gauss layer's distance to its face / the distance between its outer and inner layers, (1/2 -
-    h) / (2 h) for the heights +-h t of :func:`gauss_layers`: (sqrt 3 - 1) / 2 in two layers, (sqrt(5/3) - 1) / 2 in
-    three (the closed forms, as the solver has always rounded them)."""
-    if layers not in (2, 3):
-        raise ValueError(f"a wall's face lies outside its outer Gauss layer in 2 or 3 layers, got {layers}")
-    return (math.sqrt(3.0) - 1.0) / 2.0 if layers == 2 else (math.sqrt(5.0 / 3.0) - 1.0) / 2.0
 
 
 def grid_spacing(mpm: Any, particle_spacing: float) -> float:

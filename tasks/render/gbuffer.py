@@ -94,7 +94,7 @@ def render_gbuffer(surface_positions: np.ndarray, surface_covariances: np.ndarra
     return out
 
 
-@artifact_step("gbuffer", inputs=("object_model", "mpm_rollout", "material_oracle"), reads=("render",),
+@artifact_step("gbuffer", inputs=("object_model", "mpm_particles", "mpm_rollout", "material_oracle"), reads=("render",),
                outputs=("rgb", "depth", "alpha", "mask", "surface_depth", "frame_index", "time", "viewmats", "Ks",
                         "released_visible"))
 def gbuffer_step(inputs, params):
@@ -117,7 +117,7 @@ def gbuffer_step(inputs, params):
     covariances = drawn_covariances(rollout["gaussian_covariances"][frames], obj["gaussian_scales"])
     g = render_gbuffer(rollout["gaussian_positions"][frames], covariances,
                        obj["gaussian_colors"], obj["gaussian_opacities"], rollout["particle_positions"][frames],
-                       rollout_particle_volumes(obj.arrays, n_particles), visible, np.asarray(look["color"]),
+                       rollout_particle_volumes(inputs["mpm_particles"].arrays, n_particles), visible, np.asarray(look["color"]),
                        float(look["opacity"]), viewmats, Ks, render["width"], render["height"],
                        np.asarray(render["background"], float), render["near_plane"], torch_device(render["device"]))
     # 3. arrays

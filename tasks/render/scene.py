@@ -145,7 +145,7 @@ def released_appearance(render: Mapping[str, Any], interior_name: str | None) ->
     return dict(render["released_default"])
 
 
-def rollout_particle_volumes(obj: Mapping[str, np.ndarray], n_particles: int) -> np.ndarray:
-    """(particle,) m^3 of the rollout's particles: the object's own particles, then its cavity particles (core or
-    interior), in the order the rollout concatenates them."""
-    return np.concatenate([obj["particle_volumes"], obj["interior_volumes"]])[:n_particles]
+def rollout_particle_volumes(particles: Mapping[str, np.ndarray], n_particles: int) -> np.ndarray:
+    """(particle,) m^3 of the rollout's particles (``particles``: the ``mpm_particles`` arrays): the object's own
+    particles, then its cavity particles (core or interior), in the order the rollout concatenates them."""
+    return np.concatenate([particles["particle_volumes"], particles["interior_volumes"]])[:n_particles]

@@ -337,10 +337,11 @@ def wall_findings(refs: Mapping[str, Mapping[str, Any]]) -> list[str]:
     lines = []
     for obj, obj_refs in refs.items():
         rollout = next((v.get("mpm_rollout") for v in obj_refs.get("variants", {}).values() if v.get("mpm_rollout")), None)
-        if rollout is None or obj_refs.get("object_model") is None or obj_refs.get("material_oracle") is None:
+        if rollout is None or any(obj_refs.get(s) is None for s in ("object_model", "mpm_particles", "material_oracle")):
             continue
-        try:
-            shape = read_artifact(obj_refs["object_model"], names=[]).attrs
+        try:  # the wall's sampling (thin_wall, its layers) is the particles'
+            shape = {**read_artifact(obj_refs["object_model"], names=[]).attrs,
+                     **read_artifact(obj_refs["mpm_particles"], names=[]).attrs}
             shell = materials_from_dict(read_artifact(obj_refs["material_oracle"], names=[]).attrs["materials"]).shell
             run = read_artifact(rollout, names=[]).attrs
             dx = float(run["dx"])

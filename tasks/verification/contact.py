@@ -1,8 +1,8 @@
 """Known-answer contact cases of the MPM solver: grid-node contact against surface (particle) contact.
 
 Two closed forms, each run with ``mpm.contact = grid`` (the solver's floor acts on grid nodes, a plate is a set of
-slip :class:`~tasks.physics.mpm.solver.DirichletPoints`) and ``surface`` (floor and plate are plane
-:class:`~tasks.physics.mpm.solver.Collider` s acting on the particles that touch them):
+slip :class:`~tasks.physics.mpm.inputs.DirichletPoints`) and ``surface`` (floor and plate are plane
+:class:`~tasks.physics.mpm.inputs.Collider` s acting on the particles that touch them):
 
 * Hertz (1882; Johnson, Contact Mechanics, sec. 4.2): an elastic sphere (radius R) pressed by a rigid frictionless
   flat with approach d carries F = 4/3 E* sqrt(R) d^1.5, E* = E / (1 - nu^2), over a contact circle of radius
@@ -27,7 +27,7 @@ import numpy as np
 from conf.hand import FINGERTIP_PAD_RADIUS, N_FINGERS
 from tasks.control.dirichlet_field import dirichlet_field
 from tasks.physics.mpm import Collider, DirichletPoints, Material, MPMSolver, ParticlePins
-from tasks.physics.mpm_rollout import finger_colliders, fingertip_travel
+from tasks.physics.rollout_fingers import finger_colliders, fingertip_travel
 
 HERTZ_R = 0.035  # m (the issue's sphere: R = 35 mm, E = 2 MPa, nu = 0.45)
 HERTZ_E = 2.0e6  # Pa
@@ -370,7 +370,7 @@ def finger_field(surface: np.ndarray, centres: np.ndarray, normals: np.ndarray, 
 def press_fingers(solver: MPMSolver, surface: np.ndarray, field: dict, patches: dict, frame_dt: float,
                   fixed: Optional[Collider] = None) -> tuple[np.ndarray, np.ndarray]:
     """Step one frame (``frame_dt`` s) per frame of the field after the first with the collider fingers of
-    :func:`tasks.physics.mpm_rollout.finger_colliders` (and the static collider ``fixed``).  Returns per frame the
+    :func:`tasks.physics.rollout_fingers.finger_colliders` (and the static collider ``fixed``).  Returns per frame the
     reactions (frame, finger, xyz) N and the momentum at its end (frame, xyz) kg m/s."""
     torn = np.zeros(len(surface), bool)
     reactions, momenta = [], []
@@ -409,7 +409,7 @@ def fingertip_case(cells_per_contact_radius: float = 1.5, depth: float = 0.002, 
     t0 = time.perf_counter()
     reaction, _ = press_fingers(s, top, field, patches, frame_dt,
                                 Collider("plane", (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), finger_id=N_FINGERS - 1))
-    travel = np.array([fingertip_travel(field, patches, f)[0] for f in range(len(c))])
+    travel = np.array([fingertip_travel(field, f)[0] for f in range(len(c))])
     at = np.asarray(depths, float)
     out = {"travel": travel, "reaction": reaction, "at": at, "seconds": time.perf_counter() - t0,
            "particles": len(X), "dx": dx}

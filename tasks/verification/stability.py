@@ -5,7 +5,7 @@ substeps, substeps per simulated second, run time, and an accuracy figure where 
 
 Outcomes
     ``stable``    the run finished, the guards stayed quiet and the suite's own checks (below) found nothing;
-    ``unstable``  a :class:`~tasks.physics.mpm.solver.SimulationError` raised by the solver's guards after the run started
+    ``unstable``  a :class:`~tasks.physics.mpm.diagnostics.SimulationError` raised by the solver's guards after the run started
                   (non-finite state, particle out of the grid, extreme J, collapsing step), its message recorded;
                   or the suite's own checks found a failure the guards did NOT catch (reason starts ``UNCAUGHT``);
     ``refused``   a validation error raised before the step it concerns ran: config / material / boundary-input
@@ -28,7 +28,8 @@ Case kinds and their production path
     * ``squeeze``: the real pipeline functions (:func:`tasks.control.squeeze_signals.grasp_targets` -> crafted session ->
       :func:`~tasks.control.signal_smoothing.smooth_signals` -> :func:`~tasks.control.force_coefficients.force_coefficients` ->
       :func:`~tasks.control.contact_patches.contact_patches` -> :func:`~tasks.control.dirichlet_field.dirichlet_field` ->
-      :func:`~tasks.physics.mpm_rollout.mpm_rollout`) on a real object (:func:`~tasks.control.object_model.build_object_model`)
+      :func:`~tasks.physics.mpm_rollout.mpm_rollout`) on a real object (:func:`~tasks.control.object_model.build_object_model`,
+      :func:`~tasks.physics.particle_fill.build_mpm_particles`)
       with the production config groups, called directly (no Prefect).
     * ``push_out`` / ``nan_state`` / ``nan_input``: the compression column driven into the domain boundary, or
       corrupted by a NaN in its state / in its boundary input, to exercise the guards.
@@ -289,8 +290,8 @@ def _one_line(exc: BaseException) -> str:
 def _classify(exc: BaseException, started: bool) -> tuple[str, str]:
     """(outcome, reason) of an exception raised by a case."""
     from conf.mpm_schema import MPMConfigError
+    from tasks.physics.mpm import SimulationError
     from tasks.physics.mpm.materials import MaterialError
-    from tasks.physics.mpm.solver import SimulationError
 
     msg = _one_line(exc)
     if isinstance(exc, SimulationError):
@@ -377,7 +378,7 @@ def _compression_config(case: Case, ctx: SuiteContext, mat) -> tuple[dict, float
     elif knob == "stiffness":
         # the stiffness factor that gives the same P-wave speed (same substeps) as the auto mass scale: k = 1 / s
         from conf.mpm_schema import mpm_config_from
-        from tasks.physics.mpm.solver import mass_scale_for
+        from tasks.physics.mpm import mass_scale_for
 
         auto = mpm_config_from({**mpm, "mass_scaling": "auto", "target_substeps_per_frame": _target_substeps(ctx)})
         mpm["stiffness_scaling"] = 1.0 / mass_scale_for([mat], col_dx, 1.0 / FRAME_RATE_HUMAN, auto)
@@ -396,7 +397,7 @@ def _strain_target(mat, p: Mapping[str, Any]) -> float:
 
 def run_compression(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
     """Load / hold / free run of the plate-compressed column (module doc); raises on guard errors."""
-    from tasks.physics.mpm.solver import DirichletPoints, MPMSolver
+    from tasks.physics.mpm import DirichletPoints, MPMSolver
 
     p = case.params
     progress = progress or _Progress()
@@ -484,7 +485,7 @@ def run_compression(case: Case, ctx: SuiteContext, progress: _Progress | None = 
 def _column_solver(case: Case, ctx: SuiteContext, progress: _Progress, **mpm_overrides: Any):
     """The case's material on the suite's column, in an MPMSolver configured as production (``ctx.mpm``) plus
     ``mpm_overrides``, dx chosen as the rollout chooses it; the solver is registered with ``progress``."""
-    from tasks.physics.mpm.solver import MPMSolver
+    from tasks.physics.mpm import MPMSolver
 
     mat = _material(case.params["material"], ctx)
     mpm = {**ctx.mpm, **mpm_overrides}
@@ -499,7 +500,7 @@ def run_push_out(case: Case, ctx: SuiteContext, progress: _Progress | None = Non
     """A finger (sticky Dirichlet points on the +x face) pushes the column at 0.5 m/s toward -x inside a tight
     automatic box (``margin_cells`` 1): Dirichlet nodes override the slip walls, so material is driven into the
     padding layer until the out-of-grid guard stops the run."""
-    from tasks.physics.mpm.solver import DirichletPoints
+    from tasks.physics.mpm import DirichletPoints
 
     progress = progress or _Progress()
     col, solver = _column_solver(case, ctx, progress, gravity=[0.0, 0.0, 0.0], floor=False, margin_cells=1)
@@ -529,7 +530,7 @@ def run_nan_state(case: Case, ctx: SuiteContext, progress: _Progress | None = No
 
 def run_nan_input(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
     """A finger (Dirichlet points on the top face) whose target velocity of one point is NaN, from the 2nd frame."""
-    from tasks.physics.mpm.solver import DirichletPoints
+    from tasks.physics.mpm import DirichletPoints
 
     progress = progress or _Progress()
     col, solver = _column_solver(case, ctx, progress)  # production as is
@@ -603,12 +604,14 @@ def run_squeeze(case: Case, ctx: SuiteContext, progress: _Progress | None = None
     from tasks.control.signal_smoothing import smooth_signals
     from tasks.physics.material_oracle import material_oracle, materials_to_dict
     from tasks.physics.mpm_rollout import mpm_rollout
+    from tasks.physics.particle_fill import build_mpm_particles
 
     p = case.params
     obj = dict(ctx.catalog[p["object"]])
-    o_arr, o_attrs = build_object_model(_Attr(obj), _Attr(ctx.sampling),
-                                        grid_spacing(ctx.mpm, float(ctx.sampling["particle_spacing"])))
-    o = _plain_arrays(o_arr)
+    o_arr, o_attrs = build_object_model(_Attr(obj), _Attr(ctx.sampling))
+    p_arr, p_attrs = build_mpm_particles(_Attr(obj), _Attr(ctx.sampling),
+                                         grid_spacing(ctx.mpm, float(ctx.sampling["particle_spacing"])))
+    o, o_attrs = _plain_arrays({**o_arr, **p_arr}), {**o_attrs, **p_attrs}
     half = 0.5 * (np.asarray(o_attrs["bbox_max"]) - np.asarray(o_attrs["bbox_min"]))
     sig = ctx.signal
     duration = float(p.get("duration", 0.9))
@@ -769,11 +772,13 @@ def _detached_fraction(gauss: np.ndarray, parts: np.ndarray, dx: float, every: i
 def run_thin_wall(case: Case, ctx: SuiteContext, progress: _Progress | None = None) -> Row:
     """:func:`tasks.physics.wall_resolution.thin_wall_finding` on the real object model with the production dx."""
     from tasks.control.object_model import build_object_model
+    from tasks.physics.particle_fill import build_mpm_particles
 
     name = case.params["object"]
     obj = ctx.catalog[name]
     dx = grid_spacing(ctx.mpm, float(ctx.sampling["particle_spacing"]))
-    _, attrs = build_object_model(_Attr(obj), _Attr(ctx.sampling), dx)
+    attrs = {**build_object_model(_Attr(obj), _Attr(ctx.sampling))[1],
+             **build_mpm_particles(_Attr(obj), _Attr(ctx.sampling), dx)[1]}
     mat = _material(f"oracle:{name}", ctx)
     fnd = thin_wall_finding(attrs, dx, mat.poisson_ratio, mat.youngs_modulus, name=name,
                             membrane_max_thickness=float(ctx.mpm["membrane_max_thickness"]))

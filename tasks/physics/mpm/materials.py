@@ -110,7 +110,7 @@ class Material:
             separate at a node, the impulse that would stop the separation is applied up to cohesion x the node's
             share of the interface (from the released field's mass gradient) x dt, so a blob pulled off the body
             at more than this stress per unit contact area leaves and one pulled less stays; the tangential
-            contact stays frictionless (:func:`tasks.physics.mpm.kernels.k_field_contact`).  0 (default): the
+            contact stays frictionless (:func:`tasks.physics.mpm.kernels.grid.k_field_contact`).  0 (default): the
             fields separate freely.  Torn-out stuffing: its fibres stay entangled with the stuffing it tore from.
         membrane: the material's particles are a wall thinner than the grid spacing, held in plane stress
             (``fixed_corotated``, ``neo_hookean``, and ``von_mises`` with its return mapping in plane stress; the
