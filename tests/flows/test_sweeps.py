@@ -13,15 +13,12 @@ import pandas as pd
 import pytest
 
 from tasks.core.artifacts import read_group_attrs, verify_artifact
+from tests.small_runs import SMALL
 
 REPO = Path(__file__).resolve().parents[2]
-SMALL = ["sampling.surface_points=600", "sampling.particle_spacing=0.004", "signal.duration=1.5",
-         "control.smoothing.frame_rate=15", "grid.variants=[full]", "mpm.target_substeps_per_frame=10",
-         "render.views=2", "render.width=32", "render.height=32", "render.frame_stride=5", "refinement.iterations=2",
-         "video_metrics.interpolator=dis", "video_metrics.brisque_max_frames=2", "runner=sequential"]
 # gamma (eq. 1) is read from force_coefficients on: the steps before it and the material oracle have one key for
 # every job, which the jobs race on
-SHARED = ("object_model", "squeeze_signals", "signal_smoothing", "material_oracle")
+SHARED = ("object_model", "squeeze_signals", "signal_smoothing", "mpm_particles", "material_oracle")
 
 
 def sweep(tmp_path: Path, prefect_server: str, values: str, launcher: list[str]) -> tuple[subprocess.CompletedProcess,
@@ -58,7 +55,7 @@ def test_parallel_sweep_shares_one_cache_and_reports_a_failed_job(prefect_server
     assert s1 < e0 and s0 < e1, "the two jobs did not run at the same time"
     for job in ("0", "1"):
         status = {r["step"]: r["status"] for r in csv.DictReader((sweep_dir / job / "tasks.csv").open())}
-        assert set(status.values()) <= {"ran", "cached"} and len(status) == 15
+        assert set(status.values()) <= {"ran", "cached"} and len(status) == 16
     assert_one_intact_artifact_per_shared_step(tmp_path / "artifacts")
     summary = pd.read_csv(sweep_dir / "sweep_metrics.csv")
     assert summary[["job", "control.force.gamma"]].values.tolist() == [[0, 1.5], [1, 2.0]]

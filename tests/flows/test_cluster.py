@@ -15,15 +15,13 @@ from pathlib import Path
 
 import pytest
 
-from core.loopback_cluster import REPO, loopback_cluster, start_worker, wait_for_workers, worker_env
 from tasks.core.artifacts import read_group_attrs, verify_artifact
+from tests.flows.loopback_cluster import REPO, loopback_cluster, start_worker, wait_for_workers, worker_env
+from tests.small_runs import SMALL as SMALL_RUN
 
-SMALL = ["sampling.surface_points=600", "sampling.particle_spacing=0.004", "signal.duration=1.5",
-         "control.smoothing.frame_rate=15", "grid.variants=[full]", "mpm.target_substeps_per_frame=10",
-         "render.views=2", "render.width=32", "render.height=32", "render.frame_stride=5", "refinement.iterations=2",
-         "video_metrics.interpolator=dis", "video_metrics.brisque_max_frames=2"]
+SMALL = [o for o in SMALL_RUN if not o.startswith("runner=")]  # the runner is each test's
 OBJECT = "clay"
-N_STEPS = 15  # 7 per object + 4 per variant + 4 per backend (no paper-metric weights)
+N_STEPS = 16  # 8 per object + 4 per variant + 4 per backend (no paper-metric weights)
 
 
 def digests(root: Path) -> dict[tuple[str, str], str]:
@@ -43,9 +41,8 @@ def grid_cfg(compose_cfg, root: Path, runner: list[str]):
 @pytest.fixture(scope="module")
 def local_digests(prefect_server, tmp_path_factory):
     """The artifacts of the grid run in one process (runner=sequential)."""
-    from conftest import compose
-
     from flows.pipeline import run
+    from tests.conftest import compose
 
     root = tmp_path_factory.mktemp("local")
     out = run(grid_cfg(compose, root, ["runner=sequential"]), "test")
@@ -77,7 +74,7 @@ def test_grid_runs_on_the_workers_with_the_local_digests_and_reruns_from_cache(c
         assert sum(after[w] - before[w] for w in after) == N_STEPS + 1
         assert digests(tmp_path / "artifacts") == local_digests
 
-        # a lost leaf: the runner starts, the workers find the other 14 through the shared cache records
+        # a lost leaf: the runner starts, the workers find the other 15 through the shared cache records
         (leaf,) = (tmp_path / "artifacts" / OBJECT / "llm_evaluation").glob("*.zarr")
         shutil.rmtree(leaf)
         again = run(cfg, "test")
