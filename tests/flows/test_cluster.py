@@ -125,7 +125,7 @@ def test_sigkill_of_the_busy_worker_mid_run_finishes_and_leaves_nothing_half_wri
     # a worker again, for the rerun and the next tests
     start_worker(cluster, victim, env)
     wait_for_workers(cluster.address, list(cluster.workers))
-    rerun = run(grid_cfg(compose_cfg, tmp_path, ["runner=dask", f"runner.address={cluster.address}"]), "test")
+    rerun = run(compose_cfg("squeeze", cmd[3:]), "squeeze")  # the same command, in this process
     assert {r["status"] for r in rerun["tasks"]} == {"cached"} and len(rerun["tasks"]) == N_STEPS
     assert digests(root) == local_digests
     assert not [p for p in root.rglob("*") if ".tmp-" in p.name or ".trash-" in p.name]
