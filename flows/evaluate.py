@@ -16,12 +16,15 @@ def pipeline_main(config_name: str) -> Callable[..., None]:
         from flows.lifecycle import begin_run
 
         begin_run(cfg.paths.artifacts)  # Prefect's home under paths.artifacts, Ctrl-C handling; before Prefect loads
-        from flows.preflight import preflight
+        from flows.sweep_summary import sweep_job
 
-        preflight(cfg)  # bad config or input: one line, before the engine, Prefect or a server is loaded
-        from flows.pipeline import run
+        with sweep_job():  # in a -m sweep: a failing job is recorded and the others go on
+            from flows.preflight import preflight
 
-        run(cfg, config_name)
+            preflight(cfg)  # bad config or input: one line, before the engine, Prefect or a server is loaded
+            from flows.pipeline import run
+
+            run(cfg, config_name)
 
     return main
 

@@ -400,6 +400,11 @@ def run(cfg: DictConfig, flow_label: str) -> dict:
                             for (step, chain), ref in steps.items()}) for name, steps in cached.items()}
         return write_report(OmegaConf.create(config), config, flow_label, job_dir, table, refs, t0)
     runner = make_task_runner(cfg.runner)
-    with result_storage_settings(cfg.paths.artifacts), temporary_server():
+    with result_storage_settings(cfg.paths.artifacts), temporary_server() as api_url:
+        if cfg.runner.kind == "dask" and cfg.runner.address:  # an existing cluster: do its workers see ours?
+            from flows.cluster import check_workers
+
+            print(f"checked {check_workers(cfg.runner.address, cfg.paths.artifacts, STEPS, api_url)} Dask worker(s) "
+                  f"of {cfg.runner.address}: same artifacts folder, code, packages and Prefect API as this flow")
         return virsqueezer_flow.with_options(task_runner=runner, name=f"virsqueezer-{flow_label}")(
             config, flow_label, job_dir)

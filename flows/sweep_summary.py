@@ -2,15 +2,19 @@
 
 Each job writes its report (``metrics.csv`` among it) into its own Hydra output folder
 ``<sweep dir>/<job number>/`` next to ``.hydra/overrides.yaml`` (see :func:`flows.pipeline.sweep_job_dir`).
+A job that fails (a refused config, a failed step) writes its one-line reason to ``<job>/job_failed.txt``
+(:func:`sweep_job`) and ends normally, so that the jobs after it, or beside it under a parallel launcher, go on.
 :class:`SweepSummary` is registered as a Hydra callback in ``conf/evaluate.yaml``; at the end of the sweep it
-writes ``<sweep dir>/sweep_metrics.csv``, ``sweep_metrics.parquet`` and ``sweep_summary.md``.  Run
+writes ``<sweep dir>/sweep_metrics.csv``, ``sweep_metrics.parquet`` and ``sweep_summary.md`` (every job with its
+status), and ends the sweep with exit status 1 and one line when a job failed.  Run
 ``python -m flows.sweep_summary <sweep dir>`` to rebuild them by hand (e.g. after a sweep was interrupted).
 """
 from __future__ import annotations
 
 import sys
+from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Iterator
 
 import yaml
 from hydra.experimental.callback import Callback
@@ -31,6 +35,38 @@ def _override_columns(job_dir: Path) -> dict[str, str]:
     return out
 
 
+FAILED = "job_failed.txt"
+
+
+@contextmanager
+def sweep_job() -> Iterator[None]:
+    """Within a job of a ``-m`` sweep: an error (or a refusal, ``SystemExit`` with a message) is written to the job's
+    ``job_failed.txt`` and printed as one line, and the job ends normally.  Outside a sweep: nothing changes."""
+    from flows.pipeline import sweep_job_dir
+
+    job_dir = sweep_job_dir()
+    if job_dir is None:
+        yield
+        return
+    Path(job_dir, FAILED).unlink(missing_ok=True)  # a job run again in its old folder
+    try:
+        yield
+    except (Exception, SystemExit) as exc:  # noqa: BLE001 - whatever stops the job is its reason
+        if isinstance(exc, SystemExit) and not isinstance(exc.code, str):
+            raise  # an exit status, not a refusal with its reason (e.g. a stop): the sweep stops too
+        text = str(exc.code if isinstance(exc, SystemExit) else exc) or type(exc).__name__
+        line = text.splitlines()[0]
+        Path(job_dir, FAILED).write_text(line + "\n")
+        print(f"sweep job {Path(job_dir).name} failed: {line}", file=sys.stderr, flush=True)
+
+
+def job_status(job_dir: Path) -> str:
+    """``ok`` (its metrics were written), ``failed: <reason>`` or ``not finished``."""
+    if (job_dir / FAILED).is_file():
+        return "failed: " + (job_dir / FAILED).read_text().strip()
+    return "ok" if (job_dir / "metrics.csv").is_file() else "not finished"
+
+
 def summarize_sweep(sweep_dir: str | Path) -> pd.DataFrame:
     """Concatenate the jobs' metric rows; columns: ``job``, the overrides that differ between jobs, then the
     metric rows' own columns.  Writes the summary files into ``sweep_dir`` and returns the table."""
@@ -42,16 +78,20 @@ def summarize_sweep(sweep_dir: str | Path) -> pd.DataFrame:
     from tasks.reporting.report_tables import TABLE2
 
     sweep_dir = Path(sweep_dir)
-    frames, overrides = [], {}
+    frames, overrides, status = [], {}, {}
     for job_dir in sorted((p for p in sweep_dir.iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name)):
         csv = job_dir / "metrics.csv"
         overrides[job_dir.name] = _override_columns(job_dir)
+        status[job_dir.name] = job_status(job_dir)
         if csv.is_file():
             frames.append(pd.read_csv(csv).assign(job=int(job_dir.name)))
-    if not frames:
-        raise SystemExit(f"no job in {sweep_dir} wrote metrics.csv: nothing to summarise (did every job fail?)")
     keys = sorted({k for o in overrides.values() for k in o})
     swept = [k for k in keys if len({o.get(k) for o in overrides.values()}) > 1]
+    jobs = markdown_table(["job", *swept, "status"], [[j, *(o.get(k, "") for k in swept), status[j]]
+                                                      for j, o in overrides.items()])
+    if not frames:
+        (sweep_dir / "sweep_summary.md").write_text(f"# Sweep `{sweep_dir.name}`\n\nno job wrote metrics\n\n{jobs}\n")
+        raise SystemExit(f"no job in {sweep_dir} wrote metrics.csv: nothing to summarise (did every job fail?)")
     df = pd.concat(frames, ignore_index=True)
     for k in reversed(swept):
         df.insert(0, k, df["job"].map(lambda j, k=k: overrides[str(j)].get(k)))
@@ -65,8 +105,14 @@ def summarize_sweep(sweep_dir: str | Path) -> pd.DataFrame:
                            [[*(str(r[c]) for c in by), *(f"{r[k]:.3f}" for k in main)] for _, r in mean.iterrows()])
     (sweep_dir / "sweep_summary.md").write_text(
         f"# Sweep `{sweep_dir.name}`\n\nswept: {', '.join(swept) or '(nothing differs between jobs)'}; "
-        f"rows per job and object: `sweep_metrics.csv` / `.parquet`\n\n{table}\n")
+        f"rows per job and object: `sweep_metrics.csv` / `.parquet`\n\n{table}\n\n## Jobs\n\n{jobs}\n")
     return df
+
+
+def failed_jobs(sweep_dir: str | Path) -> dict[str, str]:
+    """{job number: its status} of the jobs of the sweep that did not end ``ok``."""
+    dirs = [p for p in Path(sweep_dir).iterdir() if p.is_dir() and p.name.isdigit()]
+    return {p.name: job_status(p) for p in sorted(dirs, key=lambda p: int(p.name)) if job_status(p) != "ok"}
 
 
 class SweepSummary(Callback):
@@ -75,10 +121,14 @@ class SweepSummary(Callback):
     def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
         try:
             df = summarize_sweep(config.hydra.sweep.dir)
+            print(f"sweep summary: {len(df)} rows -> {Path(config.hydra.sweep.dir).resolve() / 'sweep_summary.md'}")
         except SystemExit as exc:
             print(f"sweep summary: {exc}")
-            return
-        print(f"sweep summary: {len(df)} rows -> {Path(config.hydra.sweep.dir).resolve() / 'sweep_summary.md'}")
+        failed = failed_jobs(config.hydra.sweep.dir)
+        if failed:
+            first = next(iter(failed))
+            raise SystemExit(f"sweep: {len(failed)} job(s) did not finish: job {first} {failed[first]} "
+                             f"(every job's status: {Path(config.hydra.sweep.dir).resolve() / 'sweep_summary.md'})")
 
 
 if __name__ == "__main__":

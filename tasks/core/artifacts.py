@@ -394,9 +394,10 @@ def read_group_attrs(path: str | Path) -> dict[str, Any]:
     p = Path(path)
     meta = p / "zarr.json"
     if not meta.is_file():
-        if p.exists():
+        if not p.exists():
+            raise ArtifactMissing(f"artifact {p} is missing; rerun the flow to recompute it")
+        if not meta.is_file():  # (a concurrent writer's group renamed into place between the two looks is whole)
             raise ArtifactDamaged(p, "no zarr.json (incomplete or damaged group)")
-        raise ArtifactMissing(f"artifact {p} is missing; rerun the flow to recompute it")
     try:
         attrs = dict(json.loads(meta.read_bytes())["attributes"])
     except Exception:  # noqa: BLE001 - any decoding failure is the same finding

@@ -59,7 +59,11 @@ from tasks.core.artifacts import (
     write_artifact,
 )
 from tasks.core.code_version import code_version, module_file
+from tasks.core.environment import check_step_identity, package_versions, process_label
 from tasks.core.params import Params
+from tasks.core.records import atomic_record_writes
+
+atomic_record_writes()  # Prefect's cache records replaced at once, never seen half-written (tasks.core.records)
 
 log = get_logger("virsqueezer")
 
@@ -247,6 +251,11 @@ class StepTask:
     compute: ComputeFn
     version: str
     task: Any = field(repr=False)
+    # where the step was declared (the flow's process), its source file when outside the project packages, and the
+    # flow's package versions: a process that runs it elsewhere (a Dask worker) checks its own against them
+    origin: str = field(default_factory=process_label, repr=False)
+    source: str | None = field(default=None, repr=False)
+    packages: tuple = field(default_factory=package_versions, repr=False)
 
     @property
     def name(self) -> str:
@@ -301,6 +310,8 @@ def report_progress(done: int, total: int, unit: str = "frame") -> None:
 def _execute(step: StepTask, root: str, scope: str, params: dict, inputs: dict[str, ArtifactRef],
              label: str) -> ArtifactRef:
     name = step.name
+    if step.origin != process_label():  # sent to another process (a Dask worker): same code, same packages?
+        check_step_identity(name, step.compute.__module__, step.source, step.version, step.packages)
     inputs = {producer: ref.at(root) for producer, ref in inputs.items()}  # this run's folder, wherever written
     key = step_key(name, step.version, scope, params, inputs, step.spec.unkeyed)
     path = artifact_path(root, scope, name, key)
@@ -352,7 +363,8 @@ def artifact_step(name: str, *, inputs: tuple[str, ...] = (), reads: tuple[str, 
             result_serializer="json",
             cache_result_in_memory=False,
         )
-        holder["step"] = StepTask(spec=spec, compute=compute, version=version, task=prefect_task)
+        holder["step"] = StepTask(spec=spec, compute=compute, version=version, task=prefect_task,
+                                  source=str(own_file) if own_file else None)
         return holder["step"]
 
     return decorate
