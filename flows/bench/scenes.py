@@ -117,7 +117,7 @@ def main(cfg: DictConfig) -> dict:
                   f"{s['particles']:,} particles, grid {'x'.join(map(str, s['grid_dims']))} = {s['grid_nodes']:,} "
                   f"nodes; per substep the grid update runs over {s['box_nodes']:,.0f} nodes "
                   f"({100 * s['box_share']:.1f} % of the grid), {s['mass_nodes']:,.0f} of them with mass "
-                  f"({100 * s['mass_share']:.1f} %). Squeeze: {s['substeps']:,} substeps, {s['squeeze_seconds']:.2f} s "
+                  f"({100 * s['mass_share']:.1f} %). Squeeze: {s['substeps']:,} substeps, {s['squeeze_seconds']:.2f} "
                   f"CPU s profiled ({s['throughput']:.2f} M particle-substeps/s), gravity preload "
                   f"{s['preload_seconds']:.2f} CPU s"
                   + (f"; plain run (median of {len(plain)}): {s['plain_seconds']:.2f} s wall, "
