@@ -119,6 +119,27 @@ class MPMBenchConfig:
 
 
 @dataclass
+class ScenesBenchConfig:
+    """``python -m flows.bench.scenes`` (where real rollouts spend their time: per kernel and per phase).
+
+    objects: the scenes (``conf/object``), each at the evaluation grid's full variant (``conf/evaluate.yaml``).
+    frames: output frames of each rollout (None: all; the first ones include the gravity preload and the squeeze's
+    onset, not a late rupture).  repeats: plain (unprofiled) runs per scene for its seconds, the median kept.
+    overrides: pipeline keys for every scene (e.g. ``[mpm.threads=2]``).  artifacts: where the scenes' per-object
+    inputs are cached.  reference: also time the MPM benchmark's one-thread run (``flows.bench.mpm``'s scene) for
+    the ratio.  out: folder of ``scenes.json`` and ``scenes.md``.
+    """
+
+    objects: list[str] = field(default_factory=lambda: ["plush_toy", "can", "rubber_ball"])
+    frames: Optional[int] = 20
+    repeats: int = 1
+    overrides: list[str] = field(default_factory=list)
+    artifacts: str = "artifacts"
+    reference: bool = True
+    out: str = "reports/bench_scenes"
+
+
+@dataclass
 class RenderBenchConfig:
     """``python -m flows.bench.render`` (the Gaussian rasteriser's time per frame against its physical floor).
 
@@ -216,6 +237,6 @@ def register_study_configs() -> None:
     for name, node in (("ball_schema", BallStudyConfig), ("fingers_schema", FingerStudyConfig),
                        ("force_match_schema", ForceMatchStudyConfig),
                        ("contact_schema", ContactStudyConfig), ("bench_mpm_schema", MPMBenchConfig),
-                       ("bench_render_schema", RenderBenchConfig), ("bench_overhead_schema", OverheadBenchConfig),
-                       ("bench_diffusion_schema", DiffusionBenchConfig)):
+                       ("bench_render_schema", RenderBenchConfig), ("bench_scenes_schema", ScenesBenchConfig),
+                       ("bench_overhead_schema", OverheadBenchConfig), ("bench_diffusion_schema", DiffusionBenchConfig)):
         store.store(name=name, node=node)

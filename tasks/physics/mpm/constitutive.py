@@ -219,12 +219,16 @@ def membrane_stretch_neo_hookean(A: float, mu: float, lam: float) -> float:
     """Normal stretch g = n . F N of a neo-Hookean membrane at area stretch A with zero normal stress: the root of
     n . tau n = mu (g^2 - 1) + lam ln(g A) (F^T n = g N), in s = ln g: h(s) = mu (e^2s - 1) + lam (s + ln A).  h is
     convex and increasing, so Newton from its linearisation at s = 0, s0 = -lam ln A / (2 mu + lam), converges
-    monotonically after its first step."""
+    monotonically after its first step.  A step that leaves s unchanged has reached the float32 fixed point, which
+    every further step would return again: the loop stops there (the result is the same to the bit)."""
     la = wp.log(A)
     s = -lam * la / (2.0 * mu + lam)
     for _ in range(MEMBRANE_NEWTON):
         e2 = wp.exp(2.0 * s)
-        s = s - (mu * (e2 - 1.0) + lam * (s + la)) / (2.0 * mu * e2 + lam)
+        s_next = s - (mu * (e2 - 1.0) + lam * (s + la)) / (2.0 * mu * e2 + lam)
+        if s_next == s:
+            break
+        s = s_next
     return wp.exp(s)
 
 
