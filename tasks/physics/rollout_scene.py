@@ -243,7 +243,7 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
                      f"{1e3 * spacing:.3g} mm spacing (ParticlePins arms 0)")
     # 5. the given shape is the body's equilibrium on the table under its weight (simulation.gravity_preload_frames)
     pre = j_given = None
-    if int(sim["gravity_preload_frames"]) > 0:
+    if int(sim["gravity_preload_frames"]) > 0 and any(cfg.gravity):  # no weight (a study's mpm.gravity=0): no preload
         pre = solver.preload_gravity(frame_dt, int(sim["gravity_preload_frames"]), int(sim["gravity_preload_passes"]),
                                      tolerance=float(sim["gravity_preload_tolerance"]))
         notes.append(f"gravity preload: unsupported, the body would settle by up to {1e3 * pre.sag:.3g} mm under its "

@@ -30,8 +30,9 @@ def ball_scene(refs: Mapping[str, Any], params: Mapping[str, Any]):
     thicker than ``mpm.membrane_max_thickness`` of a cell) touches the flats at its faces as the plane-stress wall
     does, not half a particle spacing out."""
     a = {k: read_artifact(v) for k, v in refs.items()}
-    model = a["object_model"]
-    return build_scene(model.arrays, {**model.attrs, "name": model.ref.scope}, a["dirichlet_field"].arrays,
+    model, particles = a["object_model"], a["mpm_particles"]  # the rollout's object: both steps' arrays
+    return build_scene({**model.arrays, **particles.arrays}, {**model.attrs, **particles.attrs, "name": model.ref.scope},
+                       a["dirichlet_field"].arrays,
                        a["contact_patches"].arrays, a["signal_smoothing"]["time"],
                        a["material_oracle"].attrs["materials"], params["mpm"], params["simulation"],
                        a["force_coefficients"]["force_coefficients"], "dirichlet")

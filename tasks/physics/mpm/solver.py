@@ -304,6 +304,7 @@ class MPMSolver:
         self._pool: Optional[ThreadPoolExecutor] = None
         self._energy_ref: Optional[EnergyBudget] = None  # energy guard reference (see _check_energy)
         self._energy_initial = True  # the reference is the initial state (F = I, C = 0: no internal energy)
+        self._loading_force = 0.0  # N, the largest load seen (weight or boundary force): the guard's floor
 
         self.time = 0.0
         self.frame = 0
