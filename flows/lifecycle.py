@@ -255,7 +255,7 @@ def _server_class():
     Prefect builds the server's command and environment inline in ``SubprocessASGIServer._run_uvicorn_command``
     and gives no way to pass options to its ``subprocess.Popen``; this subclass passes them (and
     :data:`LOOPBACK_SERVER_ENV`) by giving that module a ``subprocess`` whose ``Popen`` has them, for the duration
-    of that one call.  Pinned by ``tests/test_lifecycle.py`` (the server's session, and its end when the flow
+    of that one call.  Pinned by ``tests/flows/test_lifecycle.py`` (the server's session, and its end when the flow
     process is SIGKILLed)."""
     import subprocess
     import types
@@ -327,7 +327,7 @@ def _shipped_settings_context():
     each re-reading the environment and the settings files, ~80 ms CPU per task on the 2-core machine.  Prefect
     never changes a ``Settings`` object (``temporary_settings`` makes a new one), it pickles as it is, and
     validated from an instance it is taken as it is (~0.2 ms).  Pinned by
-    ``tests/test_lifecycle.py`` (what a worker receives).  The workers run on this machine, or on a cluster
+    ``tests/flows/test_lifecycle.py`` (what a worker receives).  The workers run on this machine, or on a cluster
     (``runner.address``) with the same installation: the paths in the settings mean the same there."""
     from prefect.context import SettingsContext
 

@@ -10,6 +10,6 @@ evaluation/    sec. 4: deformation metrics (Table 2) and video metrics (Tables 1
 reporting/     the run report (tables, plots, videos)
 verification/  suites that check the solver (stability, convergence, benchmark peer): never pipeline steps
 
-Package ``__init__`` files hold only a docstring (``tests/test_layering.py``), so that a step's code version is
+Package ``__init__`` files hold only a docstring (``tests/flows/test_layering.py``), so that a step's code version is
 exactly the import closure of its module.
 """

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import threading
+import traceback
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from typing import Any, Callable
 
@@ -66,3 +67,12 @@ class ChatEndpoint:
     def close(self) -> None:
         self.httpd.shutdown()
         self.httpd.server_close()
+
+
+SECRET = "sk-test-SECRET-0123456789abcdef"  # the API key the clients under test send; it must never leak
+KEY_ENV = "VIRSQUEEZER_TEST_LLM_KEY"  # the environment variable the clients read it from
+
+
+def assert_no_secret(exc: BaseException) -> None:
+    """The key appears nowhere in an error the client raised: not in its message, repr or traceback."""
+    assert SECRET not in str(exc) + repr(exc) + "".join(traceback.format_exception(exc))

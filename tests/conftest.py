@@ -45,3 +45,23 @@ def compose(config_name: str, overrides: list[str]):
 @pytest.fixture
 def compose_cfg():
     return compose
+
+
+@pytest.fixture
+def key_env(monkeypatch):
+    """The test API key in its environment variable (tests/chat_endpoint.py): the name a client config points to."""
+    from tests.chat_endpoint import KEY_ENV, SECRET
+
+    monkeypatch.setenv(KEY_ENV, SECRET)
+    return KEY_ENV
+
+
+@pytest.fixture(scope="module")
+def torch_one_thread():
+    """Torch on one thread (VIRSQUEEZER_TORCH_THREADS) for a module: fast on the shared 2-core machine."""
+    import torch
+
+    previous = torch.get_num_threads()
+    torch.set_num_threads(int(os.environ.get("VIRSQUEEZER_TORCH_THREADS", "1")))
+    yield
+    torch.set_num_threads(previous)

@@ -9,7 +9,7 @@
   the input files and the arrays it writes.  The declarations are read from the source with ``ast`` (nothing under
   ``tasks/`` is imported), so the page follows the code wherever a step module lives.
 
-The functions are plain Python so that ``tests/test_docs.py`` checks the same output the site shows.
+The functions are plain Python so that ``tests/flows/test_docs.py`` checks the same output the site shows.
 """
 from __future__ import annotations
 
@@ -304,8 +304,7 @@ def artifact_steps() -> list[dict]:
     steps = []
     for path in sorted((ROOT / "tasks").rglob("*.py")):
         tree = ast.parse(path.read_text())
-        names = {t.id: n.value for n in tree.body if isinstance(n, ast.Assign) for t in n.targets
-                 if isinstance(t, ast.Name)}
+        names = {**_imported_names(tree), **_module_names(tree)}
         for node in ast.walk(tree):
             if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 continue
@@ -325,6 +324,24 @@ def artifact_steps() -> list[dict]:
         return (STAGE_ORDER.index(stage) if stage in STAGE_ORDER else 99, pos if pos >= 0 else 10**9)
 
     return sorted(steps, key=order)
+
+
+def _module_names(tree: ast.Module) -> dict[str, ast.AST]:
+    """A module's top-level ``NAME = value`` bindings, unevaluated."""
+    return {t.id: n.value for n in tree.body if isinstance(n, ast.Assign) for t in n.targets if isinstance(t, ast.Name)}
+
+
+def _imported_names(tree: ast.Module) -> dict[str, ast.AST]:
+    """The bindings of ``from tasks.x import NAME`` at a module's top level, read from that module's source (a step
+    may declare its outputs with a tuple its helper module defines)."""
+    out: dict[str, ast.AST] = {}
+    for n in tree.body:
+        if isinstance(n, ast.ImportFrom) and n.module and n.module.split(".")[0] == "tasks" and not n.level:
+            path = ROOT.joinpath(*n.module.split(".")).with_suffix(".py")
+            if path.exists():
+                bound = _module_names(ast.parse(path.read_text()))
+                out.update({a.asname or a.name: bound[a.name] for a in n.names if a.name in bound})
+    return out
 
 
 def _static_names(node: ast.AST, names: dict[str, ast.AST]) -> list[str]:

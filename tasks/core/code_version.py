@@ -6,7 +6,7 @@ import closure of the step's module inside the project (packages ``tasks`` and `
 the source with :mod:`ast`.  Every ``import`` / ``from ... import`` statement counts, also those inside functions
 (a late import is still code the step runs).  ``from package import name`` reaches ``package/__init__.py`` and,
 when ``name`` is a submodule, that module.  Parent packages that a dotted import executes implicitly are not
-followed: their ``__init__.py`` files hold only a docstring (``tests/test_layering.py`` keeps it so), except the
+followed: their ``__init__.py`` files hold only a docstring (``tests/flows/test_layering.py`` keeps it so), except the
 re-exporting ones a module imports from explicitly.
 
 A module that reads data files shipped beside it (e.g. the material table ``materials.yaml``) names them in a

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from tasks.core.artifacts import read_artifact
-from tasks.physics.mpm_rollout import build_scene
+from tasks.physics.rollout_scene import build_scene
 
 # the pipeline overrides of every ball run: the full variant, no gravity, no energy guard (the flats are not the
 # eq. 3 field the guard's budget counts)
@@ -24,13 +24,13 @@ HOLD_MARKS = (1.0, 2.0, 5.0, 10.0, 20.0, 40.0)  # s: when the held force is repo
 
 
 def ball_scene(refs: Mapping[str, Any], params: Mapping[str, Any]):
-    """The rollout's scene (:func:`tasks.physics.mpm_rollout.build_scene`, grid-node fingers) of the object whose
-    artifacts up to the material oracle are ``refs`` (step name -> ArtifactRef), with the rollout step's ``params``
+    """The rollout's scene (:func:`tasks.physics.rollout_scene.build_scene`, grid-node fingers) of the object whose
+    artifacts up to the material oracle (the object model and its MPM particles among them) are ``refs`` (step name -> ArtifactRef), with the rollout step's ``params``
     (``mpm``, ``simulation``).  A wall sampled in Gauss layers but held as a 3D solid (``mpm.thin_walls=solid``, or
     thicker than ``mpm.membrane_max_thickness`` of a cell) touches the flats at its faces as the plane-stress wall
     does, not half a particle spacing out."""
     a = {k: read_artifact(v) for k, v in refs.items()}
-    model, particles = a["object_model"], a["mpm_particles"]  # the rollout's object: both steps' arrays
+    model, particles = a["object_model"], a["mpm_particles"]
     return build_scene({**model.arrays, **particles.arrays}, {**model.attrs, **particles.attrs, "name": model.ref.scope},
                        a["dirichlet_field"].arrays,
                        a["contact_patches"].arrays, a["signal_smoothing"]["time"],

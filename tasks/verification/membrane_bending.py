@@ -14,7 +14,7 @@ stiffnesses coincide.  Pure solver use.
 ``offset`` places the mid-surface that many cells above a plane of grid nodes (0.5: on a plane of cell centres,
 where the two layers' own stencils would straddle it).  With ``mpm.wall_normal_stiffness`` 0 and ``mpm.wall_stencil``
 ``own`` (the walls before 2026-12-04) the two-layer strip never settled: its ringing died out near the closed form
-(1.10x by 0.12 s for the 10-cell strip of ``tests/test_membrane.py``), then it crept (1.39x at 0.5 s, 2.5x at 1.5 s;
+(1.10x by 0.12 s for the 10-cell strip of ``tests/physics/test_membrane.py``), then it crept (1.39x at 0.5 s, 2.5x at 1.5 s;
 a 25-cell strip 2.9x at 0.8 s), at every alignment; now it settles (README, known limits).
 """
 from __future__ import annotations
@@ -37,7 +37,7 @@ def settled(sag: Sequence[float], frames: int = SETTLE_FRAMES, tol: float = SETT
     """Whether the sag history ``sag`` (m, one value per frame) has settled: its last ``frames`` + 1 values all lie
     within ``tol`` x |last value| of one another.  Their range, not two instants ``frames`` apart, which a strip
     ringing with that period, or crossing the same sag on its way back, passes by coincidence (the 10-cell strip of
-    ``tests/test_membrane.py`` did at frame 123, and was called settled at 1.10x while it crept)."""
+    ``tests/physics/test_membrane.py`` did at frame 123, and was called settled at 1.10x while it crept)."""
     if len(sag) <= frames:
         return False
     last = np.asarray(sag[-frames - 1:], np.float64)

@@ -15,7 +15,7 @@ Measured (10 cells of 8 mm, 3 mm thick, two Gauss layers): in plane stress 13 su
 the weight except with the mid-surface exactly on a node plane (symmetry), 26 on a plane of cell centres; a solid has
 none except within a cell-centre plane's reach, where the two layers' own stencils spread over four node layers (4
 modes); with a normal stiffness as the solid's and both layers on their mid-surface's stencil
-(``mpm.wall_stencil=shared``) none at any alignment (``tests/test_membrane.py``).
+(``mpm.wall_stencil=shared``) none at any alignment (``tests/physics/test_membrane.py``).
 """
 from __future__ import annotations
 

@@ -6,7 +6,7 @@ import pytest
 
 from tasks.physics.mpm import Material, MPMSolver
 from tasks.physics.mpm.initial_state import initial_velocity_gradient
-from tests.particles import lattice
+from tests.physics.particles import lattice
 
 DX = 0.005  # m
 JELLY = Material(name="jelly", model="fixed_corotated", youngs_modulus=2e5, poisson_ratio=0.3, density=1000.0)
@@ -35,7 +35,7 @@ def test_a_spinning_cube_keeps_its_kinetic_energy_over_the_first_frame():
     solver's C now starts at [w]x, so the first P2G carries the whole spin and after one frame (1/60 s, 19 degrees of
     rotation) the kinetic energy is within 0.5 % of the closed form (measured -0.006 %); started with C = 0 (the
     solver before issue 50, restored here with ``set_affine_velocities``) the same cube lost 29 % of it (the test it
-    replaces, tests/test_mpm.py's spin at 3 rad/s about z, 4.5 %)."""
+    replaces, tests/physics/test_mpm_boundary.py's spin at 3 rad/s about z, 4.5 %)."""
     X = lattice([0, 0, 0], [0.02, 0.02, 0.02], DX / 2)
     vol = (DX / 2) ** 3
     w = 20.0 * np.array([0.3, 0.2, 1.0]) / np.linalg.norm([0.3, 0.2, 1.0])

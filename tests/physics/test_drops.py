@@ -7,7 +7,7 @@ from tasks.physics.free_flight import blob_flights, held_by_boundary, shares_nod
 from tasks.physics.labels import INTERIOR
 from tasks.physics.mpm import DirichletPoints, Material, MPMSolver
 from tasks.physics.rollout_records import FlightRecord
-from tests.particles import lattice
+from tests.physics.particles import lattice
 
 DX = 0.005  # m
 G = -9.81  # m/s^2

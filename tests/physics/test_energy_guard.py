@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from tasks.physics.mpm import DirichletPoints, Material, MPMSolver, SimulationError
-from tests.particles import lattice
+from tests.physics.particles import lattice
 
 DX = 0.005  # m
 
@@ -46,7 +46,7 @@ def test_the_rubber_ball_squeezed_between_grid_node_plates_from_its_poles_runs_c
 
 
 def test_a_courant_095_instability_under_a_pushing_plate_still_trips_the_guard():
-    """The pre-compressed nu = 0.45 column of the unloaded Courant-0.95 case (tests/test_mpm.py), now pushed by a
+    """The pre-compressed nu = 0.45 column of the unloaded Courant-0.95 case (tests/physics/test_mpm_guards.py), now pushed by a
     slip plate at 0.05 m/s: the plate's force raises the tolerance's floor (force x dx), but the instability grows
     the energy by orders of magnitude within a few substeps and the guard stops it with its one-line message; the
     same loading at Courant 0.3 runs 20 frames clean."""

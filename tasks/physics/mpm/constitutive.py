@@ -274,7 +274,7 @@ def wall_normal_tau(F: wp.mat33, Fp: wp.mat33, N: wp.vec3, k: float) -> wp.mat33
     c = -A dg*/dA (nu / (1 - nu) at rest).  Tried (2026-12-04): it is conservative (the rubber duck at
     ``mpm.wall_normal_stiffness`` 1 runs clean where this form trips the energy guard at frame 15), but where the
     grid holds a wall's thickness (g > g* as it stretches) its in-plane term stiffens the stretch: the ball's
-    breathing amplitude -2 % -> -9 % of the membrane sphere's (``tests/test_membrane.py``).  This form is kept."""
+    breathing amplitude -2 % -> -9 % of the membrane sphere's (``tests/physics/test_membrane.py``).  This form is kept."""
     a = F @ N
     d = a - Fp @ N
     return 0.5 * k * (wp.outer(d, a) + wp.outer(a, d))

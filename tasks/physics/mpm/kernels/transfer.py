@@ -175,7 +175,7 @@ def round_off(x: Any, step: Any, x_new: Any):
     TwoSum: no multiplication, so no contraction into a fused multiply-add changes it); for a position (vec3, m) and
     for F_E's update (mat33).  A position near 0.1 m resolves 7.5e-9 m, so a substep that should move a particle
     less than half that moves it not at all: on the default grid's ~0.33 ms substeps anything slower than ~1.1e-5
-    m/s stood still (a block drifting at 1e-5 m/s on 0.25 ms steps did not move, ``tests/test_mpm.py``).  An entry
+    m/s stood still (a block drifting at 1e-5 m/s on 0.25 ms steps did not move, ``tests/physics/test_mpm_conservation.py``).  An entry
     of F_E near 1 resolves 1.2e-7, so strain increments below 6e-8 per substep were lost (a free stretch at 1e-4 /s
     on 0.25 ms steps kept F_E = I).  Carried into the next step, the lost parts add up.  A model that then projects
     F_E (a return mapping, a plane-stress wall's normal stretch, a fluid's reset) keeps a round-off of at most half
