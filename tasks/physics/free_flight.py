@@ -85,6 +85,22 @@ def coupled_components(bases: np.ndarray) -> np.ndarray:
     return connected_components(graph, directed=False)[1][np.ravel(inverse)]
 
 
+def blob_held(bases: np.ndarray, held: np.ndarray) -> np.ndarray:
+    """(n,) bool: the particles (stencil ``bases`` (n, 3)) whose blob, the component linked by shared grid nodes
+    (:func:`coupled_components`), holds a particle that is ``held`` (n,) bool itself.  A particle whose own stencil
+    touches nothing but released material is still pushed by that material's pressure, viscosity and elasticity,
+    which carry the body's push or the table's stop along a jet: only a blob none of whose particles is held falls
+    free.  (Per particle, the orange's squirted juice had 275 'free' samples at a median -12.3 m/s^2 and a mass
+    mean -13.4, +25-37 % over g, every one of them in a jet still linked to the crushed fruit; issue 50.)"""
+    held = np.asarray(held, bool)
+    if not held.any() or held.all():
+        return held.copy()
+    comp = coupled_components(bases)
+    touched = np.zeros(comp.max() + 1, bool)
+    touched[comp[held]] = True
+    return touched[comp]
+
+
 def prune_held(positions: np.ndarray, held: np.ndarray, origin: np.ndarray, dx: float) -> tuple[np.ndarray, np.ndarray]:
     """A smaller record with the same flights (:func:`blob_flights`): the particles held at every sample are
     dropped, and a kept particle counts as held where it shares a grid node with a held particle (a dropped one was

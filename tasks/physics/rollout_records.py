@@ -14,6 +14,7 @@ from conf.mpm_schema import MPMConfig
 from tasks.core.artifacts import Array
 from tasks.physics.attachment import detached_summary
 from tasks.physics.free_flight import (
+    blob_held,
     flight_summary,
     held_by_boundary,
     prune_held,
@@ -106,10 +107,11 @@ class FlightRecord:
     """The sub-frame flight recorder of the released material (module constants FLIGHT_*), from the release to
     FLIGHT_FRAMES frames after it: at every sample the time ``times`` (s), the positions ``x`` (loose, xyz) m of
     the loose particles (labels INTERIOR and RUPTURED after the release: the released interior and the torn skin it
-    may carry off) and which of them are ``held`` (loose,) bool: their B-spline stencil shares a grid node with the
-    body (every other particle), a boundary point of the frame (Dirichlet or force point) or a wall or floor node,
-    or, where the table acts as a plane collider (the released field), their surface touches it
-    (:mod:`tasks.physics.free_flight`; collider fingers are not counted).  ``mass``/``physical_mass`` (loose,) kg
+    may carry off) and which of them are ``held`` (loose,) bool: their blob (:func:`tasks.physics.free_flight.
+    blob_held`) holds a particle whose B-spline stencil shares a grid node with the body (every other particle), a
+    boundary point of the frame (Dirichlet or force point) or a wall or floor node, or, where the table acts as a
+    plane collider (the released field), whose surface touches it (:mod:`tasks.physics.free_flight`; collider
+    fingers are not counted): a sample that is not held is one of a free blob, falling at g.  ``mass``/``physical_mass`` (loose,) kg
     the inertial and physical masses after the release, ``radius`` (loose,) m half their undeformed spacing."""
 
     loose: np.ndarray  # (particle,) bool: the particles sampled
@@ -139,6 +141,7 @@ class FlightRecord:
         held |= held_by_boundary(bases, np.asarray(solver.dims), int(solver.cfg.padding), floor)
         if plane.any():
             held[plane] |= touches_table(x[self.loose][plane, 2], self.radius[plane], solver.floor_height)
+        held = blob_held(bases, held)  # a particle linked to held material through released material is held too
         self.times.append(float(t))
         self.x.append(x[self.loose].astype(np.float32))
         self.held.append(held)
@@ -303,8 +306,9 @@ FLIGHT_ARRAYS = {  # name: (axes, unit, description) of the flight recorder's ar
                              f"{FLIGHT_FRAMES} frames after the release"),
     "released_flight_positions": (("sample", "loose", "xyz"), "m", "the loose particles (released interior and torn "
                                   "skin) not held at every sample"),
-    "released_flight_held": (("sample", "loose"), "1", "stencil shares a grid node with the body, a boundary point, "
-                             "a wall, the table or a held loose particle"),
+    "released_flight_held": (("sample", "loose"), "1", "its blob (loose particles linked by shared grid nodes) has a "
+                             "particle whose stencil shares a grid node with the body, a boundary point, a wall or "
+                             "the table: not held = in a free blob, falling at g"),
     "released_flight_particle": (("loose",), "1", "index on the particle axis"),
     "released_flight_mass": (("loose",), "kg", "inertial (mass-scaled)"),
     "released_flight_physical_mass": (("loose",), "kg", "")}

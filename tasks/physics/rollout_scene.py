@@ -238,12 +238,21 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     if fibres is None and len(obj["wall_fibres"]):  # Gauss layers held as a 3D solid touch colliders at their faces
         layers = membrane_fibres_checked(np.asarray(obj["wall_fibres"], np.int64), np.ones(len(x0), bool), x0)
         solver.set_contact_radii(contact_reach(solver.volumes(), layers))
+    if boundary == "dirichlet" and cfg.fingers == "dirichlet":  # grid-node constraints: what they hold (issue 50)
+        notes.append(f"grid-node fingers (mpm.fingers=dirichlet): every constrained point sets the velocity of the "
+                     f"grid nodes of its B-spline stencil, so the material within ~1.5 cells ({1.5e3 * dx:.3g} mm) of "
+                     "a patch moves with it rigidly (a cube between grid-node plates reads +31 to +57 % of E A eps; "
+                     "docs/limits/fingers-and-contact.md)")
+    if cfg.floor and cfg.contact == "grid":
+        notes.append(f"grid-node table (mpm.contact=grid): the floor holds the material within ~1.5 cells "
+                     f"({1.5e3 * dx:.3g} mm) of it (a sphere pressed on it reads 2-6x Hertz's force at 1-4 mm; "
+                     "docs/limits/table-contact.md)")
     if thin_wall and cfg.fingers == "particles":
         notes.append("particle fingers pin the wall's particles at their centres: a wall thinner than the "
                      f"{1e3 * spacing:.3g} mm spacing (ParticlePins arms 0)")
     # 5. the given shape is the body's equilibrium on the table under its weight (simulation.gravity_preload_frames)
     pre = j_given = None
-    if int(sim["gravity_preload_frames"]) > 0:
+    if int(sim["gravity_preload_frames"]) > 0 and any(cfg.gravity):  # no weight (a study's mpm.gravity=0): no preload
         pre = solver.preload_gravity(frame_dt, int(sim["gravity_preload_frames"]), int(sim["gravity_preload_passes"]),
                                      tolerance=float(sim["gravity_preload_tolerance"]))
         notes.append(f"gravity preload: unsupported, the body would settle by up to {1e3 * pre.sag:.3g} mm under its "

@@ -163,8 +163,8 @@ def flight_figure(obj: str, refs: Mapping[str, Optional[ArtifactRef]], path: Pat
     nothing through the grid) per sample of the rollout's sub-frame flight recorder, each against its own free-fall
     parabola z0 + v0 t + a_exp t^2 / 2 (a_exp = g for released material; z0, v0 fitted); below, the recorded loose
     material's height range (median, 10-90 %; what stays held throughout, e.g. cola in its can, is not recorded),
-    the share of its particles held (sharing a grid node with the body, a boundary point, a wall, the table or a
-    held particle) and the share in the measured free blobs.  The title states the acceleration measured.  None without a
+    the share of its particles held (in a blob, linked by shared grid nodes, one of whose particles shares a grid node
+    with the body, a boundary point, a wall or the table) and the share in the measured free blobs.  The title states the acceleration measured.  None without a
     release."""
     try:
         r = read_artifact(refs["mpm_rollout"], names=list(FLIGHT_NAMES))

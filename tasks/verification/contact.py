@@ -168,6 +168,47 @@ def hertz_case(contact: str, cells_per_radius: int, depth: float = 0.004, load_t
     return out
 
 
+def table_hertz_case(contact: str, dx: float, R: float = 0.03, E: float = HERTZ_E, nu: float = HERTZ_NU,
+                     travel: float = 0.0085, total: float = 0.15, n_frames: int = 60,
+                     depths: tuple[float, ...] = HERTZ_DEPTHS, particles_across_cell: int = 2) -> dict:
+    """An elastic sphere (radius R, m; E, Pa; nu) resting on the table (``mpm.floor``, frictionless, the table's
+    height the solver's default for ``contact``: the lowest particle's surface under ``surface``, its centre under
+    ``grid``) and pressed from above by a frictionless plane collider moving down ``travel`` (m) over ``total`` (s,
+    ~17 periods of the sphere bouncing on its Hertz spring at 2 mm: quasi-static without a second flat), no gravity,
+    grid spacing ``dx`` (m), ``particles_across_cell`` particles per cell along each axis.  Plate and table carry the
+    same force F (the plate's reaction, N, frame mean); the table's approach is d = R - (z_c - z_0), z_c the centre of
+    mass, z_0 the sphere's initial bottom (m), since in a quasi-static squeeze the centre lies midway between two
+    equal contacts.  Returns per frame ``depth`` (m, at frame ends), ``force`` (N), ``radius`` (m, the flattened patch
+    at the bottom as :func:`hertz_case` reads it) and at ``depths``: ``force_at``, ``hertz_at``, ``force_ratio``
+    (measured / Hertz), ``radius_at``, ``radius_hertz``, ``seconds``, ``particles``, ``floor_height``."""
+    h = dx / particles_across_cell
+    X, vol = sphere_shell_particles(R, h)
+    X = X + [0.0, 0.0, R]
+    mat = Material(name="sphere", model="fixed_corotated", youngs_modulus=E, poisson_ratio=nu, density=DENSITY)
+    s = MPMSolver(X, vol, mat, config=dict(device="cpu", dx=dx, gravity=[0.0, 0.0, 0.0], floor=True, contact=contact,
+                                           margin_cells=3, energy_guard_tolerance=0.0), label="table_hertz")
+    rec: dict[str, list] = {"depth": [], "force": [], "radius": []}
+
+    def on_frame(f, d, st):
+        z = s.positions()[:, 2].astype(np.float64)
+        rec["depth"].append(R - float(np.average(z, weights=vol)))
+        rec["force"].append(-float(np.asarray(st.reaction)[1, 2]))
+        rec["radius"].append(float(h * np.sqrt((z <= z.min() + 0.05 * h).sum() / np.pi)))
+
+    t0 = time.perf_counter()
+    _press(s, "surface", 2 * R, R, travel, total, n_frames, on_frame)
+    out = {k: np.asarray(v) for k, v in rec.items()}
+    at = np.asarray(depths, float)
+    out.update(at=at, seconds=time.perf_counter() - t0, particles=len(X), dx=dx, contact=contact,
+               floor_height=float(s.floor_height))
+    out["force_at"] = np.interp(at, frame_mean(out["depth"]), out["force"])
+    out["hertz_at"] = hertz_force(at, R, E, nu)
+    out["force_ratio"] = out["force_at"] / out["hertz_at"]
+    out["radius_at"] = np.interp(at, out["depth"], out["radius"])
+    out["radius_hertz"] = np.sqrt(R * at)
+    return out
+
+
 def body_between_flats(solver: MPMSolver, plate: str, travel: float, duration: float, n_frames: int,
                        hold_frames: int = 0) -> dict:
     """A body already in ``solver`` (e.g. the default grid's hollow rubber ball, its walls in plane stress) squeezed

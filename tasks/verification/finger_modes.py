@@ -15,8 +15,9 @@ from tasks.verification.convergence import distances_from, reaction_force_error
 
 MODES = {  # name -> config overrides
     "grid_dirichlet": ["mpm.contact=grid", "mpm.fingers=dirichlet"],
-    "grid_particles": ["mpm.contact=grid", "mpm.fingers=particles"],  # the default
+    "grid_particles": ["mpm.contact=grid", "mpm.fingers=particles"],  # the default before issue 50
     "surface_dirichlet": ["mpm.contact=surface", "mpm.fingers=dirichlet"],
+    "surface_particles": ["mpm.contact=surface", "mpm.fingers=particles"],  # the default (table at the surface)
     "surface_collider": ["mpm.contact=surface", "mpm.fingers=collider"],
 }
 METRICS = ("bdc_t", "bdc_s", "sdc", "miou")

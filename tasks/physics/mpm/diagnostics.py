@@ -8,7 +8,8 @@ first frame after a state setter) plus the work the boundary put in since (per f
 work of the Dirichlet nodes, impulse . new velocity = m (v_bc - v*) . v_bc per node and substep, and of the force
 patches, impulse . node velocity).  Walls, floor, friction, plasticity and viscosity only remove energy, and
 gravity only exchanges it with the potential term, so growth beyond tolerance x energy scale (see
-:class:`EnergyBudget`) is a numerical instability: :class:`SimulationError` naming object, frame, time and the
+:class:`EnergyBudget`; never below the loading's scale, :func:`loading_floor`) is a numerical instability:
+:class:`SimulationError` naming object, frame, time and the
 materials whose energy grew.
 """
 from __future__ import annotations
@@ -219,6 +220,24 @@ def energy_state_changed(solver: MPMSolver) -> None:
         solver._energy_ref = EnergyBudget.rebase(solver._energy_ref)
 
 
+def loading_floor(solver: MPMSolver, st: FrameStats) -> float:
+    """The energy scale (J) below which the guard never stops a run, from the loading's scale: the energy of moving
+    the largest load seen so far through one grid cell dx, where the discretisation resolves no change of shape.
+    The loads are the body's weight (physical mass x |g|: a body settling on the floor exchanges micro-joules
+    between gravity and strain) and the boundary's force, read from its impulses (the mean force of every finger's
+    Dirichlet nodes, pins, colliders and force patches over the frame, summed over the fingers).  The floor is kept
+    as a running maximum (``solver._loading_force``, N): a scripted squeeze that starts at rest, with a smooth ramp
+    and no gravity, has a near-zero energy at its first frames, and a tolerance relative to it alone stopped it at
+    frame 1 on 5e-8 J of round-off (issue 50).  An instability grows the energy by orders of magnitude within a few
+    substeps (x28 in 5 substeps at Courant 0.95), far beyond any such floor."""
+    weight = float(solver.physical_masses().astype(np.float64).sum()) * float(
+        np.linalg.norm(np.asarray(solver.cfg.gravity, np.float64)))
+    pushed = float(np.linalg.norm(np.asarray(st.reaction, np.float64), axis=-1).sum()
+                   + np.linalg.norm(np.asarray(st.applied_force, np.float64), axis=-1).sum())
+    solver._loading_force = max(solver._loading_force, pushed if math.isfinite(pushed) else 0.0)
+    return max(weight, solver._loading_force) * solver.dx
+
+
 def check_energy(solver: MPMSolver, st: FrameStats) -> None:
     """Energy guard (see the module doc and :class:`EnergyBudget`): raise when the energy grew beyond the
     reference energy plus the boundary work put in by more than tolerance x energy scale."""
@@ -231,11 +250,7 @@ def check_energy(solver: MPMSolver, st: FrameStats) -> None:
                                                 st.kinetic_energy + st.internal_energy, ref)
         return
     growth = ref.update(per, st.gravitational_energy, st.boundary_work)
-    # below the energy of lifting the whole body by one grid cell the discretisation resolves no change (a body
-    # settling on the floor exchanges micro-joules between gravity and strain): never a reason to stop
-    weight_cell = float(solver.physical_masses().astype(np.float64).sum()) * float(
-        np.linalg.norm(np.asarray(solver.cfg.gravity, np.float64))) * solver.dx
-    scale = max(ref.scale, weight_cell)
+    scale = max(ref.scale, loading_floor(solver, st))
     tol = rel * scale + 1e-9
     st.energy_growth = growth / max(scale, 1e-9)  # (1e-9 J: the absolute floor of the tolerance)
     if rel <= 0 or growth <= tol:

@@ -18,6 +18,15 @@ class DirichletPoints:
     prescribed (frictionless contact, e.g. a slip plate); otherwise the full vector (sticky finger pad).
     ``min_weight``: stencil nodes whose B-spline weight is below this are left free (0 = all 27).
     ``advect``: move the points by ``velocity * dt`` every substep (kinematic targets).
+
+    What they hold (issue 50): a grid-node constraint, not a contact at the material's surface.  Every point sets the
+    velocity of the grid nodes its quadratic B-spline stencil touches (27 nodes, 3 per axis), and every particle
+    within that stencil's reach, ~1.5 cells of the point, takes its velocity from those nodes: a layer of material
+    about one cell thick beside a plate moves rigidly with it.  A cube between two grid-node slip plates reads
+    +31 to +57 % of E A eps at nu 0-0.49 with 8 cells across (+10 / +35 / +46 % plate-travel strain at nu 0.3 / 0.45
+    / 0.49 on a 10 mm grid), and the reactions include the force that layer's rigid motion takes.  For a boundary at
+    the surface use :class:`ParticlePins` (prescribed motion, E A eps within 5 %) or :class:`Collider` (contact);
+    the pipeline states it in the rollout's notes when ``mpm.fingers=dirichlet`` drives the squeeze with them.
     """
 
     positions: np.ndarray
@@ -30,7 +39,9 @@ class DirichletPoints:
 
 @dataclass
 class DirichletNodes:
-    """Explicit Dirichlet nodes: integer grid indices (M, 3), prescribed velocities (M, 3), finger ids (M,)."""
+    """Explicit Dirichlet nodes: integer grid indices (M, 3), prescribed velocities (M, 3), finger ids (M,).  The
+    nodes themselves are held, so every particle whose stencil reaches them (within ~1.5 cells) moves with them: see
+    :class:`DirichletPoints` for what such a constraint holds."""
 
     indices: np.ndarray
     velocities: np.ndarray

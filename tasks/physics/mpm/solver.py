@@ -63,6 +63,7 @@ from .diagnostics import (
     energy_state_changed,
     frame_stats,
 )
+from .initial_state import initial_velocity_gradient
 from .inputs import BoundarySpec, Collider, DirichletNodes, ForcePatch, ParticlePins
 from .kernels.contact import k_collider_advance, k_pin_advance
 from .kernels.structs import MaterialTable
@@ -166,7 +167,8 @@ class MPMSolver:
         positions: (N, 3) particle positions, m.
         volumes: (N,) or scalar initial particle volumes, m^3 (mass = volume x material density, constant).
         materials: one :class:`Material` or a list; ``material_ids`` (N,) index into it (default all 0).
-        velocities: (N, 3) initial velocities, m/s (default 0).
+        velocities: (N, 3) initial velocities, m/s (default 0); the particles' APIC affine velocities C start from
+            their gradient (:func:`tasks.physics.mpm.initial_state.initial_velocity_gradient`).
         config: :class:`conf.mpm_schema.MPMConfig`, a mapping or an OmegaConf node (default settings if None).
         tracers: (T, 3) tracer positions (surface Gaussians), embedded in the particles nearest to them at rest
             (:func:`tasks.physics.mpm.tracers.bind_tracers`).
@@ -282,6 +284,8 @@ class MPMSolver:
 
         # ---------------- particle state and grid buffers
         allocate_particles(self, x, v, vol, mid, normals, membrane_fibres, codes_present)
+        if velocities is not None:  # APIC's C from the initial field's gradient (C = 0 lost a spin's local rotation)
+            self.C.assign(initial_velocity_gradient(x, v, vol, mid).astype(np.float32))
         allocate_grid(self)
 
         # ---------------- tracers
@@ -304,6 +308,7 @@ class MPMSolver:
         self._pool: Optional[ThreadPoolExecutor] = None
         self._energy_ref: Optional[EnergyBudget] = None  # energy guard reference (see _check_energy)
         self._energy_initial = True  # the reference is the initial state (F = I, C = 0: no internal energy)
+        self._loading_force = 0.0  # N, the largest load seen (weight or boundary force): the guard's floor
 
         self.time = 0.0
         self.frame = 0
