@@ -47,9 +47,10 @@ class MPMConfig:
             collider: colliders act on the particles whose surface, centre -+ half the particle spacing, touches
             them, through the P2G momentum; the floor height defaults to the lowest particle's surface;
             ``floor_sticky`` then means no slip while touching).  ``Collider`` s passed to ``step_frame`` act at
-            the surface in both modes; ``DirichletPoints``/``DirichletNodes`` always act on grid nodes.  The
-            pipeline's table is ``surface`` (``conf/mpm/default.yaml``, issue 50: a sphere pressed on the table read
-            2.1-5.8x Hertz at 1-4 mm on grid nodes, 1.23-1.44x at the surface; docs/limits/table-contact.md).
+            the surface in both modes; ``DirichletPoints``/``DirichletNodes`` always act on grid nodes.  A sphere
+            pressed on the table reads 2.1-5.8x Hertz at 1-4 mm on grid nodes, 1.23-1.44x at the surface
+            (docs/limits/table-contact.md); the pipeline's table stays ``grid`` (``conf/mpm/default.yaml``) until
+            the force-matched ablation's constants are re-calibrated on the surface table.
         fingers: how the squeeze's fingers drive the material (``variant.boundary=dirichlet`` in
             :mod:`tasks.physics.mpm_rollout`; the force-driven ablation is unaffected).  ``particles`` (default):
             every surface point the eq. 3 field constrains is driven to its target on the particles it is embedded in
