@@ -19,8 +19,8 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from tasks.render.colour import linear_to_srgb
 from tasks.render.cameras import orbit_rig
+from tasks.render.colour import linear_to_srgb
 from tasks.render.scene import (
     RELEASED_SCALE_FACTOR,
     drawn_covariances,
