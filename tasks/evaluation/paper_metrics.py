@@ -52,7 +52,7 @@ DEFINITIONS: dict[str, str] = {
         "for its rating (0 when none). " + _FRAMES),
     "physical_commonsense_rating": (
         "VideoPhy-2 autorater mean rating (1-5, higher is better): the mean over the scored views of the same "
-        "ratings (VideoPhy-2's own scale, not the paper's)."),
+        "ratings (VideoPhy-2's own scale, not the paper's). " + _FRAMES),
     "physical_commonsense_videocon": (
         "Physical commonsense, VideoCon-Physics recipe (1, in [0, 1], the paper's scale): P(Yes) / (P(Yes) + P(No)) "
         "of the next token after VideoPhy's prompt 'Does this video follow the physical laws?' (videocon_physics, "

@@ -91,7 +91,8 @@ def test_weights_check_lists_present_and_missing_models_with_parsable_commands(t
     assert "other entries (not read by the runs): notes.txt" in text
     commands = [line.strip() for line in lines if line.strip().startswith("hf download")]
     assert [parse_hf_download(c)["repo_id"] for c in commands] == ["chaofengc/IQA-PyTorch-Weights",
-                                                                    "videophysics/videophy_2_auto"]
+                                                                    "videophysics/videophy_2_auto",
+                                                                    "videophysics/videocon_physics"]
     assert (f"python -m flows.evaluate generation.weights={tmp_path} paper_metrics.amt_weights={tmp_path}/amt-s.pth"
             in text)
     assert weights_main(["check", str(tmp_path)]) == 1 and "weights folder" in capsys.readouterr().out
