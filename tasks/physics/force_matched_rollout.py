@@ -54,7 +54,7 @@ def force_matched_rollout_step(inputs, params):
         "target_indentation": cal.target, "reached_indentation": _finite_or_none(cal.reached), "rtol": cal.rtol,
         "converged": cal.converged, "jump": list(cal.jump) if cal.jump else None,
         "runs": [{"constant": k, "peak_indentation": _finite_or_none(d)} for k, d in cal.runs],
-        "run_seconds": seconds, "rerun": len(seconds) > len(cal.runs),
+        "rerun": len(seconds) > len(cal.runs),  # wall seconds stay out: the artifact's digest must be deterministic
         "criterion": "peak squeeze strain under the patches (max over fingers and frames up to the predicted peak) "
                      "= the eq. 3 field's predicted peak"}
     return arrays, {**attrs, "force_per_coefficient": cal.constant, "force_calibration": calibration}

@@ -64,7 +64,7 @@ def criterion_row(name: str, rollout: Any, patches: Any, coefficients: np.ndarra
             "K_indentation": calibration["force_per_coefficient"], "indentation_at_K_reaction": reached,
             "prescribed": target, "ratio_reaction": reached / target,
             "indentation_at_K_indentation": calibration["reached_indentation"], "converged": calibration["converged"],
-            "runs": len(runs), "calibration_s": float(np.sum(calibration["run_seconds"])), "window_last_frame": last}
+            "runs": len(runs), "calibration_s": float(np.sum(calibration.get("run_seconds", np.nan))), "window_last_frame": last}
 
 
 def criterion_table(rows: list[dict]) -> list[str]:
