@@ -4,9 +4,6 @@ stand-in made to answer "Yes" scores above 0.5 and above the same stand-in made 
 parser reads either answer as 0 (why a VideoCon folder scored 0 before)."""
 from __future__ import annotations
 
-import json
-import re
-
 import numpy as np
 import pytest
 import torch
@@ -14,39 +11,18 @@ import torch
 from tasks.evaluation.videophy import (
     PROMPT_PHYSICS,
     PROMPT_VIDEOCON,
-    MplugOwlVideo,
-    OwlConfig,
     load_videophy,
     parse_rating,
     share_rated_at_least,
     video_pixels,
 )
-from tests.evaluation.test_videophy import SPECIAL, _config
+from tests.evaluation.tiny_rater import save_rater, word_tokenizer
 from tests.evaluation.videos import noise_video
 
 
 def _release(tmp_path):
-    from safetensors.torch import save_file
-    from tokenizers import Tokenizer, decoders, models, pre_tokenizers
-    from transformers import PreTrainedTokenizerFast
-
-    text = (PROMPT_PHYSICS + PROMPT_VIDEOCON).replace("<|video|>", "")
-    words = sorted(set(re.findall(r"\w+|[^\w\s]", text)) | set("012345") | {"Yes", "No"})
-    tok = Tokenizer(models.WordLevel({w: i for i, w in enumerate(SPECIAL + words)}, unk_token="<unk>"))
-    tok.pre_tokenizer = pre_tokenizers.Whitespace()
-    tok.decoder = decoders.WordPiece()
-    tok = PreTrainedTokenizerFast(tokenizer_object=tok, unk_token="<unk>", bos_token="<s>", eos_token="</s>",
-                                  pad_token="<unk>")
-    cfg = _config(len(tok))
-    torch.manual_seed(0)
-    net = MplugOwlVideo(OwlConfig.from_json(cfg))
-    for p in net.parameters():
-        torch.nn.init.normal_(p, std=0.5)
     folder = tmp_path / "videocon_physics"
-    folder.mkdir()
-    (folder / "config.json").write_text(json.dumps(cfg))
-    save_file({k: v.contiguous().clone() for k, v in net.state_dict().items()}, folder / "model.safetensors")
-    tok.save_pretrained(folder)
+    save_rater(folder, word_tokenizer(PROMPT_PHYSICS + PROMPT_VIDEOCON, {"Yes", "No"}))
     return folder
 
 

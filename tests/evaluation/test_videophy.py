@@ -5,7 +5,6 @@ determinism, loading, key names and the recipe's arithmetic (frame choice, promp
 from __future__ import annotations
 
 import json
-import re
 
 import numpy as np
 import pytest
@@ -13,63 +12,21 @@ import torch
 
 from tasks.evaluation.videophy import (
     PROMPT_PHYSICS,
-    MplugOwlVideo,
-    OwlConfig,
     frame_indices,
     load_videophy,
     parse_rating,
     video_pixels,
 )
+from tests.evaluation.tiny_rater import QUERIES, save_rater, word_tokenizer
 from tests.evaluation.videos import noise_video
-
-QUERIES = 4
-SPECIAL = ["<unk>", "<s>", "</s>"]
-
 
 pytestmark = pytest.mark.usefixtures("torch_one_thread")
 
 
-def _tokenizer():
-    from tokenizers import Tokenizer, decoders, models, pre_tokenizers
-    from transformers import PreTrainedTokenizerFast
-
-    words = sorted(set(re.findall(r"\w+|[^\w\s]", PROMPT_PHYSICS.replace("<|video|>", ""))) | set("012345"))
-    vocab = {w: i for i, w in enumerate(SPECIAL + words)}
-    tok = Tokenizer(models.WordLevel(vocab, unk_token="<unk>"))
-    tok.pre_tokenizer = pre_tokenizers.Whitespace()
-    tok.decoder = decoders.WordPiece()
-    return PreTrainedTokenizerFast(tokenizer_object=tok, unk_token="<unk>", bos_token="<s>", eos_token="</s>",
-                                   pad_token="<unk>")
-
-
-def _config(vocab: int) -> dict:
-    return {"model_type": "mplug-owl", "num_query_tokens": QUERIES,
-            "vision_config": {"hidden_size": 32, "intermediate_size": 64, "num_hidden_layers": 2,
-                              "num_attention_heads": 2, "image_size": 28, "patch_size": 14, "layer_norm_eps": 1e-6},
-            "visual_abstractor_config": {"hidden_size": 32, "intermediate_size": 64, "num_hidden_layers": 2,
-                                         "num_attention_heads": 2, "encoder_hidden_size": 32, "layer_norm_eps": 1e-6},
-            "text_config": {"model_type": "llama", "vocab_size": vocab, "hidden_size": 32, "intermediate_size": 64,
-                            "num_hidden_layers": 2, "num_attention_heads": 2, "num_key_value_heads": 2,
-                            "max_position_embeddings": 256, "bos_token_id": 1, "eos_token_id": 2,
-                            "pad_token_id": 0}}
-
-
 def _release(tmp_path, seed: int = 0):
     """A tiny rater saved like the release folder; returns (folder, the network that was saved)."""
-    from safetensors.torch import save_file
-
-    tok = _tokenizer()
-    cfg = _config(len(tok))
-    torch.manual_seed(seed)
-    net = MplugOwlVideo(OwlConfig.from_json(cfg))
-    for p in net.parameters():  # the zero-initialised queries, eos and positions too
-        torch.nn.init.normal_(p, std=0.5)
     folder = tmp_path / "videophy_2_autoeval"
-    folder.mkdir()
-    (folder / "config.json").write_text(json.dumps(cfg))
-    save_file({k: v.contiguous().clone() for k, v in net.state_dict().items()}, folder / "model.safetensors")
-    tok.save_pretrained(folder)
-    return folder, net
+    return folder, save_rater(folder, word_tokenizer(PROMPT_PHYSICS), seed)
 
 
 def test_release_names_match_the_published_module_tree(tmp_path):
