@@ -30,7 +30,6 @@ from tasks.generation.components import (
 )
 from tasks.generation.masked_diffusion import (
     DiffusionSettings,
-    build_effect_pipelines,
     generate_effect,
     generate_text_only,
     temporal_windows,
@@ -40,12 +39,6 @@ from tests.generation.tiny_diffusion import moving_disc_scene, save_diffusers_fo
 
 SETTINGS = DiffusionSettings(num_inference_steps=4, strength=0.75, window=8, overlap=4, seed=0)
 PROMPT = "a hand squeezing a ripe red tomato, pulp bursting out"
-
-
-@pytest.fixture(scope="module")
-def pipelines():
-    torch.set_num_threads(int(os.environ.get("VIRSQUEEZER_TORCH_THREADS", "1")))
-    return build_effect_pipelines(tiny_components(seed=0))
 
 
 @pytest.fixture(scope="module")

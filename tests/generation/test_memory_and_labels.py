@@ -6,15 +6,13 @@ says which passes ran."""
 from __future__ import annotations
 
 import dataclasses
-import os
 
 import numpy as np
 import pytest
-import torch
 from diffusers.models.attention_processor import AttnProcessor2_0, SlicedAttnProcessor
 
 from tasks.generation.effect import diffusion_label
-from tasks.generation.masked_diffusion import DiffusionSettings, build_effect_pipelines, generate_effect
+from tasks.generation.masked_diffusion import DiffusionSettings, generate_effect
 from tasks.generation.memory_options import (
     MemoryOptions,
     apply_memory_options,
@@ -25,12 +23,6 @@ from tests.generation.tiny_diffusion import moving_disc_scene, tiny_components
 
 SETTINGS = DiffusionSettings(num_inference_steps=2, strength=1.0, window=8, overlap=4, seed=0)
 PROMPT = "juice bursting out"
-
-
-@pytest.fixture(scope="module")
-def pipelines():
-    torch.set_num_threads(int(os.environ.get("VIRSQUEEZER_TORCH_THREADS", "1")))
-    return build_effect_pipelines(tiny_components(seed=0))
 
 
 def test_automatic_memory_options_by_device_and_explicit_values_win():
