@@ -101,13 +101,14 @@ def blob_held(bases: np.ndarray, held: np.ndarray) -> np.ndarray:
     return touched[comp]
 
 
-def prune_held(positions: np.ndarray, held: np.ndarray, origin: np.ndarray, dx: float) -> tuple[np.ndarray, np.ndarray]:
-    """A smaller record with the same flights (:func:`blob_flights`): the particles held at every sample are
-    dropped, and a kept particle counts as held where it shares a grid node with a held particle (a dropped one was
-    held there, so whatever it linked is held).  ``positions`` (sample, particle, xyz) m, ``held`` (sample,
-    particle) bool.  Returns (kept (particle,) bool, held (sample, kept particle) bool)."""
+def prune_held(positions: np.ndarray, held: np.ndarray, origin: np.ndarray, dx: float,
+               attached: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """A smaller record with the same flights (:func:`blob_flights`): the particles ``attached`` (default ``held``)
+    at every sample are dropped, and a kept particle counts as held where it shares a grid node with a held particle
+    (a dropped one was held there, so whatever it linked is held).  ``positions`` (sample, particle, xyz) m, ``held``
+    and ``attached`` (sample, particle) bool.  Returns (kept (particle,) bool, held (sample, kept particle) bool)."""
     held = np.asarray(held, bool)
-    kept = ~held.all(axis=0)
+    kept = ~np.asarray(held if attached is None else attached, bool).all(axis=0)
     near = np.zeros((len(held), int(kept.sum())), bool)
     for s in range(len(held)):
         b = stencil_bases(positions[s], origin, dx)

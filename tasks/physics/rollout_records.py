@@ -111,7 +111,8 @@ class FlightRecord:
     blob_held`) holds a particle whose B-spline stencil shares a grid node with the body (every other particle), a
     boundary point of the frame (Dirichlet or force point) or a wall or floor node, or, where the table acts as a
     plane collider (the released field), whose surface touches it (:mod:`tasks.physics.free_flight`; collider
-    fingers are not counted): a sample that is not held is one of a free blob, falling at g.  ``mass``/``physical_mass`` (loose,) kg
+    fingers are not counted): a sample that is not held is one of a free blob, falling at g; ``attached`` (loose,)
+    bool: the particle's own stencil is held so (its blob aside).  ``mass``/``physical_mass`` (loose,) kg
     the inertial and physical masses after the release, ``radius`` (loose,) m half their undeformed spacing."""
 
     loose: np.ndarray  # (particle,) bool: the particles sampled
@@ -121,13 +122,14 @@ class FlightRecord:
     times: list[float]
     x: list[np.ndarray]
     held: list[np.ndarray]
+    attached: list[np.ndarray]
 
     @classmethod
     def start(cls, solver: MPMSolver, labels: np.ndarray) -> "FlightRecord":
         """An empty record of the loose particles of ``labels`` (particle,), the labels after the release."""
         loose = (labels == INTERIOR) | (labels == RUPTURED)
         return cls(loose, solver.masses()[loose], solver.physical_masses()[loose],
-                   solver.contact_radii()[loose], [], [], [])
+                   solver.contact_radii()[loose], [], [], [], [])
 
     def sample(self, solver: MPMSolver, t: float, points: Optional[np.ndarray] = None) -> None:
         """Record the ``solver``'s particles at time ``t`` (s); ``points`` (n, xyz) m the boundary points acting
@@ -141,16 +143,17 @@ class FlightRecord:
         held |= held_by_boundary(bases, np.asarray(solver.dims), int(solver.cfg.padding), floor)
         if plane.any():
             held[plane] |= touches_table(x[self.loose][plane, 2], self.radius[plane], solver.floor_height)
-        held = blob_held(bases, held)  # a particle linked to held material through released material is held too
+        self.attached.append(held)
+        self.held.append(blob_held(bases, held))  # linked to held material through released material: held too
         self.times.append(float(t))
         self.x.append(x[self.loose].astype(np.float32))
-        self.held.append(held)
 
     def as_arrays(self, solver: MPMSolver) -> dict[str, np.ndarray]:
         """The record as the artifact's ``released_flight_*`` arrays (:func:`tasks.physics.free_flight.
-        prune_held`: the loose particles held at every sample, e.g. a can's cola that stays in, are left out)."""
+        prune_held`: the loose particles attached at every sample, e.g. a can's cola that stays in, are left out; a
+        jet held through its blob at every sample is kept, its flight drawn though never free)."""
         x, held = np.array(self.x, np.float32), np.array(self.held, bool)
-        kept, held = prune_held(x, held, solver.lo, solver.dx)
+        kept, held = prune_held(x, held, solver.lo, solver.dx, attached=np.array(self.attached, bool))
         return {"released_flight_time": np.array(self.times), "released_flight_positions": x[:, kept],
                 "released_flight_held": held,
                 "released_flight_particle": np.flatnonzero(self.loose)[kept].astype(np.int32),
