@@ -383,11 +383,14 @@ class GridConfig:
 class LimitsConfig:
     """Bounds on a run's work, checked against the estimate of :func:`flows.preflight.estimate_work` before the
     flow starts (a run beyond one is refused with the estimate and this knob).  The defaults pass the default grid
-    (91 frames, 1.6e9 particle-substeps, a 130 MB artifact at most) with a wide margin."""
+    (91 frames, 1.6e9 particle-substeps, a 130 MB artifact at most, a 41x37x40 grid of 8 MB, ~7 min) with a wide
+    margin; ``grid.seeds=[0,...,20]`` (21 grids, ~2.3 h) passes too."""
 
     max_frames: int = 9000  # output frames of one squeeze (5 min at 30 Hz)
-    max_particle_steps: float = 1e11  # particles x substeps x frames summed over the objects x variants of the run
+    max_particle_steps: float = 1e11  # particles x substeps x frames summed over the objects x variants x seeds
     max_artifact_bytes: float = 8 * 2**30  # bytes of the largest artifact (the MPM rollout or the render g-buffer)
+    max_grid_bytes: float = 8 * 2**30  # bytes of one scene's MPM background grid (nodes from mpm.dx and the object's box)
+    max_wall_hours: float = 12.0  # expected wall time of the run (flows.preflight_settings: measured throughput)
 
 
 @dataclass
@@ -517,7 +520,7 @@ def _validate_pipeline(cfg: Any) -> None:
         need(cfg.runner.kind in RUNNER_KINDS, "runner.kind",
              f"must be one of {', '.join(RUNNER_KINDS)}, got {cfg.runner.kind!r}")
     lim = cfg.limits
-    for key in ("max_frames", "max_particle_steps", "max_artifact_bytes"):
+    for key in ("max_frames", "max_particle_steps", "max_artifact_bytes", "max_grid_bytes", "max_wall_hours"):
         need(lim[key] > 0, f"limits.{key}", f"must be > 0, got {lim[key]}")
     need(cfg.object is not None or len(cfg.grid.objects) > 0, "grid.objects",
          f"is empty: name at least one object, e.g. [rubber_ball] (known {sorted(cfg.catalog)})")

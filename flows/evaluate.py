@@ -1,4 +1,5 @@
 """The eight-object evaluation grid:  ``python -m flows.evaluate``  (``-m`` for sweeps)."""
+import sys
 from typing import Callable
 
 import hydra
@@ -26,7 +27,13 @@ def pipeline_main(config_name: str) -> Callable[..., None]:
 
             run(cfg, config_name)
 
-    return main
+    def checked_main() -> None:
+        from flows.hydra_checks import check_argv
+
+        check_argv(sys.argv[1:], f"flows.{config_name}")  # -m after the overrides: a usage line, not argparse's
+        main()
+
+    return checked_main
 
 
 main = pipeline_main("evaluate")

@@ -31,20 +31,24 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf
 
 from conf.schema import ConfigError, validate
-from flows.selection import object_entries, selected_backends
+from flows.preflight_env import check_environment
+from flows.preflight_settings import check_settings
+from flows.selection import object_entries, selected_backends, selected_seeds
 
 # A hand's fingertips come closer than this to the object they squeeze (m; or twice the object's largest size)
 _NEAR = 0.25
 # bytes per frame and particle / surface point / pixel of the two largest artifacts (mpm_rollout: float32
 # positions, J, von Mises, plastic strain; Gaussian positions, covariances, rotations; gbuffer: sRGB + 4 float32 maps)
 _ROLLOUT_BYTES_PER_PARTICLE, _ROLLOUT_BYTES_PER_POINT, _GBUFFER_BYTES_PER_PIXEL = 24, 52, 19
-_PASSED: list[str] = []  # the config last checked (run() checks again what the main already checked)
+_PASSED: list = []  # the config last checked and its estimate (run() checks again what the main already checked)
 
 
 @dataclass(frozen=True)
 class WorkEstimate:
     """A run's work, from the config alone: output frames of one squeeze, particle-substeps summed over the run's
-    objects x variants (particles bounded by each object's box / spacing^3), and the largest artifact's bytes."""
+    objects x variants x seeds (particles bounded by each object's box / spacing^3), the largest artifact's bytes,
+    the largest MPM grid (nodes from the grid spacing and the object's box, :func:`flows.preflight_settings.grid_dims`),
+    the artifacts' bytes summed over the scenes and the expected wall time."""
 
     frames: int
     particles: int  # of the largest object
@@ -52,6 +56,32 @@ class WorkEstimate:
     particle_steps: float
     largest_bytes: float
     largest: str  # which artifact of which object
+    objects: int = 1
+    variants: int = 1
+    seeds: int = 1
+    backends: int = 1
+    grid: tuple[int, int, int] = (0, 0, 0)  # nodes per axis of the largest scene's grid
+    grid_bytes: float = 0.0
+    grid_of: str = ""  # the object of the largest grid
+    total_bytes: float = 0.0  # rollouts and g-buffers of every scene
+    wall_seconds: float = 0.0
+
+    @property
+    def scenes(self) -> int:
+        return self.objects * self.variants * self.seeds
+
+    def line(self) -> str:
+        """The one "work estimate: ..." line printed before a run's steps start."""
+        from flows.preflight_settings import human_bytes, human_seconds
+
+        plural = lambda n, w: f"{n} {w}{'s' if n != 1 else ''}"  # noqa: E731
+        nodes = math.prod(self.grid)
+        return (f"work estimate: {plural(self.scenes, 'scene')} ({plural(self.objects, 'object')} x "
+                f"{plural(self.variants, 'variant')} x {plural(self.seeds, 'seed')}) x "
+                f"{plural(self.backends, 'effect backend')}, {self.frames} frames each; largest grid "
+                f"{'x'.join(map(str, self.grid))} = {nodes:,} nodes ({human_bytes(self.grid_bytes)}, {self.grid_of}); "
+                f"about {self.particle_steps:.3g} particle-substeps, {human_bytes(self.total_bytes)} of artifacts; "
+                f"expected wall time ~{human_seconds(self.wall_seconds)}")
 
 
 def particle_bound(cfg: DictConfig, obj: DictConfig) -> int:
@@ -62,31 +92,54 @@ def particle_bound(cfg: DictConfig, obj: DictConfig) -> int:
 
 def estimate_work(cfg: DictConfig, span: float) -> WorkEstimate:
     """The work of a run whose squeeze lasts ``span`` seconds (``signal.duration`` or the recording's span)."""
+    from flows.preflight_settings import PARTICLE_STEPS_PER_WALL_SECOND, grid_bytes, grid_dims
+
     frames = int(span * cfg.control.smoothing.frame_rate) + 1
     m = cfg.mpm
     substeps = (math.ceil(1.0 / (cfg.control.smoothing.frame_rate * m.dt)) if m.dt
                 else int(m.target_substeps_per_frame))  # the mass-scaled budget (unscaled runs: the CFL decides)
     n_variants = 1 if cfg.variant is not None else len(cfg.grid.variants)
+    n_seeds = len(selected_seeds(cfg))
     r, points = cfg.render, int(cfg.sampling.surface_points)
     gbuffer = math.ceil(frames / r.frame_stride) * r.views * r.width * r.height * _GBUFFER_BYTES_PER_PIXEL
-    steps, largest, particles_max = 0.0, (0.0, ""), 0
-    for key, obj in object_entries(cfg):
+    steps, largest, particles_max, total = 0.0, (0.0, ""), 0, 0.0
+    grid: tuple[int, tuple[int, int, int], str] = (0, (0, 0, 0), "")
+    entries = object_entries(cfg)
+    for key, obj in entries:
         particles = particle_bound(cfg, obj)
         particles_max = max(particles_max, particles)
-        steps += n_variants * particles * substeps * frames
+        steps += n_seeds * n_variants * particles * substeps * frames
         rollout = frames * (particles * _ROLLOUT_BYTES_PER_PARTICLE + points * _ROLLOUT_BYTES_PER_POINT)
+        total += n_seeds * n_variants * (rollout + gbuffer)
         for nbytes, what in ((rollout, f"mpm_rollout of {key}"), (gbuffer, f"gbuffer of {key}")):
             largest = max(largest, (float(nbytes), what))
-    return WorkEstimate(frames, particles_max, substeps, steps, largest[0], largest[1])
+        dims = grid_dims(cfg, obj)
+        grid = max(grid, (math.prod(dims), dims, key))
+    return WorkEstimate(frames, particles_max, substeps, steps, largest[0], largest[1], objects=len(entries),
+                        variants=n_variants, seeds=n_seeds, backends=len(selected_backends(cfg)), grid=grid[1],
+                        grid_bytes=float(grid_bytes(cfg, grid[0])), grid_of=grid[2], total_bytes=total,
+                        wall_seconds=steps / PARTICLE_STEPS_PER_WALL_SECOND)
 
 
 def check_work(cfg: DictConfig, est: WorkEstimate, span_from: str) -> None:
     """Refuse a run beyond ``limits`` with the estimate and the knobs to change (``SystemExit``)."""
+    from flows.preflight_settings import GRID_BYTES_PER_NODE, human_bytes
+
     lim = cfg.limits
     if est.frames > lim.max_frames:
         raise SystemExit(f"work limit: {est.frames} frames per squeeze ({span_from} x control.smoothing.frame_rate "
                          f"{cfg.control.smoothing.frame_rate:g} Hz), above limits.max_frames={lim.max_frames}: shorten "
                          f"the squeeze or lower the frame rate (or raise limits.max_frames)")
+    if est.grid_bytes > lim.max_grid_bytes:
+        spacing = (f"mpm.dx={cfg.mpm.dx:g} m" if cfg.mpm.dx else
+                   f"the grid spacing (sampling.particle_spacing {cfg.sampling.particle_spacing:g} m x cbrt of "
+                   f"mpm.particles_per_cell {cfg.mpm.particles_per_cell:g})")
+        fix = ("raise mpm.dx (unset: two particle spacings)" if cfg.mpm.dx else
+               "raise sampling.particle_spacing or mpm.particles_per_cell")
+        raise SystemExit(f"work limit: {spacing} gives {est.grid_of} a grid of {'x'.join(map(str, est.grid))} = "
+                         f"{math.prod(est.grid):.3g} nodes, about {human_bytes(est.grid_bytes)} (up to "
+                         f"{GRID_BYTES_PER_NODE} bytes per node), above limits.max_grid_bytes="
+                         f"{lim.max_grid_bytes:.4g} ({human_bytes(lim.max_grid_bytes)}): {fix} (or raise the limit)")
     if est.particle_steps > lim.max_particle_steps:
         raise SystemExit(f"work limit: about {est.particle_steps:.3g} particle-substeps (up to {est.particles} "
                          f"particles x {est.substeps} substeps x {est.frames} frames per object and variant), above "
@@ -97,6 +150,11 @@ def check_work(cfg: DictConfig, est: WorkEstimate, span_from: str) -> None:
                          f"limits.max_artifact_bytes={lim.max_artifact_bytes:.4g} "
                          f"({lim.max_artifact_bytes / 2**30:.3g} GiB): shorten the squeeze, raise "
                          f"sampling.particle_spacing or render.frame_stride (or raise the limit)")
+    if est.wall_seconds > lim.max_wall_hours * 3600:
+        raise SystemExit(f"work limit: {est.scenes} scenes ({est.objects} objects x {est.variants} variants x "
+                         f"{est.seeds} seeds), about {est.particle_steps:.3g} particle-substeps, would take about "
+                         f"{est.wall_seconds / 3600:.3g} h, above limits.max_wall_hours={lim.max_wall_hours:g}: run "
+                         f"fewer seeds (grid.seeds), objects or variants (or raise limits.max_wall_hours)")
 
 
 def _check_reach(cfg: DictConfig, tips: np.ndarray, time: np.ndarray) -> None:
@@ -113,16 +171,29 @@ def _check_reach(cfg: DictConfig, tips: np.ndarray, time: np.ndarray) -> None:
                              f"positions in the object's frame (metres, object centred at the origin, z up)")
 
 
+def _check_values(cfg: DictConfig) -> None:
+    try:
+        validate(cfg)
+    except ConfigError as exc:
+        raise SystemExit(f"config error: {exc}") from None
+    check_settings(cfg)
+
+
+def check_config(cfg: DictConfig) -> None:
+    """The checks of the config alone, no file read: its ranges and settings, and its work for a squeeze of
+    ``signal.duration`` against ``limits`` - what a ``-m`` sweep checks of every job before the first one runs
+    (:class:`flows.hydra_checks.PreflightCallback`)."""
+    _check_values(cfg)
+    check_work(cfg, estimate_work(cfg, float(cfg.signal.duration)), f"signal.duration {cfg.signal.duration:g} s")
+
+
 def preflight(cfg: DictConfig) -> None:
     """Refuse a bad config or input file with one line (``SystemExit``) before anything heavy starts; record the
     diffusion weights' identity in the config."""
     if _PASSED and _PASSED[0] == OmegaConf.to_yaml(cfg):
         return
-    # 1. config ranges
-    try:
-        validate(cfg)
-    except ConfigError as exc:
-        raise SystemExit(f"config error: {exc}") from None
+    # 1. config ranges, and values the steps would refuse late (sessions, kinds, patterns, interiors, eta, CUDA, oracle)
+    _check_values(cfg)
     # 2. the recording, read exactly as the squeeze_signals step reads it
     span, span_from = float(cfg.signal.duration), f"signal.duration {cfg.signal.duration:g} s"
     if cfg.signal.source == "csv":  # imported here: pandas (and Prefect, below) only when a file is to be read
@@ -135,8 +206,10 @@ def preflight(cfg: DictConfig) -> None:
         span = float(rec["time"][-1] - rec["time"][0])
         span_from = f"the recording's {span:g} s"
         _check_reach(cfg, rec["fingertip_positions"], rec["time"])
-    # 3. the work, before any geometry file is loaded
-    check_work(cfg, estimate_work(cfg, span), span_from)
+    # 3. the work, before any geometry file is loaded; then the folders' free space for it, the caches, Prefect's API
+    est = estimate_work(cfg, span)
+    check_work(cfg, est, span_from)
+    check_environment(cfg, est.total_bytes)
     # 4. geometry files of the selected objects
     for key, obj in object_entries(cfg):
         if obj.geometry.kind in ("mesh", "ply"):
@@ -179,7 +252,13 @@ def preflight(cfg: DictConfig) -> None:
         from tasks.evaluation.paper_weights import weights_identity
 
         cfg.paper_metrics.weights_digest = digest_of(weights_identity(cfg.paper_metrics))
-    _PASSED[:] = [OmegaConf.to_yaml(cfg)]
+    _PASSED[:] = [OmegaConf.to_yaml(cfg), est]
+
+
+def work_estimate(cfg: DictConfig) -> WorkEstimate:
+    """The work estimate of the config :func:`preflight` passed last (checked again if it was another)."""
+    preflight(cfg)
+    return _PASSED[1]
 
 
 def preflight_stability(cfg: DictConfig) -> list:

@@ -17,10 +17,9 @@ import numpy as np
 
 from conf.hand import FINGERS
 from tasks.control.recording import SignalError, read_recording
+from tasks.control.session_kinds import SESSION_KINDS
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step
-
-SESSION_KINDS: tuple[str, ...] = ("ramp_hold_release", "pulses", "poke", "crush")
 
 
 # ============================================================================================ synthesis

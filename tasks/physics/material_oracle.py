@@ -27,7 +27,7 @@ from tasks.core.step import artifact_step
 from tasks.physics.oracle.config import SHELL_OVERRIDE_KEYS, config_field, read_overrides, read_settings
 from tasks.physics.oracle.convert import materials_from_dict, materials_to_dict, mpm_material_kwargs
 from tasks.physics.oracle.llm import llm_answer
-from tasks.physics.oracle.matching import match_entry, resolve_interior
+from tasks.physics.oracle.matching import NO_INTERIOR, match_entry, resolve_interior
 from tasks.physics.oracle.schema import (
     PLASTIC_MODELS,
     LLMAnswer,
@@ -43,9 +43,6 @@ from tasks.physics.oracle.table import INTERIORS, TABLE
 __all__ = ["INTERIORS", "TABLE", "LLMAnswer", "MaterialOracleError", "MaterialProperties", "ObjectMaterials",
            "match_entry", "material_oracle", "material_oracle_step", "materials_from_dict", "materials_to_dict",
            "mpm_material_kwargs", "oracle_for_object", "validate_material"]
-
-# ``interior`` strings that mean "nothing simulated inside" (a hollow object's air is not an MPM material)
-NO_INTERIOR: tuple[str, ...] = ("air", "none", "null", "empty", "hollow", "nothing", "gas")
 
 
 def material_oracle(description: str, name: str = "", overrides: Any = None, interior: Optional[str] = None,

@@ -8,6 +8,9 @@ from typing import Optional
 from tasks.physics.oracle.schema import MaterialOracleError
 from tasks.physics.oracle.table import INTERIORS, TABLE, TABLE_BY_KEY, TableEntry
 
+# ``interior`` strings that mean "nothing simulated inside" (a hollow object's air is not an MPM material)
+NO_INTERIOR: tuple[str, ...] = ("air", "none", "null", "empty", "hollow", "nothing", "gas")
+
 MIN_MATCH_SCORE = 2.0  # 1, the smallest keyword score that counts as a match
 
 _SPELLING = {

@@ -33,6 +33,7 @@ PLASTIC_MODELS: tuple[str, ...] = ("stvk_hencky_von_mises", "foam")
 EFFECTS: tuple[str, ...] = ("none", "rebound", "dent", "buckle", "juice", "cola_spray", "stuffing_spill")
 SPILL_EFFECTS: tuple[str, ...] = ("juice", "cola_spray", "stuffing_spill")
 BACKENDS: tuple[str, ...] = ("table", "llm", "explicit")
+DIAMOND_YOUNGS_MODULUS = 1.2e12  # Pa, the stiffest solid (an E above it is a unit mistake)
 
 
 class MaterialOracleError(ValueError):
@@ -98,8 +99,8 @@ class MaterialProperties(BaseModel):
         if v <= 0:
             raise _fail(f"youngs_modulus {v:g} must be > 0 Pa: give Young's modulus in pascals "
                         "(soft rubber ~1e6, aluminium 6.9e10)")
-        if v > 1.2e12:
-            raise _fail(f"youngs_modulus {v:g} Pa exceeds diamond (1.2e12 Pa): give Young's modulus in Pa")
+        if v > DIAMOND_YOUNGS_MODULUS:
+            raise _fail(f"youngs_modulus {v:g} Pa exceeds diamond ({DIAMOND_YOUNGS_MODULUS:g} Pa): give Young's modulus in Pa")
         return v
 
     @field_validator("poisson_ratio")

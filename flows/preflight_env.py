@@ -1,0 +1,130 @@
+"""Pre-flight checks of the folders and the environment a run writes into (issue 49), before Hydra makes its output
+folder, before Prefect's home is created and before any server starts.  Each finding is one line (``SystemExit``)
+naming the key or variable and the fix:
+
+* ``paths.artifacts``, ``paths.reports`` (and Hydra's own ``hydra.run.dir`` / ``hydra.sweep.dir``, under
+  ``paths.reports`` by default) are folders this process can write into: a regular file given as a folder, a path
+  through a file, a read-only file system or a folder without write permission is refused (:func:`check_folders`,
+  also run by the Hydra callback :class:`flows.hydra_checks.PreflightCallback` before Hydra creates its folder);
+* the artifacts' file system has room for the run's estimated artifacts, less what the artifacts folder already
+  holds (:func:`check_free_space`);
+* Warp's kernel cache and matplotlib's cache: when their default folders under ``HOME`` cannot be written (a
+  read-only home), they are put under ``<paths.artifacts>/.cache`` (``WARP_CACHE_PATH``, ``MPLCONFIGDIR``, given to
+  every process the run starts) with one line; a variable the user set to an unwritable folder is refused
+  (:func:`redirect_caches`);
+* ``PREFECT_API_URL``, when set, answers at ``/health`` (:func:`check_prefect_api`): a stale address is refused
+  instead of a page of connection tracebacks after the flow started.
+"""
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+from omegaconf import DictConfig
+
+_PROBE_TIMEOUT_S = 5.0  # s, for PREFECT_API_URL's /health
+
+
+def unwritable(path: str | Path) -> str:
+    """Why ``path`` cannot be (made and) written as a folder ("" when it can): a file at or above it, or the first
+    existing folder above it refusing a new file (permissions, read-only file system).  Writes and removes one
+    empty probe file; creates nothing else."""
+    p = Path(path).expanduser().absolute()
+    if p.exists() and not p.is_dir():
+        return f"{p} is a file, not a folder"
+    existing = p
+    while not existing.exists():
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{existing} is a file, so {p} cannot be a folder"
+    try:
+        fd, name = tempfile.mkstemp(dir=existing, prefix=".virsqueezer-write-probe-")
+    except OSError as exc:
+        return f"{existing} is not writable ({exc.strerror or type(exc).__name__})"
+    os.close(fd)
+    os.unlink(name)
+    return ""
+
+
+def check_folders(cfg: DictConfig, hydra_dirs: dict[str, str] | None = None) -> None:
+    """``paths.artifacts``, ``paths.reports`` and ``hydra_dirs`` ({key: folder}) writable, or one line."""
+    for key, folder in (("paths.artifacts", cfg.paths.artifacts), ("paths.reports", cfg.paths.reports),
+                        *(hydra_dirs or {}).items()):
+        why = unwritable(folder)
+        if why:
+            raise SystemExit(f"config error: {key}={folder}: {why}: give a folder you can write to "
+                             f"({key}=/path/to/folder)")
+
+
+def check_free_space(cfg: DictConfig, need_bytes: float) -> None:
+    """Refuse a run whose estimated artifacts (``need_bytes``, :func:`flows.preflight.estimate_work`) do not fit
+    into the free space of the artifacts' file system plus what the artifacts folder already holds (a cached run
+    needs little)."""
+    from flows.preflight_settings import human_bytes
+
+    root = Path(cfg.paths.artifacts).expanduser().absolute()
+    existing = root
+    while not existing.exists():
+        existing = existing.parent
+    free = shutil.disk_usage(existing).free
+    if free >= need_bytes:
+        return
+    held = sum(f.stat().st_size for f in root.rglob("*") if f.is_file()) if root.is_dir() else 0
+    if free + held < need_bytes:
+        raise SystemExit(f"config error: paths.artifacts={cfg.paths.artifacts}: the run's artifacts need up to "
+                         f"{human_bytes(need_bytes)} (rollouts and g-buffers of the work estimate) and its file system "
+                         f"has {human_bytes(free)} free: free some space or give a folder on a larger disk "
+                         f"(paths.artifacts=/path/to/folder)")
+
+
+def redirect_caches(cfg: DictConfig) -> list[str]:
+    """Warp's and matplotlib's caches under a writable folder (module docstring); returns the lines to print."""
+    home = Path.home()
+    defaults = {"WARP_CACHE_PATH": (Path(os.environ.get("XDG_CACHE_HOME") or home / ".cache") / "warp",
+                                    "Warp's kernel cache", "warp"),
+                "MPLCONFIGDIR": (Path(os.environ.get("XDG_CONFIG_HOME") or home / ".config") / "matplotlib",
+                                 "matplotlib's cache", "matplotlib")}
+    lines = []
+    for var, (default, what, sub) in defaults.items():
+        if var in os.environ:
+            why = unwritable(os.environ[var])
+            if why:
+                raise SystemExit(f"environment error: {var}={os.environ[var]}: {why}: point {var} at a folder you "
+                                 f"can write to, or unset it")
+            continue
+        why = unwritable(default)
+        if why:
+            target = Path(cfg.paths.artifacts).expanduser().absolute() / ".cache" / sub
+            os.environ[var] = str(target)
+            lines.append(f"{what} goes to {target} ({var}): its default {default} cannot be written ({why})")
+    return lines
+
+
+def check_prefect_api() -> None:
+    """``PREFECT_API_URL`` (when set) answers at ``/health``, or one line."""
+    import urllib.error
+    import urllib.request
+
+    url = os.environ.get("PREFECT_API_URL")
+    if not url:
+        return
+    try:
+        with urllib.request.urlopen(url.rstrip("/") + "/health", timeout=_PROBE_TIMEOUT_S) as resp:
+            resp.read()
+    except (OSError, ValueError) as exc:
+        reason = getattr(exc, "reason", None) or exc
+        why = getattr(reason, "strerror", None) or str(reason) or type(exc).__name__
+        raise SystemExit(f"environment error: PREFECT_API_URL={url} does not answer ({why}): start that server "
+                         "(prefect server start) or unset PREFECT_API_URL (each run then starts its own temporary "
+                         "server)") from None
+
+
+def check_environment(cfg: DictConfig, need_bytes: float) -> None:
+    """Everything above, in order; prints the caches' lines."""
+    check_folders(cfg)
+    check_free_space(cfg, need_bytes)
+    for line in redirect_caches(cfg):
+        print(line, flush=True)
+    check_prefect_api()
