@@ -99,6 +99,19 @@ def watch_progress(table: Any) -> None:
         install_stop_handlers()
 
 
+def progress_table() -> Any:
+    """The run's table (:func:`watch_progress`), or None before the first."""
+    return _progress[0] if _progress else None
+
+
+_report: list[Path] = []  # the report folder being written (flows.report_marker)
+
+
+def report_writing(folder: Path | None) -> None:
+    """The report folder being written now (None: none); a stop line names it as incomplete."""
+    _report[:] = [folder] if folder is not None else []
+
+
 def remove_at_exit(path: Path) -> None:
     """Remove the folder ``path`` when the process exits, normally or stopped by a signal."""
     import atexit
@@ -112,6 +125,8 @@ def stop_line(signum: int) -> str:
     """The one line a stopped run prints."""
     how = f"stopped by {SIGNAL_NAMES.get(signum, signal.Signals(signum).name)}"
     rest = "the rest will run on the next start (same command)"
+    if _report:
+        rest += (f"; report incomplete: {_report[0]} (REPORT_INCOMPLETE.txt), the next start rewrites it")
     if not _progress or not _progress[0].total:  # before the flow, or a run without a table (flows.export)
         return f"{how}: the steps that finished are kept, {rest}"
     table = _progress[0]

@@ -42,8 +42,10 @@ from prefect import flow, task
 from prefect.cache_policies import NO_CACHE
 from prefect.logging import get_logger
 
+from flows.heartbeat import heartbeat
 from flows.lifecycle import temporary_server
-from flows.preflight import particle_bound, preflight
+from flows.preflight import particle_bound, preflight, work_estimate
+from flows.report_marker import incomplete_report, writing_report
 from flows.runtime import RunTable, make_task_runner, profile_table, result_storage_settings, runner_workers
 from flows.selection import selected_backends, selected_objects, selected_seeds, selected_variants
 from tasks.control.contact_patches import contact_patches_step
@@ -52,7 +54,7 @@ from tasks.control.force_coefficients import force_coefficients_step
 from tasks.control.object_model import object_model_step
 from tasks.control.signal_smoothing import signal_smoothing_step
 from tasks.control.squeeze_signals import squeeze_signals_step
-from tasks.core.artifacts import ArtifactRef, remove_stale_temporaries
+from tasks.core.artifacts import ArtifactRef, digest_of, remove_stale_temporaries
 from tasks.core.params import resolve_reads
 from tasks.core.scope import seed_scope
 from tasks.core.step import StepTask, WiringError, artifact_path, artifact_rel, step_key, valid_artifact
@@ -333,14 +335,17 @@ def write_report(cfg: DictConfig, config: dict, flow_label: str, report_dir: str
                  refs: dict[str, dict[str, Any]], t0: float) -> dict:
     """Write the run report of ``refs`` (:func:`nest` per object) and print the per-task table; raise when a step
     failed.  Returns the report folder and the per-task table (as records)."""
-    report_dir = Path(report_dir) if report_dir else Path(cfg.paths.reports) / (cfg.run_name or _fresh_run_name(
-        Path(cfg.paths.reports), flow_label))
+    digest = digest_of(config)
+    reports = Path(cfg.paths.reports)
+    report_dir = Path(report_dir) if report_dir else reports / (cfg.run_name or _report_name(reports, flow_label,
+                                                                                              digest))
     labels = {v.name: v.label or v.name for v in selected_variants(cfg)}
     wall = time.perf_counter() - t0
-    write_run_report(report_dir, cfg=config, table=table, refs=refs, variants=labels, wall_seconds=wall,
-                     missing_backends=missing_backends(cfg),
-                     profile=profile_table(table, STAGE_OF, wall, runner_workers(cfg.runner)),
-                     media_cache=Path(cfg.paths.artifacts) / MEDIA_DIR)
+    with writing_report(report_dir, digest):  # cut: REPORT_INCOMPLETE.txt stays, the stop line says so
+        write_run_report(report_dir, cfg=config, table=table, refs=refs, variants=labels, wall_seconds=wall,
+                         missing_backends=missing_backends(cfg),
+                         profile=profile_table(table, STAGE_OF, wall, runner_workers(cfg.runner)),
+                         media_cache=Path(cfg.paths.artifacts) / MEDIA_DIR)
     print(f"\nper-task table ({table.summary()}), wall {time.perf_counter() - t0:.1f} s\n{table.to_text()}")
     print(f"report: {report_dir.resolve() / 'report.md'}")
     failed = [r for r in table.rows if r.status == "failed"]
@@ -348,6 +353,12 @@ def write_report(cfg: DictConfig, config: dict, flow_label: str, report_dir: str
         first = failed[0]
         raise RuntimeError(f"{len(failed)} step(s) failed; first: {first.object}/{first.step}: {first.note}")
     return {"report": str(report_dir.resolve()), "tasks": table.frame().to_dict("records")}
+
+
+def _report_name(reports: Path, flow_label: str, digest: str) -> str:
+    """The folder of a report of this config cut by a stop (rewritten), else a fresh one."""
+    cut = incomplete_report(reports, flow_label, digest)
+    return cut.name if cut is not None else _fresh_run_name(reports, flow_label)
 
 
 def _fresh_run_name(reports: Path, flow_label: str) -> str:
@@ -399,8 +410,10 @@ def run(cfg: DictConfig, flow_label: str) -> dict:
         refs = {name: nest({(step, chain): table.add_cached(name, step, ref, variant=chain)
                             for (step, chain), ref in steps.items()}) for name, steps in cached.items()}
         return write_report(OmegaConf.create(config), config, flow_label, job_dir, table, refs, t0)
+    est = work_estimate(cfg)
+    print(est.line(), flush=True)
     runner = make_task_runner(cfg.runner)
-    with result_storage_settings(cfg.paths.artifacts), temporary_server() as api_url:
+    with heartbeat(est.wall_seconds), result_storage_settings(cfg.paths.artifacts), temporary_server() as api_url:
         if cfg.runner.kind == "dask" and cfg.runner.address:  # an existing cluster: do its workers see ours?
             from flows.cluster import check_workers
 
