@@ -14,12 +14,12 @@ def pipeline_main(config_name: str) -> Callable[..., None]:
     """The Hydra main of a pipeline flow composed from ``conf/<config_name>.yaml`` (the flow's label, too)."""
     @hydra.main(version_base="1.3", config_path="../conf", config_name=config_name)
     def main(cfg: DictConfig) -> None:
-        from flows.lifecycle import begin_run
-
-        begin_run(cfg.paths.artifacts)  # Prefect's home under paths.artifacts, Ctrl-C handling; before Prefect loads
         from flows.sweep_summary import sweep_job
 
         with sweep_job():  # in a -m sweep: a failing job is recorded and the others go on
+            from flows.lifecycle import begin_run
+
+            begin_run(cfg.paths.artifacts)  # Prefect's home under paths.artifacts, Ctrl-C handling; before Prefect
             from flows.preflight import preflight
 
             preflight(cfg)  # bad config or input: one line, before the engine, Prefect or a server is loaded

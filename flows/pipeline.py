@@ -48,6 +48,7 @@ from flows.preflight import particle_bound, preflight, work_estimate
 from flows.report_marker import incomplete_report, writing_report
 from flows.runtime import RunTable, make_task_runner, profile_table, result_storage_settings, runner_workers
 from flows.selection import selected_backends, selected_objects, selected_seeds, selected_variants
+from flows.sweep_summary import sweep_job_dir
 from tasks.control.contact_patches import contact_patches_step
 from tasks.control.dirichlet_field import dirichlet_field_step
 from tasks.control.force_coefficients import force_coefficients_step
@@ -373,17 +374,6 @@ def _fresh_run_name(reports: Path, flow_label: str) -> str:
         except FileExistsError:
             continue
     raise RuntimeError(f"cannot find a free report folder name under {reports} for {stem}")
-
-
-def sweep_job_dir() -> str | None:
-    """Inside a Hydra ``-m`` sweep, the job's own output folder (``<sweep dir>/<job number>``), where its report
-    goes next to Hydra's ``.hydra/overrides.yaml`` so that :mod:`flows.sweep_summary` can aggregate the jobs."""
-    from hydra.core.hydra_config import HydraConfig
-    from hydra.types import RunMode
-
-    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
-        return None
-    return str(HydraConfig.get().runtime.output_dir)
 
 
 def run(cfg: DictConfig, flow_label: str) -> dict:

@@ -136,7 +136,7 @@ def _check_material(cfg: DictConfig, key: str, obj: DictConfig) -> None:
     try:
         resolve_interior(str(interior), entry, str(obj.name))
     except MaterialOracleError as exc:
-        _refuse(f"{key}.interior", f"{interior!r}: {str(exc).split(': ', 1)[-1]}")
+        _refuse(f"{key}.interior", f"{interior!r} {str(exc).split(f'interior {interior!r} ', 1)[-1]}")
 
 
 def _check_eta(cfg: DictConfig, key: str, obj: DictConfig) -> None:

@@ -1,7 +1,7 @@
 """After a Hydra ``-m`` sweep: one table across its jobs, with the swept parameters as columns.
 
 Each job writes its report (``metrics.csv`` among it) into its own Hydra output folder
-``<sweep dir>/<job number>/`` next to ``.hydra/overrides.yaml`` (see :func:`flows.pipeline.sweep_job_dir`).
+``<sweep dir>/<job number>/`` next to ``.hydra/overrides.yaml`` (see :func:`sweep_job_dir`).
 A job that fails (a refused config, a failed step) writes its one-line reason to ``<job>/job_failed.txt``
 (:func:`sweep_job`) and ends normally, so that the jobs after it, or beside it under a parallel launcher, go on.
 :class:`SweepSummary` is registered as a Hydra callback in ``conf/evaluate.yaml``; at the end of the sweep it
@@ -38,12 +38,21 @@ def _override_columns(job_dir: Path) -> dict[str, str]:
 FAILED = "job_failed.txt"
 
 
+def sweep_job_dir() -> str | None:
+    """Inside a Hydra ``-m`` sweep, the job's own output folder (``<sweep dir>/<job number>``), where its report
+    goes next to Hydra's ``.hydra/overrides.yaml`` so that :func:`summarize_sweep` can aggregate the jobs."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    if not HydraConfig.initialized() or HydraConfig.get().mode != RunMode.MULTIRUN:
+        return None
+    return str(HydraConfig.get().runtime.output_dir)
+
+
 @contextmanager
 def sweep_job() -> Iterator[None]:
     """Within a job of a ``-m`` sweep: an error (or a refusal, ``SystemExit`` with a message) is written to the job's
     ``job_failed.txt`` and printed as one line, and the job ends normally.  Outside a sweep: nothing changes."""
-    from flows.pipeline import sweep_job_dir
-
     job_dir = sweep_job_dir()
     if job_dir is None:
         yield
@@ -116,19 +125,45 @@ def failed_jobs(sweep_dir: str | Path) -> dict[str, str]:
 
 
 class SweepSummary(Callback):
-    """Hydra callback: summarise the sweep when all its jobs have finished."""
+    """Hydra callback: summarise the sweep when all its jobs have finished, or when one failed in a way that stops
+    the sweep (an error that escaped :func:`sweep_job`: Hydra's sweeper re-raises it after the job, and
+    ``on_multirun_end`` never comes), so that a sweep always leaves its summary with every job's status."""
+
+    def on_job_end(self, config: Any, job_return: Any, **kwargs: Any) -> None:
+        from hydra.core.utils import JobStatus
+
+        mode = config.hydra.get("mode")
+        if job_return.status != JobStatus.FAILED or getattr(mode, "name", mode) != "MULTIRUN":
+            return
+        job_dir = Path(config.hydra.runtime.output_dir)
+        if not (job_dir / FAILED).is_file():
+            exc = job_return._return_value
+            (job_dir / FAILED).write_text(((str(exc).splitlines() or [""])[0] or type(exc).__name__) + "\n")
+        write_summary(job_dir.parent)
 
     def on_multirun_end(self, config: Any, **kwargs: Any) -> None:
-        try:
-            df = summarize_sweep(config.hydra.sweep.dir)
-            print(f"sweep summary: {len(df)} rows -> {Path(config.hydra.sweep.dir).resolve() / 'sweep_summary.md'}")
-        except SystemExit as exc:
-            print(f"sweep summary: {exc}")
+        write_summary(config.hydra.sweep.dir)
         failed = failed_jobs(config.hydra.sweep.dir)
         if failed:
             first = next(iter(failed))
             raise SystemExit(f"sweep: {len(failed)} job(s) did not finish: job {first} {failed[first]} "
                              f"(every job's status: {Path(config.hydra.sweep.dir).resolve() / 'sweep_summary.md'})")
+
+
+def write_summary(sweep_dir: str | Path) -> None:
+    """:func:`summarize_sweep` with one line; when it fails, ``sweep_summary.md`` still lists every job's status."""
+    summary = Path(sweep_dir).resolve() / "sweep_summary.md"
+    try:
+        df = summarize_sweep(sweep_dir)
+        print(f"sweep summary: {len(df)} rows -> {summary}")
+    except SystemExit as exc:
+        print(f"sweep summary: {exc}")
+    except Exception as exc:  # noqa: BLE001 - the jobs' statuses are written whatever failed in the table
+        dirs = sorted((p for p in Path(sweep_dir).iterdir() if p.is_dir() and p.name.isdigit()), key=lambda p: int(p.name))
+        rows = "\n".join(f"| {p.name} | {job_status(p)} |" for p in dirs)
+        summary.write_text(f"# Sweep `{Path(sweep_dir).name}`\n\nthe metrics table failed: {type(exc).__name__}: "
+                           f"{(str(exc).splitlines() or [''])[0]}\n\n## Jobs\n\n| job | status |\n|---|---|\n{rows}\n")
+        print(f"sweep summary: jobs' statuses only ({type(exc).__name__}) -> {summary}")
 
 
 if __name__ == "__main__":

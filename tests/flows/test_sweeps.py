@@ -43,14 +43,12 @@ def assert_one_intact_artifact_per_shared_step(root: Path) -> None:
     assert not [p for p in root.rglob("*") if ".tmp-" in p.name or ".trash-" in p.name]
 
 
-def test_parallel_sweep_shares_one_cache_and_reports_a_failed_job(prefect_server, tmp_path):
-    """Three jobs on two joblib processes; job 2's gamma is refused.  Jobs 0 and 1 run at the same time, race on the
-    shared steps' keys and both finish; the summary lists every job, the failed one with its reason."""
-    out, sweep_dir = sweep(tmp_path, prefect_server, "1.5,2.0,-1.0",
-                           ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"])
-    assert out.returncode == 1, out.stderr[-3000:]
-    assert out.stderr.strip().splitlines()[-1].startswith(
-        "sweep: 1 job(s) did not finish: job 2 failed: config error: control.force.gamma must be > 0"), out.stderr[-2000:]
+def test_parallel_sweep_shares_one_cache(prefect_server, tmp_path):
+    """Two jobs on two joblib processes run at the same time, race on the shared steps' keys and both finish; the
+    summary lists both.  (A job whose config is refused now stops the sweep before job 0 runs:
+    tests/flows/test_preflight_settings.py.)"""
+    out, sweep_dir = sweep(tmp_path, prefect_server, "1.5,2.0", ["hydra/launcher=joblib", "hydra.launcher.n_jobs=2"])
+    assert out.returncode == 0, out.stderr[-3000:]
     (s0, e0), (s1, e1) = started_and_ended(sweep_dir / "0"), started_and_ended(sweep_dir / "1")
     assert s1 < e0 and s0 < e1, "the two jobs did not run at the same time"
     for job in ("0", "1"):
@@ -60,7 +58,7 @@ def test_parallel_sweep_shares_one_cache_and_reports_a_failed_job(prefect_server
     summary = pd.read_csv(sweep_dir / "sweep_metrics.csv")
     assert summary[["job", "control.force.gamma"]].values.tolist() == [[0, 1.5], [1, 2.0]]
     text = (sweep_dir / "sweep_summary.md").read_text()
-    assert "| 2 | -1.0 | failed: config error: control.force.gamma must be > 0, got -1.0 |" in text and "| 0 | 1.5 | ok |" in text
+    assert "| 1 | 2.0 | ok |" in text and "| 0 | 1.5 | ok |" in text
 
 
 def test_submitit_local_launcher_runs_two_jobs_on_one_cache(prefect_server, tmp_path):
