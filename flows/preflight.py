@@ -3,15 +3,19 @@
 A bad input stops the run with one line naming the input (its config key) and the fix, and no traceback:
 :func:`preflight` raises ``SystemExit(line)``.  What is checked:
 
-1. the config's ranges (:func:`conf.schema.validate`);
+1. the config's ranges (:func:`conf.schema.validate`) and the values the steps would refuse late
+   (:func:`flows.preflight_settings.check_settings`: sessions, geometry kinds, patterns, interiors, a Young's modulus
+   above diamond's, eta, ``device=cuda`` without CUDA, the LLM oracle's key and endpoint);
 2. the SenseGlove recording (``signal=csv``): it exists, is at most ``MAX_RECORDING_BYTES``, and parses
    completely (columns, numbers, ranges, truncation, units), with the reader the step uses; some fingertip comes
    near every selected object (the recording is in the object's frame);
 3. every selected object's geometry file (``kind: mesh`` or ``ply``): it exists and is a closed, non-flat,
    self-intersection-free mesh or a 3DGS PLY in the Inria layout, with the loader the step uses, and its fit
    into ``geometry.size`` is a plausible scale (a line states the factor when it is not 1);
-4. the run's work (:func:`estimate_work`: frames, particle-substeps, bytes of the largest artifact) against
-   ``limits``: a run beyond one is refused with the estimate and the knob to change;
+4. the run's work (:func:`estimate_work`: frames, the largest MPM grid, particle-substeps over objects x variants x
+   seeds, bytes of the largest artifact, expected wall time) against ``limits``: a run beyond one is refused with
+   the estimate and the knob to change; then the folders, their free space for the estimated artifacts, Warp's and
+   matplotlib's caches and ``PREFECT_API_URL`` (:func:`flows.preflight_env.check_environment`);
 5. the LLM judge's endpoint settings when ``llm_judge.url`` is set;
 6. the diffusion weights when a diffusion backend runs: every model present in ``generation.weights`` (a message
    naming each missing model, the folder expected and how to fetch it); their identity (configs + file digests)
