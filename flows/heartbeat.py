@@ -15,14 +15,14 @@ HEARTBEAT_S = 30.0  # s between two lines: the first comes within the first minu
 
 def progress_line(table, elapsed: float, expected: float) -> str:
     """The heartbeat's line: ``table`` the run's table (None while the steps are being submitted)."""
-    from flows.preflight_settings import human_seconds
+    from flows.preflight_settings import expected_wall, human_seconds
 
     if table is None or not table.total:
         what = "starting the task runner and submitting the steps"
     else:
         done = sum(r.status in ("ran", "cached") for r in table.rows)
         what = f"{done} of {table.total} steps finished"
-    return f"progress: {what}, {human_seconds(elapsed)} elapsed (work estimate ~{human_seconds(expected)})"
+    return f"progress: {what}, {human_seconds(elapsed)} elapsed (work estimate {expected_wall(expected)})"
 
 
 @contextlib.contextmanager

@@ -76,7 +76,7 @@ class WorkEstimate:
 
     def line(self) -> str:
         """The one "work estimate: ..." line printed before a run's steps start."""
-        from flows.preflight_settings import human_bytes, human_seconds
+        from flows.preflight_settings import expected_wall, human_bytes
 
         plural = lambda n, w: f"{n} {w}{'s' if n != 1 else ''}"  # noqa: E731
         nodes = math.prod(self.grid)
@@ -85,7 +85,7 @@ class WorkEstimate:
                 f"{plural(self.backends, 'effect backend')}, {self.frames} frames each; largest grid "
                 f"{'x'.join(map(str, self.grid))} = {nodes:,} nodes ({human_bytes(self.grid_bytes)}, {self.grid_of}); "
                 f"about {self.particle_steps:.3g} particle-substeps, {human_bytes(self.total_bytes)} of artifacts; "
-                f"expected wall time ~{human_seconds(self.wall_seconds)}")
+                f"expected wall time {expected_wall(self.wall_seconds)}")
 
 
 def particle_bound(cfg: DictConfig, obj: DictConfig) -> int:

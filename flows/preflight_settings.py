@@ -85,6 +85,12 @@ def human_seconds(s: float) -> str:
     return f"{s:.0f} s" if s < 120 else f"{s / 60:.1f} min" if s < 7200 else f"{s / 3600:.1f} h"
 
 
+def expected_wall(s: float) -> str:
+    """An expected wall time of the estimate: the constant is a large grid's rate, so below a minute it says only
+    that (a run's start-up, the Prefect server's ~20 s, is not in it)."""
+    return "~" + human_seconds(s) if s >= 60 else "under a minute"
+
+
 # ------------------------------------------------------------------------------------------------ settings
 def check_settings(cfg: DictConfig) -> None:
     """The checks of the module docstring; ``SystemExit`` with one line at the first failure."""
