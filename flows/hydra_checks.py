@@ -10,7 +10,6 @@
 """
 from __future__ import annotations
 
-import sys
 from typing import Any
 
 from hydra.experimental.callback import Callback
@@ -53,15 +52,17 @@ class PreflightCallback(Callback):
 
         from flows.preflight import check_config
         from flows.preflight_env import check_folders
+        from flows.preflight_settings import expected_wall
 
         check_folders(config, {"hydra.sweep.dir": str(config.hydra.sweep.dir)})
         name = kwargs.get("config_name") or config.hydra.job.config_name
         jobs = job_overrides(list(config.hydra.overrides.task))
         swept = {o for job in jobs for o in job if sum(o in j for j in jobs) < len(jobs)}  # those that differ
+        wall = 0.0
         for n, overrides in enumerate(jobs):
             shown = " ".join(o for o in overrides if o in swept) or "no overrides"
             try:
-                check_config(compose(config_name=name, overrides=overrides))
+                wall += check_config(compose(config_name=name, overrides=overrides)).wall_seconds
             except SystemExit as exc:
                 if not isinstance(exc.code, str):
                     raise
@@ -69,4 +70,5 @@ class PreflightCallback(Callback):
             except Exception as exc:  # noqa: BLE001 - Hydra's own composition error (an unknown key or group)
                 first = (str(exc).splitlines() or [type(exc).__name__])[0]
                 raise SystemExit(f"sweep job {n} ({shown}): config error: {first}") from None
-        print(f"sweep: the {len(jobs)} jobs' configs passed the checks", file=sys.stdout, flush=True)
+        print(f"sweep: the {len(jobs)} jobs' configs passed the checks; work estimate of the sweep: expected wall "
+              f"time {expected_wall(wall)} (its jobs one after another)", flush=True)

@@ -156,7 +156,7 @@ def check_work(cfg: DictConfig, est: WorkEstimate, span_from: str) -> None:
                          f"sampling.particle_spacing or render.frame_stride (or raise the limit)")
     if est.wall_seconds > lim.max_wall_hours * 3600:
         raise SystemExit(f"work limit: {est.scenes} scenes ({est.objects} objects x {est.variants} variants x "
-                         f"{est.seeds} seeds), about {est.particle_steps:.3g} particle-substeps, would take about "
+                         f"{est.seeds} seed{'s' if est.seeds != 1 else ''}), about {est.particle_steps:.3g} particle-substeps, would take about "
                          f"{est.wall_seconds / 3600:.3g} h, above limits.max_wall_hours={lim.max_wall_hours:g}: run "
                          f"fewer seeds (grid.seeds), objects or variants (or raise limits.max_wall_hours)")
 
@@ -183,12 +183,14 @@ def _check_values(cfg: DictConfig) -> None:
     check_settings(cfg)
 
 
-def check_config(cfg: DictConfig) -> None:
+def check_config(cfg: DictConfig) -> WorkEstimate:
     """The checks of the config alone, no file read: its ranges and settings, and its work for a squeeze of
     ``signal.duration`` against ``limits`` - what a ``-m`` sweep checks of every job before the first one runs
-    (:class:`flows.hydra_checks.PreflightCallback`)."""
+    (:class:`flows.hydra_checks.PreflightCallback`).  Returns the work estimate."""
     _check_values(cfg)
-    check_work(cfg, estimate_work(cfg, float(cfg.signal.duration)), f"signal.duration {cfg.signal.duration:g} s")
+    est = estimate_work(cfg, float(cfg.signal.duration))
+    check_work(cfg, est, f"signal.duration {cfg.signal.duration:g} s")
+    return est
 
 
 def preflight(cfg: DictConfig) -> None:
