@@ -15,7 +15,8 @@
    moment later was logged after it), and exits with 130 (SIGINT) or 143 (SIGTERM) without talking to the Prefect
    API again.  Further signals are ignored; a watchdog exits
    after :data:`STOP_DEADLINE_S` whatever happens.  A step stopped half-way leaves only its temporary folder
-   (artifacts are written under a temporary name and renamed when complete): nothing a later run trusts.
+   (artifacts are written under a temporary name and renamed when complete): nothing a later run trusts.  A stop
+   while the report is written says "report incomplete" and names its folder (:mod:`flows.report_marker`).
 3. **No server outlives its run.**  :func:`temporary_server` starts Prefect's temporary server itself, in its
    own session (a terminal's Ctrl-C reaches the flow, which stops the server in order) and, on Linux, with
    ``PR_SET_PDEATHSIG`` so that the kernel kills it when the flow process dies (SIGKILL included).
@@ -126,7 +127,7 @@ def stop_line(signum: int) -> str:
     how = f"stopped by {SIGNAL_NAMES.get(signum, signal.Signals(signum).name)}"
     rest = "the rest will run on the next start (same command)"
     if _report:
-        rest += (f"; report incomplete: {_report[0]} (REPORT_INCOMPLETE.txt), the next start rewrites it")
+        rest += f"; report incomplete: {_report[0]} (REPORT_INCOMPLETE.txt), the next start rewrites it"
     if not _progress or not _progress[0].total:  # before the flow, or a run without a table (flows.export)
         return f"{how}: the steps that finished are kept, {rest}"
     table = _progress[0]
