@@ -1,4 +1,5 @@
 """The eight-object evaluation grid:  ``python -m flows.evaluate``  (``-m`` for sweeps)."""
+import sys
 from typing import Callable
 
 import hydra
@@ -26,7 +27,13 @@ def pipeline_main(config_name: str) -> Callable[..., None]:
 
             run(cfg, config_name)
 
-    return main
+    def checked_main() -> None:
+        from flows.override_quoting import check_override_quoting
+
+        check_override_quoting(sys.argv[1:])  # a non-ASCII path unquoted: the quoting, not Hydra's lexer error
+        main()
+
+    return checked_main
 
 
 main = pipeline_main("evaluate")
