@@ -289,9 +289,10 @@ def read_gaussian_ply(path: str | Path) -> dict[str, np.ndarray]:
         names = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1",
                  "rot_2", "rot_3", "opacity"]
         where = ", ".join(n for n, hit in zip(names, rows.any(axis=0)) if hit)
-        raise GaussianPlyError(f"PLY {path}: {int(rows.any(axis=1).sum())} Gaussians have NaN/inf values (in {where}, "
-                               f"e.g. Gaussian {int(np.flatnonzero(rows.any(axis=1))[0])}): remove them from the "
-                               f"splat (or export it again) before loading")
+        bad = np.flatnonzero(rows.any(axis=1))
+        what = "1 Gaussian has" if len(bad) == 1 else f"{len(bad)} Gaussians have"
+        raise GaussianPlyError(f"PLY {path}: {what} NaN/inf values (in {where}, e.g. Gaussian {int(bad[0])}): remove "
+                               f"them from the splat (or export it again) before loading")
     qn = np.linalg.norm(rot, axis=1, keepdims=True)
     if np.any(qn < 1e-12):
         raise GaussianPlyError(f"PLY {path}: {int((qn < 1e-12).sum())} Gaussians have a zero rotation quaternion")
