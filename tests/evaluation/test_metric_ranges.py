@@ -62,3 +62,17 @@ def test_nan_documented_infinities_and_rounding_pass():
     assert METRIC_RANGES["max_squeeze_strain"].text() == "(-inf, inf)"
     assert not MetricRange(0.0, 1.0).holds(1.001) and not MetricRange(0.0, 1.0).holds(-1e-6)
     assert not MetricRange(-math.inf, math.inf).holds(math.inf)  # unbounded, yet infinite is not a value
+
+
+def test_the_reference_page_lists_every_range():
+    """docs/reference/preflight.md's table is generated from the same table (docs/hooks/reference.py)."""
+    import importlib.util
+    from pathlib import Path
+
+    hook = Path(__file__).resolve().parents[2] / "docs" / "hooks" / "reference.py"
+    spec = importlib.util.spec_from_file_location("docs_reference_hook", hook)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    rows = module.metric_ranges_markdown().splitlines()[2:]
+    assert rows == [f"| `{name}` | {rng.text()} |" for name, rng in METRIC_RANGES.items()]
+    assert "| `imaging_quality_brisque` | [0, 1] |" in rows and "| `ate` | [0, inf) |" in rows
