@@ -283,7 +283,7 @@ def _refuse_separators(p: Path, name: str) -> None:
     in a decimal-comma locale exports) or decimal commas (a first data row with more comma-separated fields than the
     header and no decimal point): the header would otherwise look missing, or the numbers shift columns."""
     with open(p, "rb") as fh:
-        lines = fh.read(65536).decode("utf-8", errors="replace").splitlines()
+        lines = fh.read(65536).decode("utf-8-sig", errors="replace").splitlines()
     header = lines[0] if lines else ""
     data = next((line for line in lines[1:] if line.strip()), "")
     for sep, what in ((";", "semicolons (';')"), ("\t", "tabs")):
