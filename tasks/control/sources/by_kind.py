@@ -37,8 +37,8 @@ def open_source(kind: str, geom: Any, size: np.ndarray, spacing: float, surface_
 def check_geometry_file(kind: str, path: str | None, size: Any = None) -> str | None:
     """Check a user geometry file before anything runs: a closed, non-flat, consistently wound mesh (``kind: mesh``)
     or a readable 3DGS PLY (``kind: ply``) whose content makes a visible object (:func:`check_splat_content`), and,
-    with ``size`` (m), its fit into ``geometry.size`` (:func:`fit_statement`: the line stating the rescale, or None).  Raises :class:`ObjectModelError` or :class:`GaussianPlyError` (one line, file
-    and fix)."""
+    with ``size`` (m), its fit into ``geometry.size`` (:func:`fit_statement`: the line stating the rescale, or
+    None).  Raises :class:`ObjectModelError` or :class:`GaussianPlyError` (one line, file and fix)."""
     if kind == "mesh":
         mesh = load_checked_mesh(path)
         lo, hi, what = mesh.bounds[0], mesh.bounds[1], f"mesh {Path(str(path)).expanduser()}"

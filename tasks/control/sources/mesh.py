@@ -1,7 +1,8 @@
 """A closed triangle mesh (``geometry.kind: mesh``, loaded with trimesh) as a geometry source.
 
-The mesh must be one closed surface: an open (non-watertight) mesh or one that intersects itself is refused, not
-repaired (:func:`load_checked_mesh`; :mod:`tasks.control.object_model` says why).  Self-intersection is found by
+The mesh must be one closed, consistently wound surface: an open (non-watertight) mesh, one with a face wound
+against its neighbours (its outward normal is ambiguous) or one that intersects itself is refused, not repaired
+(:func:`load_checked_mesh`; :mod:`tasks.control.object_model` says why); a NaN vertex is named as such.  Self-intersection is found by
 :func:`tasks.control.geometry.crossing_triangle_pairs`.  Colours come from the mesh's own vertex/face colours or
 texture when it has them.
 """
