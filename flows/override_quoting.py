@@ -9,11 +9,12 @@ _VALUE_FLAGS = ("-cp", "-cn", "-cd", "--config-path", "--config-name", "--config
 def check_override_quoting(argv: list[str]) -> None:
     """Refuse (``SystemExit``, one line) the first non-ASCII override of ``argv`` that Hydra cannot parse unquoted,
     with the quoted form that it reads (the whole override in single quotes for the shell, the value in double
-    quotes for Hydra).  ASCII overrides are left to Hydra's own messages."""
+    quotes for Hydra; in a ``-m`` sweep each comma-separated value).  ASCII overrides are left to Hydra's own
+    messages."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
     from hydra.errors import OverrideParseException
 
-    parser = None
+    parser, sweep = None, any(a in ("-m", "--multirun") for a in argv)
     for before, arg in zip(["", *argv], argv):
         if arg.isascii() or arg.startswith("-") or before in _VALUE_FLAGS:
             continue
@@ -23,6 +24,7 @@ def check_override_quoting(argv: list[str]) -> None:
         except OverrideParseException:
             key, _, value = arg.partition("=")
             quote = "'" if '"' in value else '"'
+            quoted = ",".join(f"{quote}{v}{quote}" for v in (value.split(",") if sweep else [value]))  # each job's
             raise SystemExit(f"config error: the override {arg} holds characters Hydra reads only inside quotes: "
-                             f"quote its value, e.g. '{key}={quote}{value}{quote}' (single quotes around it all for "
-                             f"the shell)") from None
+                             f"quote {'each value' if sweep and ',' in value else 'its value'}, e.g. "
+                             f"'{key}={quoted}' (single quotes around it all for the shell)") from None

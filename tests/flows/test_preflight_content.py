@@ -194,3 +194,21 @@ def test_the_visibility_threshold_is_the_rasterisers():
     from tasks.render.splat_torch import ALPHA_MIN
 
     assert VISIBLE_OPACITY == ALPHA_MIN
+
+
+def test_the_quoting_hint_is_what_hydra_reads():
+    """The hinted override parses to the path given (each job's path in a -m sweep); a flag's value and ASCII
+    overrides are left alone."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    from flows.override_quoting import check_override_quoting
+
+    parser = OverridesParser.create()
+    for argv, values in ((["signal.path=/d/é.csv"], ["/d/é.csv"]),
+                         (["-m", "signal.path=/d/é.csv,/d/ü.csv"], ['"/d/é.csv"', '"/d/ü.csv"'])):
+        with pytest.raises(SystemExit) as exc:
+            check_override_quoting(argv)
+        hinted = str(exc.value).split("e.g. '")[1].split("' (single quotes")[0]
+        parsed = parser.parse_overrides([hinted])[0]
+        assert (list(parsed.sweep_string_iterator()) if parsed.is_sweep_override() else [parsed.value()]) == values
+    check_override_quoting(["-cd", "/tmp/é", "object=can", "signal.path=/d/e.csv"])
