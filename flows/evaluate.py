@@ -29,8 +29,10 @@ def pipeline_main(config_name: str) -> Callable[..., None]:
 
     def checked_main() -> None:
         from flows.hydra_checks import check_argv
+        from flows.override_quoting import check_override_quoting
 
         check_argv(sys.argv[1:], f"flows.{config_name}")  # -m after the overrides: a usage line, not argparse's
+        check_override_quoting(sys.argv[1:])  # a non-ASCII path unquoted: the quoting, not Hydra's lexer error
         main()
 
     return checked_main

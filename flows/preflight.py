@@ -10,8 +10,9 @@ A bad input stops the run with one line naming the input (its config key) and th
    completely (columns, numbers, ranges, truncation, units), with the reader the step uses; some fingertip comes
    near every selected object (the recording is in the object's frame);
 3. every selected object's geometry file (``kind: mesh`` or ``ply``): it exists and is a closed, non-flat,
-   self-intersection-free mesh or a 3DGS PLY in the Inria layout, with the loader the step uses, and its fit
-   into ``geometry.size`` is a plausible scale (a line states the factor when it is not 1);
+   consistently wound, self-intersection-free mesh without NaN vertices, or a 3DGS PLY in the Inria layout with
+   enough Gaussians, visible ones, smaller than the object (:mod:`tasks.control.splat_content`), with the loader the
+   step uses, and its fit into ``geometry.size`` is a plausible scale (a line states the factor when it is not 1);
 4. the run's work (:func:`estimate_work`: frames, the largest MPM grid, particle-substeps over objects x variants x
    seeds, bytes of the largest artifact, expected wall time) against ``limits``: a run beyond one is refused with
    the estimate and the knob to change; then the folders, their free space for the estimated artifacts, Warp's and

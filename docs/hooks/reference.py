@@ -8,6 +8,8 @@
   ``@artifact_step`` declaration names: producing steps of its inputs, the config paths it reads (its cache key),
   the input files and the arrays it writes.  The declarations are read from the source with ``ast`` (nothing under
   ``tasks/`` is imported), so the page follows the code wherever a step module lives.
+* ``<!-- reference:metric-ranges -->`` (docs/reference/preflight.md) becomes the table of every written metric's
+  documented range (``tasks/evaluation/metric_ranges.py``, a module without heavy imports).
 
 The functions are plain Python so that ``tests/flows/test_docs.py`` checks the same output the site shows.
 """
@@ -407,9 +409,23 @@ def artifact_reference_markdown() -> str:
 
 
 # ------------------------------------------------------------------------------------------------ mkdocs hook
+# ------------------------------------------------------------------------------------------------ metric ranges
+def metric_ranges_markdown() -> str:
+    """The table of :data:`tasks.evaluation.metric_ranges.METRIC_RANGES`: each metric and the range it is checked
+    against when written."""
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
+    from tasks.evaluation.metric_ranges import METRIC_RANGES
+
+    rows = [f"| `{name}` | {rng.text()} |" for name, rng in METRIC_RANGES.items()]
+    return "\n".join(["| metric | documented range |", "|---|---|", *rows])
+
+
 def on_page_markdown(markdown: str, page, config, files) -> str:  # noqa: ARG001 (mkdocs hook signature)
     if "<!-- reference:config -->" in markdown:
         markdown = markdown.replace("<!-- reference:config -->", config_reference_markdown())
     if "<!-- reference:artifacts -->" in markdown:
         markdown = markdown.replace("<!-- reference:artifacts -->", artifact_reference_markdown())
+    if "<!-- reference:metric-ranges -->" in markdown:
+        markdown = markdown.replace("<!-- reference:metric-ranges -->", metric_ranges_markdown())
     return markdown

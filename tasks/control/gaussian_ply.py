@@ -238,6 +238,11 @@ def read_gaussian_ply(path: str | Path) -> dict[str, np.ndarray]:
         raise GaussianPlyError(f"PLY {path}: the vertex element has list properties; a 3DGS PLY has only scalars")
     prop_names = [p for p, _ in props]
     missing = [p for p in REQUIRED_PROPERTIES if p not in prop_names]
+    faces = sum(e[1] for e in elements if e[0] == "face")
+    if missing and faces:
+        raise GaussianPlyError(
+            f"PLY {path} is a triangle mesh ({faces} faces, no Gaussian properties such as {missing[0]}), not a "
+            "3DGS splat: give it as a mesh with geometry.kind=mesh (e.g. object.geometry.kind=mesh)")
     if missing:
         raise GaussianPlyError(
             f"PLY {path} lacks the 3DGS properties {missing}: it is not a Gaussian splat in the Inria layout "
@@ -280,8 +285,14 @@ def read_gaussian_ply(path: str | Path) -> dict[str, np.ndarray]:
     rot = np.stack([col[f"rot_{i}"] for i in range(4)], axis=1)
     stacked = np.concatenate([means, f_dc, log_s, rot, col["opacity"][:, None]], axis=1)
     if not np.all(np.isfinite(stacked)):
-        bad = int((~np.isfinite(stacked)).any(axis=1).sum())
-        raise GaussianPlyError(f"PLY {path}: {bad} Gaussians have NaN/inf values; clean the splat before loading")
+        rows = ~np.isfinite(stacked)
+        names = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1",
+                 "rot_2", "rot_3", "opacity"]
+        where = ", ".join(n for n, hit in zip(names, rows.any(axis=0)) if hit)
+        bad = np.flatnonzero(rows.any(axis=1))
+        what = "1 Gaussian has" if len(bad) == 1 else f"{len(bad)} Gaussians have"
+        raise GaussianPlyError(f"PLY {path}: {what} NaN/inf values (in {where}, e.g. Gaussian {int(bad[0])}): remove "
+                               f"them from the splat (or export it again) before loading")
     qn = np.linalg.norm(rot, axis=1, keepdims=True)
     if np.any(qn < 1e-12):
         raise GaussianPlyError(f"PLY {path}: {int((qn < 1e-12).sum())} Gaussians have a zero rotation quaternion")

@@ -6,6 +6,8 @@ step, and of the pre-flight check that reads a recording before the flow starts)
 
 Recording format (CSV, one row per sensor sample)
 -------------------------------------------------
+* Fields are separated by commas and numbers use a decimal point: a file separated by semicolons or tabs, or with
+  decimal commas (as spreadsheets export in a decimal-comma locale), is refused naming the separator and the fix.
 * A header row is required.  Column names are matched exactly (surrounding spaces are ignored), column
   order is free and any extra column (e.g. per-joint angles, a frame counter) is ignored.
 * ``time`` - sample time in seconds (s), strictly increasing (no duplicates).  Any origin is accepted.  A median
@@ -51,7 +53,9 @@ Arrays (all SI): ``time`` (sample,) s; ``flexion`` (sample, finger) 1 in [0, 1];
 """
 from __future__ import annotations
 
+import csv
 import logging
+import re
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -83,6 +87,7 @@ _FLEX_TOLERANCE = 0.05  # accepted overshoot outside [0, 1] after scaling
 _ZERO_QUAT = 1e-9
 _MAX_SAMPLE_INTERVAL = 0.5  # s; a median sample interval this long means the time column is not in seconds
 _MAX_REACH = 1.0  # m; fingertips farther than this from the palm mean the positions are not in metres
+_DECIMAL_COMMA = re.compile(r"\d,\d")  # 0,5: a number written with a decimal comma (or two fields)
 
 _SIGNAL_NAMES = ("time", "flexion", "fingertip_positions", "palm_position", "palm_orientation")
 
@@ -142,6 +147,7 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
         raise SignalError(f"recording {name} is empty (0 bytes); record again or point signal.path at a "
                           f"CSV with a header row and samples")
 
+    _refuse_separators(p, name)
     # --- header: which required columns are present (extra columns are read but not used)
     try:
         header = pd.read_csv(p, nrows=0, skipinitialspace=True)
@@ -272,6 +278,30 @@ def read_recording(path: str | Path, frame_rate: float | None = None,
     }
 
 
+def _refuse_separators(p: Path, name: str) -> None:
+    """Raise if the file's first lines show another field separator than the comma (``;`` or a tab, as a spreadsheet
+    in a decimal-comma locale exports) or decimal commas (a first data row with more comma-separated fields than the
+    header and no decimal point): the header would otherwise look missing, or the numbers shift columns."""
+    with open(p, "rb") as fh:
+        lines = fh.read(65536).decode("utf-8-sig", errors="replace").splitlines()
+    header = lines[0] if lines else ""
+    data = next((line for line in lines[1:] if line.strip()), "")
+    for sep, what in ((";", "semicolons (';')"), ("\t", "tabs")):
+        if "time" in (c.strip().strip('"') for c in header.split(sep)):
+            decimal = bool(_DECIMAL_COMMA.search(data))
+            raise SignalError(
+                f"recording {name} separates its columns with {what}"
+                + (f" and writes decimal commas (line 2 reads {excerpt(data)})" if decimal else "")
+                + ": save it as comma-separated text" + (" with decimal points" if decimal else "")
+                + " (e.g. pandas df.to_csv(path), or a spreadsheet's CSV export with field separator ','"
+                + (" and decimal separator '.'" if decimal else "") + ")")
+    fields, columns = (len(next(csv.reader([line]), [])) for line in (data, header))
+    if "." not in data and columns < fields <= 2 * columns and _DECIMAL_COMMA.search(data):
+        raise SignalError(f"recording {name}: line 2 has {fields} comma-separated fields where the header has "
+                          f"{columns}, and no decimal point: the numbers look written with decimal commas "
+                          f"({excerpt(data)}); write decimal points (0.5, not 0,5)")
+
+
 def _refuse_truncated(p: Path, name: str, row: int, columns: int) -> None:
     """Raise if the last line of ``p`` (data row ``row``, 0-based) has fewer fields than the header."""
     with open(p, "rb") as fh:
@@ -306,6 +336,9 @@ def _locate_bad_cell(p: Path, name: str, original: list, read_kw: dict, exc: Exc
     row, j, value = first
     if row == len(df) - 1:
         _refuse_truncated(p, name, row, len(df.columns))
+    if re.fullmatch(r"\s*[-+]?\d+,\d+\s*", value):
+        raise SignalError(f"recording {name}: column {REQUIRED_COLUMNS[j]} row {row + 1} (line {row + 2}) holds "
+                          f"{excerpt(value)}, a decimal comma; write decimal points ({value.strip().replace(',', '.')})")
     raise SignalError(f"recording {name}: column {REQUIRED_COLUMNS[j]} row {row + 1} (line {row + 2}) holds "
                       f"non-numeric {excerpt(value)}; write a plain number (decimal point, no units)")
 

@@ -24,6 +24,7 @@ from conf.hand import N_FINGERS
 from conf.metrics_schema import MetricsConfig, validate_metrics
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step
+from tasks.evaluation.metric_ranges import check_metrics
 from tasks.physics.regions import finger_regions
 
 __all__ = ["DEFINITIONS", "bdc_s", "bdc_t", "concordance", "deformation_metrics", "deformation_metrics_step",
@@ -403,14 +404,15 @@ def _json_float(v: Any) -> float | None:
 def deformation_metrics(rollout: Mapping[str, np.ndarray], rollout_attrs: Mapping[str, Any],
                         field: Mapping[str, np.ndarray], forces: Mapping[str, np.ndarray],
                         contacts: Mapping[str, np.ndarray], frames: Mapping[str, np.ndarray],
-                        obj: Mapping[str, np.ndarray], params: Mapping[str, Any] | MetricsConfig | None = None
-                        ) -> tuple[dict[str, Array], dict[str, Any]]:
+                        obj: Mapping[str, np.ndarray], params: Mapping[str, Any] | MetricsConfig | None = None,
+                        scene: str = "this scene") -> tuple[dict[str, Array], dict[str, Any]]:
     """Every metric of :data:`DEFINITIONS` for one object and variant.
 
     Inputs are the artifacts' arrays (mappings name -> numpy): ``rollout`` (mpm_rollout) with its attrs
     ``rollout_attrs``, ``field`` (dirichlet_field), ``forces`` (force_coefficients), ``contacts``
     (contact_patches), ``frames`` (signal_smoothing), ``obj`` (mpm_particles); ``params`` the ``metrics`` config
-    (:class:`conf.metrics_schema.MetricsConfig` values).
+    (:class:`conf.metrics_schema.MetricsConfig` values); ``scene`` names the object in the error raised for a value
+    outside its documented range (:func:`tasks.evaluation.metric_ranges.check_metrics`: a bug, never a result).
 
     Returns the per-frame arrays ``bdc_s_iou``, ``miou_iou``, ``volume_ratio``, ``nonrigid_displacement_rms``,
     ``sensed_trajectory``, ``reconstructed_trajectory`` and the attrs ``{"metrics": name -> float or None (NaN),
@@ -464,6 +466,8 @@ def deformation_metrics(rollout: Mapping[str, np.ndarray], rollout_attrs: Mappin
     metrics = {"bdc_t": score_t, "bdc_s": score_s, "sdc": score_c, "miou": score_m,
                **{k: traj[k] for k in ("ate", "mte", "tce", "cosine_similarity")}, **phys}
     per_finger = {"bdc_t": ccc, "sdc": coupling, **phys_finger}
+    for values in (metrics, per_finger, {"bdc_s_iou": iou_s, "miou_iou": iou_m}):
+        check_metrics(values, scene)
     rms = np.sqrt(np.mean(np.sum(u_obs ** 2, axis=-1), axis=1))
     attrs = {
         "metrics": {k: _json_float(v) for k, v in metrics.items()},
@@ -504,4 +508,5 @@ def deformation_metrics_step(inputs, params):
     r = inputs["mpm_rollout"]
     return deformation_metrics(r.arrays, r.attrs, inputs["dirichlet_field"].arrays,
                                inputs["force_coefficients"].arrays, inputs["contact_patches"].arrays,
-                               inputs["signal_smoothing"].arrays, inputs["mpm_particles"].arrays, params["metrics"])
+                               inputs["signal_smoothing"].arrays, inputs["mpm_particles"].arrays, params["metrics"],
+                               scene=r.ref.scope)

@@ -22,6 +22,7 @@ import numpy as np
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
 from tasks.evaluation.amt import amt_midpoint, load_amt
+from tasks.evaluation.metric_ranges import check_metrics
 from tasks.evaluation.musiq import load_musiq, musiq_frame_scores
 from tasks.evaluation.paper_weights import PAPER_WEIGHTS, RATING_COLUMN, absent_reason, present_weights
 from tasks.evaluation.video_quality import to_srgb_uint8, vfi_smoothness
@@ -86,11 +87,12 @@ def _on_device(net, device):
     return net
 
 
-def paper_metrics(final: np.ndarray, cfg: dict[str, Any]) -> tuple[dict[str, float], dict[str, str],
-                                                                    np.ndarray | None, dict[str, float]]:
+def paper_metrics(final: np.ndarray, cfg: dict[str, Any], scene: str = "this scene"
+                  ) -> tuple[dict[str, float], dict[str, str], np.ndarray | None, dict[str, float]]:
     """The paper's metrics of one scene.  final: (view, frame, y, x, 3) uint8 sRGB or float linear RGB; cfg: the
     ``paper_metrics`` group.  Returns (values, reasons for NaN values, MUSIQ frame scores (view, frame) or None,
-    seconds spent per metric)."""
+    seconds spent per metric); a value outside its documented range is a bug named with ``scene``
+    (:func:`tasks.evaluation.metric_ranges.check_metrics`)."""
     values: dict[str, float] = {}
     reasons: dict[str, str] = {}
     seconds: dict[str, float] = {}
@@ -135,6 +137,7 @@ def paper_metrics(final: np.ndarray, cfg: dict[str, Any]) -> tuple[dict[str, flo
         else:
             values[spec.metric] = float(np.mean(scores))
         seconds[spec.metric] = time.perf_counter() - t0
+    check_metrics(values, scene)
     return values, reasons, frame_scores, seconds
 
 
@@ -146,7 +149,8 @@ def paper_metrics_step(inputs, params):
     torch_device(params["paper_metrics"].get("device", "auto"))  # thread count
     g, effect = inputs["gbuffer"], inputs["effect"]
     final = final_video(effect, g)
-    values, reasons, frame_scores, seconds = paper_metrics(final, dict(params["paper_metrics"]))
+    values, reasons, frame_scores, seconds = paper_metrics(final, dict(params["paper_metrics"]),
+                                                           f"{effect.ref.scope} ({effect.attrs.get('backend')} effect)")
     arrays = {}
     if frame_scores is not None:
         arrays["musiq_frame_score"] = Array(frame_scores, ("view", "frame"), "1",

@@ -25,6 +25,7 @@ import numpy as np
 from conf.hand import FINGERS
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
+from tasks.evaluation.metric_ranges import check_metrics
 from tasks.evaluation.video_quality import (
     DEFINITIONS,
     control_coupling,
@@ -54,12 +55,25 @@ def json_metric(x: float | None) -> float | str | None:
 
 def video_metrics(final: np.ndarray, simulated: np.ndarray, refined_mask: np.ndarray, has_effect: bool,
                   refined_rgb: np.ndarray | None, held_out_views: list[int], force_coefficients: np.ndarray,
-                  release_fingers: list[int], cfg: dict[str, Any], initial_rgb: np.ndarray | None = None
-                  ) -> tuple[dict[str, float], dict[str, str], dict[str, np.ndarray], str]:
+                  release_fingers: list[int], cfg: dict[str, Any], initial_rgb: np.ndarray | None = None,
+                  scene: str = "this scene") -> tuple[dict[str, float], dict[str, str], dict[str, np.ndarray], str]:
     """All metrics of one scene.  final, simulated, refined_rgb: (view, frame, y, x, 3) uint8 sRGB; refined_mask
     (view, frame, y, x) bool; force_coefficients (frame, finger) at the rendered frames; initial_rgb (held-out view,
     frame, y, x, 3): the 4D Gaussians before refinement in the ``held_out_views``.  Returns (values,
-    reasons for NaN values, per-frame arrays, the motion-smoothness interpolator used)."""
+    reasons for NaN values, per-frame arrays, the motion-smoothness interpolator used); a value outside its
+    documented range is a bug named with ``scene`` (:func:`tasks.evaluation.metric_ranges.check_metrics`)."""
+    values, reasons, per_frame, interpolator = _scene_metrics(
+        final, simulated, refined_mask, has_effect, refined_rgb, held_out_views, force_coefficients, release_fingers,
+        cfg, initial_rgb)
+    check_metrics(values, scene)
+    if "effect_placement_iou" in per_frame:
+        check_metrics({"effect_placement_iou": per_frame["effect_placement_iou"]}, scene)
+    return values, reasons, per_frame, interpolator
+
+
+def _scene_metrics(final, simulated, refined_mask, has_effect, refined_rgb, held_out_views, force_coefficients,
+                   release_fingers, cfg, initial_rgb):
+    """:func:`video_metrics` before the range check."""
     values: dict[str, float] = {}
     reasons: dict[str, str] = {}
     n_views = final.shape[0]
@@ -139,7 +153,8 @@ def video_metrics_step(inputs, params):
     values, reasons, per_frame, interpolator = video_metrics(
         final, g["rgb"], cond["refined_mask"], has_effect, refined["rgb"] if "rgb" in refined else None,
         list(refined.attrs.get("held_out_views") or []), forces, list(g.attrs.get("release_fingers") or []),
-        dict(params["video_metrics"]), refined["rgb_initial"] if "rgb_initial" in refined else None)
+        dict(params["video_metrics"]), refined["rgb_initial"] if "rgb_initial" in refined else None,
+        scene=f"{effect.ref.scope} ({effect.attrs.get('backend')} effect)")
     arrays = {"effect_area_px": Array(per_frame["effect_area_px"], ("frame",), "px",
                                       "refined-mask area summed over the views")}
     if "effect_placement_iou" in per_frame:

@@ -470,7 +470,8 @@ def test_malformed_ply_errors_name_file_and_fix(tmp_path):
         ("trunc.ply", r"is truncated: header declares 10 vertices"),
         ("notply.ply", "is not a PLY file"),
         ("nohdr.ply", "no 'end_header'"),
-        ("mesh.ply", r"lacks the 3DGS properties \['f_dc_0'"),
+        ("mesh.ply", r"is a triangle mesh \(12 faces, no Gaussian properties such as f_dc_0\), not a 3DGS splat: "
+                     r"give it as a mesh with geometry.kind=mesh"),
     ]
     for fname, text in cases:
         with pytest.raises(GaussianPlyError, match=text) as exc:

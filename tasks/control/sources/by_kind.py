@@ -13,6 +13,7 @@ from tasks.control.sources.base import GeometrySource, SampledSource, fit_statem
 from tasks.control.sources.mesh import MeshSource, load_checked_mesh
 from tasks.control.sources.ply import PlySource
 from tasks.control.sources.procedural import ProceduralSource
+from tasks.control.splat_content import check_splat_content
 
 __all__ = ["open_source", "check_geometry_file"]
 
@@ -34,18 +35,20 @@ def open_source(kind: str, geom: Any, size: np.ndarray, spacing: float, surface_
 
 
 def check_geometry_file(kind: str, path: str | None, size: Any = None) -> str | None:
-    """Check a user geometry file before anything runs: a closed, non-flat mesh (``kind: mesh``) or a readable 3DGS
-    PLY (``kind: ply``), and, with ``size`` (m), its fit into ``geometry.size`` (:func:`fit_statement`: the line
-    stating the rescale, or None).  Raises :class:`ObjectModelError` or :class:`GaussianPlyError` (one line, file
-    and fix)."""
+    """Check a user geometry file before anything runs: a closed, non-flat, consistently wound mesh (``kind: mesh``)
+    or a readable 3DGS PLY (``kind: ply``) whose content makes a visible object (:func:`check_splat_content`), and,
+    with ``size`` (m), its fit into ``geometry.size`` (:func:`fit_statement`: the line stating the rescale, or
+    None).  Raises :class:`ObjectModelError` or :class:`GaussianPlyError` (one line, file and fix)."""
     if kind == "mesh":
         mesh = load_checked_mesh(path)
         lo, hi, what = mesh.bounds[0], mesh.bounds[1], f"mesh {Path(str(path)).expanduser()}"
     elif kind == "ply":
         if not path:
             raise ObjectModelError("object.geometry.path is required for geometry.kind 'ply': set it to a 3DGS .ply")
-        means = read_gaussian_ply(path)["means"]
-        lo, hi, what = means.min(0), means.max(0), f"PLY {Path(str(path)).expanduser()}"
+        p = Path(str(path)).expanduser()
+        g = read_gaussian_ply(p)
+        check_splat_content(p, g["means"], g["scales"], g["opacities"])
+        lo, hi, what = g["means"].min(0), g["means"].max(0), f"PLY {p}"
     else:
         return None
     return None if size is None else fit_statement(what, lo, hi, size)

@@ -1,7 +1,8 @@
 """A closed triangle mesh (``geometry.kind: mesh``, loaded with trimesh) as a geometry source.
 
-The mesh must be one closed surface: an open (non-watertight) mesh or one that intersects itself is refused, not
-repaired (:func:`load_checked_mesh`; :mod:`tasks.control.object_model` says why).  Self-intersection is found by
+The mesh must be one closed, consistently wound surface: an open (non-watertight) mesh, one with a face wound
+against its neighbours (its outward normal is ambiguous) or one that intersects itself is refused, not repaired
+(:func:`load_checked_mesh`; :mod:`tasks.control.object_model` says why); a NaN vertex is named as such.  Self-intersection is found by
 :func:`tasks.control.geometry.crossing_triangle_pairs`.  Colours come from the mesh's own vertex/face colours or
 texture when it has them.
 """
@@ -25,7 +26,8 @@ _FLAT_VOLUME = 1e-9  # enclosed volume / largest extent^3 below this: a flat mes
 
 def load_checked_mesh(path: str | None):
     """The closed triangle mesh at ``path`` (a ``trimesh.Trimesh``), or :class:`ObjectModelError` naming the file
-    and the fix: missing file, unreadable, empty, not watertight, or intersecting itself (see the module doc)."""
+    and the fix: missing file, unreadable, empty, NaN/inf vertices, not watertight, inconsistently wound (a face
+    flipped against its neighbours), flat, or intersecting itself (see the module doc)."""
     import trimesh
 
     if not path:
@@ -44,8 +46,16 @@ def load_checked_mesh(path: str | None):
                                "(a point cloud or 3DGS splat needs geometry.kind 'ply')")
     open_edges = len(trimesh.grouping.group_rows(mesh.edges_sorted, require_count=1))
     if open_edges or not mesh.is_watertight:
+        _refuse_non_finite(p)  # trimesh drops the faces of a NaN vertex on load: holes whose cause is the NaN
         raise ObjectModelError(f"mesh {p} is not watertight ({open_edges} open edges): repair it, e.g. "
                                "trimesh.repair.fill_holes, or export a closed mesh")
+    twice = trimesh.grouping.group_rows(mesh.edges, require_count=2)  # a directed edge in two faces: a flip
+    if len(twice):
+        i, j = sorted(int(k) // 3 for k in twice[0])
+        raise ObjectModelError(f"mesh {p} has inconsistent winding ({len(twice)} of its {len(mesh.edges_unique)} "
+                               f"edges join two faces wound opposite ways, e.g. faces {i} and {j}): inside and outside "
+                               "are ambiguous; make the winding consistent, e.g. trimesh.repair.fix_winding (or "
+                               "Blender's Mesh > Normals > Recalculate Outside), and export again")
     ext = mesh.bounds[1] - mesh.bounds[0]
     with np.errstate(invalid="ignore", divide="ignore"):  # trimesh divides by the volume for the centre of mass
         volume = abs(float(mesh.volume))
@@ -62,6 +72,18 @@ def load_checked_mesh(path: str | None):
                                "overlapping parts into one closed surface (a boolean union, e.g. Blender's "
                                "Boolean modifier) and export again")
     return mesh
+
+
+def _refuse_non_finite(p: Path) -> None:
+    """Raise :class:`ObjectModelError` naming the NaN/inf vertices of the mesh file ``p``, if it has any."""
+    import trimesh
+
+    vertices = np.asarray(trimesh.load(str(p), force="mesh", process=False).vertices)
+    bad = np.flatnonzero(~np.isfinite(vertices).all(axis=1))
+    if len(bad):
+        what = "1 vertex" if len(bad) == 1 else f"{len(bad)} vertices"
+        raise ObjectModelError(f"mesh {p} has {what} with NaN/inf coordinates (e.g. vertex {int(bad[0])}): fix or "
+                               "delete them in the modelling tool and export again")
 
 
 class MeshSource(SampledSource):

@@ -14,6 +14,7 @@ from tasks.control.gaussian_ply import read_gaussian_ply
 from tasks.control.geometry import soup_area, soup_volume
 from tasks.control.object_config import ObjectModelError
 from tasks.control.sources.base import SampledSource, fit_transform
+from tasks.control.splat_content import check_splat_content
 
 __all__ = ["PlySource"]
 
@@ -29,11 +30,10 @@ class PlySource(SampledSource):
         p = Path(str(path)).expanduser()
         try:
             g = read_gaussian_ply(p)
+            check_splat_content(p, g["means"], g["scales"], g["opacities"])
         except ValueError as exc:
             raise ObjectModelError(str(exc)) from None
         means = g["means"].astype(np.float64)
-        if len(means) < 8:
-            raise ObjectModelError(f"PLY {p} holds only {len(means)} Gaussians: at least 8 are needed")
         shift, scale = fit_transform(means.min(0), means.max(0), size)
         means = (means + shift) * scale
         self.path, self.scale = p, scale
