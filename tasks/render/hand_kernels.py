@@ -5,8 +5,8 @@ anti-aliased silhouette of :mod:`tasks.render.hand`), z-buffered front depth and
 One thread per capsule walks its box row by row; Warp runs a CPU launch's threads one after another in index order,
 so the z-buffer sees the capsules in list order (a tie keeps the first), and the float64 arithmetic is that of the
 numpy formulation it replaced, operation for operation (Warp's CPU code contracts no multiply-add): depth, normals
-and coverage were bit-identical to it on every view of the orange, tomato, can and clay videos (920 layers).  Units: metres,
-pixels; camera coordinates (x right, y down, z forward).
+and coverage were bit-identical to it on every view of the orange, tomato, can and clay videos (920 layers).
+Units: metres, pixels; camera coordinates (x right, y down, z forward).
 """
 from __future__ import annotations
 
@@ -108,8 +108,8 @@ def draw_capsules(capsules: np.ndarray, boxes: np.ndarray, rays: np.ndarray, foc
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Front depth (y, x) m (+inf where nothing; on the anti-aliased fringe outside the silhouette the depth of the
     axis point nearest the ray, less r), unit normal (3, y, x) (camera coordinates; (0, 0, -1) where nothing and on
-    the fringe) and coverage (y, x) in [0, 1] of capsules (n, CAPSULE_FIELDS) (:func:`capsule_scalars`) over their screen boxes
-    (n, 4) int (x0, x1, y0, y1) px; rays (3, y, x) unit pixel-centre directions; focal: fx px."""
+    the fringe) and coverage (y, x) in [0, 1] of capsules (n, CAPSULE_FIELDS) (:func:`capsule_scalars`) over their
+    screen boxes (n, 4) int (x0, x1, y0, y1) px; rays (3, y, x) unit pixel-centre directions; focal: fx px."""
     height, width = rays.shape[1:]
     depth = np.full((height, width), np.inf)
     coverage = np.zeros((height, width))
