@@ -5,7 +5,8 @@ field of view (the sphere spans ~70 % of the frame width; the rig's ``render.fil
 0.6 sqrt(4 pi / N) m, normal sigma a tenth of it, opacity 0.8, colours RGB + one mask channel, render mode RGB+ED:
 5 composited channels, like the G-buffer.  Defaults: the G-buffer's resolution (``render.width``, 192 px) and the
 watched videos' (``render.video_width``, 384 px: four times the pixels; conf/render_schema.py) and the object sizes
-of the evaluation grid: ``sampling.surface_points`` surface Gaussians alone, and with RELEASED_MAX more (the most released particles any grid object draws: the plush toy's ~370).
+of the evaluation grid: ``sampling.surface_points`` surface Gaussians alone, and with RELEASED_MAX more (the most
+released particles any grid object draws: the plush toy's ~370).
 Times are per frame and view (one camera) on one thread: the CPU time of the calling thread (torch and Warp's CPU
 kernels run on it with torch.set_num_threads(1)); the wall time is printed beside it.  The machine's speed is not
 constant: on the shared VMs this runs on, spells of seconds run every workload ~1.3-1.5x slower in thread CPU time -
