@@ -143,9 +143,9 @@ class ScenesBenchConfig:
 class RenderBenchConfig:
     """``python -m flows.bench.render`` (the Gaussian rasteriser's time per frame against its physical floor).
 
-    resolutions: px (None: the default ``render.width``).  sizes: Gaussian counts (None: the grid's
-    ``sampling.surface_points`` alone and with the most released particles).  backends: ``torch``,
-    ``warp-scalar``, ``warp``.
+    resolutions: px (None: the G-buffer's ``render.width`` and the videos' ``render.video_width``).  sizes: Gaussian
+    counts (None: the grid's ``sampling.surface_points`` alone and with the most released particles).  backends:
+    ``torch``, ``warp-scalar``, ``warp``.
     """
 
     resolutions: Optional[list[int]] = None

@@ -1,10 +1,11 @@
 """Renderer benchmark: the Gaussian rasteriser's time per frame against its physical floor.
 
-    python -m flows.bench.render                                   # the default resolution and the grid's sizes
+    python -m flows.bench.render                                   # 192 and 384 px (G-buffer, videos), the grid's sizes
     python -m flows.bench.render resolutions=[128,192] sizes=[3000] backends=[warp]
 
 Prints forward and forward+backward time per frame and view for every backend, resolution and number of Gaussians,
-with the work counts, the floors and the ratios to them (the scene, the floor model and measured figures:
+with the work counts, the floors and the ratios to them, then each backend's median cost and ratio to the floor
+at every resolution side by side (the scene, the floor model and measured figures:
 :mod:`tasks.render.benchmark`).  Config: ``conf/study/bench_render.yaml`` (keys:
 :class:`conf.study.schema.RenderBenchConfig`).
 """

@@ -14,6 +14,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from tasks.generation.impostor_kernels import splat_ellipsoid_pixels
+
 
 class EffectFrame(NamedTuple):
     """One rendered frame of a secondary effect, laid out like the G-buffer it replaces.
@@ -78,16 +80,23 @@ def project_particles(positions: np.ndarray, radii: np.ndarray | float, viewmat:
                               radius_px=K[0, 0] * radii[front] / z)
 
 
-def box_pixels(u: np.ndarray, v: np.ndarray, radius_px: np.ndarray, width: int, height: int,
-               radius_y_px: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Every (particle, pixel) pair of the particles' screen boxes (centre (u, v) +- radius_px along x and
-    +- radius_y_px (default radius_px) along y, clipped to the image): ``(owner, px, py)`` int64 arrays, one row per
-    pair."""
+def screen_boxes(u: np.ndarray, v: np.ndarray, radius_px: np.ndarray, width: int, height: int,
+                 radius_y_px: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The pixel boxes around centres (u, v) +- radius_px along x and +- radius_y_px (default radius_px) along y,
+    clipped to the image: ``(x0, x1, y0, y1)`` int64 arrays, x1 and y1 exclusive (empty where x1 <= x0 or y1 <= y0)."""
     radius_y_px = radius_px if radius_y_px is None else radius_y_px
     x0 = np.clip(np.floor(u - radius_px).astype(np.int64), 0, width)
     x1 = np.clip(np.ceil(u + radius_px).astype(np.int64) + 1, 0, width)
     y0 = np.clip(np.floor(v - radius_y_px).astype(np.int64), 0, height)
     y1 = np.clip(np.ceil(v + radius_y_px).astype(np.int64) + 1, 0, height)
+    return x0, x1, y0, y1
+
+
+def box_pixels(u: np.ndarray, v: np.ndarray, radius_px: np.ndarray, width: int, height: int
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every (particle, pixel) pair of the particles' screen boxes (:func:`screen_boxes`): ``(owner, px, py)`` int64
+    arrays, one row per pair."""
+    x0, x1, y0, y1 = screen_boxes(u, v, radius_px, width, height)
     box_w, box_h = x1 - x0, np.maximum(y1 - y0, 0)
     count = np.where(box_w > 0, box_w * box_h, 0)
     owner = np.repeat(np.arange(len(count)), count)
@@ -132,7 +141,8 @@ def splat_ellipsoid_impostors(centres: np.ndarray, axes: np.ndarray, radii: np.n
     (d = ((u - cx) / fx, (v - cy) / fy, 1), so t is the camera depth) and an ellipsoid (x - c)^T A (x - c) = 1,
     A = Q diag(radii^-2) Q^T: a t^2 - 2 b t + (c^T A c - 1) = 0 with a = d^T A d, b = d^T A c; the front is at
     (b - sqrt(b^2 - a (c^T A c - 1))) / a, the chord (t2 - t1) |d| long.
-    Returns ``(depth, thickness, median screen radius px)``: (y, x) float64 metres (depth +inf where nothing)."""
+    Returns ``(depth, thickness, median screen radius px)``: (y, x) float64 metres (depth +inf where nothing).
+    The per-ellipsoid set-up is numpy, the per-pixel work a Warp kernel (:mod:`tasks.generation.impostor_kernels`)."""
     height, width = surface_depth.shape
     viewmat, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
     rot = viewmat[:3, :3]
@@ -142,10 +152,8 @@ def splat_ellipsoid_impostors(centres: np.ndarray, axes: np.ndarray, radii: np.n
     rmax = r.max(axis=1)
     front = c[:, 2] - rmax > near_m
     c, q, r, rmax = c[front], q[front], r[front], rmax[front]
-    depth = np.full(height * width, np.inf)
-    thickness = np.zeros(height * width)
     if len(c) == 0:
-        return depth.reshape(height, width), thickness.reshape(height, width), 1.0
+        return np.full((height, width), np.inf), np.zeros((height, width)), 1.0
     A = np.einsum("nik,nk,njk->nij", q, 1.0 / r ** 2, q)
     spread = np.einsum("nik,nk,njk->nij", q, r ** 2, q)  # A^-1: the ellipsoid's extent along x is sqrt(spread_xx)
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
@@ -156,22 +164,9 @@ def splat_ellipsoid_impostors(centres: np.ndarray, axes: np.ndarray, radii: np.n
     extent = np.sqrt(np.einsum("nii->ni", spread))
     half_x = (fx * extent[:, 0] + np.abs(u - cx) * extent[:, 2]) / z_near + 1.0
     half_y = (fy * extent[:, 1] + np.abs(v - cy) * extent[:, 2]) / z_near + 1.0
-    owner, px, py = box_pixels(u, v, half_x, width, height, half_y)
-    # the ray x = t d, d = (dx, dy, 1): a = d^T A d, b = d^T A c, per pair from six + three per-ellipsoid numbers
-    dx, dy = (px + 0.5 - cx) / fx, (py + 0.5 - cy) / fy
     Ac = np.einsum("nij,nj->ni", A, c)
-    cc = np.einsum("ni,ni->n", c, Ac)[owner] - 1.0
-    a = (A[owner, 0, 0] * dx * dx + A[owner, 1, 1] * dy * dy + A[owner, 2, 2]
-         + 2.0 * (A[owner, 0, 1] * dx * dy + A[owner, 0, 2] * dx + A[owner, 1, 2] * dy))
-    b = Ac[owner, 0] * dx + Ac[owner, 1] * dy + Ac[owner, 2]
-    disc = b * b - a * cc
-    hit = disc > 0
-    owner, px, py, a, b, disc, dx, dy = (x[hit] for x in (owner, px, py, a, b, disc, dx, dy))
-    root = np.sqrt(disc)
-    t_front = (b - root) / a
-    chord = 2.0 * root / a * np.sqrt(dx * dx + dy * dy + 1.0)
-    keep = (t_front > near_m) & (t_front < surface_depth[py, px])
-    pixel = (py * width + px)[keep]
-    np.minimum.at(depth, pixel, t_front[keep])
-    thickness += np.bincount(pixel, weights=chord[keep], minlength=height * width)
-    return depth.reshape(height, width), thickness.reshape(height, width), float(np.median(fx * rmax / z_near))
+    quadric = np.column_stack([A[:, 0, 0], A[:, 1, 1], A[:, 2, 2], A[:, 0, 1], A[:, 0, 2], A[:, 1, 2], Ac,
+                               np.einsum("ni,ni->n", c, Ac) - 1.0])
+    box = np.column_stack(screen_boxes(u, v, half_x, width, height, half_y))
+    depth, thickness = splat_ellipsoid_pixels(quadric, box, fx, fy, cx, cy, near_m, surface_depth)
+    return depth, thickness, float(np.median(fx * rmax / z_near))

@@ -3,9 +3,10 @@
 Scene (as in the generation notes, Q1): N flattened Gaussians on a unit sphere 4 m in front of the camera, 40 deg
 field of view (the sphere spans ~70 % of the frame width; the rig's ``render.fill`` is 60 %), tangential sigma
 0.6 sqrt(4 pi / N) m, normal sigma a tenth of it, opacity 0.8, colours RGB + one mask channel, render mode RGB+ED:
-5 composited channels, like the G-buffer.  Defaults: the default resolution (``render.width`` x ``render.height``,
-conf/render_schema.py) and the object sizes of the evaluation grid: ``sampling.surface_points`` surface Gaussians
-alone, and with RELEASED_MAX more (the most released particles any grid object draws: the plush toy's ~370).
+5 composited channels, like the G-buffer.  Defaults: the G-buffer's resolution (``render.width``, 192 px) and the
+watched videos' (``render.video_width``, 384 px: four times the pixels; conf/render_schema.py) and the object sizes
+of the evaluation grid: ``sampling.surface_points`` surface Gaussians alone, and with RELEASED_MAX more (the most
+released particles any grid object draws: the plush toy's ~370).
 Times are per frame and view (one camera) on one thread: the CPU time of the calling thread (torch and Warp's CPU
 kernels run on it with torch.set_num_threads(1)); the wall time is printed beside it.  The machine's speed is not
 constant: on the shared VMs this runs on, spells of seconds run every workload ~1.3-1.5x slower in thread CPU time -
@@ -208,11 +209,13 @@ def peak_extra_memory(scene: list[torch.Tensor], viewmats: torch.Tensor, Ks: tor
         return None
 
 
-def main(resolutions: tuple[int, ...] = (RenderConfig.width,),
+def main(resolutions: tuple[int, ...] = tuple(dict.fromkeys((RenderConfig.width, RenderConfig.video_width))),
          sizes: tuple[int, ...] = (SamplingConfig.surface_points, SamplingConfig.surface_points + RELEASED_MAX),
          backends: tuple[str, ...] = ("torch", "warp-scalar", "warp")) -> list[dict]:
     """Print and return forward / forward+backward time per frame for every backend, resolution and N, with the
-    work counts, the floors and the ratios to them (defaults: the default render resolution, the grid's sizes)."""
+    work counts, the floors and the ratios to them (defaults: the G-buffer's and the videos' resolution, the grid's
+    sizes), then per backend and N the median cost per frame and ratio to the floor at each resolution
+    (``resolution_summary``)."""
     torch.set_num_threads(int(os.environ.get("VIRSQUEEZER_TORCH_THREADS", "1")))
     rates = machine_rates()
     print(f"machine (1 thread, at the start): {rates['flops'] / 1e9:.0f} GFLOP/s fp32 matmul, "
@@ -239,6 +242,7 @@ def main(resolutions: tuple[int, ...] = (RenderConfig.width,),
                 row = {"resolution": resolution, "backend": backend, **counts, "repeats": repeats,
                        **{key: float(np.median(v)) for key, v in t.items() if "floor" in key},
                        **{key: float(t[key].min()) for key in ("forward_s", "forward_backward_s")},
+                       **{f"median_{key}": float(np.median(t[key])) for key in ("forward_s", "forward_backward_s")},
                        "exp_rates": t["exp_rate"].tolist(),
                        **{key: float(np.median(v)) for key, v in t.items() if "wall" in key},
                        **{f"ratio_{name}": v.tolist() for name, v in ratios.items()},
@@ -257,7 +261,28 @@ def main(resolutions: tuple[int, ...] = (RenderConfig.width,),
                       f"{np.median(free['forward_backward']):<5.1f} "
                       f"{t['exp_rate'].min() / 1e9:>4.2f}-{t['exp_rate'].max() / 1e9:<4.2f} "
                       f"{'n/a' if memory is None else f'{memory / 2**20:.0f}':>8}", flush=True)
+    resolution_summary(rows)
     return rows
+
+
+def resolution_summary(rows: list[dict]) -> None:
+    """Print, per backend and number of Gaussians, the median forward and forward+backward time per frame and view
+    (thread CPU ms) and median ratio to the floor at every resolution benchmarked, and each time relative to the
+    first resolution's (the cost of a frame as the resolution grows)."""
+    if len({row["resolution"] for row in rows}) < 2:
+        return
+    print("per resolution (medians over the repeats; cost relative to the first resolution):")
+    for backend, n in dict.fromkeys((row["backend"], row["gaussians"]) for row in rows):
+        same = [row for row in rows if row["backend"] == backend and row["gaussians"] == n]
+        cells = []
+        for row in same:
+            parts = []
+            for name, label in (("forward", "fwd"), ("forward_backward", "f+b")):
+                seconds, ratio = row[f"median_{name}_s"], float(np.median(row[f"ratio_{name}"]))
+                parts.append(f"{label} {seconds * 1e3:.2f} ms = {ratio:.1f}x floor "
+                             f"({seconds / same[0][f'median_{name}_s']:.1f}x)")
+            cells.append(f"{row['resolution']} px: " + ", ".join(parts))
+        print(f"  {backend:>11} N={n:<6} " + "; ".join(cells), flush=True)
 
 
 def _best_cpu_time(fn, repeats: int, walls: list | None = None) -> float:

@@ -34,6 +34,8 @@ import numpy as np
 
 from conf.hand import FINGERS, N_FINGERS
 
+from .hand_kernels import CAPSULE_FIELDS, capsule_scalars, draw_capsules
+
 # m, capsule radii per finger (thumb .. pinky), proximal and distal phalanx
 FINGER_RADII = np.array([[0.0100, 0.0090], [0.0085, 0.0075], [0.0088, 0.0078], [0.0083, 0.0073], [0.0075, 0.0065]])
 PHALANX_SHARES = np.array([0.45, 0.30, 0.25])  # bone lengths as shares of the finger's length (proximal first)
@@ -218,59 +220,6 @@ def _pixel_rays(K: np.ndarray, x0: int, x1: int, y0: int, y1: int) -> np.ndarray
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
-def _capsule_hits(rx: np.ndarray, ry: np.ndarray, rz: np.ndarray, a: np.ndarray, b: np.ndarray, r: float,
-                  focal: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Rays from the camera centre (unit directions, components rx, ry, rz (...)) against one capsule a-b (3,) of
-    radius r, camera coords (Quilez's ray-capsule intersection), component by component.
-
-    Returns depth (...,) m (camera z of the front hit; +inf where missed, and for fringe pixels within one pixel of
-    the silhouette the z of the closest point), the unit normal's components nx, ny, nz (...) (fringe: facing the
-    camera) and coverage (...,) in [0, 1]."""
-    ba = b - a
-    baba = float(ba @ ba)
-    baoa = -float(ba @ a)
-    oaoa = float(a @ a)
-    bard = rx * ba[0] + ry * ba[1] + rz * ba[2]
-    rdoa = -(rx * a[0] + ry * a[1] + rz * a[2])
-    # body of the cylinder
-    A = baba - bard * bard
-    B = baba * rdoa - baoa * bard
-    C = baba * oaoa - baoa * baoa - r * r * baba
-    h = B * B - A * C
-    safe = np.abs(A) > 1e-18
-    with np.errstate(invalid="ignore", divide="ignore"):
-        t_body = (-B - np.sqrt(np.maximum(h, 0.0))) / np.where(safe, A, 1e-18)
-    y = baoa + t_body * bard
-    body = (h >= 0) & (y > 0) & (y < baba) & safe
-    # end spheres: the one on the side the body test failed
-    t_caps = None
-    for centre in (a, b):
-        bc = rx * centre[0] + ry * centre[1] + rz * centre[2]
-        h2 = bc * bc - (float(centre @ centre) - r * r)
-        t = np.where(h2 >= 0, bc - np.sqrt(np.maximum(h2, 0.0)), np.inf)
-        t_caps = t if t_caps is None else np.minimum(t_caps, t)
-    t = np.where(body, np.minimum(t_body, t_caps), t_caps)
-    hit = (t > 0) & np.isfinite(t)
-    t = np.where(hit, t, 0.0)
-    px, py, pz = rx * t, ry * t, rz * t
-    s = np.clip(((px - a[0]) * ba[0] + (py - a[1]) * ba[1] + (pz - a[2]) * ba[2]) / max(baba, 1e-18), 0.0, 1.0)
-    nx, ny, nz = px - (a[0] + s * ba[0]), py - (a[1] + s * ba[1]), pz - (a[2] + s * ba[2])
-    norm = np.maximum(np.sqrt(nx * nx + ny * ny + nz * nz), 1e-12)
-    nx, ny, nz = np.where(hit, nx / norm, 0.0), np.where(hit, ny / norm, 0.0), np.where(hit, nz / norm, -1.0)
-    # anti-aliased silhouette: distance between the ray and the axis segment (components across the ray)
-    rda = rx * a[0] + ry * a[1] + rz * a[2]
-    pax, pay, paz = a[0] - rda * rx, a[1] - rda * ry, a[2] - rda * rz
-    pbx, pby, pbz = ba[0] - bard * rx, ba[1] - bard * ry, ba[2] - bard * rz
-    denom = np.maximum(pbx * pbx + pby * pby + pbz * pbz, 1e-18)
-    s_near = np.clip(-(pax * pbx + pay * pby + paz * pbz) / denom, 0.0, 1.0)
-    gx, gy, gz = pax + s_near * pbx, pay + s_near * pby, paz + s_near * pbz
-    gap = np.sqrt(gx * gx + gy * gy + gz * gz)
-    z_near = np.maximum(a[2] + s_near * ba[2], 1e-6)
-    coverage = np.clip(0.5 + (r - gap) * focal / z_near, 0.0, 1.0)
-    depth = np.where(hit, t * rz, np.where(coverage > 0, z_near - r, np.inf))
-    return depth, nx, ny, nz, coverage
-
-
 def shade_skin(normal: np.ndarray, colour: np.ndarray, view: np.ndarray) -> np.ndarray:
     """Lambert + ambient + a soft Blinn-Phong sheen, camera coordinates (light from the upper left, camera side)."""
     light = _unit(np.array([-0.4, -0.7, -0.6]))
@@ -286,8 +235,8 @@ _RAYS: dict[tuple, np.ndarray] = {}
 def render_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
                 colour: np.ndarray) -> HandLayer:
     """The hand's capsules in one camera (module doc): world-to-camera ``viewmat`` (4, 4), intrinsics ``K`` (3, 3) px,
-    ``colour`` (3,) linear RGB.  Each capsule is intersected over its projected bounding box only (component
-    arrays, no per-pixel vectors), z-buffered across capsules."""
+    ``colour`` (3,) linear RGB.  Each capsule is intersected over its projected bounding box only, z-buffered across
+    capsules, in a Warp kernel (:mod:`tasks.render.hand_kernels`: Quilez's ray-capsule intersection per pixel)."""
     viewmat, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
     focal = float(K[0, 0])
     key = (K.tobytes(), width, height)
@@ -295,13 +244,10 @@ def render_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: i
         if len(_RAYS) > 8:
             _RAYS.clear()
         _RAYS[key] = np.moveaxis(_pixel_rays(K, 0, width, 0, height), -1, 0).copy()
-    rx, ry, rz = _RAYS[key]
-    depth = np.full((height, width), np.inf)
-    coverage = np.zeros((height, width))
-    normal = np.zeros((3, height, width))
-    normal[2] = -1.0
+    rays = _RAYS[key]
     a_cam = capsules.a @ viewmat[:3, :3].T + viewmat[:3, 3]
     b_cam = capsules.b @ viewmat[:3, :3].T + viewmat[:3, 3]
+    drawn_capsules, boxes = [], []
     for a, b, r in zip(a_cam, b_cam, np.asarray(capsules.radius, np.float64)):
         near = min(a[2], b[2]) - r
         if near <= 1e-3:  # behind or through the camera: not drawn
@@ -314,13 +260,11 @@ def render_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: i
         x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
         if x0 >= x1 or y0 >= y1:
             continue
-        box = (slice(y0, y1), slice(x0, x1))
-        d, nx, ny, nz, c = _capsule_hits(rx[box], ry[box], rz[box], a, b, float(r), focal)
-        nearer = d < depth[box]
-        depth[box] = np.where(nearer, d, depth[box])
-        for k, n in enumerate((nx, ny, nz)):
-            normal[k][box] = np.where(nearer, n, normal[k][box])
-        coverage[box] = np.maximum(coverage[box], c)
+        drawn_capsules.append(capsule_scalars(a, b, float(r)))
+        boxes.append((x0, x1, y0, y1))
+    depth, normal, coverage = draw_capsules(np.array(drawn_capsules, np.float64).reshape(-1, CAPSULE_FIELDS),
+                                            np.array(boxes, np.int32).reshape(-1, 4), rays, focal)
+    rx, ry, rz = rays
     rgb = np.zeros((height, width, 3), np.float32)
     drawn = coverage > 0
     view = np.stack([rx[drawn], ry[drawn], rz[drawn]], -1)

@@ -31,6 +31,27 @@ def test_a_capsule_across_the_view_has_its_front_at_z_minus_r_and_a_one_pixel_si
     assert layer.rgb[H // 2 - 3, W // 2].sum() > layer.rgb[H // 2 + 3, W // 2].sum()
 
 
+def test_the_silhouette_ramp_and_the_z_buffer_of_two_crossing_capsules():
+    r, skin = 0.018, np.array([0.7, 0.5, 0.4])  # 2.3 px: the fringe rows 2.5 px off the axis are 30 % covered
+    across = Capsules(np.array([[-0.1, 0.0, 0.0]]), np.array([[0.1, 0.0, 0.0]]), np.array([r]))
+    layer = render_hand(across, CAMERA, K, W, H, skin)
+    # a ray through row y, v = (y + 0.5 - cy) / f, passes the axis (0.5 m ahead, across the view) at distance
+    # 0.5 |v| / sqrt(1 + v^2): coverage clip(0.5 + (r - distance) f / 0.5, 0, 1), a one-pixel ramp at the rim
+    v = (np.arange(H) + 0.5 - K[1, 2]) / FOCAL
+    ramp = np.clip(0.5 + (r - 0.5 * np.abs(v) / np.sqrt(1 + v * v)) * FOCAL / 0.5, 0.0, 1.0)
+    np.testing.assert_allclose(layer.coverage[:, W // 2], ramp, atol=1e-6)
+    assert ((ramp > 0.2) & (ramp < 0.4)).sum() == 2 and ((ramp > 0) & (ramp < 1)).sum() == 2  # one on each side
+    # a second capsule, upright and 5 cm behind the first: together, each pixel shows the nearer one
+    upright = Capsules(np.array([[0.0, 0.05, -0.1]]), np.array([[0.0, 0.05, 0.1]]), np.array([r]))
+    behind = render_hand(upright, CAMERA, K, W, H, skin)
+    both = render_hand(Capsules(*(np.concatenate(pair) for pair in zip(upright, across))), CAMERA, K, W, H, skin)
+    np.testing.assert_array_equal(both.depth, np.minimum(layer.depth, behind.depth))
+    np.testing.assert_array_equal(both.coverage, np.maximum(layer.coverage, behind.coverage))
+    front = layer.depth < behind.depth
+    assert front.sum() > 50 and (~front & np.isfinite(behind.depth)).sum() > 50
+    np.testing.assert_array_equal(both.rgb[front], layer.rgb[front])
+
+
 def test_a_finger_in_front_occludes_and_behind_is_hidden():
     scene = np.full((4, 4, 3), 0.2, np.float32)
     alpha = np.ones((4, 4), np.float32)

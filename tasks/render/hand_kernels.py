@@ -1,0 +1,126 @@
+"""The per-pixel work of the hand's rasteriser (:func:`tasks.render.hand.render_hand`) as a Warp kernel on the CPU:
+every pixel ray of a capsule's screen box against the capsule (Quilez's ray-capsule intersection, with the
+anti-aliased silhouette of :mod:`tasks.render.hand`), z-buffered front depth and normal, largest coverage.
+
+One thread per capsule walks its box row by row; Warp runs a CPU launch's threads one after another in index order,
+so the z-buffer sees the capsules in list order (a tie keeps the first), and the float64 arithmetic is that of the
+numpy formulation it replaced, operation for operation (Warp's CPU code contracts no multiply-add): depth, normals
+and coverage were bit-identical to it on every view of the orange, tomato, can and clay videos (920 layers).
+Units: metres, pixels; camera coordinates (x right, y down, z forward).
+"""
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+_f64 = wp.float64
+# per-capsule scalars, camera coordinates: a (3), b - a (3), |b - a|^2, -(b - a).a, the body's constant
+# |b - a|^2 a.a - ((b - a).a)^2 - r^2 |b - a|^2, a.a - r^2, b (3), b.b - r^2, r, max(|b - a|^2, 1e-18)
+CAPSULE_FIELDS = 16
+
+
+@wp.kernel
+def _draw_capsules(capsule: wp.array2d(dtype=_f64), box: wp.array2d(dtype=wp.int32), rays: wp.array3d(dtype=_f64),
+                   focal: _f64, depth: wp.array2d(dtype=_f64), normal: wp.array3d(dtype=_f64),
+                   coverage: wp.array2d(dtype=_f64)):
+    """Capsule n: capsule[n] = the CAPSULE_FIELDS scalars; box[n] = (x0, x1, y0, y1) px, clipped (x1, y1 exclusive);
+    rays (3, y, x): unit ray directions through the pixel centres; focal: fx px."""
+    n = wp.tid()
+    a0, a1, a2 = capsule[n, 0], capsule[n, 1], capsule[n, 2]
+    ba0, ba1, ba2 = capsule[n, 3], capsule[n, 4], capsule[n, 5]
+    baba, baoa, body_c = capsule[n, 6], capsule[n, 7], capsule[n, 8]
+    cap_a, b0, b1, b2, cap_b = capsule[n, 9], capsule[n, 10], capsule[n, 11], capsule[n, 12], capsule[n, 13]
+    r, baba_safe = capsule[n, 14], capsule[n, 15]
+    zero, one, tiny = _f64(0.0), _f64(1.0), _f64(1e-18)
+    inf = _f64(wp.inf)
+    for y in range(box[n, 2], box[n, 3]):
+        for x in range(box[n, 0], box[n, 1]):
+            rx, ry, rz = rays[0, y, x], rays[1, y, x], rays[2, y, x]
+            bard = rx * ba0 + ry * ba1 + rz * ba2
+            # anti-aliased silhouette: distance between the ray and the axis segment; a ray farther than r + half a
+            # pixel from the axis neither hits nor covers (coverage 0, depth +inf): nothing to draw
+            rda = rx * a0 + ry * a1 + rz * a2
+            pax, pay, paz = a0 - rda * rx, a1 - rda * ry, a2 - rda * rz
+            pbx, pby, pbz = ba0 - bard * rx, ba1 - bard * ry, ba2 - bard * rz
+            denom = wp.max(pbx * pbx + pby * pby + pbz * pbz, tiny)
+            s_near = wp.clamp(-(pax * pbx + pay * pby + paz * pbz) / denom, zero, one)
+            gx, gy, gz = pax + s_near * pbx, pay + s_near * pby, paz + s_near * pbz
+            gap = wp.sqrt(gx * gx + gy * gy + gz * gz)
+            z_near = wp.max(a2 + s_near * ba2, _f64(1e-6))
+            c = wp.clamp(_f64(0.5) + (r - gap) * focal / z_near, zero, one)
+            if c > zero:
+                # body of the cylinder
+                rdoa = -(rx * a0 + ry * a1 + rz * a2)
+                qa = baba - bard * bard
+                qb = baba * rdoa - baoa * bard
+                h = qb * qb - qa * body_c
+                safe = wp.abs(qa) > tiny
+                divisor = tiny
+                if safe:
+                    divisor = qa
+                t_body = (-qb - wp.sqrt(wp.max(h, zero))) / divisor
+                along = baoa + t_body * bard
+                # end spheres
+                bc = rx * a0 + ry * a1 + rz * a2
+                h2 = bc * bc - cap_a
+                t_caps = inf
+                if h2 >= zero:
+                    t_caps = bc - wp.sqrt(wp.max(h2, zero))
+                bc = rx * b0 + ry * b1 + rz * b2
+                h2 = bc * bc - cap_b
+                t_b = inf
+                if h2 >= zero:
+                    t_b = bc - wp.sqrt(wp.max(h2, zero))
+                t_caps = wp.min(t_caps, t_b)
+                t = t_caps
+                if h >= zero and along > zero and along < baba and safe:
+                    t = wp.min(t_body, t_caps)
+                d = z_near - r
+                if t > zero and wp.isfinite(t):
+                    px, py, pz = rx * t, ry * t, rz * t
+                    s = wp.clamp(((px - a0) * ba0 + (py - a1) * ba1 + (pz - a2) * ba2) / baba_safe, zero, one)
+                    nx, ny, nz = px - (a0 + s * ba0), py - (a1 + s * ba1), pz - (a2 + s * ba2)
+                    norm = wp.max(wp.sqrt(nx * nx + ny * ny + nz * nz), _f64(1e-12))
+                    nx, ny, nz = nx / norm, ny / norm, nz / norm
+                    d = t * rz
+                else:
+                    nx, ny, nz = zero, zero, -one
+                if d < depth[y, x]:
+                    depth[y, x] = d
+                    normal[0, y, x] = nx
+                    normal[1, y, x] = ny
+                    normal[2, y, x] = nz
+                coverage[y, x] = wp.max(coverage[y, x], c)
+
+
+def capsule_scalars(a: np.ndarray, b: np.ndarray, r: float) -> list[float]:
+    """The kernel's CAPSULE_FIELDS scalars of capsule a-b (3,) m, radius r m, camera coordinates (numpy's dot
+    products, so the kernel starts from the numbers the numpy formulation used)."""
+    ba = b - a
+    baba, baoa, oaoa = float(ba @ ba), -float(ba @ a), float(a @ a)
+    return [*a, *ba, baba, baoa, baba * oaoa - baoa * baoa - r * r * baba, oaoa - r * r, *b, float(b @ b) - r * r, r,
+            max(baba, 1e-18)]
+
+
+def draw_capsules(capsules: np.ndarray, boxes: np.ndarray, rays: np.ndarray, focal: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Front depth (y, x) m (+inf where nothing; on the anti-aliased fringe outside the silhouette the depth of the
+    axis point nearest the ray, less r), unit normal (3, y, x) (camera coordinates; (0, 0, -1) where nothing and on
+    the fringe) and coverage (y, x) in [0, 1] of capsules (n, CAPSULE_FIELDS) (:func:`capsule_scalars`) over their
+    screen boxes (n, 4) int (x0, x1, y0, y1) px; rays (3, y, x) unit pixel-centre directions; focal: fx px."""
+    height, width = rays.shape[1:]
+    depth = np.full((height, width), np.inf)
+    coverage = np.zeros((height, width))
+    normal = np.zeros((3, height, width))
+    normal[2] = -1.0
+    if len(capsules) == 0:
+        return depth, normal, coverage
+    wp.init()   # no-op once Warp is up
+    inputs = [wp.array(np.ascontiguousarray(capsules, np.float64), dtype=_f64, device="cpu"),
+              wp.array(np.ascontiguousarray(boxes, np.int32), dtype=wp.int32, device="cpu"),
+              wp.array(np.ascontiguousarray(rays, np.float64), dtype=_f64, device="cpu"), focal]
+    outputs = [wp.array(x, dtype=_f64, device="cpu", copy=False) for x in (depth, normal, coverage)]
+    wp.launch(_draw_capsules, dim=len(capsules), inputs=inputs + outputs, device="cpu")
+    return depth, normal, coverage
