@@ -49,8 +49,9 @@ class MPMConfig:
             ``floor_sticky`` then means no slip while touching).  ``Collider`` s passed to ``step_frame`` act at
             the surface in both modes; ``DirichletPoints``/``DirichletNodes`` always act on grid nodes.  A sphere
             pressed on the table reads 2.1-5.8x Hertz at 1-4 mm on grid nodes, 1.23-1.44x at the surface
-            (docs/limits/table-contact.md); the pipeline's table stays ``grid`` (``conf/mpm/default.yaml``) until
-            the force-matched ablation's constants are re-calibrated on the surface table.
+            (docs/limits/table-contact.md).  The pipeline's table is ``surface`` (``conf/mpm/default.yaml``, since
+            issue 50); this dataclass's default stays ``grid`` so that scripts built on ``MPMConfig()`` keep
+            their results.
         fingers: how the squeeze's fingers drive the material (``variant.boundary=dirichlet`` in
             :mod:`tasks.physics.mpm_rollout`; the force-driven ablation is unaffected).  ``particles`` (default):
             every surface point the eq. 3 field constrains is driven to its target on the particles it is embedded in
@@ -62,13 +63,13 @@ class MPMConfig:
             grid, all eight objects (2026-12-05): the pins hold the constrained points 1.03-3.7x closer to their
             targets and cut the rubber ball's preset errors (standard: position 0.46 -> 0.35 %, reaction 34 -> 26 %);
             on Table 2 they gain on BDC-T and SDC and lose 0.052 on BDC-S and 0.018 on mIoU, what the halo had held
-            around each patch (README, known limits).
+            around each patch (docs/limits/fingers-and-contact.md).
             ``collider``: each active finger is a rigid sphere ``Collider`` of the fingertip pad radius (10 mm, the
             pad of the contact patches), its lowest point at the patch centre displaced by the eq. 3 amplitude
             eta c_k,t, moved there every frame: it pushes the particles it touches and never pulls; its impulses
             are the finger's reaction (N).  Meant for
             ``contact: surface`` (both act where the material touches).  Not the default: it lost Table 2 on the
-            rubber ball, clay and rubber duck (README, known limits; ``python -m flows.studies.fingers``).
+            rubber ball, clay and rubber duck (docs/limits/fingers-and-contact.md; ``python -m flows.studies.fingers``).
         thin_walls: how a hollow object's wall thinner than the grid spacing ``dx`` (sampled on its mid-surface in
             ``sampling.thin_wall_layers`` Gauss layers, :mod:`tasks.physics.particle_fill`) carries stress.
             ``membrane`` (default; up to ``membrane_max_thickness`` of a cell): its elastic particles
@@ -80,7 +81,7 @@ class MPMConfig:
             (ball 50 N per finger, rubber springs back with 20 % of its dent left).  ``solid``: full 3D stress; the
             grid, which cannot resolve the thickness, holds it where a finger's nodes reach through the wall, and
             the wall's volume locks as nu -> 0.5 (the rubber ball and duck, nu = 0.49: 570 and 3,100 N per finger;
-            README, known limits); its Gauss layers touch colliders at the wall's faces (since 2026-12-04; before,
+            docs/limits/thin-walls.md); its Gauss layers touch colliders at the wall's faces (since 2026-12-04; before,
             half a particle spacing out).
         membrane_max_thickness: the thickest wall, as a fraction of ``dx``, that ``thin_walls: membrane`` holds in
             plane stress; a wall from this fraction up to ``dx`` sampled in two or three Gauss layers on its
@@ -89,7 +90,7 @@ class MPMConfig:
             plane-stress wall softens as the grid refines, a 3D solid in Gauss layers locks on a coarse grid and
             converges from above: the rubber ball between surface flats at 3 mm (two layers) reads 0.85x (plane
             stress) / 0.99x (solid) the FE at 0.94 of a cell (dx 3.2 mm), 0.92x / 1.02x at 0.75, 0.95x / 1.07x at
-            0.6 and 1.03x / 1.34x at 0.375 (the default grid); README, known limits.
+            0.6 and 1.03x / 1.34x at 0.375 (the default grid); docs/limits/thin-walls.md.
         wall_fibres: a membrane wall sampled in two Gauss layers (``sampling.thin_wall_layers: 2``) keeps the
             distance between its layers at each point, Kirchhoff-Love's inextensible normal fibre
             (:func:`tasks.physics.mpm.kernels.walls.k_wall_fibres`, after every substep's advection).  The grid cannot
@@ -161,7 +162,7 @@ class MPMConfig:
             :func:`tasks.physics.mpm.mass_scaling.material_mass_scales`); it costs sqrt(s_cfl / s) times the substeps
             where it binds (see :func:`tasks.physics.mpm.mass_scaling.mass_scale_for`).  Hollow bodies rock slower than T1
             (the force-driven ball needs k = 2.5 to stay quasi-static, the duck 1.5); 2.5 in the project's defaults
-            (sweep and cost per scene: ``conf/mpm/default.yaml``, README known limits).
+            (sweep and cost per scene: ``conf/mpm/default.yaml``, docs/limits/quasi-static.md).
         quasi_static_damping: local damping coefficient a in [0, 1) (0 = off): dynamic relaxation of the materials the
             quasi-static check measures (mass-scaled solids, not released material or fluids), in the frames before
             a rupture: the net force on a particle becomes F - a |F| sign(v) (Cundall's local damping, as FLAC and

@@ -164,7 +164,7 @@ class SamplingConfig:
     # a hollow wall thinner than the spacing: 1 = one particle layer on its mid-surface; 2 (default) = two layers at
     # the thickness's Gauss points +-t / (2 sqrt 3), half the volume each, so that with mpm.thin_walls=membrane the
     # wall carries bending; 3 = three layers at 0, +-sqrt(3/5) t / 2 with 8/18, 5/18, 5/18 of the volume, which
-    # also integrate a strain quadratic through the wall (a wall near a cell's thickness; README, known limits)
+    # also integrate a strain quadratic through the wall (a wall near a cell's thickness; docs/limits/thin-walls.md)
     # (tasks/physics/particle_fill.py)
     thin_wall_layers: int = 2
 
@@ -248,7 +248,7 @@ class SimulationConfig:
         force-driven ablation inverts the torn skins of the tomato, orange and plush toy).
     release_margin_cells: free grid cells around a scene with releasable material (at least ``mpm.margin_cells``
         on every side, not below the table): room for the spray to fly before a domain wall stops it.  8 (the
-        default, = ``mpm.margin_cells``).  Measured (README, known limits; under load; default grid alignment): at
+        default, = ``mpm.margin_cells``).  Measured (docs/limits/released-material.md; under load; default grid alignment): at
         3 m/s the tomato's juice flies free for 10.2 ms until a wall's reach; 16 all round: 14.1 ms (then the
         table's reach) at 1.8x the rollout's CPU time (the juice spreads over the larger floor, the active grid box
         with it); 8 more cells along the release direction only (``mpm.domain_hi``): the same 14.1 ms at +5 %.
@@ -260,7 +260,7 @@ class SimulationConfig:
         released orange juice and plush stuffing was dragged back by the grid coupling to what stays (one velocity
         field then); under the former global mass scaling 2 squeezed the torn skin at the walls to det F ~ 0.06-0.09
         and 3 tore a 4 mm orange peel past det F 20.  Under selective scaling 4 stays within the guards (orange,
-        tomato, can).  Faster releases were measured (README, known limits; under load): 3 / 4 m/s cost 1.31x /
+        tomato, can).  Faster releases were measured (docs/limits/released-material.md; under load): 3 / 4 m/s cost 1.31x /
         1.60x the substeps (tomato), 1.38x / 1.72x (orange), 1.56x / 1.98x (can: its cola is there from the start;
         the fluid's sound speed follows this cap, ``fluid_reference_speed``) and let only the tomato's whole juice fly
         free (-9.810 for 10.2 / 6.9 ms) and only at the default grid alignment (none half a cell off); Table 2 in

@@ -27,7 +27,7 @@ the FE's too), and writes ``<out>/ball_study.md``.  The pipeline keys given on t
 ``sampling.*``, ``object.*``, ``paths.artifacts``) are added to every MPM run (``mpm.dx`` refines the grid without
 the particles, a spacing the particles without the grid).  ``hold`` (s) then keeps the flats still that long and
 adds a table of the held force (an elastic wall's stays; the thin wall's crept until its zero-energy modes were
-removed, README, known limits) and the pole gap (the wall under a flat's centre sinking away from it, as a dimpling
+removed, docs/limits/thin-walls.md) and the pole gap (the wall under a flat's centre sinking away from it, as a dimpling
 cap's does).  No Prefect: one process.  Config: ``conf/study/ball.yaml``.
 """
 from __future__ import annotations

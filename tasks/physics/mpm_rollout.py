@@ -30,7 +30,7 @@ converges (Hertz within 3-15 % at 1.5 cells per contact radius), but the squeeze
 where eq. 3 puts it: under the default mass scaling a pushed clay keeps flowing past the finger and the one-layer
 rubber ball's shell buckles in, so Table 2 gets worse; not the default.
 
-Particle fingers, the default, against grid-node Dirichlet points (README, known limits, ``python -m
+Particle fingers, the default, against grid-node Dirichlet points (docs/limits/fingers-and-contact.md, ``python -m
 flows.finger_study``): on the default grid the pins hold the constrained points 1.03-3.7x closer to their targets
 and act on the material only, so the dent spreads past the patch rims as a real one does; the halo had moved the rims
 with the patch and held the body around it, which Table 2's BDC-S and mIoU rewarded (0.052 and 0.018 more).

@@ -30,7 +30,7 @@ Volume particles on a cell-centred grid of spacing ``s = sampling.particle_spaci
   of the volume (:func:`~tasks.physics.mpm.thin_walls.gauss_layers`), which also integrate the strain's quadratic
   part: a wall near a cell's
   thickness, whose grid field has one, bends too easily in two (a clamped strip 0.86 of a cell thick sags 1.23x
-  Euler-Bernoulli in two layers, 1.03x in three, where the grid's clamp makes 1.04x; README, known limits);
+  Euler-Bernoulli in two layers, 1.03x in three, where the grid's clamp makes 1.04x; docs/limits/thin-walls.md);
   ``wall_fibres`` (fibre, layer) joins each outer particle to its inner twin (and the middle one), the wall's normal
   fibre, whose ends the solver keeps at their rest distance (``mpm.wall_fibres``); empty otherwise;
 - ``interior`` set: grid points with ``sdf < -max(t, s/2)`` (half a spacing clear of the wall layer), volumes

@@ -5,7 +5,7 @@ particles carrying area x thickness of volume (:mod:`tasks.physics.particle_fill
 E t are physical: by default in two layers at the thickness's Gauss points, which in plane stress
 (``mpm.thin_walls: membrane``) carry its bending for the curvatures the grid's field represents (over half a cell
 thick, three layers, ``sampling.thin_wall_layers: 3``, which the finding then advises: two leave the grid's strain
-quadratic through the wall unresisted, README, known limits; from ``mpm.membrane_max_thickness``, 3/4 of a cell,
+quadratic through the wall unresisted, docs/limits/thin-walls.md; from ``mpm.membrane_max_thickness``, 3/4 of a cell,
 on it carries 3D stress in its layers, where plane stress softens as the grid refines); with
 ``sampling.thin_wall_layers: 1`` in ONE layer on the neutral surface, where bending strain is zero.  Either way the
 quadratic B-spline grid smears the wall over ~3 dx, so a dent or buckle shorter than the grid can represent is not

@@ -15,7 +15,7 @@ stiffnesses coincide.  Pure solver use.
 where the two layers' own stencils would straddle it).  With ``mpm.wall_normal_stiffness`` 0 and ``mpm.wall_stencil``
 ``own`` (the walls before 2026-12-04) the two-layer strip never settled: its ringing died out near the closed form
 (1.10x by 0.12 s for the 10-cell strip of ``tests/physics/test_membrane.py``), then it crept (1.39x at 0.5 s, 2.5x at 1.5 s;
-a 25-cell strip 2.9x at 0.8 s), at every alignment; now it settles (README, known limits).
+a 25-cell strip 2.9x at 0.8 s), at every alignment; now it settles (docs/limits/thin-walls.md).
 """
 from __future__ import annotations
 

@@ -264,7 +264,7 @@ def wall_normal_psi(F: wp.mat33, Fp: wp.mat33, N: wp.vec3, k: float) -> float:
     transverse shear and has no Poisson coupling (no volumetric locking; the plane-stress part of the energy is
     the model's at Fp).  Plane stress alone gives the grid's normal velocity gradient across a wall no stiffness, and
     with two particle layers across the wall the grid then keeps velocity modes that move the particles at no strain
-    energy (a clamped strip crept under its weight, a held ball's force crept; README, known limits)."""
+    energy (a clamped strip crept under its weight, a held ball's force crept; docs/limits/thin-walls.md)."""
     d = F @ N - Fp @ N
     return 0.5 * k * wp.dot(d, d)
 

@@ -44,7 +44,7 @@ above the limit warned about once, in one line naming object, frames, times, tha
 force-driven push (the default ball and duck: 85-99 % of their KE in the lowest, sway mode) is what the check is
 for: its lowest mode is slower than the load (see the solver's ``load``).  The force-driven plush toy's sway under its
 fingers' unbalanced net push (87 % of its KE; ``simulation.force_balance=none``) is real dynamics: the same
-contact reads KE/IE 0.18 unscaled (README, known limits), so it warns at every mass scale > 1; the push
+contact reads KE/IE 0.18 unscaled (docs/limits/quasi-static.md), so it warns at every mass scale > 1; the push
 balanced in force and moment (the default) reads 0.037.
 
 Quasi-static damping (``config.quasi_static_damping`` = a, 0 = off): mass scaling slows a scaled body's
