@@ -28,7 +28,10 @@ _DIMS = {"x": ("particle", "xyz"), "v": ("particle", "xyz"), "C": ("particle", "
          "x_carry": ("particle", "xyz"), "F_carry": ("particle", "i", "j"), "q": ("particle", "xyzw"),
          "alpha": ("particle",), "normal": ("particle", "xyz")}
 _UNITS = {"x": "m", "v": "m/s", "C": "1/s", "x_carry": "m"}
-PRELOAD_OUTPUTS = tuple(f"{name}?" for name in PARTICLE_STATE.values()) + ("tracer_offsets?", "tracer_F0_inv?")
+# PARTICLE_STATE's names, then the tracers' (all absent when the scene has no preload)
+PRELOAD_OUTPUTS = ("particle_positions?", "particle_velocities?", "affine_velocities?", "deformation_gradients?",
+                   "position_round_off?", "deformation_round_off?", "rotation_warm_starts?", "plastic_strain?",
+                   "membrane_normals?", "tracer_offsets?", "tracer_F0_inv?")
 
 
 def preload_arrays(state: Optional[PreloadedState], key: str) -> tuple[dict[str, Array], dict[str, Any]]:
