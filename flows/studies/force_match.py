@@ -37,7 +37,7 @@ def object_row(obj: str, overrides: list[str], simulate: bool) -> dict:
     from flows.pipeline import evaluate_config, run_object_local
     from tasks.core.artifacts import read_artifact
     from tasks.physics.force_match import peak_indentation
-    from tasks.physics.gravity_preload import preload_from_artifact
+    from tasks.physics.preload_state import preload_from_artifact
     from tasks.verification.force_criteria import criterion_row
 
     full = evaluate_config([f"object={obj}", "variant=full", *overrides])

@@ -46,10 +46,10 @@ from typing import Any, Callable, Mapping, Optional
 import numpy as np
 
 from tasks.core.artifacts import Array
-from tasks.physics.gravity_preload import gravity_preload
 from tasks.physics.mpm import SimulationError
 from tasks.physics.mpm.preload import PreloadedState
 from tasks.physics.mpm_rollout import mpm_rollout, run_frames
+from tasks.physics.preload_state import gravity_preload
 from tasks.physics.rollout_records import collect_outputs
 from tasks.physics.rollout_scene import build_scene, squeeze_regions
 

@@ -12,7 +12,7 @@ import math
 
 from tasks.core.step import artifact_step, report_progress
 from tasks.physics.force_match import force_matched_rollout
-from tasks.physics.gravity_preload import preload_from_artifact
+from tasks.physics.preload_state import preload_from_artifact
 from tasks.physics.rollout_records import ROLLOUT_OUTPUTS
 
 

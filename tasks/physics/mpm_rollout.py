@@ -81,8 +81,8 @@ import numpy as np
 from conf.hand import N_FINGERS
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
-from tasks.physics.gravity_preload import preload_from_artifact
 from tasks.physics.mpm.preload import PreloadedState
+from tasks.physics.preload_state import preload_from_artifact
 from tasks.physics.rollout_fingers import (
     beneath_openings,
     boundary_points,

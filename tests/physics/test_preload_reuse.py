@@ -38,8 +38,8 @@ def _inputs(tmp_path, name: str, *extra: str):
 def test_a_rollout_from_the_stored_preload_is_the_rollout_that_preloads_itself(tmp_path, name, boundary):
     """Clay (von Mises: plastic strain and rotation warm starts) squeezed by its Dirichlet fingers, the rubber ball
     (a plane-stress wall with surface points) pushed by forces: every array and attribute of the rollout identical."""
-    from tasks.physics.gravity_preload import preload_from_artifact
     from tasks.physics.mpm_rollout import mpm_rollout
+    from tasks.physics.preload_state import preload_from_artifact
 
     args, stored = _inputs(tmp_path, name)
     state = preload_from_artifact(stored.arrays, stored.attrs)
@@ -56,7 +56,7 @@ def test_a_rollout_from_the_stored_preload_is_the_rollout_that_preloads_itself(t
 
 
 def test_a_preload_of_other_inputs_is_computed_again_with_a_note(tmp_path):
-    from tasks.physics.gravity_preload import preload_from_artifact
+    from tasks.physics.preload_state import preload_from_artifact
     from tasks.physics.rollout_scene import build_scene
 
     args, stored = _inputs(tmp_path, "clay")
