@@ -31,4 +31,4 @@ def gravity_preload_step(inputs, params):
                             inputs["dirichlet_field"].arrays, inputs["contact_patches"].arrays,
                             inputs["signal_smoothing"]["time"], inputs["material_oracle"].attrs["materials"],
                             params["mpm"], params["simulation"])
-    return preload_arrays(state, "" if state is None else state.key)
+    return preload_arrays(state)

@@ -25,11 +25,11 @@ PRELOAD_OUTPUTS = ("particle_positions?", "particle_velocities?", "affine_veloci
                    "membrane_normals?", "tracer_offsets?", "tracer_F0_inv?")
 
 
-def preload_arrays(state: Optional[PreloadedState], key: str) -> tuple[dict[str, Array], dict[str, Any]]:
+def preload_arrays(state: Optional[PreloadedState]) -> tuple[dict[str, Array], dict[str, Any]]:
     """The artifact of a preloaded state (None: the scene has no preload: no weight or
     ``simulation.gravity_preload_frames`` = 0)."""
     if state is None:
-        return {}, {"preloaded": False, "preload_key": key}
+        return {}, {"preloaded": False}
     arrays = {out: Array(state.arrays[name], _DIMS[name], _UNITS.get(name, "1"),
                          "particle state after the gravity preload (rows: the solver's; one placeholder row when the "
                          "scene's models need none)") for name, out in PARTICLE_STATE.items()}
@@ -38,7 +38,7 @@ def preload_arrays(state: Optional[PreloadedState], key: str) -> tuple[dict[str,
                                          "rest offsets of each surface point from its anchor particles, F0^-1 r")
         arrays["tracer_F0_inv"] = Array(state.arrays["tracer_F0_inv"], ("tracer", "i", "j"), "1",
                                         "inverse of each surface point's preloaded deformation gradient")
-    attrs = {"preloaded": True, "preload_key": key, "gravity_preload": state.figures.as_dict(),
+    attrs = {"preloaded": True, "preload_key": state.key, "gravity_preload": state.figures.as_dict(),
              "max_speed": state.vmax, "node_box": [state.box[0], state.box[1]], "energy_scale": state.energy_scale,
              "loading_force": state.loading_force, "damping": state.damping, "frame_dt": state.frame_dt,
              "mass_scale": state.mass_scale}

@@ -34,14 +34,24 @@ def _inputs(tmp_path, name: str, *extra: str):
     return args, a["gravity_preload"]
 
 
-@pytest.mark.parametrize("name, boundary", [("clay", "dirichlet"), ("rubber_ball", "force")])
-def test_a_rollout_from_the_stored_preload_is_the_rollout_that_preloads_itself(tmp_path, name, boundary):
+@pytest.fixture(scope="module")
+def clay(tmp_path_factory):
+    return _inputs(tmp_path_factory.mktemp("clay"), "clay")
+
+
+@pytest.fixture(scope="module")
+def ball(tmp_path_factory):
+    return _inputs(tmp_path_factory.mktemp("ball"), "rubber_ball")
+
+
+@pytest.mark.parametrize("body, boundary", [("clay", "dirichlet"), ("ball", "force")])
+def test_a_rollout_from_the_stored_preload_is_the_rollout_that_preloads_itself(request, body, boundary):
     """Clay (von Mises: plastic strain and rotation warm starts) squeezed by its Dirichlet fingers, the rubber ball
     (a plane-stress wall with surface points) pushed by forces: every array and attribute of the rollout identical."""
     from tasks.physics.mpm_rollout import mpm_rollout
     from tasks.physics.preload_state import preload_from_artifact
 
-    args, stored = _inputs(tmp_path, name)
+    args, stored = request.getfixturevalue(body)
     state = preload_from_artifact(stored.arrays, stored.attrs)
     assert state is not None and state.figures.frames >= 2
     reused, reused_attrs = mpm_rollout(*args, boundary, state)
@@ -55,13 +65,21 @@ def test_a_rollout_from_the_stored_preload_is_the_rollout_that_preloads_itself(t
         assert own_attrs["mass_scale"] < stored.attrs["mass_scale"]
 
 
-def test_a_preload_of_other_inputs_is_computed_again_with_a_note(tmp_path):
+def test_a_preload_of_other_inputs_is_computed_again_with_a_note(clay):
     from tasks.physics.preload_state import preload_from_artifact
     from tasks.physics.rollout_scene import build_scene
 
-    args, stored = _inputs(tmp_path, "clay")
+    args, stored = clay
     state = preload_from_artifact(stored.arrays, stored.attrs)
     scene = build_scene(*args[:3], args[4], args[5], *args[6:], args[3], "dirichlet", replace(state, key="other"))
     assert any("computed again" in note for note in scene.notes)
     assert scene.preload == state.figures
     np.testing.assert_array_equal(scene.solver.deformation_gradients(), state.arrays["F"])
+
+
+def test_a_scene_without_a_preload_stores_none_and_reads_back_none():
+    from tasks.physics.preload_state import preload_arrays, preload_from_artifact
+
+    arrays, attrs = preload_arrays(None)
+    assert arrays == {} and attrs["preloaded"] is False
+    assert preload_from_artifact(arrays, attrs) is None

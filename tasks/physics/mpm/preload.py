@@ -37,8 +37,8 @@ class PreloadedState:
     """What :func:`preloaded_state` takes from a preloaded solver: ``arrays`` (the solver's :data:`PARTICLE_STATE`
     arrays by attribute name, ``tracer_offsets`` (T, anchors, 3) m, ``tracer_F0_inv`` (T, 3, 3)), ``vmax`` m/s,
     ``box`` the last P2G's node box (lo, hi), ``energy_scale`` J, ``loading_force`` N, ``damping`` the preload's
-    local damping, ``frame_dt`` s, ``mass_scale`` the (load-free) scale it ran at, the preload's ``figures`` and the ``key`` of the inputs it was computed from
-    (:func:`tasks.physics.rollout_scene.preload_key`)."""
+    local damping, ``frame_dt`` s, ``mass_scale`` the (load-free) scale it ran at, the preload's ``figures`` and the
+    ``key`` of the inputs it was computed from (:func:`tasks.physics.rollout_scene.preload_key`)."""
 
     arrays: dict[str, np.ndarray]
     vmax: float
