@@ -7,7 +7,7 @@ submits each with the futures its declaration names.  Per object, computed once 
 
     object_model -> squeeze_signals -> signal_smoothing -> force_coefficients -> contact_patches
     -> dirichlet_field; mpm_particles (the physics stage's: the only per-object step that reads the grid);
-    material_oracle
+    material_oracle; gravity_preload (the body settled under its weight once, for every rollout of it)
 
 Per object and variant (Table 2: ``full`` = Dirichlet boundary conditions, ``no_dirichlet`` = force-driven),
 sec. 3.2-3.3 and Table 2:
@@ -67,6 +67,7 @@ from tasks.generation.appearance_refinement import appearance_refinement_step
 from tasks.generation.display_video import display_video_step
 from tasks.generation.effect import effect_step
 from tasks.physics.force_matched_rollout import force_matched_rollout_step
+from tasks.physics.gravity_preload import gravity_preload_step
 from tasks.physics.material_oracle import material_oracle_step
 from tasks.physics.mpm_particles import mpm_particles_step
 from tasks.physics.mpm_rollout import mpm_rollout_step
@@ -82,7 +83,7 @@ log = get_logger("virsqueezer")
 # once per object, variant and backend.  A step may consume only steps of its own or an outer stage.
 PER_OBJECT: tuple[StepTask, ...] = (
     object_model_step, squeeze_signals_step, signal_smoothing_step, force_coefficients_step, contact_patches_step,
-    dirichlet_field_step, mpm_particles_step, material_oracle_step,
+    dirichlet_field_step, mpm_particles_step, material_oracle_step, gravity_preload_step,
 )
 PER_VARIANT: tuple[StepTask, ...] = (mpm_rollout_step, deformation_metrics_step, gbuffer_step, conditions_step)
 PER_BACKEND: tuple[StepTask, ...] = (effect_step, appearance_refinement_step, video_metrics_step,

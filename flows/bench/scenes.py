@@ -59,7 +59,7 @@ def rollout_inputs(obj: str, root: str, overrides: list[str]) -> tuple[dict, Any
     from tasks.physics.mpm_rollout import mpm_rollout_step
 
     cfg = evaluate_config([f"object={obj}", "variant=full", f"paths.artifacts={root}", *overrides])
-    refs = run_object_local(cfg, cfg.object, None, root, until="material_oracle")
+    refs = run_object_local(cfg, cfg.object, None, root, until="gravity_preload")
     params = step_params(mpm_rollout_step, cfg, cfg.object, cfg.variant)
     arts = {n: read_artifact(refs[n]) for n in mpm_rollout_step.spec.inputs}
     return {"arts": arts, "params": params}, cfg

@@ -37,6 +37,7 @@ def object_row(obj: str, overrides: list[str], simulate: bool) -> dict:
     from flows.pipeline import evaluate_config, run_object_local
     from tasks.core.artifacts import read_artifact
     from tasks.physics.force_match import peak_indentation
+    from tasks.physics.preload_state import preload_from_artifact
     from tasks.verification.force_criteria import criterion_row
 
     full = evaluate_config([f"object={obj}", "variant=full", *overrides])
@@ -44,15 +45,17 @@ def object_row(obj: str, overrides: list[str], simulate: bool) -> dict:
     refs = run_object_local(full, full.object, full.variant, full.paths.artifacts, until=UNTIL)
     cal = run_object_local(matched, matched.object, matched.variant, matched.paths.artifacts, until=UNTIL)
     a = {k: read_artifact(refs[k]) for k in ("object_model", "mpm_particles", "signal_smoothing", "force_coefficients",
-                                             "contact_patches", "dirichlet_field", "material_oracle", "mpm_rollout")}
+                                             "contact_patches", "dirichlet_field", "material_oracle", "mpm_rollout",
+                                             "gravity_preload")}
     coefficients = a["force_coefficients"]["force_coefficients"]
+    preloaded = preload_from_artifact(a["gravity_preload"].arrays, a["gravity_preload"].attrs)  # one for every run
 
     def simulated(k: float, last: int) -> float:
         body = {**a["object_model"].arrays, **a["mpm_particles"].arrays}
         attrs = {**a["object_model"].attrs, **a["mpm_particles"].attrs, "name": a["object_model"].ref.scope}
         return peak_indentation(body, attrs, a["dirichlet_field"].arrays, coefficients, a["contact_patches"].arrays,
                                 a["signal_smoothing"]["time"], a["material_oracle"].attrs["materials"],
-                                dict(matched.mpm), dict(matched.simulation), k, last)
+                                dict(matched.mpm), dict(matched.simulation), k, last, preloaded)
 
     return criterion_row(obj, a["mpm_rollout"], a["contact_patches"], coefficients,
                          read_artifact(cal["mpm_rollout"], names=[]).attrs["force_calibration"],

@@ -47,7 +47,9 @@ import numpy as np
 
 from tasks.core.artifacts import Array
 from tasks.physics.mpm import SimulationError
+from tasks.physics.mpm.preload import PreloadedState
 from tasks.physics.mpm_rollout import mpm_rollout, run_frames
+from tasks.physics.preload_state import gravity_preload
 from tasks.physics.rollout_records import collect_outputs
 from tasks.physics.rollout_scene import build_scene, squeeze_regions
 
@@ -157,11 +159,13 @@ def within(reached: float, target: float, rtol: float) -> bool:
 def force_driven_run(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], field_: Mapping[str, np.ndarray],
                      forces: np.ndarray, patches: Mapping[str, np.ndarray], times: np.ndarray,
                      materials: Mapping[str, Any], mpm: Mapping[str, Any], sim: Mapping[str, Any], constant: float,
-                     last_frame: int, target: float, rtol: Optional[float] = None
+                     last_frame: int, target: float, rtol: Optional[float] = None,
+                     preloaded: Optional[PreloadedState] = None
                      ) -> tuple[float, Optional[tuple[dict[str, Array], dict[str, Any]]]]:
     """One calibration run: the force-driven rollout of the whole session pushed with ``constant`` N per unit
     coefficient (``obj``, ``obj_attrs``: the ``object_model`` and ``mpm_particles`` arrays and attributes, as
-    :func:`tasks.physics.mpm_rollout.mpm_rollout` takes them), stopped as soon as it cannot be the accepted run.
+    :func:`tasks.physics.mpm_rollout.mpm_rollout` takes them, with its ``preloaded`` body), stopped as soon as it
+    cannot be the accepted run.
 
     Returns (peak squeeze strain over the window, frames 0..``last_frame``; the rollout's (arrays, attrs) when it ran
     to the end, else None).  It stops at the end of the window unless its window peak is within ``rtol`` of
@@ -182,7 +186,7 @@ def force_driven_run(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any]
         return True
 
     try:
-        scene = build_scene(obj, obj_attrs, field_, patches, times, materials, mpm, sim_k, forces, "force")
+        scene = build_scene(obj, obj_attrs, field_, patches, times, materials, mpm, sim_k, forces, "force", preloaded)
         rec = run_frames(scene, obj, field_, forces, patches, times, sim_k, "force", keep_going)
     except SimulationError:
         if matched["window"]:
@@ -197,34 +201,38 @@ def force_driven_run(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any]
 def peak_indentation(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], field_: Mapping[str, np.ndarray],
                      forces: np.ndarray, patches: Mapping[str, np.ndarray], times: np.ndarray,
                      materials: Mapping[str, Any], mpm: Mapping[str, Any], sim: Mapping[str, Any], constant: float,
-                     last_frame: int) -> float:
+                     last_frame: int, preloaded: Optional[PreloadedState] = None) -> float:
     """The peak squeeze strain (1; max over fingers and frames 0..``last_frame``) of the force-driven rollout pushed
     with ``constant`` N per unit coefficient, simulated up to ``last_frame`` only (no overshoot stop); inf when the
     solver stops (:func:`force_driven_run`'s arguments)."""
     return force_driven_run(obj, obj_attrs, field_, forces, patches, times, materials, mpm, sim, constant,
-                            last_frame, math.inf)[0]
+                            last_frame, math.inf, preloaded=preloaded)[0]
 
 
 def force_matched_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], field_: Mapping[str, np.ndarray],
                           forces: np.ndarray, patches: Mapping[str, np.ndarray], times: np.ndarray,
                           materials: Mapping[str, Any], mpm: Mapping[str, Any], sim: Mapping[str, Any],
                           first_constant: float, rtol: float, max_runs: int,
-                          progress: Optional[Callable[[int, int], None]] = None
+                          progress: Optional[Callable[[int, int], None]] = None,
+                          preloaded: Optional[PreloadedState] = None
                           ) -> tuple[dict[str, Array], dict[str, Any], Calibration, list[float]]:
     """The force-matched rollout: K calibrated (:func:`calibrate` from ``first_constant``, within ``rtol``, in at most
     ``max_runs`` runs of :func:`force_driven_run`) so that the peak indentation over the calibration window
     (:func:`calibration_window` of the eq. 3 field's predicted strain) is the predicted peak; the accepted run is the
-    rollout.  Without convergence the run closest to the target is re-run over the whole session.  Returns the
-    rollout's arrays and attributes, the calibration and each run's wall seconds."""
+    rollout.  Without convergence the run closest to the target is re-run over the whole session.  Every run starts
+    from the body's one gravity preload (``preloaded``, else computed in the first run and kept for the others).
+    Returns the rollout's arrays and attributes, the calibration and each run's wall seconds."""
     regions = squeeze_regions(obj_attrs, field_, patches, len(times))
     last, target = calibration_window(regions.predicted)
+    if preloaded is None:
+        preloaded = gravity_preload(obj, obj_attrs, field_, patches, times, materials, mpm, sim)
     rollouts: dict[float, tuple[float, Any]] = {}  # K -> (peak, rollout) of the closest whole-session run so far
     seconds: list[float] = []
 
     def indentation(k: float) -> float:
         start = time.perf_counter()
         d, out = force_driven_run(obj, obj_attrs, field_, forces, patches, times, materials, mpm, sim, k, last, target,
-                                  rtol)
+                                  rtol, preloaded)
         seconds.append(time.perf_counter() - start)
         if out is not None and math.isfinite(d) and d > 0 and (  # (a window ending with the session: every run)
                 not rollouts or abs(math.log(d / target)) < abs(math.log(next(iter(rollouts.values()))[0] / target))):
@@ -238,7 +246,8 @@ def force_matched_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str,
     if cal.constant not in rollouts:  # not converged: the closest run over the whole session
         start = time.perf_counter()
         rollouts[cal.constant] = (cal.reached, mpm_rollout(obj, obj_attrs, field_, forces, patches, times, materials,
-                                                           mpm, {**sim, "force_per_coefficient": cal.constant}, "force"))
+                                                           mpm, {**sim, "force_per_coefficient": cal.constant}, "force",
+                                                           preloaded))
         seconds.append(time.perf_counter() - start)
     arrays, attrs = rollouts[cal.constant][1]
     return arrays, attrs, cal, seconds

@@ -12,6 +12,7 @@ import math
 
 from tasks.core.step import artifact_step, report_progress
 from tasks.physics.force_match import force_matched_rollout
+from tasks.physics.preload_state import preload_from_artifact
 from tasks.physics.rollout_records import ROLLOUT_OUTPUTS
 
 
@@ -21,7 +22,7 @@ def _finite_or_none(x: float) -> float | None:
 
 @artifact_step("mpm_rollout",
                inputs=("object_model", "mpm_particles", "signal_smoothing", "force_coefficients", "contact_patches",
-                       "dirichlet_field", "material_oracle"),
+                       "dirichlet_field", "material_oracle", "gravity_preload"),
                reads=("mpm", "simulation", "variant.boundary", "variant.force_match", "variant.force_match_rtol",
                       "variant.force_match_runs", "object.force_per_coefficient"),
                outputs=ROLLOUT_OUTPUTS)
@@ -30,14 +31,14 @@ def force_matched_rollout_step(inputs, params):
     indentation, calibrated from the object's ``force_per_coefficient`` (else ``simulation.force_per_coefficient``);
     the rollout artifact of :data:`tasks.physics.mpm_rollout.mpm_rollout_step` with the calibration in its attributes
     (``force_calibration``: the constant, each run's K, peak indentation and wall seconds, the target, whether it
-    converged)."""
+    converged).  Every calibration run starts from the body's gravity preload (the ``gravity_preload`` step's)."""
     if params["variant.boundary"] != "force":
         raise ValueError(f"variant.force_match: calibrates a force-driven push; variant.boundary must be force, got "
                          f"{params['variant.boundary']!r}")
     if params["variant.force_match"] != "indentation":
         raise ValueError(f"variant.force_match: this rollout calibrates the indentation, got "
                          f"{params['variant.force_match']!r} (none: the plain mpm_rollout step)")
-    obj, particles = inputs["object_model"], inputs["mpm_particles"]
+    obj, particles, pre = inputs["object_model"], inputs["mpm_particles"], inputs["gravity_preload"]
     sim = dict(params["simulation"])
     prior = params["object.force_per_coefficient"]
     k0 = float(prior if prior is not None else sim["force_per_coefficient"])
@@ -47,7 +48,8 @@ def force_matched_rollout_step(inputs, params):
         inputs["dirichlet_field"].arrays, inputs["force_coefficients"]["force_coefficients"],
         inputs["contact_patches"].arrays, inputs["signal_smoothing"]["time"],
         inputs["material_oracle"].attrs["materials"], params["mpm"], sim, k0, float(params["variant.force_match_rtol"]),
-        runs, progress=lambda done, total: report_progress(done, total, unit="calibration run"))
+        runs, progress=lambda done, total: report_progress(done, total, unit="calibration run"),
+        preloaded=preload_from_artifact(pre.arrays, pre.attrs))
     calibration = {
         "force_match": "indentation", "force_per_coefficient": cal.constant,
         "first_guess": k0, "first_guess_from": "object" if prior is not None else "simulation",

@@ -81,6 +81,8 @@ import numpy as np
 from conf.hand import N_FINGERS
 from tasks.core.artifacts import Array
 from tasks.core.step import artifact_step, report_progress
+from tasks.physics.mpm.preload import PreloadedState
+from tasks.physics.preload_state import preload_from_artifact
 from tasks.physics.rollout_fingers import (
     beneath_openings,
     boundary_points,
@@ -108,16 +110,17 @@ from tasks.physics.rupture_release import rupture_and_release
 def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], field: Mapping[str, np.ndarray],
                 forces: np.ndarray, patches: Mapping[str, np.ndarray], times: np.ndarray,
                 materials: Mapping[str, Any], mpm: Mapping[str, Any], sim: Mapping[str, Any],
-                boundary: str) -> tuple[dict[str, Array], dict[str, Any]]:
+                boundary: str, preloaded: Optional[PreloadedState] = None) -> tuple[dict[str, Array], dict[str, Any]]:
     """Simulate one object through its squeeze session (sec. 3.2); returns the rollout arrays and attributes.
 
     ``obj`` the object's surface Gaussians and MPM particles (the ``object_model`` and ``mpm_particles`` arrays),
     ``obj_attrs`` their attributes and ``name``; ``times`` (frame,) s; ``forces`` (frame, finger) the force
     coefficients c_k,t of eq. 1; ``field`` the eq. 3 Dirichlet field, ``patches`` the eq. 2 contact patches,
-    ``materials`` the oracle's attributes."""
+    ``materials`` the oracle's attributes; ``preloaded`` the body's gravity preload computed before
+    (:mod:`tasks.physics.gravity_preload`; None: computed here)."""
     if boundary not in ("dirichlet", "force"):
         raise ValueError(f"variant.boundary must be dirichlet or force, got {boundary!r}")
-    scene = build_scene(obj, obj_attrs, field, patches, times, materials, mpm, sim, forces, boundary)
+    scene = build_scene(obj, obj_attrs, field, patches, times, materials, mpm, sim, forces, boundary, preloaded)
     frames = run_frames(scene, obj, field, forces, patches, times, sim, boundary)
     return collect_outputs(scene, frames, times, patches, sim, boundary)
 
@@ -211,7 +214,7 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
 
 @artifact_step("mpm_rollout",
                inputs=("object_model", "mpm_particles", "signal_smoothing", "force_coefficients", "contact_patches",
-                       "dirichlet_field", "material_oracle"),
+                       "dirichlet_field", "material_oracle", "gravity_preload"),
                reads=("mpm", "simulation", "variant.boundary"),
                # the thread count splits the same particle kernel (results agree to float32 round-off): flows.squeeze
                # / flows.export (2 threads) reuse flows.evaluate's rollouts (1 thread per worker) and vice versa
@@ -221,10 +224,11 @@ def mpm_rollout_step(inputs, params):
     """The squeeze simulated with MLS-MPM (eqs. 4-5) under the eq. 3 field (``variant.boundary=dirichlet``: particle
     pins, grid-node Dirichlet points with ``mpm.fingers=dirichlet`` or fingertip colliders with
     ``mpm.fingers=collider``) or the per-finger force (``force``, the no_dirichlet ablation), with the oracle's
-    materials."""
-    obj, particles = inputs["object_model"], inputs["mpm_particles"]
+    materials, from the body's gravity preload (the ``gravity_preload`` step's, shared by the variants)."""
+    obj, particles, pre = inputs["object_model"], inputs["mpm_particles"], inputs["gravity_preload"]
     return mpm_rollout({**obj.arrays, **particles.arrays}, {**obj.attrs, **particles.attrs, "name": obj.ref.scope},
                        inputs["dirichlet_field"].arrays,
                        inputs["force_coefficients"]["force_coefficients"], inputs["contact_patches"].arrays,
                        inputs["signal_smoothing"]["time"], inputs["material_oracle"].attrs["materials"],
-                       params["mpm"], params["simulation"], params["variant.boundary"])
+                       params["mpm"], params["simulation"], params["variant.boundary"],
+                       preload_from_artifact(pre.arrays, pre.attrs))

@@ -3,17 +3,20 @@ the materials by label, the grid, the time and mass scaling, the solver and its 
 (:mod:`tasks.physics.mpm_rollout`'s module doc)."""
 from __future__ import annotations
 
+import hashlib
 import math
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Mapping, Optional
 
 import numpy as np
 
 from conf.mpm_schema import MPMConfig, mpm_config_from
+from tasks.core.artifacts import digest_of
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
 from tasks.physics.mpm import MPMSolver, material_mass_scales
 from tasks.physics.mpm.mass_scaling import QuasiStaticLoad
 from tasks.physics.mpm.materials import MEMBRANE_MODELS, Material, material_from_dict
+from tasks.physics.mpm.preload import PreloadedState, restore_preloaded
 from tasks.physics.mpm.solver import GravityPreload
 from tasks.physics.mpm.thin_walls import contact_reach, membrane_fibres_checked
 from tasks.physics.oracle.convert import materials_from_dict, mpm_material_kwargs
@@ -62,6 +65,26 @@ class Scene:
     thin_wall: bool = False  # the shell is a wall thinner than the spacing (object model; sampling.thin_wall_layers)
     preload: Optional[GravityPreload] = None  # the gravity preload's figures (simulation.gravity_preload_frames)
     j_given: Optional[np.ndarray] = None  # (particle,) det F of the given shape after the preload (None: 1)
+    preload_key: str = ""  # digest of what the preload reads (preload_key), which a preloaded state must match
+
+
+# Cundall's local damping of the gravity preload (MPMSolver.preload_gravity)
+PRELOAD_DAMPING = 0.8
+
+
+def preload_key(solver_inputs: Mapping[str, Any], sim: Mapping[str, Any], frame_dt: float) -> str:
+    """Digest of exactly what the gravity preload reads: the solver's inputs (particles, volumes, materials, their
+    ids, the grid and solver settings but ``mpm.threads``, tracers, thin walls, contact radii; not
+    its boundary ``load``, which the preload does without), the frame interval (s) and the preload's settings.  The
+    fingers, the variant and the signals are not in it: every variant of a body shares its preload."""
+    def part(v: Any) -> Any:
+        if isinstance(v, np.ndarray):
+            return [str(v.dtype), list(v.shape), hashlib.sha256(np.ascontiguousarray(v).tobytes()).hexdigest()]
+        return v
+    return digest_of({**{k: part(v) for k, v in solver_inputs.items()}, "frame_dt": float(frame_dt),
+                      "damping": PRELOAD_DAMPING,
+                      **{k: sim[k] for k in ("gravity_preload_frames", "gravity_preload_passes",
+                                             "gravity_preload_tolerance")}})
 
 
 def squeeze_regions(obj_attrs: Mapping[str, Any], field: Mapping[str, np.ndarray], patches: Mapping[str, np.ndarray],
@@ -144,10 +167,13 @@ def load_rise_time(forces: np.ndarray, frame_dt: float) -> Optional[float]:
 
 def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], field: Mapping[str, np.ndarray],
                 patches: Mapping[str, np.ndarray], times: np.ndarray, materials: Mapping[str, Any],
-                mpm: Mapping[str, Any], sim: Mapping[str, Any], forces: np.ndarray, boundary: str) -> Scene:
+                mpm: Mapping[str, Any], sim: Mapping[str, Any], forces: np.ndarray, boundary: str,
+                preloaded: Optional[PreloadedState] = None) -> Scene:
     """Stage 1: the MPM scene of one object (materials by label, particles, grid, time scaling, solver).  Under a
     force-driven ``boundary`` (``force``) the force coefficients ``forces`` (frame, finger) set the load's time
-    scale for the quasi-static bound of the mass scale (``mpm.quasi_static_margin``)."""
+    scale for the quasi-static bound of the mass scale (``mpm.quasi_static_margin``).  ``preloaded``: the body's
+    gravity preload computed before (:mod:`tasks.physics.gravity_preload`), put into the solver instead of computing
+    it again when its key is this scene's (:func:`preload_key`; else it is computed, with a note)."""
     # 1. what the scene needs: interior particles only if they can be released
     mats = materials_from_dict(materials)
     T = len(times)
@@ -232,12 +258,16 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     # 4. the solver, with the surface points (3D Gaussians) as tracers embedded in the shell: the skin they draw, not
     #    the interior or the core, which a rupture releases (a Gaussian bound to pulp that burst into juice was
     #    dragged off the tomato with it, between its skin and juice anchors: 77 of 3000 ended > 2 cells off the fruit)
-    solver = MPMSolver(x0, vol, mat_list, material_ids=slot[mid], config=cfg, tracers=obj["surface_points"],
-                       tracer_anchors=mid == SHELL, label=str(obj_attrs.get("name", "")), load=load,
-                       membrane_normals=normals, membrane_fibres=fibres)
+    solver_inputs = dict(positions=x0, volumes=vol, material_ids=slot[mid], tracers=obj["surface_points"],
+                         tracer_anchors=mid == SHELL, membrane_normals=normals, membrane_fibres=fibres)
+    solver = MPMSolver(materials=mat_list, config=cfg, label=str(obj_attrs.get("name", "")), load=load,
+                       **solver_inputs)
     if fibres is None and len(obj["wall_fibres"]):  # Gauss layers held as a 3D solid touch colliders at their faces
         layers = membrane_fibres_checked(np.asarray(obj["wall_fibres"], np.int64), np.ones(len(x0), bool), x0)
         solver.set_contact_radii(contact_reach(solver.volumes(), layers))
+    key = preload_key({**solver_inputs, "materials": [asdict(m) for m in mat_list],
+                       "config": asdict(replace(cfg, threads=1)), "contact_radii": solver.contact_radii()},
+                      sim, frame_dt)
     if boundary == "dirichlet" and cfg.fingers == "dirichlet":  # grid-node constraints: what they hold (issue 50)
         notes.append(f"grid-node fingers (mpm.fingers=dirichlet): every constrained point sets the velocity of the "
                      f"grid nodes of its B-spline stencil, so the material within ~1.5 cells ({1.5e3 * dx:.3g} mm) of "
@@ -252,9 +282,17 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
                      f"{1e3 * spacing:.3g} mm spacing (ParticlePins arms 0)")
     # 5. the given shape is the body's equilibrium on the table under its weight (simulation.gravity_preload_frames)
     pre = j_given = None
+    if preloaded is not None and preloaded.key != key:
+        notes.append("gravity preload: the preloaded state given is of other inputs (another body, grid, material "
+                     "table or preload setting): computed again")
+        preloaded = None
     if int(sim["gravity_preload_frames"]) > 0 and any(cfg.gravity):  # no weight (a study's mpm.gravity=0): no preload
-        pre = solver.preload_gravity(frame_dt, int(sim["gravity_preload_frames"]), int(sim["gravity_preload_passes"]),
-                                     tolerance=float(sim["gravity_preload_tolerance"]))
+        if preloaded is not None:  # this body's preload, computed once for all its variants
+            pre = restore_preloaded(solver, preloaded)
+        else:
+            pre = solver.preload_gravity(frame_dt, int(sim["gravity_preload_frames"]),
+                                         int(sim["gravity_preload_passes"]), damping=PRELOAD_DAMPING,
+                                         tolerance=float(sim["gravity_preload_tolerance"]))
         notes.append(f"gravity preload: unsupported, the body would settle by up to {1e3 * pre.sag:.3g} mm under its "
                      f"weight; held in its given shape by that stress ({pre.passes} pass(es), {pre.frames} damped "
                      f"frames, {1e3 * pre.residual:.2g} mm left{'' if pre.converged else ', not at rest'}; per pass "
@@ -262,4 +300,4 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         j_given = np.linalg.det(solver.deformation_gradients(plane_stress=True).astype(np.float64))
     return Scene(oracle=mats, solver=solver, materials=mat_list, slot=slot, labels=mid, with_interior=with_interior,
                  dx=dx, config=cfg, frame_dt=frame_dt, surface0=obj["surface_points"].astype(np.float64),
-                 regions=regions, notes=notes, thin_wall=thin_wall, preload=pre, j_given=j_given)
+                 regions=regions, notes=notes, thin_wall=thin_wall, preload=pre, j_given=j_given, preload_key=key)

@@ -22,6 +22,7 @@ STEP_MODULES = {
     "contact_patches": "tasks.control.contact_patches",
     "dirichlet_field": "tasks.control.dirichlet_field",
     "material_oracle": "tasks.physics.material_oracle",
+    "gravity_preload": "tasks.physics.gravity_preload",
     "mpm_rollout": "tasks.physics.mpm_rollout",
     "deformation_metrics": "tasks.evaluation.deformation_metrics",
     "gbuffer": "tasks.render.gbuffer",
@@ -52,13 +53,14 @@ def _edit(root: Path, rel: str) -> None:
 @pytest.mark.parametrize("edited,expected", [
     # reached only through the engine (tasks.physics.mpm -> solver -> kernels -> constitutive): the rollout, and the
     # particle fill, which places a thin wall's particles at the engine's own Gauss layers (mpm.thin_walls)
-    ("tasks/physics/mpm/constitutive.py", {"mpm_particles", "mpm_rollout"}),
+    ("tasks/physics/mpm/constitutive.py", {"mpm_particles", "gravity_preload", "mpm_rollout"}),
     # the recording format, imported by the signal step and by the smoothing step (its validate_signals)
     ("tasks/control/recording.py", {"squeeze_signals", "signal_smoothing"}),
     # shared by the rollout (threshold) and the metrics (Table 2)
-    ("tasks/physics/regions.py", {"mpm_rollout", "deformation_metrics"}),
+    ("tasks/physics/regions.py", {"gravity_preload", "mpm_rollout", "deformation_metrics"}),
     # the glove: every step that counts fingers or sizes their pads
-    ("conf/hand.py", {"squeeze_signals", "signal_smoothing", "force_coefficients", "contact_patches", "mpm_rollout",
+    ("conf/hand.py", {"squeeze_signals", "signal_smoothing", "force_coefficients", "contact_patches", "gravity_preload",
+                      "mpm_rollout",
                       "deformation_metrics", "video_metrics"}),
     # the framework: every step
     ("tasks/core/artifacts.py", set(STEP_MODULES)),

@@ -21,7 +21,7 @@ from tests.small_runs import SMALL as SMALL_RUN
 
 SMALL = [o for o in SMALL_RUN if not o.startswith("runner=")]  # the runner is each test's
 OBJECT = "clay"
-N_STEPS = 17  # 8 per object + 4 per variant + 5 per backend (no paper-metric weights; display_video included)
+N_STEPS = 18  # 9 per object + 4 per variant + 5 per backend (no paper-metric weights; display_video included)
 
 
 def digests(root: Path) -> dict[tuple[str, str], str]:

@@ -20,7 +20,7 @@ from tasks.core.artifacts import read_group_attrs
 from tests.small_runs import CONTROL_SIZES, SMALL, artifact_digests
 
 STEPS = ["object_model", "squeeze_signals", "signal_smoothing", "force_coefficients", "contact_patches",
-         "dirichlet_field", "mpm_rollout", "deformation_metrics", "gbuffer", "conditions", "effect",
+         "dirichlet_field", "gravity_preload", "mpm_rollout", "deformation_metrics", "gbuffer", "conditions", "effect",
          "appearance_refinement", "video_metrics", "llm_evaluation", "display_video"]
 
 

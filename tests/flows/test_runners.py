@@ -35,7 +35,7 @@ def test_dask_local_cluster_gives_the_same_artifacts_and_metrics_as_sequential(p
         assert sorted(per_variant) == sorted((o, s) for o in ("clay", "rubber_ball") for s in chain
                                              for _ in ("full", "no_dirichlet"))
         shared = ("object_model", "squeeze_signals", "signal_smoothing", "force_coefficients", "contact_patches",
-                  "dirichlet_field", "mpm_particles", "material_oracle")
+                  "dirichlet_field", "mpm_particles", "material_oracle", "gravity_preload")
         assert sorted((r["object"], r["step"]) for r in rows if not r["variant"]) == sorted(
             (o, s) for o in ("clay", "rubber_ball") for s in shared)  # shared steps: once per object
     assert artifact_digests(tmp_path / "dask") == artifact_digests(tmp_path / "sequential")

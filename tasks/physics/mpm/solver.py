@@ -599,7 +599,11 @@ class MPMSolver:
            at rest, with the pressure it settled to.
 
         The tracers (surface Gaussians) are re-bound to stay on their given positions, and :meth:`tracer_state`
-        reports their deformation from the preloaded state.  Time and frame count restart at 0.  Raises
+        reports their deformation from the preloaded state.  Time and frame count restart at 0.  The body settles at
+        the mass scale it has without a boundary ``load`` (the equilibrium under its weight does not depend on the
+        inertia, which dynamic relaxation only uses to get there): every variant of a body, however its push bounds
+        its scale afterwards (a force-driven push's quasi-static bound, resolved at the next frame), starts from the
+        same preloaded state, so one preload serves them all (:mod:`tasks.physics.mpm.preload`).  Raises
         :class:`SimulationError` like :meth:`step_frame`."""
         if not (max_frames >= 1 and passes >= 1 and 0.0 < damping < 1.0 and tolerance > 0.0):
             raise ValueError(f"preload_gravity: need max_frames >= 1, passes >= 1, damping in (0, 1) and tolerance "
@@ -610,6 +614,7 @@ class MPMSolver:
         frames, moved, rest = 0, [], False
         start, last, omega = self.F.numpy().astype(np.float64), None, 1.0
         self._preload_damping = damping
+        load, self.load = self.load, None  # the load-free mass scale (resolved by the first frame below)
         try:
             for _ in range(passes):
                 peak = -math.inf  # the pass starts at rest: it is over once its motion has peaked and died down
@@ -639,6 +644,9 @@ class MPMSolver:
                     break
         finally:
             self._preload_damping = 0.0
+            if load is not None:  # the squeeze's scale, bounded by its load, is resolved at its first frame
+                self.load = load
+                self._mass_scale_pending = self.cfg.mass_scaling in ("global", "selective")
         rebind_tracers_to_preload(self)
         self.time, self.frame, self.substep = 0.0, 0, 0
         return GravityPreload(moved=tuple(moved), frames=frames, converged=rest)
