@@ -49,9 +49,9 @@ class MPMConfig:
             ``floor_sticky`` then means no slip while touching).  ``Collider`` s passed to ``step_frame`` act at
             the surface in both modes; ``DirichletPoints``/``DirichletNodes`` always act on grid nodes.  A sphere
             pressed on the table reads 2.1-5.8x Hertz at 1-4 mm on grid nodes, 1.23-1.44x at the surface
-            (docs/limits/table-contact.md).  The pipeline's table is ``surface`` (``conf/mpm/default.yaml``, since
-            issue 50); this dataclass's default stays ``grid`` so that scripts built on ``MPMConfig()`` keep
-            their results.
+            (docs/limits/table-contact.md); the pipeline's table stays ``grid`` (``conf/mpm/default.yaml``): the
+            flip to ``surface``, re-measured on Table 2 (2026-12-06), toppled the plush toy and crushed the
+            force-driven ball and duck (docs/limits/table-contact.md, "The flip").
         fingers: how the squeeze's fingers drive the material (``variant.boundary=dirichlet`` in
             :mod:`tasks.physics.mpm_rollout`; the force-driven ablation is unaffected).  ``particles`` (default):
             every surface point the eq. 3 field constrains is driven to its target on the particles it is embedded in
