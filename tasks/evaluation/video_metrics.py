@@ -122,7 +122,7 @@ def _scene_metrics(final, simulated, refined_mask, has_effect, refined_rgb, held
     fingers = [FINGERS[k] for k in release_fingers] or None
     cc = control_coupling(per_frame["effect_area_px"], force_coefficients, fingers, cfg["coupling_max_lag_frames"])
     values["control_coupling_pearson"], values["control_coupling_spearman"] = cc.pearson, cc.spearman
-    values["control_coupling_lag_frames"] = float(cc.lag_frames) if cc.lag_frames is not None else math.nan
+    values["control_coupling_lag_frames"] = float(cc.lag_frames) if cc.lag_frames >= 0 else math.nan  # -1: undefined
     if cc.reason:
         for key in ("control_coupling_pearson", "control_coupling_spearman", "control_coupling_lag_frames"):
             reasons[key] = cc.reason

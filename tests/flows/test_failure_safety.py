@@ -13,8 +13,10 @@ import os
 import pickle
 import re
 import shutil
+import socket
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -73,17 +75,35 @@ def test_bad_recording_is_refused_before_the_flow_starts(tmp_path, compose_cfg):
 
 def test_a_failed_step_leaves_no_artifact_and_the_fixed_rerun_reuses_upstream(prefect_server, tmp_path,
                                                                              compose_cfg, monkeypatch):
-    """A step that fails inside the flow (the LLM material oracle's endpoint refuses the connection): the run
-    fails with that step's own one-line message, the steps that need it are skipped, no artifact or cache
-    record of them exists, and the rerun with the table oracle reuses every upstream artifact."""
+    """A step that fails inside the flow (the LLM material oracle's endpoint accepts the connection, which the
+    preflight checks, and hangs up on every request): the run fails with that step's own one-line message, the
+    steps that need it are skipped, no artifact or cache record of them exists, and the rerun with the table
+    oracle reuses every upstream artifact."""
     from flows.pipeline import run
     from tasks.core.step import plain_record
 
+    listener = socket.create_server(("127.0.0.1", 0))
+    listener.settimeout(0.2)
+    done = threading.Event()
+
+    def hang_up() -> None:  # accept, then close: the request gets no response
+        while not done.is_set():
+            try:
+                listener.accept()[0].close()
+            except OSError:
+                pass
+
+    threading.Thread(target=hang_up, daemon=True).start()
     monkeypatch.setenv("VIRSQUEEZER_LLM_API_KEY", "not-a-real-key")
-    llm = ["oracle.backend=llm", "oracle.llm_url=http://127.0.0.1:9/v1", "oracle.llm_model=m", "oracle.timeout_s=2",
-           f"oracle.cache_dir={tmp_path / 'llm-cache'}"]
-    with pytest.raises(RuntimeError) as exc:
-        run(compose_cfg("evaluate", _overrides(tmp_path, ["rubber_ball"], llm)), "test")
+    port = listener.getsockname()[1]
+    llm = ["oracle.backend=llm", f"oracle.llm_url=http://127.0.0.1:{port}/v1", "oracle.llm_model=m",
+           "oracle.timeout_s=2", f"oracle.cache_dir={tmp_path / 'llm-cache'}"]
+    try:
+        with pytest.raises(RuntimeError) as exc:
+            run(compose_cfg("evaluate", _overrides(tmp_path, ["rubber_ball"], llm)), "test")
+    finally:
+        done.set()
+        listener.close()
     msg = str(exc.value)
     assert "\n" not in msg and "rubber_ball/material_oracle" in msg
 

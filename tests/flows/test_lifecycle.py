@@ -95,7 +95,7 @@ def test_ctrl_c_stops_the_run_once_within_seconds(tmp_path):
     """Ctrl-C mid-step: one line saying what is kept, exit 130 within seconds, the temporary server ended (it
     runs in its own session, so the terminal's Ctrl-C does not kill it under the flow), no record left."""
     proc, log = _start(tmp_path, "runner=sequential")
-    _wait_for(proc, log, r"\[2/17\] rubber_ball squeeze_signals")
+    _wait_for(proc, log, r"\[2/18\] rubber_ball squeeze_signals")
     home = tmp_path / "artifacts" / ".prefect"
     assert len(_servers_of(home)) == 1
     code, seconds = _stop(proc, signal.SIGINT, group=True)
@@ -117,7 +117,7 @@ def test_sigterm_ends_the_dask_cluster_and_prefect_home_follows_paths_artifacts(
     cwd.chmod(0o555)
     try:
         proc, log = _start(tmp_path / "run", "runner=dask", "runner.n_workers=1", cwd=cwd)
-        _wait_for(proc, log, r"\[1/17\] rubber_ball object_model")
+        _wait_for(proc, log, r"\[1/18\] rubber_ball object_model")
         home = tmp_path / "run" / "artifacts" / ".prefect"
         assert len(_servers_of(home)) == 1  # the Dask worker ran its step against the run's server
         children = psutil.Process(proc.pid).children(recursive=True)
