@@ -216,6 +216,14 @@ def resolve_auto_mass_scale(solver: MPMSolver, frame_dt: float) -> None:
     upload_materials(solver)
 
 
+def resume_load(solver: MPMSolver, load: Optional[QuasiStaticLoad]) -> None:
+    """Give ``solver`` back the boundary ``load`` its gravity preload ran without (None: none): the squeeze's mass
+    scale, bounded by that load, is then resolved at its first frame."""
+    if load is not None:
+        solver.load = load
+        solver._mass_scale_pending = solver.cfg.mass_scaling in ("global", "selective")
+
+
 def set_damping(solver: MPMSolver, quasi_static: bool) -> None:
     """The frame's local damping coefficients (module doc, quasi-static damping): ``quasi_static_damping`` on the
     measured materials of a mass-scaled run in a quasi-static frame, else none."""

@@ -20,7 +20,7 @@ import numpy as np
 import warp as wp
 
 from .diagnostics import EnergyBudget
-from .mass_scaling import resolve_auto_mass_scale, set_damping
+from .mass_scaling import resolve_auto_mass_scale, resume_load, set_damping
 from .tracers import place_tracers
 
 if TYPE_CHECKING:
@@ -93,9 +93,7 @@ def restore_preloaded(solver: MPMSolver, state: PreloadedState) -> GravityPreloa
     solver._preload_damping = state.damping
     set_damping(solver, quasi_static=False)
     solver._preload_damping = 0.0
-    if load is not None:  # as preload_gravity leaves it: the squeeze's scale resolved at its first frame
-        solver.load = load
-        solver._mass_scale_pending = solver.cfg.mass_scaling in ("global", "selective")
+    resume_load(solver, load)  # as preload_gravity leaves it
     solver._vmax = state.vmax
     solver._last_box = (np.array(state.box[0]), np.array(state.box[1]))
     solver._energy_initial = False

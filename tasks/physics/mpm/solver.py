@@ -90,6 +90,7 @@ from .mass_scaling import (
     mass_scale_for,
     quasi_static_materials,
     resolve_auto_mass_scale,
+    resume_load,
     set_damping,
 )
 from .materials import (
@@ -644,9 +645,7 @@ class MPMSolver:
                     break
         finally:
             self._preload_damping = 0.0
-            if load is not None:  # the squeeze's scale, bounded by its load, is resolved at its first frame
-                self.load = load
-                self._mass_scale_pending = self.cfg.mass_scaling in ("global", "selective")
+            resume_load(self, load)
         rebind_tracers_to_preload(self)
         self.time, self.frame, self.substep = 0.0, 0, 0
         return GravityPreload(moved=tuple(moved), frames=frames, converged=rest)
