@@ -57,10 +57,11 @@ def evaluate_args(artifacts: Path, reports: Path, objects: str = "tomato") -> li
     return [f"paths.artifacts={artifacts}", f"paths.reports={reports}", f"grid.objects=[{objects}]", *SMALL]
 
 
-def audited(artifacts: Path, log: Path, args: list[str], env: dict[str, str]) -> subprocess.CompletedProcess:
-    """``python -m flows.evaluate args`` with every write under ``artifacts`` refused and logged to ``log``."""
-    return subprocess.run([sys.executable, "-m", "tests.flows.audit_writes", str(artifacts), str(log), "flows.evaluate",
-                           *args], cwd=REPO, capture_output=True, text=True, timeout=600, env=env)
+def audited(artifacts: Path, log: Path, args: list[str], env: dict[str, str],
+            flow: str = "flows.evaluate") -> subprocess.CompletedProcess:
+    """``python -m <flow> args`` with every write under ``artifacts`` refused and logged to ``log``."""
+    return subprocess.run([sys.executable, "-m", "tests.flows.audit_writes", str(artifacts), str(log), flow, *args],
+                          cwd=REPO, capture_output=True, text=True, timeout=600, env=env)
 
 
 def refused_writes(log: Path) -> list[str]:
@@ -125,6 +126,23 @@ def test_a_step_the_read_only_cache_lacks_is_one_line_before_anything_runs(share
     assert refused_writes(tmp_path / "writes.log") == []
     assert snapshot(shared_cache) == before
     assert not [p for p in reports.iterdir() if p.name.startswith("evaluate-")]
+
+
+def test_the_viewer_records_a_scene_of_a_read_only_cache(shared_cache, tmp_path):
+    """``python -m flows.view record=true`` on the read-only cache: the recording under paths.reports, Prefect's
+    home there too, no write tried under the cache."""
+    reports = tmp_path / "reports"
+    before = snapshot(shared_cache)
+    view_sizes = [a for a in SMALL if not a.startswith(("grid.", "runner="))]  # the viewer's config has neither
+    out = audited(shared_cache, tmp_path / "writes.log", ["object=tomato", "compare=null", "record=true", "port=0",
+                                                          f"paths.artifacts={shared_cache}", f"paths.reports={reports}",
+                                                          *view_sizes], user_env(), flow="flows.view")
+    assert out.returncode == 0, out.stderr[-3000:]
+    recording = reports / "viewer" / "tomato_full.html"
+    assert f"recording: {recording} (" in out.stdout and recording.stat().st_size > 0
+    assert (reports / ".prefect").is_dir()
+    assert refused_writes(tmp_path / "writes.log") == []
+    assert snapshot(shared_cache) == before
 
 
 def read_only_mount() -> list[str] | None:
