@@ -280,11 +280,16 @@ def shared_cache_grid(cfg: DictConfig, why: str) -> dict[str, dict[tuple[str, st
     try:
         return find_cached_grid(cfg, discard=False)
     except NotCached as first:
-        root = cfg.paths.artifacts
-        raise SystemExit(f"config error: paths.artifacts={root} is a read-only cache ({why}) and {first} is not "
-                         f"cached there (missing or damaged), so the run would have to write into it: give a "
-                         f"writable folder (paths.artifacts=/path/to/folder), e.g. a copy of the cache (cp -a "
-                         f"{root} /path/to/folder)") from None
+        raise _not_in_shared_cache(cfg, why, first) from None
+
+
+def _not_in_shared_cache(cfg: DictConfig, why: str, first: NotCached) -> SystemExit:
+    """The one line refusing a run that needs the step ``first`` names, which the read-only cache ``paths.artifacts``
+    (``why``) does not hold intact."""
+    root = cfg.paths.artifacts
+    return SystemExit(f"config error: paths.artifacts={root} is a read-only cache ({why}) and {first} is not cached "
+                      f"there (missing or damaged), so the run would have to write into it: give a writable folder "
+                      f"(paths.artifacts=/path/to/folder), e.g. a copy of the cache (cp -a {root} /path/to/folder)")
 
 
 # the report media of one scene, made on the task runner as soon as its artifacts are (not cached by Prefect:
@@ -317,19 +322,31 @@ def evaluate_config(overrides: list[str]) -> DictConfig:
 
 
 def run_object_local(cfg: DictConfig, obj: DictConfig, variant: DictConfig | None, root: str | Path,
-                     until: str | None = None) -> dict[str, ArtifactRef]:
+                     until: str | None = None, call: Callable[..., ArtifactRef] = StepTask.run_local
+                     ) -> dict[str, ArtifactRef]:
     """Run one object's chain (and one variant's, when given) without Prefect, up to step ``until`` (tests,
-    notebooks).  Same keys and artifacts as the flow."""
+    notebooks).  Same keys and artifacts as the flow.  ``call`` makes each step's result (default: runs it or reuses
+    its artifact; :func:`shared_cache_object` only finds it)."""
     refs: dict[str, ArtifactRef] = {}
+    scope = seed_scope(obj.name, int(cfg.sampling.seed))
     for step in PER_OBJECT + (variant_chain(variant) + PER_BACKEND if variant is not None else ()):
         if not wanted(step, cfg):
             continue
-        refs[step.name] = step.run_local(root=str(root), scope=seed_scope(obj.name, int(cfg.sampling.seed)),
-                                         params=step_params(step, cfg, obj, variant),
-                                         inputs={n: refs[n] for n in step.spec.inputs})
+        refs[step.name] = call(step, root=str(root), scope=scope, params=step_params(step, cfg, obj, variant),
+                               inputs={n: refs[n] for n in step.spec.inputs}, label=scope)
         if step.name == until:
             break
     return refs
+
+
+def shared_cache_object(cfg: DictConfig, obj: DictConfig, variant: DictConfig, why: str,
+                        until: str | None = None) -> dict[str, ArtifactRef]:
+    """:func:`run_object_local`'s artifacts found in the read-only cache ``paths.artifacts`` (``why``), nothing run or
+    written, or the one line of :func:`shared_cache_grid` (``SystemExit``)."""
+    try:
+        return run_object_local(cfg, obj, variant, cfg.paths.artifacts, until, call=partial(_cached, discard=False))
+    except NotCached as first:
+        raise _not_in_shared_cache(cfg, why, first) from None
 
 
 @flow(name="virsqueezer", log_prints=True, validate_parameters=False, persist_result=False)

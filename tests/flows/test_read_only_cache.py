@@ -145,6 +145,23 @@ def test_the_viewer_records_a_scene_of_a_read_only_cache(shared_cache, tmp_path)
     assert snapshot(shared_cache) == before
 
 
+def test_export_writes_its_plys_from_a_read_only_cache(shared_cache, tmp_path):
+    """``python -m flows.export`` of the cached scene: its PLY files under paths.reports, every step found in the
+    cache (none run), no write tried under it."""
+    reports = tmp_path / "reports"
+    before = snapshot(shared_cache)
+    sizes = [a for a in SMALL if not a.startswith("grid.")]  # flows.export composes conf/squeeze.yaml: one variant
+    out = audited(shared_cache, tmp_path / "writes.log", ["object=tomato", f"paths.artifacts={shared_cache}",
+                                                          f"paths.reports={reports}", *sizes], user_env(),
+                  flow="flows.export")
+    assert out.returncode == 0, out.stderr[-3000:]
+    folder = reports / "ply" / "tomato_full"
+    assert out.stdout.splitlines()[-1].endswith(f"released particles) in {folder}")
+    assert sorted(p.name for p in folder.iterdir()) == [f"frame_{i:04d}.ply" for i in (0, 5, 10, 15, 20)]
+    assert refused_writes(tmp_path / "writes.log") == []
+    assert snapshot(shared_cache) == before
+
+
 def read_only_mount() -> list[str] | None:
     """The command prefix that runs a command with its first argument's folder bind-mounted read-only onto itself in
     a mount namespace of its own (``unshare``: as root, or as a user namespace's root), or None where neither
