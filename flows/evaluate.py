@@ -23,7 +23,7 @@ def pipeline_main(config_name: str) -> Callable[..., None]:
             begin_run(cfg.paths.artifacts, cfg.paths.reports)
             from flows.preflight import preflight
 
-            preflight(cfg)  # bad config or input: one line, before the engine, Prefect or a server is loaded
+            preflight(cfg, read_only_ok=True)  # bad config or input: one line, before Prefect or a server loads
             from flows.pipeline import run
 
             run(cfg, config_name)

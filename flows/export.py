@@ -26,7 +26,7 @@ def main(cfg: DictConfig) -> None:
     begin_run(cfg.paths.artifacts, cfg.paths.reports)
     from flows.preflight import preflight
 
-    preflight(cfg)
+    preflight(cfg, read_only_ok=True)
     from flows.pipeline import run_object_local, shared_cache_object
     from flows.preflight_env import read_only_cache
     from tasks.core.artifacts import read_artifact

@@ -3,7 +3,8 @@
 * :func:`check_argv`: ``-m`` / ``--multirun`` after an override (``object=can -m seed=1,2``), which argparse
   reports as a bare "unrecognized arguments", is one usage line saying where ``-m`` goes;
 * :class:`PreflightCallback` (registered in ``conf/squeeze.yaml`` and ``conf/evaluate.yaml``): before a run, the
-  folders it writes (:func:`flows.preflight_env.check_folders`, Hydra's ``hydra.run.dir`` included); before a
+  folders it writes (:func:`flows.preflight_env.check_folders`, Hydra's ``hydra.run.dir`` included; a read-only
+  artifacts cache passes: these configs' mains can be served from one); before a
   ``-m`` sweep, those folders and then every job's config (composed as the job will be, then
   :func:`flows.preflight.check_config`), so that a config error in job 1 stops the sweep before job 0 runs, naming
   the job and its overrides; then the sweep's total expected wall time (its jobs one after another) against
@@ -46,7 +47,7 @@ class PreflightCallback(Callback):
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
         from flows.preflight_env import check_folders
 
-        check_folders(config, {"hydra.run.dir": str(config.hydra.run.dir)})
+        check_folders(config, {"hydra.run.dir": str(config.hydra.run.dir)}, read_only_ok=True)
 
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
         from hydra import compose
@@ -55,7 +56,7 @@ class PreflightCallback(Callback):
         from flows.preflight_env import check_folders
         from flows.preflight_settings import expected_wall, human_seconds
 
-        check_folders(config, {"hydra.sweep.dir": str(config.hydra.sweep.dir)})
+        check_folders(config, {"hydra.sweep.dir": str(config.hydra.sweep.dir)}, read_only_ok=True)
         name = kwargs.get("config_name") or config.hydra.job.config_name
         jobs = job_overrides(list(config.hydra.overrides.task))
         swept = {o for job in jobs for o in job if sum(o in j for j in jobs) < len(jobs)}  # those that differ

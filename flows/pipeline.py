@@ -436,7 +436,7 @@ def _fresh_run_name(reports: Path, flow_label: str) -> str:
 
 def run(cfg: DictConfig, flow_label: str) -> dict:
     """Entry used by the Hydra mains: check the config and inputs, pick the runner, run the flow."""
-    preflight(cfg)
+    preflight(cfg, read_only_ok=True)
     read_only = read_only_cache(cfg.paths.artifacts)
     shared = shared_cache_grid(cfg, read_only) if read_only else None  # before anything else: all there, or a line
     removed, freed = remove_stale_temporaries(cfg.paths.artifacts) if not read_only else (0, 0)

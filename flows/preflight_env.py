@@ -6,8 +6,9 @@ naming the key or variable and the fix:
   ``paths.reports`` by default) are folders this process can write into: a regular file given as a folder, a path
   through a file, a read-only file system or a folder without write permission is refused (:func:`check_folders`,
   also run by the Hydra callback :class:`flows.hydra_checks.PreflightCallback` before Hydra creates its folder);
-  except an artifacts folder that exists and cannot be written (a lab's cache shared read-only,
-  :func:`read_only_cache`): a run is then served from it when every step is cached there, refused otherwise
+  except, for the mains that can be served from one (``flows.evaluate``, ``flows.squeeze``, ``flows.export``), an
+  artifacts folder that exists and cannot be written (a lab's cache shared read-only, :func:`read_only_cache`): a
+  run is then served from it when every step is cached there, refused otherwise
   (:func:`flows.pipeline.shared_cache_grid`), and writes nothing into it - Prefect's home, the caches below and new
   report media go under ``paths.reports`` (:func:`writable_root`);
 * the artifacts' file system has room for the run's estimated artifacts, less what the artifacts folder already
@@ -68,13 +69,14 @@ def writable_root(artifacts: str | Path, reports: str | Path) -> Path:
     return Path(root).expanduser().absolute()
 
 
-def check_folders(cfg: DictConfig, hydra_dirs: dict[str, str] | None = None) -> None:
-    """``paths.artifacts``, ``paths.reports`` and ``hydra_dirs`` ({key: folder}) writable, or one line; an existing
-    artifacts folder that cannot be written passes (a read-only cache, :func:`read_only_cache`)."""
+def check_folders(cfg: DictConfig, hydra_dirs: dict[str, str] | None = None, read_only_ok: bool = False) -> None:
+    """``paths.artifacts``, ``paths.reports`` and ``hydra_dirs`` ({key: folder}) writable, or one line; with
+    ``read_only_ok`` (a main that can be served from a read-only cache) an existing artifacts folder that cannot be
+    written passes (:func:`read_only_cache`)."""
     for key, folder in (("paths.artifacts", cfg.paths.artifacts), ("paths.reports", cfg.paths.reports),
                         *(hydra_dirs or {}).items()):
         why = unwritable(folder)
-        if why and not (key == "paths.artifacts" and Path(folder).expanduser().is_dir()):
+        if why and not (read_only_ok and key == "paths.artifacts" and Path(folder).expanduser().is_dir()):
             raise SystemExit(f"config error: {key}={folder}: {why}: give a folder you can write to "
                              f"({key}=/path/to/folder)")
 
@@ -144,9 +146,10 @@ def check_prefect_api() -> None:
                          "server)") from None
 
 
-def check_environment(cfg: DictConfig, need_bytes: float) -> None:
-    """Everything above, in order; prints the caches' lines (and the read-only cache's)."""
-    check_folders(cfg)
+def check_environment(cfg: DictConfig, need_bytes: float, read_only_ok: bool = False) -> None:
+    """Everything above, in order (``read_only_ok``: :func:`check_folders`); prints the caches' lines (and the
+    read-only cache's)."""
+    check_folders(cfg, read_only_ok=read_only_ok)
     why = read_only_cache(cfg.paths.artifacts)
     if why:
         print(f"paths.artifacts={cfg.paths.artifacts} is a read-only cache ({why}): the run is served from it if "

@@ -205,18 +205,22 @@ def test_on_a_real_read_only_mount_the_cached_run_passes_and_the_cache_is_untouc
 
 
 def test_an_existing_folder_that_cannot_be_written_is_a_read_only_cache(tmp_path, compose_cfg):
-    """/sys refuses a new file even to root: as paths.artifacts it is a read-only cache (not refused by the folder
-    check; Prefect's home, caches and media go under paths.reports), while a folder that does not exist under it is
-    still refused in one line."""
+    """/sys refuses a new file even to root: as paths.artifacts it is a read-only cache (passed by the folder check
+    of a main that can be served from one, refused by the others; Prefect's home, caches and media go under
+    paths.reports), while a folder that does not exist under it is refused in one line by every main."""
     from flows.preflight_env import check_folders, read_only_cache, writable_root
 
     cfg = compose_cfg("evaluate", ["paths.artifacts=/sys", f"paths.reports={tmp_path / 'r'}"])
-    check_folders(cfg)
+    check_folders(cfg, read_only_ok=True)
+    with pytest.raises(SystemExit) as exc:
+        check_folders(cfg)  # e.g. python -m flows.studies.convergence, which computes
+    assert str(exc.value) == ("config error: paths.artifacts=/sys: /sys is not writable (Permission denied): give a "
+                              "folder you can write to (paths.artifacts=/path/to/folder)")
     assert read_only_cache("/sys") == "/sys is not writable (Permission denied)"
     assert writable_root("/sys", tmp_path / "r") == tmp_path / "r"
     assert read_only_cache(tmp_path) == "" and writable_root(tmp_path, tmp_path / "r") == tmp_path
     assert read_only_cache("/sys/virsqueezer") == ""  # not there: nothing to be served from
     with pytest.raises(SystemExit) as exc:
-        check_folders(compose_cfg("evaluate", ["paths.artifacts=/sys/virsqueezer"]))
+        check_folders(compose_cfg("evaluate", ["paths.artifacts=/sys/virsqueezer"]), read_only_ok=True)
     assert str(exc.value) == ("config error: paths.artifacts=/sys/virsqueezer: /sys is not writable (Permission denied): "
                               "give a folder you can write to (paths.artifacts=/path/to/folder)")
