@@ -437,6 +437,7 @@ def _fresh_run_name(reports: Path, flow_label: str) -> str:
 def run(cfg: DictConfig, flow_label: str) -> dict:
     """Entry used by the Hydra mains: check the config and inputs, pick the runner, run the flow."""
     preflight(cfg, read_only_ok=True)
+    t0 = time.perf_counter()
     read_only = read_only_cache(cfg.paths.artifacts)
     shared = shared_cache_grid(cfg, read_only) if read_only else None  # before anything else: all there, or a line
     removed, freed = remove_stale_temporaries(cfg.paths.artifacts) if not read_only else (0, 0)
@@ -451,7 +452,6 @@ def run(cfg: DictConfig, flow_label: str) -> dict:
     job_dir = sweep_job_dir()
     if config.get("run_name") is None and job_dir is not None:
         config["run_name"] = f"{flow_label}-{Path(job_dir).parent.name}-job{Path(job_dir).name}"
-    t0 = time.perf_counter()
     cached = shared if read_only else cached_grid(cfg)
     if cached is not None:  # nothing to compute: the report alone, without a Prefect server or task runner
         print(f"every step is cached ({sum(len(s) for s in cached.values())} artifacts checked in "
