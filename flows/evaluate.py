@@ -19,10 +19,11 @@ def pipeline_main(config_name: str) -> Callable[..., None]:
         with sweep_job():  # in a -m sweep: a failing job is recorded and the others go on
             from flows.lifecycle import begin_run
 
-            begin_run(cfg.paths.artifacts)  # Prefect's home under paths.artifacts, Ctrl-C handling; before Prefect
+            # Prefect's home under paths.artifacts (paths.reports for a read-only cache), Ctrl-C handling; before Prefect
+            begin_run(cfg.paths.artifacts, cfg.paths.reports)
             from flows.preflight import preflight
 
-            preflight(cfg)  # bad config or input: one line, before the engine, Prefect or a server is loaded
+            preflight(cfg, read_only_ok=True)  # bad config or input: one line, before Prefect or a server loads
             from flows.pipeline import run
 
             run(cfg, config_name)

@@ -4,7 +4,8 @@
     python -m flows.export object=can variant=no_dirichlet paths.export=/tmp/can_ply
 
 Runs (or, with the same config, reuses from ``artifacts/``) the object's steps without Prefect, then writes
-``<out>/frame_XXXX.ply`` (default ``reports/ply/<object>_<variant>/``).  No computation lives here.
+``<out>/frame_XXXX.ply`` (default ``reports/ply/<object>_<variant>/``).  From a read-only artifacts cache it only
+reads: every step must be cached there (else one line naming the first that is not).  No computation lives here.
 """
 from pathlib import Path
 
@@ -21,16 +22,20 @@ register_configs()
 def main(cfg: DictConfig) -> None:
     from flows.lifecycle import begin_run
 
-    begin_run(cfg.paths.artifacts)  # Prefect's home under paths.artifacts, Ctrl-C handling; before Prefect loads
+    # Prefect's home under paths.artifacts (paths.reports for a read-only cache), Ctrl-C handling; before Prefect loads
+    begin_run(cfg.paths.artifacts, cfg.paths.reports)
     from flows.preflight import preflight
 
-    preflight(cfg)
-    from flows.pipeline import run_object_local
+    preflight(cfg, read_only_ok=True)
+    from flows.pipeline import run_object_local, shared_cache_object
+    from flows.preflight_env import read_only_cache
     from tasks.core.artifacts import read_artifact
     from tasks.generation.ply_sequence import write_ply_sequence
     from tasks.render.scene import drawn_covariances
 
-    refs = run_object_local(cfg, cfg.object, cfg.variant, cfg.paths.artifacts, until="appearance_refinement")
+    why, until = read_only_cache(cfg.paths.artifacts), "appearance_refinement"
+    refs = (shared_cache_object(cfg, cfg.object, cfg.variant, why, until) if why  # found there, nothing run or written
+            else run_object_local(cfg, cfg.object, cfg.variant, cfg.paths.artifacts, until=until))
     obj, rollout, g, refined = (read_artifact(refs[k]) for k in ("object_model", "mpm_rollout", "gbuffer",
                                                                    "appearance_refinement"))
     frames = g["frame_index"]

@@ -3,10 +3,12 @@
 * :func:`check_argv`: ``-m`` / ``--multirun`` after an override (``object=can -m seed=1,2``), which argparse
   reports as a bare "unrecognized arguments", is one usage line saying where ``-m`` goes;
 * :class:`PreflightCallback` (registered in ``conf/squeeze.yaml`` and ``conf/evaluate.yaml``): before a run, the
-  folders it writes (:func:`flows.preflight_env.check_folders`, Hydra's ``hydra.run.dir`` included); before a
+  folders it writes (:func:`flows.preflight_env.check_folders`, Hydra's ``hydra.run.dir`` included; a read-only
+  artifacts cache passes: these configs' mains can be served from one); before a
   ``-m`` sweep, those folders and then every job's config (composed as the job will be, then
   :func:`flows.preflight.check_config`), so that a config error in job 1 stops the sweep before job 0 runs, naming
-  the job and its overrides.
+  the job and its overrides; then the sweep's total expected wall time (its jobs one after another) against
+  ``limits.max_wall_hours``, which bounds each job too.
 """
 from __future__ import annotations
 
@@ -45,16 +47,16 @@ class PreflightCallback(Callback):
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
         from flows.preflight_env import check_folders
 
-        check_folders(config, {"hydra.run.dir": str(config.hydra.run.dir)})
+        check_folders(config, {"hydra.run.dir": str(config.hydra.run.dir)}, read_only_ok=True)
 
     def on_multirun_start(self, config: Any, **kwargs: Any) -> None:
         from hydra import compose
 
         from flows.preflight import check_config
         from flows.preflight_env import check_folders
-        from flows.preflight_settings import expected_wall
+        from flows.preflight_settings import expected_wall, human_seconds
 
-        check_folders(config, {"hydra.sweep.dir": str(config.hydra.sweep.dir)})
+        check_folders(config, {"hydra.sweep.dir": str(config.hydra.sweep.dir)}, read_only_ok=True)
         name = kwargs.get("config_name") or config.hydra.job.config_name
         jobs = job_overrides(list(config.hydra.overrides.task))
         swept = {o for job in jobs for o in job if sum(o in j for j in jobs) < len(jobs)}  # those that differ
@@ -70,5 +72,10 @@ class PreflightCallback(Callback):
             except Exception as exc:  # noqa: BLE001 - Hydra's own composition error (an unknown key or group)
                 first = (str(exc).splitlines() or [type(exc).__name__])[0]
                 raise SystemExit(f"sweep job {n} ({shown}): config error: {first}") from None
+        limit = float(config.limits.max_wall_hours)
+        if wall > limit * 3600:
+            raise SystemExit(f"work limit: the sweep's {len(jobs)} jobs would take about {human_seconds(wall)} one "
+                             f"after another, above limits.max_wall_hours={limit:g} ({human_seconds(limit * 3600)}): "
+                             f"sweep fewer values or split the sweep (or raise limits.max_wall_hours)")
         print(f"sweep: the {len(jobs)} jobs' configs passed the checks; work estimate of the sweep: expected wall "
               f"time {expected_wall(wall)} (its jobs one after another)", flush=True)

@@ -2,8 +2,9 @@
 
 1. **Prefect's home follows ``paths.artifacts``.**  :func:`begin_run` (first line of every Hydra main, before
    Prefect is imported) points ``PREFECT_HOME`` and ``PREFECT_RESULTS_LOCAL_STORAGE_PATH`` at
-   ``<paths.artifacts>/.prefect`` unless the user set them in the environment, so nothing is written to the
-   working folder (it may be read-only).  Prefect reads its settings once, at import: in a Hydra multirun the
+   ``<paths.artifacts>/.prefect`` (``<paths.reports>/.prefect`` when the artifacts folder is a read-only shared
+   cache) unless the user set them in the environment, so nothing is written to the working folder (it may be
+   read-only).  Prefect reads its settings once, at import: in a Hydra multirun the
    first job's artifacts folder keeps the server's home (the cache records follow each job's folder anyway,
    :func:`flows.runtime.result_storage_settings`).
 2. **Stopping.**  :func:`begin_run` also installs the SIGINT (Ctrl-C) and SIGTERM handlers (and the flow body
@@ -54,13 +55,16 @@ _SERVER_APP = "prefect.server.api.server:create_app"  # the uvicorn factory ever
 
 
 # ------------------------------------------------------------------------------------------------ Prefect's home
-def follow_artifacts(artifacts: str | Path, user_set: frozenset[str]) -> Path:
+def follow_artifacts(artifacts: str | Path, user_set: frozenset[str], reports: str | Path | None = None) -> Path:
     """Point ``PREFECT_HOME`` and the cache records (``PREFECT_RESULTS_LOCAL_STORAGE_PATH``) at
-    ``<artifacts>/.prefect``, except those in ``user_set`` (set by the user), and create the home.  Returns the
-    home in effect.
+    ``<artifacts>/.prefect`` (``<reports>/.prefect`` when ``reports`` is given and ``artifacts`` is a read-only
+    cache, :func:`flows.preflight_env.writable_root`), except those in ``user_set`` (set by the user), and create
+    the home.  Returns the home in effect.
 
     Only before Prefect is imported (it reads its settings once): afterwards the home in effect is kept."""
-    home = Path(artifacts).resolve() / ".prefect"
+    from flows.preflight_env import writable_root
+
+    home = (writable_root(artifacts, reports) if reports is not None else Path(artifacts)).resolve() / ".prefect"
     if "prefect" not in sys.modules:
         wanted = {"PREFECT_HOME": home, "PREFECT_RESULTS_LOCAL_STORAGE_PATH": home / "results"}
         for key, value in wanted.items():
@@ -71,12 +75,13 @@ def follow_artifacts(artifacts: str | Path, user_set: frozenset[str]) -> Path:
     return home
 
 
-def begin_run(artifacts: str | Path) -> None:
-    """What every Hydra main does first: Prefect's home under ``artifacts``, the stop handlers, and the end of
-    any temporary Prefect server a killed run left behind (one line each)."""
+def begin_run(artifacts: str | Path, reports: str | Path | None = None) -> None:
+    """What every Hydra main does first: Prefect's home under ``artifacts`` (under ``reports``, when given, for a
+    read-only cache), the stop handlers, and the end of any temporary Prefect server a killed run left behind (one
+    line each)."""
     from flows import USER_PREFECT_PATHS
 
-    home = follow_artifacts(artifacts, USER_PREFECT_PATHS)
+    home = follow_artifacts(artifacts, USER_PREFECT_PATHS, reports)
     install_stop_handlers()
     for line in end_orphaned_servers(home):
         print(line, file=sys.stderr, flush=True)

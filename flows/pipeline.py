@@ -27,12 +27,16 @@ Tables 1 and 3:
 Per object and variant, the report's media (videos, contact sheet, figures) are made on the task runner as soon as
 the artifacts they show exist (:func:`tasks.reporting.report.cache_scene_media`), so that the report build after
 the last task only links them.  A run whose every step is already on disk and intact (:func:`cached_grid`) writes
-the report without starting the Prefect server or the task runner.
+the report without starting the Prefect server or the task runner.  So does a run on a read-only artifacts folder
+(a lab's cache shared read-only, :func:`flows.preflight_env.read_only_cache`), which writes nothing there (its new
+report media go to ``<paths.reports>/.media``, :func:`media_folders`) and is refused in one line, before anything
+is computed, when a step is not cached there (:func:`shared_cache_grid`).
 """
 from __future__ import annotations
 
 import time
 from datetime import datetime
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable
 
@@ -45,6 +49,7 @@ from prefect.logging import get_logger
 from flows.heartbeat import heartbeat
 from flows.lifecycle import temporary_server
 from flows.preflight import particle_bound, preflight, work_estimate
+from flows.preflight_env import read_only_cache
 from flows.report_marker import incomplete_report, writing_report
 from flows.runtime import RunTable, make_task_runner, profile_table, result_storage_settings, runner_workers
 from flows.selection import selected_backends, selected_objects, selected_seeds, selected_variants
@@ -224,12 +229,12 @@ class NotCached(LookupError):
 
 
 def _cached(step: StepTask, *, root: str, scope: str, params: dict, inputs: dict[str, ArtifactRef],
-            label: str) -> ArtifactRef:
+            label: str, discard: bool = True) -> ArtifactRef:
     """The step's intact artifact on disk, found as its task's cache policy finds it (same key, same check,
-    a damaged one removed with one warning line), without running anything."""
+    a damaged one removed with one warning line; left in place with ``discard=False``), without running anything."""
     key = step_key(step.name, step.version, scope, params, {n: ref.at(root) for n, ref in inputs.items()},
                    step.spec.unkeyed)
-    attrs = valid_artifact(artifact_path(root, scope, step.name, key), scope, step.name)
+    attrs = valid_artifact(artifact_path(root, scope, step.name, key), scope, step.name, discard)
     if attrs is None:
         raise NotCached(f"{label}/{step.name}")
     return ArtifactRef(rel=artifact_rel(scope, step.name, key), digest=attrs["digest"], step=step.name, scope=scope,
@@ -237,25 +242,54 @@ def _cached(step: StepTask, *, root: str, scope: str, params: dict, inputs: dict
 
 
 def cached_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], scope: str,
-                  until: str) -> dict[tuple[str, str], ArtifactRef]:
+                  until: str, discard: bool = True) -> dict[tuple[str, str], ArtifactRef]:
     """One object's artifacts keyed as :func:`submit_object`'s futures, the per-variant chain up to step ``until``
     (no effect backend), each found on disk as the cached tasks find it, without running anything; raises
-    :class:`NotCached` naming the first step that has no intact artifact."""
+    :class:`NotCached` naming the first step that has no intact artifact (``discard=False``: a damaged one is left
+    in place, for a read-only cache)."""
     names = [s.name for s in PER_VARIANT]
     return submit_object(cfg, obj, variants, backends=[], per_variant=PER_VARIANT[:names.index(until) + 1],
-                         scope=scope, call=_cached)
+                         scope=scope, call=partial(_cached, discard=discard))
+
+
+def find_cached_grid(cfg: DictConfig, discard: bool = True) -> dict[str, dict[tuple[str, str], ArtifactRef]]:
+    """Every step's artifact of the grid, keyed as the flow's futures, each found on disk and intact (the same keys
+    and manifest check as the cached tasks, in this process, without Prefect); raises :class:`NotCached` at the
+    first step that must run (a damaged artifact is removed with one warning line on the way, unless
+    ``discard=False``)."""
+    return {seed_scope(obj.name, seed): submit_object(with_seed(cfg, seed), obj, selected_variants(cfg),
+                                                      scope=seed_scope(obj.name, seed),
+                                                      call=partial(_cached, discard=discard))
+            for obj in selected_objects(cfg) for seed in selected_seeds(cfg)}
 
 
 def cached_grid(cfg: DictConfig) -> dict[str, dict[tuple[str, str], ArtifactRef]] | None:
-    """Every step's artifact of the grid, keyed as the flow's futures, when each is already on disk and intact
-    (the same keys and manifest check as the cached tasks, in this process, without Prefect); None at the first
-    step that must run (a damaged artifact is removed with one warning line on the way: the flow recomputes it)."""
+    """:func:`find_cached_grid`, or None at the first step that must run (a damaged artifact is removed with one
+    warning line on the way: the flow recomputes it)."""
     try:
-        return {seed_scope(obj.name, seed): submit_object(with_seed(cfg, seed), obj, selected_variants(cfg),
-                                                          scope=seed_scope(obj.name, seed), call=_cached)
-                for obj in selected_objects(cfg) for seed in selected_seeds(cfg)}
+        return find_cached_grid(cfg)
     except NotCached:
         return None
+
+
+def shared_cache_grid(cfg: DictConfig, why: str) -> dict[str, dict[tuple[str, str], ArtifactRef]]:
+    """The grid's artifacts in the read-only cache ``paths.artifacts`` (``why``: what makes it read-only,
+    :func:`flows.preflight_env.read_only_cache`), found without writing anything there, or one line
+    (``SystemExit``) naming the first step (``<scope>[<variant>/<backend>]/<step>``) that is not cached there
+    intact and the fix, before anything is computed."""
+    try:
+        return find_cached_grid(cfg, discard=False)
+    except NotCached as first:
+        raise _not_in_shared_cache(cfg, why, first) from None
+
+
+def _not_in_shared_cache(cfg: DictConfig, why: str, first: NotCached) -> SystemExit:
+    """The one line refusing a run that needs the step ``first`` names, which the read-only cache ``paths.artifacts``
+    (``why``) does not hold intact."""
+    root = cfg.paths.artifacts
+    return SystemExit(f"config error: paths.artifacts={root} is a read-only cache ({why}) and {first} is not cached "
+                      f"there (missing or damaged), so the run would have to write into it: give a writable folder "
+                      f"(paths.artifacts=/path/to/folder), e.g. a copy of the cache (cp -a {root} /path/to/folder)")
 
 
 # the report media of one scene, made on the task runner as soon as its artifacts are (not cached by Prefect:
@@ -288,19 +322,31 @@ def evaluate_config(overrides: list[str]) -> DictConfig:
 
 
 def run_object_local(cfg: DictConfig, obj: DictConfig, variant: DictConfig | None, root: str | Path,
-                     until: str | None = None) -> dict[str, ArtifactRef]:
+                     until: str | None = None, call: Callable[..., ArtifactRef] = StepTask.run_local
+                     ) -> dict[str, ArtifactRef]:
     """Run one object's chain (and one variant's, when given) without Prefect, up to step ``until`` (tests,
-    notebooks).  Same keys and artifacts as the flow."""
+    notebooks).  Same keys and artifacts as the flow.  ``call`` makes each step's result (default: runs it or reuses
+    its artifact; :func:`shared_cache_object` only finds it)."""
     refs: dict[str, ArtifactRef] = {}
+    scope = seed_scope(obj.name, int(cfg.sampling.seed))
     for step in PER_OBJECT + (variant_chain(variant) + PER_BACKEND if variant is not None else ()):
         if not wanted(step, cfg):
             continue
-        refs[step.name] = step.run_local(root=str(root), scope=seed_scope(obj.name, int(cfg.sampling.seed)),
-                                         params=step_params(step, cfg, obj, variant),
-                                         inputs={n: refs[n] for n in step.spec.inputs})
+        refs[step.name] = call(step, root=str(root), scope=scope, params=step_params(step, cfg, obj, variant),
+                               inputs={n: refs[n] for n in step.spec.inputs}, label=scope)
         if step.name == until:
             break
     return refs
+
+
+def shared_cache_object(cfg: DictConfig, obj: DictConfig, variant: DictConfig, why: str,
+                        until: str | None = None) -> dict[str, ArtifactRef]:
+    """:func:`run_object_local`'s artifacts found in the read-only cache ``paths.artifacts`` (``why``), nothing run or
+    written, or the one line of :func:`shared_cache_grid` (``SystemExit``)."""
+    try:
+        return run_object_local(cfg, obj, variant, cfg.paths.artifacts, until, call=partial(_cached, discard=False))
+    except NotCached as first:
+        raise _not_in_shared_cache(cfg, why, first) from None
 
 
 @flow(name="virsqueezer", log_prints=True, validate_parameters=False, persist_result=False)
@@ -343,11 +389,12 @@ def write_report(cfg: DictConfig, config: dict, flow_label: str, report_dir: str
                                                                                               digest))
     labels = {v.name: v.label or v.name for v in selected_variants(cfg)}
     wall = time.perf_counter() - t0
+    media_cache, *shared_media = media_folders(cfg)
     with writing_report(report_dir, digest):  # cut: REPORT_INCOMPLETE.txt stays, the stop line says so
         write_run_report(report_dir, cfg=config, table=table, refs=refs, variants=labels, wall_seconds=wall,
                          missing_backends=missing_backends(cfg),
                          profile=profile_table(table, STAGE_OF, wall, runner_workers(cfg.runner)),
-                         media_cache=Path(cfg.paths.artifacts) / MEDIA_DIR)
+                         media_cache=media_cache, shared_media=shared_media)
     print(f"\nper-task table ({table.summary()}), wall {time.perf_counter() - t0:.1f} s\n{table.to_text()}")
     print(f"report: {report_dir.resolve() / 'report.md'}")
     failed = [r for r in table.rows if r.status == "failed"]
@@ -355,6 +402,16 @@ def write_report(cfg: DictConfig, config: dict, flow_label: str, report_dir: str
         first = failed[0]
         raise RuntimeError(f"{len(failed)} step(s) failed; first: {first.object}/{first.step}: {first.note}")
     return {"report": str(report_dir.resolve()), "tasks": table.frame().to_dict("records")}
+
+
+def media_folders(cfg: DictConfig) -> tuple[Path, ...]:
+    """The report media cache's folders (:class:`tasks.reporting.media_cache.MediaCache`): the one written, then
+    those only read.  ``<paths.artifacts>/.media``; for a read-only cache ``<paths.reports>/.media``, then the
+    cache's own ``.media``."""
+    shared = Path(cfg.paths.artifacts) / MEDIA_DIR
+    if not read_only_cache(cfg.paths.artifacts):
+        return (shared,)
+    return (Path(cfg.paths.reports) / MEDIA_DIR, shared)
 
 
 def _report_name(reports: Path, flow_label: str, digest: str) -> str:
@@ -379,8 +436,11 @@ def _fresh_run_name(reports: Path, flow_label: str) -> str:
 
 def run(cfg: DictConfig, flow_label: str) -> dict:
     """Entry used by the Hydra mains: check the config and inputs, pick the runner, run the flow."""
-    preflight(cfg)
-    removed, freed = remove_stale_temporaries(cfg.paths.artifacts)
+    preflight(cfg, read_only_ok=True)
+    t0 = time.perf_counter()
+    read_only = read_only_cache(cfg.paths.artifacts)
+    shared = shared_cache_grid(cfg, read_only) if read_only else None  # before anything else: all there, or a line
+    removed, freed = remove_stale_temporaries(cfg.paths.artifacts) if not read_only else (0, 0)
     if removed:
         print(f"removed {removed} temporary folder(s) ({freed / 1e6:.1f} MB) left in {cfg.paths.artifacts} by "
               "runs that were killed")
@@ -392,8 +452,7 @@ def run(cfg: DictConfig, flow_label: str) -> dict:
     job_dir = sweep_job_dir()
     if config.get("run_name") is None and job_dir is not None:
         config["run_name"] = f"{flow_label}-{Path(job_dir).parent.name}-job{Path(job_dir).name}"
-    t0 = time.perf_counter()
-    cached = cached_grid(cfg)
+    cached = shared if read_only else cached_grid(cfg)
     if cached is not None:  # nothing to compute: the report alone, without a Prefect server or task runner
         print(f"every step is cached ({sum(len(s) for s in cached.values())} artifacts checked in "
               f"{time.perf_counter() - t0:.1f} s): no Prefect server or task runner started, writing the report")

@@ -194,9 +194,10 @@ def check_config(cfg: DictConfig) -> WorkEstimate:
     return est
 
 
-def preflight(cfg: DictConfig) -> None:
+def preflight(cfg: DictConfig, read_only_ok: bool = False) -> None:
     """Refuse a bad config or input file with one line (``SystemExit``) before anything heavy starts; record the
-    diffusion weights' identity in the config."""
+    diffusion weights' identity in the config.  ``read_only_ok``: the caller can be served from a read-only
+    artifacts cache (:func:`flows.preflight_env.check_folders`)."""
     if _PASSED and _PASSED[0] == OmegaConf.to_yaml(cfg):
         return
     # 1. config ranges, and values the steps would refuse late (sessions, kinds, patterns, interiors, eta, CUDA, oracle)
@@ -216,7 +217,7 @@ def preflight(cfg: DictConfig) -> None:
     # 3. the work, before any geometry file is loaded; then the folders' free space for it, the caches, Prefect's API
     est = estimate_work(cfg, span)
     check_work(cfg, est, span_from)
-    check_environment(cfg, est.total_bytes)
+    check_environment(cfg, est.total_bytes, read_only_ok)
     # 4. geometry files of the selected objects
     for key, obj in object_entries(cfg):
         if obj.geometry.kind in ("mesh", "ply"):

@@ -6,12 +6,17 @@ naming the key or variable and the fix:
   ``paths.reports`` by default) are folders this process can write into: a regular file given as a folder, a path
   through a file, a read-only file system or a folder without write permission is refused (:func:`check_folders`,
   also run by the Hydra callback :class:`flows.hydra_checks.PreflightCallback` before Hydra creates its folder);
+  except, for the mains that can be served from one (``flows.evaluate``, ``flows.squeeze``, ``flows.export``), an
+  artifacts folder that exists and cannot be written (a lab's cache shared read-only, :func:`read_only_cache`): a
+  run is then served from it when every step is cached there, refused otherwise
+  (:func:`flows.pipeline.shared_cache_grid`), and writes nothing into it - Prefect's home, the caches below and new
+  report media go under ``paths.reports`` (:func:`writable_root`);
 * the artifacts' file system has room for the run's estimated artifacts, less what the artifacts folder already
-  holds (:func:`check_free_space`);
+  holds (:func:`check_free_space`; not for a read-only cache, which receives nothing);
 * Warp's kernel cache and matplotlib's cache: when their default folders under ``HOME`` cannot be written (a
-  read-only home), they are put under ``<paths.artifacts>/.cache`` (``WARP_CACHE_PATH``, ``MPLCONFIGDIR``, given to
-  every process the run starts) with one line; a variable the user set to an unwritable folder is refused
-  (:func:`redirect_caches`);
+  read-only home), they are put under ``<writable root>/.cache`` (``WARP_CACHE_PATH``, ``MPLCONFIGDIR``, given to
+  every process the run starts; the writable root is ``paths.artifacts``, or ``paths.reports`` for a read-only
+  cache) with one line; a variable the user set to an unwritable folder is refused (:func:`redirect_caches`);
 * ``PREFECT_API_URL``, when set, answers at ``/health`` (:func:`check_prefect_api`): a stale address is refused
   instead of a page of connection tracebacks after the flow started.
 """
@@ -48,12 +53,30 @@ def unwritable(path: str | Path) -> str:
     return ""
 
 
-def check_folders(cfg: DictConfig, hydra_dirs: dict[str, str] | None = None) -> None:
-    """``paths.artifacts``, ``paths.reports`` and ``hydra_dirs`` ({key: folder}) writable, or one line."""
+def read_only_cache(artifacts: str | Path) -> str:
+    """Why the artifacts folder ``artifacts`` is a read-only cache ("" when it is not): it exists as a folder and
+    cannot be written (a read-only mount, no write permission).  A run uses it as a shared cache: every step must be
+    cached there, and nothing is written into it."""
+    p = Path(artifacts).expanduser().absolute()
+    return unwritable(p) if p.is_dir() else ""
+
+
+def writable_root(artifacts: str | Path, reports: str | Path) -> Path:
+    """The folder that receives what a run writes besides its artifacts (Prefect's home ``.prefect``, the caches
+    ``.cache``, new report media ``.media``): ``artifacts``, or ``reports`` when ``artifacts`` is a read-only cache
+    (:func:`read_only_cache`)."""
+    root = reports if read_only_cache(artifacts) else artifacts
+    return Path(root).expanduser().absolute()
+
+
+def check_folders(cfg: DictConfig, hydra_dirs: dict[str, str] | None = None, read_only_ok: bool = False) -> None:
+    """``paths.artifacts``, ``paths.reports`` and ``hydra_dirs`` ({key: folder}) writable, or one line; with
+    ``read_only_ok`` (a main that can be served from a read-only cache) an existing artifacts folder that cannot be
+    written passes (:func:`read_only_cache`)."""
     for key, folder in (("paths.artifacts", cfg.paths.artifacts), ("paths.reports", cfg.paths.reports),
                         *(hydra_dirs or {}).items()):
         why = unwritable(folder)
-        if why:
+        if why and not (read_only_ok and key == "paths.artifacts" and Path(folder).expanduser().is_dir()):
             raise SystemExit(f"config error: {key}={folder}: {why}: give a folder you can write to "
                              f"({key}=/path/to/folder)")
 
@@ -64,6 +87,8 @@ def check_free_space(cfg: DictConfig, need_bytes: float) -> None:
     needs little)."""
     from flows.preflight_settings import human_bytes
 
+    if read_only_cache(cfg.paths.artifacts):
+        return
     root = Path(cfg.paths.artifacts).expanduser().absolute()
     existing = root
     while not existing.exists():
@@ -96,7 +121,7 @@ def redirect_caches(cfg: DictConfig) -> list[str]:
             continue
         why = unwritable(default)
         if why:
-            target = Path(cfg.paths.artifacts).expanduser().absolute() / ".cache" / sub
+            target = writable_root(cfg.paths.artifacts, cfg.paths.reports) / ".cache" / sub
             os.environ[var] = str(target)
             lines.append(f"{what} goes to {target} ({var}): its default {default} cannot be written ({why})")
     return lines
@@ -121,9 +146,15 @@ def check_prefect_api() -> None:
                          "server)") from None
 
 
-def check_environment(cfg: DictConfig, need_bytes: float) -> None:
-    """Everything above, in order; prints the caches' lines."""
-    check_folders(cfg)
+def check_environment(cfg: DictConfig, need_bytes: float, read_only_ok: bool = False) -> None:
+    """Everything above, in order (``read_only_ok``: :func:`check_folders`); prints the caches' lines (and the
+    read-only cache's)."""
+    check_folders(cfg, read_only_ok=read_only_ok)
+    why = read_only_cache(cfg.paths.artifacts)
+    if why:
+        print(f"paths.artifacts={cfg.paths.artifacts} is a read-only cache ({why}): the run is served from it if "
+              f"every step is cached there and writes nothing into it; Prefect's home, caches and new report media "
+              f"go under paths.reports={cfg.paths.reports}", flush=True)
     check_free_space(cfg, need_bytes)
     for line in redirect_caches(cfg):
         print(line, flush=True)

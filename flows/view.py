@@ -53,6 +53,7 @@ def load_scenes(cfg: DictConfig, overrides: list[str]) -> list:
     """The scenes shown (the variant, then the compared one), read from the cached artifacts; raises
     :class:`ViewerInputError` (one line, naming the command that caches them) when they are not on disk."""
     from flows.pipeline import NotCached, cached_object, with_seed
+    from flows.preflight_env import read_only_cache
     from tasks.core.artifacts import read_artifact
     from tasks.core.scope import seed_scope
     from tasks.reporting.viewer_scene import squeeze_scene
@@ -69,7 +70,8 @@ def load_scenes(cfg: DictConfig, overrides: list[str]) -> list:
     run_cfg = with_seed(cfg, seed)
     scope = seed_scope(cfg.object.name, seed)
     try:
-        refs = cached_object(run_cfg, cfg.object, variants, scope, until=SHOWN_UNTIL)
+        refs = cached_object(run_cfg, cfg.object, variants, scope, until=SHOWN_UNTIL,
+                             discard=not read_only_cache(cfg.paths.artifacts))  # a read-only cache stays as it is
     except NotCached as missing:
         raise ViewerInputError(f"{missing} is not cached in {Path(cfg.paths.artifacts).resolve()}: run "
                                f"`{evaluate_command(overrides)}` first (the viewer computes nothing)") from None
@@ -101,7 +103,8 @@ def main(cfg: DictConfig) -> None:
     from flows import USER_PREFECT_PATHS
     from flows.lifecycle import follow_artifacts
 
-    follow_artifacts(cfg.paths.artifacts, USER_PREFECT_PATHS)  # the step modules import Prefect: its home there
+    # the step modules import Prefect: its home there (under paths.reports when the artifacts are a read-only cache)
+    follow_artifacts(cfg.paths.artifacts, USER_PREFECT_PATHS, cfg.paths.reports)
     try:
         scenes = load_scenes(cfg, task_overrides())
     except ViewerInputError as exc:

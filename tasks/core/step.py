@@ -148,23 +148,25 @@ def artifact_path(root: str | Path, scope: str, step: str, key: str) -> Path:
     return Path(root).resolve() / artifact_rel(scope, step, key)
 
 
-def valid_artifact(path: Path, scope: str, step: str) -> dict[str, Any] | None:
+def valid_artifact(path: Path, scope: str, step: str, discard: bool = True) -> dict[str, Any] | None:
     """The group attributes of the artifact at ``path`` when it is there and is what was written (every file's
     size and sha256 as in its manifest, :func:`tasks.core.artifacts.verify_artifact`); ``None`` when it is not
     there.  A damaged or incomplete one is removed, with one warning line naming it and what was wrong, so that
-    the step is computed again (one of an older artifact format too, with an info line)."""
+    the step is computed again (one of an older artifact format too, with an info line); with ``discard=False``
+    (a read-only cache) it is left as it is, and ``None`` returned."""
     try:
         return verify_artifact(path)
     except ArtifactMissing:
         return None
-    except ArtifactOutdated as exc:
-        discard_artifact(path)
-        log.info("%s/%s: artifact %s was %s: removed, the step is recomputed", scope, step, path, exc.problem)
-        return None
     except ArtifactDamaged as exc:
+        if not discard:
+            return None
         discard_artifact(path)
-        log.warning("%s/%s: artifact %s is damaged (%s): removed, the step is recomputed", scope, step, path,
-                    exc.problem)
+        if isinstance(exc, ArtifactOutdated):
+            log.info("%s/%s: artifact %s was %s: removed, the step is recomputed", scope, step, path, exc.problem)
+        else:
+            log.warning("%s/%s: artifact %s is damaged (%s): removed, the step is recomputed", scope, step, path,
+                        exc.problem)
         return None
 
 

@@ -6,7 +6,9 @@ keys each medium by ``sha256(kind, parameters, input digests, code version of th
 it as ``<artifacts>/.media/<key><suffix>``; a later build with the same key links (or copies) that file into
 the report folder instead of loading the artifacts and encoding again.  Entries are written under a temporary
 name and renamed into place, so a killed build never leaves a half-written medium under a key.  Without a
-cache folder (``root=None``) every medium is made afresh, as before.
+cache folder (``root=None``) every medium is made afresh, as before.  ``shared`` folders (the ``.media`` of a
+read-only artifacts cache) are looked up too and never written: their entries are copied into the report (a hard
+link would change the shared file's link count), and what they lack is made under ``root``.
 """
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ import functools
 import os
 import shutil
 import uuid
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Optional
 
@@ -30,13 +32,17 @@ def reporting_code_version() -> str:
     return code_version("tasks.reporting.report")
 
 
-def _place(source: Path, target: Path) -> None:
-    """Put ``source``'s bytes at ``target`` atomically: a hard link when the file system allows, else a copy."""
+def _place(source: Path, target: Path, link: bool = True) -> None:
+    """Put ``source``'s bytes at ``target`` atomically: a hard link when ``link`` and the file system allows, else a
+    copy."""
     tmp = target.with_name(f".{target.name}.tmp-{uuid.uuid4().hex[:12]}")
     try:
-        try:
-            os.link(source, tmp)
-        except OSError:  # another file system, or links not supported
+        if link:
+            try:
+                os.link(source, tmp)
+            except OSError:  # another file system, or links not supported
+                link = False
+        if not link:
             shutil.copyfile(source, tmp)
         os.replace(tmp, target)
     finally:
@@ -44,10 +50,12 @@ def _place(source: Path, target: Path) -> None:
 
 
 class MediaCache:
-    """Content-addressed store of report media under ``root`` (``None``: no caching)."""
+    """Content-addressed store of report media under ``root`` (``None``: no caching), also reading (never writing)
+    the ``shared`` folders."""
 
-    def __init__(self, root: Optional[Path]) -> None:
+    def __init__(self, root: Optional[Path], shared: Sequence[Path] = ()) -> None:
         self.root = Path(root) if root is not None else None
+        self.shared = tuple(Path(p) for p in shared)
         self.made = 0  # media encoded or drawn by this cache (the rest were reused)
 
     def key(self, kind: str, params: Mapping[str, Any], refs: Mapping[str, Any]) -> str:
@@ -56,10 +64,10 @@ class MediaCache:
                           "inputs": {k: getattr(r, "digest", None) for k, r in sorted(refs.items())}})
 
     def lookup(self, key: str) -> Optional[Path]:
-        """The cached file of ``key`` (any suffix), or None."""
+        """The cached file of ``key`` (any suffix) in ``root`` or a ``shared`` folder, or None."""
         if self.root is None:
             return None
-        return next((p for p in self.root.glob(f"{key}.*") if p.is_file()), None)
+        return next((p for folder in (self.root, *self.shared) for p in folder.glob(f"{key}.*") if p.is_file()), None)
 
     def get(self, target: Path, key: str, make: Callable[[Path], Optional[Path]]) -> Optional[Path]:
         """The medium of ``key`` at ``target`` in the report folder (its suffix may change, e.g. a WebP
@@ -82,5 +90,5 @@ class MediaCache:
             finally:
                 scratch.unlink(missing_ok=True)
         placed = target.with_suffix(cached.suffix)
-        _place(cached, placed)
+        _place(cached, placed, link=cached.parent == self.root)
         return placed

@@ -11,7 +11,7 @@ import json
 import subprocess
 import tempfile
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any, Mapping, Optional, Sequence
 
 import matplotlib.pyplot as plt  # headless: matplotlib picks its Agg backend when there is no display
 import numpy as np
@@ -455,7 +455,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
                      wall_seconds: float, variants: Optional[Mapping[str, str]] = None,
                      sections: Optional[list[tuple[str, str]]] = None,
                      missing_backends: Optional[Mapping[str, str]] = None, profile: str = "",
-                     media_cache: Optional[Path] = None) -> Path:
+                     media_cache: Optional[Path] = None, shared_media: Sequence[Path] = ()) -> Path:
     """Write the report folder for one flow run and return the path of ``report.md``.
 
     ``refs[object]`` holds the shared steps' references and ``refs[object]["variants"][variant]`` the
@@ -463,7 +463,8 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     labels (Table 2's "Method").  ``sections`` are extra (title, markdown) blocks; ``missing_backends`` names the
     effect backends the run could not use and why (Table 1's n/a rows); ``profile`` is the compute-per-stage
     table of the run.  ``media_cache`` (``<artifacts>/.media``) keeps every video and figure by content
-    (:mod:`tasks.reporting.media_cache`): a report of unchanged artifacts encodes and draws nothing.
+    (:mod:`tasks.reporting.media_cache`): a report of unchanged artifacts encodes and draws nothing.  Media are
+    also looked up, never written, in ``shared_media`` (a read-only artifacts cache's ``.media``).
     """
     from tasks.reporting.report_tables import (
         TABLE2,
@@ -516,7 +517,7 @@ def write_run_report(report_dir: Path, *, cfg: Mapping[str, Any], table, refs: M
     if n_seeds > 1:
         captions.update({title: f"Mean over the {n_seeds} sampling seeds (per-seed rows in metrics.csv)."
                          for title, *_ in video_tables})
-    cache = MediaCache(media_cache)
+    cache = MediaCache(media_cache, shared_media)
     media = [m for m in (object_media(obj, refs[obj], report_dir, cache) for obj in refs) if m is not None]
     sheet_inputs = {f"{obj}/{k}": ref for obj in refs for k, ref in _first_scene(refs[obj]).items()}
     sheet = cache.get(report_dir / "contact_sheet.png", cache.key("overview_sheet", {}, sheet_inputs),

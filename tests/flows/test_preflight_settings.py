@@ -228,6 +228,17 @@ def test_a_config_error_in_job_1_stops_the_sweep_before_job_0_runs(tmp_path):
     assert not (tmp_path / "sweep").exists() and not (tmp_path / "a").exists()
 
 
+def test_a_sweep_beyond_the_wall_limit_stops_before_job_0_naming_the_knob(tmp_path):
+    """object=can is estimated at 35.9 s a job: each of three seeds passes limits.max_wall_hours=0.02 (72 s), the
+    three together (108 s) do not."""
+    out = _main(tmp_path, "evaluate", "-m", "object=can", "sampling.seed=0,1,2", "limits.max_wall_hours=0.02",
+                f"paths.artifacts={tmp_path / 'a'}", f"paths.reports={tmp_path / 'r'}", f"hydra.sweep.dir={tmp_path / 's'}")
+    assert out.returncode == 1 and out.stderr.strip().splitlines() == [
+        "work limit: the sweep's 3 jobs would take about 108 s one after another, above limits.max_wall_hours=0.02 "
+        "(72 s): sweep fewer values or split the sweep (or raise limits.max_wall_hours)"]
+    assert not (tmp_path / "s").exists() and not (tmp_path / "a").exists()
+
+
 def test_a_job_whose_error_escaped_is_marked_and_the_summary_written(tmp_path):
     """Hydra's sweeper stops the sweep after a job whose error escaped it (no on_multirun_end): the callback's
     on_job_end records the job's one-line reason and writes the summary with every job's status."""
