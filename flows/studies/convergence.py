@@ -132,7 +132,9 @@ def run_convergence(cfg: DictConfig) -> dict:
 @hydra.main(version_base="1.3", config_path="../../conf", config_name="study/convergence")
 def main(cfg: DictConfig) -> None:
     from flows.lifecycle import begin_run
+    from flows.preflight_env import check_folders
 
+    check_folders(cfg)  # a study computes: an unwritable artifacts folder is one line before Prefect's home is made
     begin_run(cfg.paths.artifacts)  # Prefect's home under paths.artifacts, Ctrl-C handling; before Prefect loads
     run_convergence(cfg)
 

@@ -224,3 +224,15 @@ def test_an_existing_folder_that_cannot_be_written_is_a_read_only_cache(tmp_path
         check_folders(compose_cfg("evaluate", ["paths.artifacts=/sys/virsqueezer"]), read_only_ok=True)
     assert str(exc.value) == ("config error: paths.artifacts=/sys/virsqueezer: /sys is not writable (Permission denied): "
                               "give a folder you can write to (paths.artifacts=/path/to/folder)")
+
+
+def test_a_study_refuses_an_unwritable_artifacts_folder_in_one_line_before_prefect(tmp_path):
+    """A study computes, so it cannot be served from a read-only cache: its main refuses the folder in one line,
+    before it would make Prefect's home in it (once a PermissionError traceback from ``begin_run``)."""
+    out = subprocess.run([sys.executable, "-m", "flows.studies.convergence", "paths.artifacts=/sys/kernel",
+                          f"paths.reports={tmp_path / 'r'}"], cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 1, out.stderr
+    assert out.stderr.strip().splitlines()[-1] == (
+        "config error: paths.artifacts=/sys/kernel: /sys/kernel is not writable (Permission denied): give a folder "
+        "you can write to (paths.artifacts=/path/to/folder)")
+    assert "Traceback" not in out.stderr + out.stdout
