@@ -640,9 +640,9 @@ class MPMSolver:
                     frames += 1
                     if mass is None:  # the mass scale is resolved by the first frame
                         mass = self.masses()[~fluid].astype(np.float64)
-                    v = self.velocities()[~fluid].astype(np.float64)
-                    speed = float(np.sqrt((v * v).sum(axis=1).max(initial=0.0)))
-                    energy.append(0.5 * float(mass @ (v * v).sum(axis=1)))
+                    v = self.velocities()[~fluid]
+                    speed = float(np.linalg.norm(v, axis=1).max(initial=0.0))
+                    energy.append(0.5 * float(mass @ (v.astype(np.float64) ** 2).sum(axis=1)))
                     rest = speed * frame_dt <= tolerance * self.dx and speed < peak
                     crest = len(energy) >= 3 and energy[-2] >= max(energy) and energy[-1] < energy[-2]
                     if crest:  # a crest counts once the body has moved PRELOAD_CREST_CELLS (not a skin's local bump)
