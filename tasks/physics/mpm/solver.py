@@ -599,8 +599,7 @@ class MPMSolver:
            peaks where that force vanishes: at the equilibrium, which the pass takes, its state put back to the
            vertex of the parabola through the last three frames' energies (first order: dF/dt = C F, dx/dt = v).
            Until 2026-12-06 every pass ran on to rest: past its equilibrium to the turning point of its overshoot
-           and back (the plush toy: 40 + 38 + 2 frames at 57 CPU s, now 29 + 6 + 3 at 29 CPU s, residual 0.20 ->
-           0.03 mm; docs/limits/gravity-preload.md);
+           and back (the plush toy: 40 + 38 + 2 frames, now 29 + 6 + 3; docs/limits/gravity-preload.md);
         2. puts the particles back where they were given, at rest (v = 0, C = 0), keeping their deformation
            gradients: the stress that carried the weight in the settled shape now holds the given shape, whose
            stress-free shape is the given one less the sag (first order in the sag).  The next pass settles what
@@ -609,7 +608,8 @@ class MPMSolver:
            the settled one, and its passes converge slowly (the plush toy's 36.6, 22, 16.5, 11 mm); from the
            second pass on each pass keeps omega times its strain, omega by Aitken's rule (Irons and Tuck 1969, as
            partitioned fluid-structure codes relax their coupling iterations), exact for a linear response (the
-           plush toy, its passes run to rest: 36.6, 22, 0.2 mm; ended at their crests: 25.0, 0.47, 0.03 mm).  A fluid (the can's cola) has no shape to hold: it stays where it settled,
+           plush toy, its passes run to rest: 36.6, 22, 0.2 mm; ended at their crests: 25.0, 0.47, 0.03 mm).  A
+           fluid (the can's cola) has no shape to hold: it stays where it settled,
            at rest, with the pressure it settled to.
 
         The tracers (surface Gaussians) are re-bound to stay on their given positions, and :meth:`tracer_state`
