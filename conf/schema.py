@@ -312,8 +312,9 @@ class SimulationConfig:
         18 frames before the fingers arrived, and the fingers' eq. 3 targets, set on the given shape, pulled it
         back 34 mm within two frames).  The other seven objects settle by < 0.2 mm.
     gravity_preload_passes: passes of the preload (>= 1; each settles what the last one's change of geometry left).
-    gravity_preload_tolerance: a pass ends when the fastest solid particle moves at most this many grid cells per frame
-        after its motion peaked; the preload ends after a pass that moved no particle farther.
+    gravity_preload_tolerance: a pass ends at its crest (the body's kinetic energy peaked once it moved half a cell:
+        its equilibrium) or when the fastest solid particle moves at most this many grid cells per frame after its
+        motion peaked; the preload ends after a pass that moved no particle farther.
     """
 
     fluid_reference_speed: float = 1.5

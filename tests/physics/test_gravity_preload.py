@@ -22,9 +22,9 @@ COLUMN = Material(name="column", model="fixed_corotated", youngs_modulus=E, pois
 FRAME = 1.0 / 30.0  # s
 
 
-def column(tracers: np.ndarray | None = None) -> MPMSolver:
+def column(tracers: np.ndarray | None = None, material: Material = COLUMN) -> MPMSolver:
     X = lattice([0.0, 0.0, 0.0], [W, W, H], DX / 2)
-    return MPMSolver(X, (DX / 2) ** 3, [COLUMN], tracers=tracers,
+    return MPMSolver(X, (DX / 2) ** 3, [material], tracers=tracers,
                      config={"device": "cpu", "dx": DX, "floor_sticky": False, "mass_scaling": "off"})
 
 
@@ -34,21 +34,27 @@ def top_drop(s: MPMSolver, z0: np.ndarray) -> float:
     return float(z0[top].mean() - s.positions()[top, 2].mean())
 
 
-def test_an_unsupported_column_sags_by_the_closed_form_and_a_preloaded_one_stays_where_it_was_given():
-    closed = RHO * 9.81 * H ** 2 / (2.0 * E)  # m, top drop of a laterally free column under its own weight, nu = 0
-    s = column()
+@pytest.mark.parametrize("youngs", [E, E / 5], ids=["stiff: sags 0.16 cells, passes run to rest",
+                                                   "soft: sags 0.79 cells, its first pass ends at its crest"])
+def test_an_unsupported_column_sags_by_the_closed_form_and_a_preloaded_one_stays_where_it_was_given(youngs):
+    closed = RHO * 9.81 * H ** 2 / (2.0 * youngs)  # m, top drop of a laterally free column under its weight, nu = 0
+    material = Material(name="column", model="fixed_corotated", youngs_modulus=youngs, poisson_ratio=0.0,
+                        density=RHO)
+    s = column(material=material)
     z0 = s.positions()[:, 2].astype(np.float64)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         free = []
-        for _ in range(12):  # T = 4 H / sqrt(E / rho) = 0.072 s: five periods, averaged
+        for _ in range(12):  # T = 4 H / sqrt(E / rho) = 0.072 s (soft: 0.16 s): five (two) periods, averaged
             s.step_frame(FRAME)
             free.append(top_drop(s, z0))
     assert np.mean(free[2:]) == pytest.approx(closed, rel=0.15), np.mean(free[2:]) / closed
 
-    s = column()
+    s = column(material=material)
     pre = s.preload_gravity(FRAME, max_frames=60, passes=3)
-    assert pre.sag == pytest.approx(closed, rel=0.25), pre.sag / closed  # the damped settle found the same sag
+    # the damped settle found the same sag (a pass that ends at its crest reads it there, at the equilibrium; one run
+    # to rest reads it at the turning point of its overshoot)
+    assert pre.sag == pytest.approx(closed, rel=0.25 if youngs == E else 0.1), pre.sag / closed
     assert pre.residual < 0.2 * pre.sag and pre.converged
     np.testing.assert_allclose(s.positions()[:, 2], z0, atol=1e-7)  # back where it was given, at rest
     assert np.abs(s.velocities()).max() == 0.0 and s.time == 0.0 and s.frame == 0
@@ -61,7 +67,7 @@ def test_an_unsupported_column_sags_by_the_closed_form_and_a_preloaded_one_stays
     F = s.deformation_gradients()
     mid = np.abs(s.positions()[:, 2] - H / 2) < DX / 2
     strain = F[mid, 2, 2].mean() - 1.0
-    assert E * strain == pytest.approx(-RHO * 9.81 * H / 2, rel=0.25)
+    assert youngs * strain == pytest.approx(-RHO * 9.81 * H / 2, rel=0.25)
 
 
 def test_tracers_stay_on_their_given_positions_through_a_preload_and_deform_from_it():

@@ -30,7 +30,8 @@ from .kernels.boundary import (
 )
 from .kernels.grid import k_field_contact, k_grid_accumulate, k_grid_update
 from .kernels.structs import N_FLAGS, Colliders, GridConditions, GridStep, StepParams
-from .kernels.transfer import FUSED
+from .kernels.transfer import fused_kernel as fused_kernel_for
+from .materials import MODEL_CODES
 
 if TYPE_CHECKING:
     from .solver import MPMSolver
@@ -101,6 +102,15 @@ def grid_conditions(solver: MPMSolver, released: bool = False) -> GridConditions
     return gc
 
 
+def kernel_models(solver: MPMSolver) -> frozenset:
+    """The material models (codes) the solver's fused kernel is generated for (:func:`fused_kernel_for`): fixed-corotated
+    alone while every particle present is, else every model of its material table (a particle may change to any of
+    them, e.g. a ruptured skin to foam, without a new kernel)."""
+    if solver.all_corotated:
+        return frozenset({MODEL_CODES["fixed_corotated"]})
+    return frozenset(m.code for m in solver.materials)
+
+
 def recorded(solver: MPMSolver) -> dict:
     """Recorded launches of the per-substep kernels (fused G2P/P2G, grid update, field contact; one set per grid-buffer
     parity): replaying them avoids re-packing the arguments per launch (a ``wp.launch`` costs ~0.1-0.3 ms of
@@ -111,7 +121,7 @@ def recorded(solver: MPMSolver) -> dict:
         return solver._cmds
     d = solver.device
     cmds: dict = {"sp": step_params(solver, 0.0, 0.0), "gs": GridStep()}
-    fused_kernel = FUSED[solver.all_corotated, solver.two_fields]
+    fused_kernel = fused_kernel_for(kernel_models(solver), solver.two_fields)
     conditions = grid_conditions(solver)
     conditions_free = grid_conditions(solver, released=True)
     cmds["gs2"] = GridStep()  # the released field's grid update: no Dirichlet nodes

@@ -123,12 +123,17 @@ from .tracers import TRACER_ANCHORS, bind_tracers, place_tracers, rebind_tracers
 wp.config.quiet = True
 
 
+# grid cells the body must have moved before a preload pass may end at its crest (:meth:`MPMSolver.preload_gravity`)
+PRELOAD_CREST_CELLS = 0.5
+
+
 @dataclass
 class GravityPreload:
     """What :meth:`MPMSolver.preload_gravity` did (SI).  ``moved``: m, the largest solid-particle displacement of
-    each pass; its first is the ``sag`` (how far the body moves under its weight from the shape it was given), its
-    last the ``residual`` (what the prestress leaves unbalanced); ``frames``: damped frames over all passes;
-    ``converged``: the last pass came to rest within its frames."""
+    each pass, at its end (its crest: the equilibrium it settles to, or where it came to rest); its first is the
+    ``sag`` (how far the body moves under its weight from the shape it was given), its last the ``residual`` (what
+    the prestress leaves unbalanced); ``frames``: damped frames over all passes; ``converged``: the last pass ended
+    at its crest or at rest within its frames."""
 
     moved: tuple[float, ...]
     frames: int
@@ -585,9 +590,16 @@ class MPMSolver:
         fingers arrived).  Each pass (at most ``passes``):
 
         1. settles the body by dynamic relaxation (Cundall's local damping ``damping`` on every material, as FLAC's
-           static solutions and LS-DYNA's dynamic-relaxation preload do; gravity, floor and walls only) until the
-           fastest solid particle moves at most ``tolerance`` grid cells per ``frame_dt`` s after its motion
-           peaked, or for ``max_frames`` frames;
+           static solutions and LS-DYNA's dynamic-relaxation preload do; gravity, floor and walls only) until its
+           crest, or until the fastest solid particle moves at most ``tolerance`` grid cells per ``frame_dt`` s
+           after its motion peaked, or for ``max_frames`` frames.  The crest: the solids' kinetic energy peaked in
+           the last frame while the body had moved at least ``PRELOAD_CREST_CELLS`` grid cells (less is a local
+           motion, e.g. a skin dropping onto its stuffing in the first frames).  Under local damping a settling
+           mode accelerates with (1 - damping) of its net force and brakes with (1 + damping) of it, so its speed
+           peaks where that force vanishes: at the equilibrium, which the pass takes, its state put back to the
+           vertex of the parabola through the last three frames' energies (first order: dF/dt = C F, dx/dt = v).
+           Until 2026-12-06 every pass ran on to rest: past its equilibrium to the turning point of its overshoot
+           and back (the plush toy: 40 + 38 + 2 frames, now 29 + 6 + 3; docs/limits/gravity-preload.md);
         2. puts the particles back where they were given, at rest (v = 0, C = 0), keeping their deformation
            gradients: the stress that carried the weight in the settled shape now holds the given shape, whose
            stress-free shape is the given one less the sag (first order in the sag).  The next pass settles what
@@ -596,7 +608,8 @@ class MPMSolver:
            the settled one, and its passes converge slowly (the plush toy's 36.6, 22, 16.5, 11 mm); from the
            second pass on each pass keeps omega times its strain, omega by Aitken's rule (Irons and Tuck 1969, as
            partitioned fluid-structure codes relax their coupling iterations), exact for a linear response (the
-           plush toy: 36.6, 22, 0.2 mm).  A fluid (the can's cola) has no shape to hold: it stays where it settled,
+           plush toy, its passes run to rest: 36.6, 22, 0.2 mm; ended at their crests: 25.0, 0.47, 0.03 mm).  A
+           fluid (the can's cola) has no shape to hold: it stays where it settled,
            at rest, with the pressure it settled to.
 
         The tracers (surface Gaussians) are re-bound to stay on their given positions, and :meth:`tracer_state`
@@ -616,20 +629,36 @@ class MPMSolver:
         start, last, omega = self.F.numpy().astype(np.float64), None, 1.0
         self._preload_damping = damping
         load, self.load = self.load, None  # the load-free mass scale (resolved by the first frame below)
+        mass = None
         try:
             for _ in range(passes):
-                peak = -math.inf  # the pass starts at rest: it is over once its motion has peaked and died down
+                peak = -math.inf  # the pass starts at rest: it is over at its crest or once its motion has died down
+                energy: list[float] = []  # the solids' kinetic energy at each frame's end (J)
+                crest = False
                 for _ in range(max_frames):
                     self.step_frame(frame_dt, quasi_static=False)
                     frames += 1
-                    speed = float(np.linalg.norm(self.velocities()[~fluid], axis=1).max(initial=0.0))
+                    if mass is None:  # the mass scale is resolved by the first frame
+                        mass = self.masses()[~fluid].astype(np.float64)
+                    v = self.velocities()[~fluid]
+                    speed = float(np.linalg.norm(v, axis=1).max(initial=0.0))
+                    energy.append(0.5 * float(mass @ (v.astype(np.float64) ** 2).sum(axis=1)))
                     rest = speed * frame_dt <= tolerance * self.dx and speed < peak
-                    if rest:
+                    crest = len(energy) >= 3 and energy[-2] >= max(energy) and energy[-1] < energy[-2]
+                    if crest:  # a crest counts once the body has moved PRELOAD_CREST_CELLS (not a skin's local bump)
+                        shift = np.linalg.norm(self.positions()[~fluid] - x0[~fluid], axis=1).max(initial=0.0)
+                        crest = bool(shift >= PRELOAD_CREST_CELLS * self.dx)
+                    if rest or crest:
                         break
                     peak = max(peak, speed)
                 x = self.positions()
-                moved.append(float(np.linalg.norm(x - x0, axis=1)[~fluid].max(initial=0.0)))
                 settled = self.F.numpy().astype(np.float64)
+                if crest and not rest:  # back to the crest, the vertex of the parabola through the last three
+                    e0, e1, e2 = energy[-3:]  # energies (0.5-1.5 frames ago), to first order: dF/dt = C F, dx/dt = v
+                    back = frame_dt * (1.0 - 0.5 * (e0 - e2) / (e0 - 2.0 * e1 + e2))
+                    settled = settled - back * np.einsum("pij,pjk->pik", self.C.numpy().astype(np.float64), settled)
+                    x = x - back * self.velocities()
+                moved.append(float(np.linalg.norm(x - x0, axis=1)[~fluid].max(initial=0.0)))
                 update = np.where(fluid[:, None, None], 0.0, settled - start)  # the solids' settled strain
                 if last is not None:  # Aitken relaxation of the passes (Irons and Tuck 1969)
                     change = update - last
@@ -641,14 +670,14 @@ class MPMSolver:
                 self.set_positions(np.where(fluid[:, None], x, x0))
                 self.set_velocities(zero_v)
                 self.set_affine_velocities(zero_c)
-                if rest and moved[-1] <= tolerance * self.dx:
+                if (rest or crest) and moved[-1] <= tolerance * self.dx:
                     break
         finally:
             self._preload_damping = 0.0
             resume_load(self, load)
         rebind_tracers_to_preload(self)
         self.time, self.frame, self.substep = 0.0, 0, 0
-        return GravityPreload(moved=tuple(moved), frames=frames, converged=rest)
+        return GravityPreload(moved=tuple(moved), frames=frames, converged=rest or crest)
 
 
     def close_quasi_static_contact(self) -> bool:
