@@ -112,6 +112,7 @@ from .state import (
     assign_materials,
     grid_nbytes,
     place_grid,
+    seat_floor,
     state_nbytes,
 )
 from .thin_walls import (
@@ -709,6 +710,7 @@ class MPMSolver:
             raise ValueError(f"set_contact_radii: need {self.n_particles} finite radii >= 0 (m), one per particle; "
                              f"got shape {r.shape}")
         self.reach.assign(r.astype(np.float32))
+        seat_floor(self)  # the table under the new contact surface (mpm.contact = surface)
 
     def masses(self) -> np.ndarray:
         """Particle masses (kg), including the material's current mass scale (the inertia)."""
