@@ -52,6 +52,16 @@ class MPMConfig:
             (docs/limits/table-contact.md); the pipeline's table stays ``grid`` (``conf/mpm/default.yaml``): the
             flip to ``surface``, re-measured on Table 2 (2026-12-06), toppled the plush toy and crushed the
             force-driven ball and duck (docs/limits/table-contact.md, "The flip").
+        table_hold: what holds the body on a ``contact: surface`` table besides its contact
+            (:mod:`tasks.physics.table_hold`).  ``none`` (default): the table pushes the particles touching it and,
+            sticky, keeps them from slipping, but never pulls: a body pushed sideways at its top can tip over its
+            edge or roll (flipped to the surface table on 2026-12-06, the plush toy toppled and the force-driven ball
+            rolled away).  ``footprint``: the particles whose surface touches the table at the end of the gravity
+            preload are held where they rest for the whole rollout, no slip and no lift (particle pins at their
+            lowest surface points, finger -1; their work is credited to the energy guard and is zero at rest), as a
+            hand pressing the object onto the table holds it; the rest of the body meets the table where it touches
+            it.  Needs ``contact: surface`` (the grid-node table already glues ~1.5 cells of the body to it).
+            Measured on the scenes: docs/limits/table-contact.md, "The hold".
         fingers: how the squeeze's fingers drive the material (``variant.boundary=dirichlet`` in
             :mod:`tasks.physics.mpm_rollout`; the force-driven ablation is unaffected).  ``particles`` (default):
             every surface point the eq. 3 field constrains is driven to its target on the particles it is embedded in
@@ -222,6 +232,7 @@ class MPMConfig:
     floor_sticky: bool = False
     wall_sticky: bool = False
     contact: str = "grid"
+    table_hold: str = "none"
     fingers: str = "particles"
     finger_friction: float = 0.0
     thin_walls: str = "membrane"
@@ -251,6 +262,7 @@ class MPMConfig:
 
 MASS_SCALING_MODES = ("selective", "global", "manual", "off")
 CONTACT_MODES = ("grid", "surface")
+TABLE_HOLD_MODES = ("none", "footprint")
 FINGER_MODES = ("dirichlet", "particles", "collider")
 WALL_MODES = ("membrane", "solid")
 WALL_STENCILS = ("shared", "own")
@@ -291,6 +303,12 @@ def validate_mpm_config(cfg: MPMConfig) -> MPMConfig:
         bad("floor_friction", "must be >= 0")
     if cfg.contact not in CONTACT_MODES:
         bad("contact", f"'{cfg.contact}' is not one of {', '.join(CONTACT_MODES)}")
+    if cfg.table_hold not in TABLE_HOLD_MODES:
+        bad("table_hold", f"'{cfg.table_hold}' is not one of {', '.join(TABLE_HOLD_MODES)}")
+    if cfg.table_hold != "none" and not (cfg.floor and cfg.contact == "surface"):
+        bad("table_hold", f"'{cfg.table_hold}' holds the body on the surface table: needs mpm.floor=true and "
+                          f"mpm.contact=surface (got floor={cfg.floor}, contact={cfg.contact}; the grid-node table "
+                          "already glues ~1.5 cells of the body to it)")
     if cfg.fingers not in FINGER_MODES:
         bad("fingers", f"'{cfg.fingers}' is not one of {', '.join(FINGER_MODES)}")
     if cfg.thin_walls not in WALL_MODES:

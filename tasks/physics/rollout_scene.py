@@ -13,7 +13,7 @@ import numpy as np
 from conf.mpm_schema import MPMConfig, mpm_config_from
 from tasks.core.artifacts import digest_of
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
-from tasks.physics.mpm import MPMSolver, material_mass_scales
+from tasks.physics.mpm import MPMSolver, ParticlePins, material_mass_scales
 from tasks.physics.mpm.mass_scaling import QuasiStaticLoad
 from tasks.physics.mpm.materials import MEMBRANE_MODELS, Material, material_from_dict
 from tasks.physics.mpm.preload import PreloadedState, restore_preloaded
@@ -23,6 +23,7 @@ from tasks.physics.oracle.convert import materials_from_dict, mpm_material_kwarg
 from tasks.physics.oracle.schema import ObjectMaterials
 from tasks.physics.regions import finger_regions, region_weights, squeeze_strain
 from tasks.physics.rupture_release import cohesionless_core, released_material, torn_skin_material
+from tasks.physics.table_hold import table_hold
 from tasks.physics.wall_resolution import grid_spacing
 
 
@@ -66,6 +67,7 @@ class Scene:
     preload: Optional[GravityPreload] = None  # the gravity preload's figures (simulation.gravity_preload_frames)
     j_given: Optional[np.ndarray] = None  # (particle,) det F of the given shape after the preload (None: 1)
     preload_key: str = ""  # digest of what the preload reads (preload_key), which a preloaded state must match
+    hold: Optional[ParticlePins] = None  # the table's hold on the body after the preload (mpm.table_hold)
 
 
 # Cundall's local damping of the gravity preload (MPMSolver.preload_gravity)
@@ -266,7 +268,7 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         layers = membrane_fibres_checked(np.asarray(obj["wall_fibres"], np.int64), np.ones(len(x0), bool), x0)
         solver.set_contact_radii(contact_reach(solver.volumes(), layers))
     key = preload_key({**solver_inputs, "materials": [asdict(m) for m in mat_list],
-                       "config": asdict(replace(cfg, threads=1)), "contact_radii": solver.contact_radii()},
+                       "config": asdict(replace(cfg, threads=1, table_hold="none")), "contact_radii": solver.contact_radii()},
                       sim, frame_dt)
     if boundary == "dirichlet" and cfg.fingers == "dirichlet":  # grid-node constraints: what they hold (issue 50)
         notes.append(f"grid-node fingers (mpm.fingers=dirichlet): every constrained point sets the velocity of the "
@@ -298,6 +300,13 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
                      f"frames, {1e3 * pre.residual:.2g} mm left{'' if pre.converged else ', not at rest'}; per pass "
                      + ", ".join(f"{1e3 * m:.3g}" for m in pre.moved) + " mm)")
         j_given = np.linalg.det(solver.deformation_gradients(plane_stress=True).astype(np.float64))
+    # 6. the table's hold on the body as it rests now (mpm.table_hold; the preload is the same with and without it)
+    hold = table_hold(solver, cfg.table_hold)
+    if cfg.table_hold != "none":
+        notes.append(f"table hold (mpm.table_hold={cfg.table_hold}): "
+                     f"{0 if hold is None else len(hold.indices)} particles touching the table after the preload "
+                     "held where they rest (no slip, no lift)")
     return Scene(oracle=mats, solver=solver, materials=mat_list, slot=slot, labels=mid, with_interior=with_interior,
                  dx=dx, config=cfg, frame_dt=frame_dt, surface0=obj["surface_points"].astype(np.float64),
-                 regions=regions, notes=notes, thin_wall=thin_wall, preload=pre, j_given=j_given, preload_key=key)
+                 regions=regions, notes=notes, thin_wall=thin_wall, preload=pre, j_given=j_given, preload_key=key,
+                 hold=hold)
