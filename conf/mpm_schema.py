@@ -56,11 +56,12 @@ class MPMConfig:
             (:mod:`tasks.physics.table_hold`).  ``none`` (default): the table pushes the particles touching it and,
             sticky, keeps them from slipping, but never pulls: a body pushed sideways at its top can tip over its
             edge or roll (flipped to the surface table on 2026-12-06, the plush toy toppled and the force-driven ball
-            rolled away).  ``footprint``: the particles whose surface touches the table at the end of the gravity
-            preload are held where they rest for the whole rollout, no slip and no lift (particle pins at their
-            lowest surface points, finger -1; their work is credited to the energy guard and is zero at rest), as a
-            hand pressing the object onto the table holds it; the rest of the body meets the table where it touches
-            it.  Needs ``contact: surface`` (the grid-node table already glues ~1.5 cells of the body to it).
+            rolled away).  ``footprint``: the particles within one particle spacing of the table in the body's given
+            shape are held where they rest through the gravity preload and the rollout, no slip and no lift (particle pins at
+            their lowest surface points, finger -1, that may still be pressed onto the table: no support is added,
+            the Hertz table case reads +2 to +7 %; their work is credited to the energy guard and is zero at rest),
+            as a hand pressing the object onto the table holds it; the rest of the body meets the table where it
+            touches it.  Needs ``contact: surface`` (the grid-node table already glues ~1.5 cells of the body to it).
             Measured on the scenes: docs/limits/table-contact.md, "The hold".
         fingers: how the squeeze's fingers drive the material (``variant.boundary=dirichlet`` in
             :mod:`tasks.physics.mpm_rollout`; the force-driven ablation is unaffected).  ``particles`` (default):

@@ -21,8 +21,7 @@ from tasks.physics.preload_state import PRELOAD_OUTPUTS, gravity_preload, preloa
                inputs=("object_model", "mpm_particles", "signal_smoothing", "contact_patches", "dirichlet_field",
                        "material_oracle"),
                reads=("mpm", "simulation"),
-               # the thread count as the rollout's (the same kernel split into threads); the table's hold acts after it
-               unkeyed=("mpm.threads", "mpm.table_hold"),
+               unkeyed=("mpm.threads",),  # as the rollout's: the same kernel split into threads
                outputs=PRELOAD_OUTPUTS)
 def gravity_preload_step(inputs, params):
     """The object's gravity preload, once for all its rollouts: its particles' state after settling under its weight

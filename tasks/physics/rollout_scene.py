@@ -67,7 +67,7 @@ class Scene:
     preload: Optional[GravityPreload] = None  # the gravity preload's figures (simulation.gravity_preload_frames)
     j_given: Optional[np.ndarray] = None  # (particle,) det F of the given shape after the preload (None: 1)
     preload_key: str = ""  # digest of what the preload reads (preload_key), which a preloaded state must match
-    hold: Optional[ParticlePins] = None  # the table's hold on the body after the preload (mpm.table_hold)
+    hold: Optional[ParticlePins] = None  # the table's hold on the body, preload and rollout (mpm.table_hold)
 
 
 # Cundall's local damping of the gravity preload (MPMSolver.preload_gravity)
@@ -268,7 +268,7 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         layers = membrane_fibres_checked(np.asarray(obj["wall_fibres"], np.int64), np.ones(len(x0), bool), x0)
         solver.set_contact_radii(contact_reach(solver.volumes(), layers))
     key = preload_key({**solver_inputs, "materials": [asdict(m) for m in mat_list],
-                       "config": asdict(replace(cfg, threads=1, table_hold="none")), "contact_radii": solver.contact_radii()},
+                       "config": asdict(replace(cfg, threads=1)), "contact_radii": solver.contact_radii()},
                       sim, frame_dt)
     if boundary == "dirichlet" and cfg.fingers == "dirichlet":  # grid-node constraints: what they hold (issue 50)
         notes.append(f"grid-node fingers (mpm.fingers=dirichlet): every constrained point sets the velocity of the "
@@ -282,7 +282,13 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     if thin_wall and cfg.fingers == "particles":
         notes.append("particle fingers pin the wall's particles at their centres: a wall thinner than the "
                      f"{1e3 * spacing:.3g} mm spacing (ParticlePins arms 0)")
-    # 5. the given shape is the body's equilibrium on the table under its weight (simulation.gravity_preload_frames)
+    # 5. the table's hold on the body as it rests in its given shape (mpm.table_hold), from the preload on
+    hold = table_hold(solver, cfg.table_hold)
+    if cfg.table_hold != "none":
+        notes.append(f"table hold (mpm.table_hold={cfg.table_hold}): "
+                     f"{0 if hold is None else len(hold.indices)} particles within one spacing of the table held "
+                     "where they rest (no slip, no lift), in the gravity preload and the rollout")
+    # 6. the given shape is the body's equilibrium on the table under its weight (simulation.gravity_preload_frames)
     pre = j_given = None
     if preloaded is not None and preloaded.key != key:
         notes.append("gravity preload: the preloaded state given is of other inputs (another body, grid, material "
@@ -294,18 +300,12 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         else:
             pre = solver.preload_gravity(frame_dt, int(sim["gravity_preload_frames"]),
                                          int(sim["gravity_preload_passes"]), damping=PRELOAD_DAMPING,
-                                         tolerance=float(sim["gravity_preload_tolerance"]))
+                                         tolerance=float(sim["gravity_preload_tolerance"]), pins=hold)
         notes.append(f"gravity preload: unsupported, the body would settle by up to {1e3 * pre.sag:.3g} mm under its "
                      f"weight; held in its given shape by that stress ({pre.passes} pass(es), {pre.frames} damped "
                      f"frames, {1e3 * pre.residual:.2g} mm left{'' if pre.converged else ', not at rest'}; per pass "
                      + ", ".join(f"{1e3 * m:.3g}" for m in pre.moved) + " mm)")
         j_given = np.linalg.det(solver.deformation_gradients(plane_stress=True).astype(np.float64))
-    # 6. the table's hold on the body as it rests now (mpm.table_hold; the preload is the same with and without it)
-    hold = table_hold(solver, cfg.table_hold)
-    if cfg.table_hold != "none":
-        notes.append(f"table hold (mpm.table_hold={cfg.table_hold}): "
-                     f"{0 if hold is None else len(hold.indices)} particles touching the table after the preload "
-                     "held where they rest (no slip, no lift)")
     return Scene(oracle=mats, solver=solver, materials=mat_list, slot=slot, labels=mid, with_interior=with_interior,
                  dx=dx, config=cfg, frame_dt=frame_dt, surface0=obj["surface_points"].astype(np.float64),
                  regions=regions, notes=notes, thin_wall=thin_wall, preload=pre, j_given=j_given, preload_key=key,

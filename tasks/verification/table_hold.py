@@ -106,10 +106,11 @@ def side_views(x: np.ndarray, body: np.ndarray, foot: np.ndarray, path: str, tit
 
 
 def summary(res: dict) -> str:
-    """One line: held / footprint particles, peak tilt, slide and lift, peak strain / predicted, KE/IE, time."""
+    """One line: held / footprint particles, peak tilt, slide and lift, peak strain (over the run and up to the
+    predicted peak's frame, the force-matched calibration's window) / predicted, KE/IE, time."""
     ke = res["ke_ie"][np.isfinite(res["ke_ie"])]
     return (f"held {res['held']} / footprint {res['footprint']}, frames {res['frames']} (peak {res['peak_frame']}): "
             f"tilt max {res['tilt'].max():.2f} deg (end {res['tilt'][-1]:.2f}), slide max {res['slide'].max():.2f} mm,"
-            f" lift max {res['lift'].max():.2f} mm, strain peak {res['strain'].max():.3f} / predicted "
-            f"{res['predicted']:.3f}, KE/IE max {ke.max() if len(ke) else math.nan:.3g}, "
+            f" lift max {res['lift'].max():.2f} mm, strain peak {res['strain'].max():.3f} (up to the predicted peak "
+            f"{res['strain'][:res['peak_frame'] + 1].max():.3f}) / predicted {res['predicted']:.3f}, KE/IE max {ke.max() if len(ke) else math.nan:.3g}, "
             f"{res['seconds']:.0f} s, {res['substeps']} substeps")

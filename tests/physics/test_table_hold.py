@@ -18,7 +18,8 @@ def standing_block(hold: str, push: float, frames: int = 12):
     """A soft block (20 x 20 x 60 mm, E = 0.3 MPa, nu = 0.3, 1000 kg/m^3) on the sticky surface table under gravity,
     settled for 0.2 s, its hold taken, then pushed sideways at its top layer by ``push`` x its weight for ``frames``
     frames of 1/60 s.  Returns the tilt per frame (deg, :func:`body_tilt`), the base layer's largest horizontal
-    displacement and rise (mm), the frames' boundary work (J), the energy guard's measure and the hold's size."""
+    displacement and rise (mm), the frames' boundary work (J), the body's total energy (kinetic + internal +
+    gravitational, J), the energy guard's measure and the hold's size."""
     g = np.arange(H / 2, W, H) - W / 2
     x = np.stack(np.meshgrid(g, g, np.arange(H / 2, TALL, H), indexing="ij"), -1).reshape(-1, 3)
     mat = Material(name="block", model="fixed_corotated", youngs_modulus=3.0e5, poisson_ratio=0.3, density=1000.0)
@@ -32,7 +33,7 @@ def standing_block(hold: str, push: float, frames: int = 12):
     top = np.flatnonzero(x0[:, 2] > x0[:, 2].max() - H / 2)
     base = np.flatnonzero(x0[:, 2] < x0[:, 2].min() + H / 2)
     force = np.array([[push * 9.81 * m.sum(), 0.0, 0.0]])
-    out = {"tilt": [], "slide": [], "rise": [], "work": [], "growth": [],
+    out = {"tilt": [], "slide": [], "rise": [], "work": [], "growth": [], "energy": [],
            "held": 0 if pins is None else len(pins.indices)}
     for _ in range(frames):
         patch = ForcePatch(x0[top], np.zeros(len(top), np.int32), force, particles=top) if push else None
@@ -42,6 +43,7 @@ def standing_block(hold: str, push: float, frames: int = 12):
         out["slide"].append(1e3 * np.hypot(*(x[base, :2] - x0[base, :2]).T).max())
         out["rise"].append(1e3 * (x[base, 2] - x0[base, 2]).max())
         out["work"].append(st.boundary_work)
+        out["energy"].append(st.kinetic_energy + st.internal_energy + st.gravitational_energy)
         out["growth"].append(st.energy_growth)
     return {k: np.asarray(v) for k, v in out.items()}
 
@@ -62,12 +64,18 @@ def test_a_block_pushed_at_its_top_stands_on_the_held_table_and_topples_without(
 
 
 def test_the_hold_does_no_work_at_rest():
-    """Resting under its weight, held, the block stays put: the boundary work of the frames (the hold's pins and the
-    table's collider) is below 1e-6 of its weight times its spacing per frame, and its tilt below 0.01 deg."""
+    """Resting under its weight, held, the block stays put and its total energy (kinetic + internal + gravitational)
+    does not grow (measured: it falls by 5e-7 J, 1e-3 of its weight times its spacing, over 0.1 s, of 7.1e-3 J): the
+    hold puts no energy in.  (The boundary
+    work the frames report, sum m du . v_new over the substeps' small corrections, is no energy balance at rest:
+    measured 1.4-1.7e-4 J per frame with the hold, 0.8e-4 J with the table alone; the guard counts it as work put in,
+    which only widens its budget.)"""
     rest = standing_block("footprint", 0.0, frames=6)
     weight_h = 9.81 * 1000.0 * W * W * TALL * H  # J
-    assert np.abs(rest["work"]).max() < 1e-6 * weight_h, rest["work"]
+    assert rest["energy"].max() - rest["energy"][0] < 1e-4 * weight_h, rest["energy"]
+    assert np.ptp(rest["energy"]) < 2e-3 * weight_h, rest["energy"]
     assert rest["tilt"].max() < 0.01, rest["tilt"]
+    assert rest["growth"].max() < 0.0, rest["growth"]
 
 
 def test_the_hold_adds_little_to_the_tables_normal_force():
