@@ -62,7 +62,8 @@ class MPMConfig:
             the Hertz table case reads +2 to +7 %; their work is credited to the energy guard and is zero at rest),
             as a hand pressing the object onto the table holds it; the rest of the body meets the table where it
             touches it.  Needs ``contact: surface`` (the grid-node table already glues ~1.5 cells of the body to it).
-            Measured on the scenes: docs/limits/table-contact.md, "The hold".
+            The force-driven ball, duck and clay then stay upright; the plush toy, resting on its feet only, is
+            not held by it (its preload does not come to rest): docs/limits/table-contact.md, "The hold".
         fingers: how the squeeze's fingers drive the material (``variant.boundary=dirichlet`` in
             :mod:`tasks.physics.mpm_rollout`; the force-driven ablation is unaffected).  ``particles`` (default):
             every surface point the eq. 3 field constrains is driven to its target on the particles it is embedded in

@@ -9,8 +9,7 @@ hand holds it down onto the table; what the scene can take from that is an *adhe
 
 ``footprint``: the particles whose lowest surface point lies within one particle spacing of the table in the body's
 given shape (paper sec. 3.2's start, the captured object on the table: its lowest particle layer and, on a curved
-base, the cap within one spacing) are held where they rest, through the gravity preload (which the plush toy did not
-survive without: it fell over, settling by 136 mm in each pass, where the grid-node table held it) and the rollout: each one's lowest surface
+base, the cap within one spacing) are held where they rest, through the gravity preload and the rollout: each one's lowest surface
 point (its centre minus its contact reach |F^T e_z| along -z, as the table's collider measures it,
 :func:`tasks.physics.mpm.kernels.contact.contact_velocity`) is a :class:`ParticlePins` pin at its resting position
 (m), driven back there over every frame, so it neither slips nor lifts; the pin is ``free`` along -z, so the point
@@ -18,7 +17,10 @@ may still be pressed down onto the table, whose collider then acts on it (the ho
 case reads +2 to +7 % of the unheld table's force at 1-4 mm, the grip of a bonded patch on a frictionless table;
 pins that also held the points up read 1.5-3.6x).  The rest of the body still meets the table only where it touches
 it.  The pins are reported as no finger (finger id -1); their work m du . v_new (J) joins the boundary work the
-energy guard credits, and it is zero at rest (the pinned points do not move).
+energy guard credits, and it is zero at rest (the pinned points do not move).  Measured (docs/limits/table-contact.md,
+"The hold"): the force-driven rubber ball, duck and clay, which the bare surface table let roll or be knocked over,
+stay upright (tilt <= 10 deg, footprint slide <= 0.01 mm); the plush toy, which rests on its two feet only, still
+falls back under its weight in its preload (78 mm per pass, not at rest) and its rollout stops at its first substep.
 
 ``none``: no hold (the table as it was).
 """
