@@ -45,8 +45,9 @@ class MPMConfig:
             ``multi_field``, the released field meets it as ``surface``'s plane collider, where its particles touch
             it, friction ``floor_friction`` or no slip while touching if ``floor_sticky``); ``surface`` (the floor is a plane
             collider: colliders act on the particles whose surface, centre -+ half the particle spacing, touches
-            them, through the P2G momentum; the floor height defaults to the lowest particle's surface;
-            ``floor_sticky`` then means no slip while touching).  ``Collider`` s passed to ``step_frame`` act at
+            them, through the P2G momentum; the floor height defaults to the lowest particle's contact surface,
+            its centre minus its contact reach: half its spacing, a thin wall's face; ``floor_sticky`` then means no
+            slip while touching).  ``Collider`` s passed to ``step_frame`` act at
             the surface in both modes; ``DirichletPoints``/``DirichletNodes`` always act on grid nodes.  A sphere
             pressed on the table reads 2.1-5.8x Hertz at 1-4 mm on grid nodes, 1.23-1.44x at the surface
             (docs/limits/table-contact.md); the pipeline's table stays ``grid`` (``conf/mpm/default.yaml``): the
