@@ -105,6 +105,7 @@ from tasks.physics.rollout_records import (
 )
 from tasks.physics.rollout_scene import Scene, build_scene
 from tasks.physics.rupture_release import rupture_and_release
+from tasks.physics.table_hold import held_pins, join_pins
 
 
 def mpm_rollout(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], field: Mapping[str, np.ndarray],
@@ -156,6 +157,7 @@ def run_frames(scene: Scene, obj: Mapping[str, np.ndarray], field: Mapping[str, 
                                                   scene.config.finger_friction)
         else:
             push = force_patch(scene, field, forces, patches, f, torn, sim, rec.openings, rec.beneath)
+        pins = join_pins(pins, held_pins(scene.hold, solver))  # the table's hold (mpm.table_hold), under the fingers'
         # 2. one output frame of the solver (KE/IE per frame: summarised in the attrs)
         # (after the rupture the motion is dynamic by design: no quasi-static check)
         flying = rec.flight is not None and f <= rec.event["frame"] + FLIGHT_FRAMES

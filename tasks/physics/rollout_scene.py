@@ -13,7 +13,7 @@ import numpy as np
 from conf.mpm_schema import MPMConfig, mpm_config_from
 from tasks.core.artifacts import digest_of
 from tasks.physics.labels import CORE, INTERIOR, N_LABELS, RUPTURED, SHELL
-from tasks.physics.mpm import MPMSolver, material_mass_scales
+from tasks.physics.mpm import MPMSolver, ParticlePins, material_mass_scales
 from tasks.physics.mpm.mass_scaling import QuasiStaticLoad
 from tasks.physics.mpm.materials import MEMBRANE_MODELS, Material, material_from_dict
 from tasks.physics.mpm.preload import PreloadedState, restore_preloaded
@@ -23,6 +23,7 @@ from tasks.physics.oracle.convert import materials_from_dict, mpm_material_kwarg
 from tasks.physics.oracle.schema import ObjectMaterials
 from tasks.physics.regions import finger_regions, region_weights, squeeze_strain
 from tasks.physics.rupture_release import cohesionless_core, released_material, torn_skin_material
+from tasks.physics.table_hold import table_hold
 from tasks.physics.wall_resolution import grid_spacing
 
 
@@ -66,6 +67,7 @@ class Scene:
     preload: Optional[GravityPreload] = None  # the gravity preload's figures (simulation.gravity_preload_frames)
     j_given: Optional[np.ndarray] = None  # (particle,) det F of the given shape after the preload (None: 1)
     preload_key: str = ""  # digest of what the preload reads (preload_key), which a preloaded state must match
+    hold: Optional[ParticlePins] = None  # the table's hold on the body, preload and rollout (mpm.table_hold)
 
 
 # Cundall's local damping of the gravity preload (MPMSolver.preload_gravity)
@@ -280,7 +282,13 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
     if thin_wall and cfg.fingers == "particles":
         notes.append("particle fingers pin the wall's particles at their centres: a wall thinner than the "
                      f"{1e3 * spacing:.3g} mm spacing (ParticlePins arms 0)")
-    # 5. the given shape is the body's equilibrium on the table under its weight (simulation.gravity_preload_frames)
+    # 5. the table's hold on the body as it rests in its given shape (mpm.table_hold), from the preload on
+    hold = table_hold(solver, cfg.table_hold)
+    if cfg.table_hold != "none":
+        notes.append(f"table hold (mpm.table_hold={cfg.table_hold}): "
+                     f"{0 if hold is None else len(hold.indices)} particles within one spacing of the table held "
+                     "where they rest (no slip, no lift), in the gravity preload and the rollout")
+    # 6. the given shape is the body's equilibrium on the table under its weight (simulation.gravity_preload_frames)
     pre = j_given = None
     if preloaded is not None and preloaded.key != key:
         notes.append("gravity preload: the preloaded state given is of other inputs (another body, grid, material "
@@ -292,7 +300,7 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         else:
             pre = solver.preload_gravity(frame_dt, int(sim["gravity_preload_frames"]),
                                          int(sim["gravity_preload_passes"]), damping=PRELOAD_DAMPING,
-                                         tolerance=float(sim["gravity_preload_tolerance"]))
+                                         tolerance=float(sim["gravity_preload_tolerance"]), pins=hold)
         notes.append(f"gravity preload: unsupported, the body would settle by up to {1e3 * pre.sag:.3g} mm under its "
                      f"weight; held in its given shape by that stress ({pre.passes} pass(es), {pre.frames} damped "
                      f"frames, {1e3 * pre.residual:.2g} mm left{'' if pre.converged else ', not at rest'}; per pass "
@@ -300,4 +308,5 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         j_given = np.linalg.det(solver.deformation_gradients(plane_stress=True).astype(np.float64))
     return Scene(oracle=mats, solver=solver, materials=mat_list, slot=slot, labels=mid, with_interior=with_interior,
                  dx=dx, config=cfg, frame_dt=frame_dt, surface0=obj["surface_points"].astype(np.float64),
-                 regions=regions, notes=notes, thin_wall=thin_wall, preload=pre, j_given=j_given, preload_key=key)
+                 regions=regions, notes=notes, thin_wall=thin_wall, preload=pre, j_given=j_given, preload_key=key,
+                 hold=hold)

@@ -28,6 +28,7 @@ from conf.hand import FINGERTIP_PAD_RADIUS, N_FINGERS
 from tasks.control.dirichlet_field import dirichlet_field
 from tasks.physics.mpm import Collider, DirichletPoints, Material, MPMSolver, ParticlePins
 from tasks.physics.rollout_fingers import finger_colliders, fingertip_travel
+from tasks.physics.table_hold import join_pins, table_hold
 
 HERTZ_R = 0.035  # m (the issue's sphere: R = 35 mm, E = 2 MPa, nu = 0.45)
 HERTZ_E = 2.0e6  # Pa
@@ -107,7 +108,7 @@ def _press(solver: MPMSolver, plate: str, plate_z: float, half_width: float, tra
             else:
                 coll.append(Collider("plane", (0.0, 0.0, at), normal, velocity=(0.0, 0.0, v), finger_id=finger))
         if isinstance(fixed, ParticlePins):
-            pins = _joined(fixed, pins)
+            pins = join_pins(pins, fixed)
         st = solver.step_frame(fdt, dirichlet=bcs or None, colliders=coll or None, pins=pins)
         z += vz * fdt
         zm = None if zm is None else zm - vz * fdt
@@ -170,7 +171,8 @@ def hertz_case(contact: str, cells_per_radius: int, depth: float = 0.004, load_t
 
 def table_hertz_case(contact: str, dx: float, R: float = 0.03, E: float = HERTZ_E, nu: float = HERTZ_NU,
                      travel: float = 0.0085, total: float = 0.15, n_frames: int = 60,
-                     depths: tuple[float, ...] = HERTZ_DEPTHS, particles_across_cell: int = 2) -> dict:
+                     depths: tuple[float, ...] = HERTZ_DEPTHS, particles_across_cell: int = 2,
+                     hold: str = "none") -> dict:
     """An elastic sphere (radius R, m; E, Pa; nu) resting on the table (``mpm.floor``, frictionless, the table's
     height the solver's default for ``contact``: the lowest particle's surface under ``surface``, its centre under
     ``grid``) and pressed from above by a frictionless plane collider moving down ``travel`` (m) over ``total`` (s,
@@ -180,13 +182,16 @@ def table_hertz_case(contact: str, dx: float, R: float = 0.03, E: float = HERTZ_
     mass, z_0 the sphere's initial bottom (m), since in a quasi-static squeeze the centre lies midway between two
     equal contacts.  Returns per frame ``depth`` (m, at frame ends), ``force`` (N), ``radius`` (m, the flattened patch
     at the bottom as :func:`hertz_case` reads it) and at ``depths``: ``force_at``, ``hertz_at``, ``force_ratio``
-    (measured / Hertz), ``radius_at``, ``radius_hertz``, ``seconds``, ``particles``, ``floor_height``."""
+    (measured / Hertz), ``radius_at``, ``radius_hertz``, ``seconds``, ``particles``, ``floor_height``, ``held`` (how
+    many particles the table's ``hold``, :func:`tasks.physics.table_hold.table_hold`, pins: those touching the table
+    at the start)."""
     h = dx / particles_across_cell
     X, vol = sphere_shell_particles(R, h)
     X = X + [0.0, 0.0, R]
     mat = Material(name="sphere", model="fixed_corotated", youngs_modulus=E, poisson_ratio=nu, density=DENSITY)
     s = MPMSolver(X, vol, mat, config=dict(device="cpu", dx=dx, gravity=[0.0, 0.0, 0.0], floor=True, contact=contact,
                                            margin_cells=3, energy_guard_tolerance=0.0), label="table_hertz")
+    pins = table_hold(s, hold)
     rec: dict[str, list] = {"depth": [], "force": [], "radius": []}
 
     def on_frame(f, d, st):
@@ -196,11 +201,11 @@ def table_hertz_case(contact: str, dx: float, R: float = 0.03, E: float = HERTZ_
         rec["radius"].append(float(h * np.sqrt((z <= z.min() + 0.05 * h).sum() / np.pi)))
 
     t0 = time.perf_counter()
-    _press(s, "surface", 2 * R, R, travel, total, n_frames, on_frame)
+    _press(s, "surface", 2 * R, R, travel, total, n_frames, on_frame, fixed=pins)
     out = {k: np.asarray(v) for k, v in rec.items()}
     at = np.asarray(depths, float)
     out.update(at=at, seconds=time.perf_counter() - t0, particles=len(X), dx=dx, contact=contact,
-               floor_height=float(s.floor_height))
+               floor_height=float(s.floor_height), held=0 if pins is None else len(pins.indices))
     out["force_at"] = np.interp(at, frame_mean(out["depth"]), out["force"])
     out["hertz_at"] = hertz_force(at, R, E, nu)
     out["force_ratio"] = out["force_at"] / out["hertz_at"]
@@ -247,15 +252,6 @@ def body_between_flats(solver: MPMSolver, plate: str, travel: float, duration: f
             "held": np.asarray(rec["force"][n_frames:]), "pole_gap": np.asarray(rec["pole_gap"]),
             "seconds": time.perf_counter() - t0,
             "substeps": int(sum(rec["substeps"][:n_frames]))}
-
-
-def _joined(a: ParticlePins, b: Optional[ParticlePins]) -> ParticlePins:
-    """Two pin sets of one slip kind as one."""
-    if b is None:
-        return a
-    return ParticlePins(np.concatenate([a.indices, b.indices]), np.concatenate([a.targets, b.targets]),
-                        np.concatenate([a.normals, b.normals]), np.concatenate([a.finger_ids, b.finger_ids]),
-                        slip=a.slip)
 
 
 def uniaxial_case(contact: str, nu: float, cells_across: int, strain: float = 0.01, L: float = 0.04,

@@ -86,9 +86,12 @@ def test_bad_pins_are_one_line_errors():
         s.step_frame(0.004, pins=ParticlePins(np.array([0, 0, 1]), np.zeros((n, 3)), np.ones((n, 3))))
     with pytest.raises(ValueError, match=r"arms must lie in \[0, 1\]"):
         s.step_frame(0.004, pins=ParticlePins(np.arange(n), np.zeros((n, 3)), np.ones((n, 3)), arms=np.full(n, 2.0)))
-    with pytest.raises(ValueError, match="3 indices but 3 targets, 3 normals, 3 finger ids and 2 arms"):
+    with pytest.raises(ValueError, match="3 indices but 3 targets, 3 normals, 3 finger ids, 2 arms and 3 free flags"):
         s.step_frame(0.004, pins=ParticlePins(np.arange(n), np.zeros((n, 3)), np.ones((n, 3)), np.zeros(n, int),
                                               arms=np.ones(2)))
+    with pytest.raises(ValueError, match="3 finger ids, 3 arms and 1 free flags"):
+        s.step_frame(0.004, pins=ParticlePins(np.arange(n), np.zeros((n, 3)), np.ones((n, 3)), np.zeros(n, int),
+                                              free=np.ones(1, bool)))
     with pytest.raises(ValueError, match="NaN/inf targets or zero normals"):
         s.step_frame(0.004, pins=ParticlePins(np.arange(n), np.zeros((n, 3)), np.zeros((n, 3))))
 

@@ -209,6 +209,7 @@ def set_pins(solver: MPMSolver, pins: Optional[ParticlePins], frame_dt: float = 
                 setattr(col, name, wp.zeros(1, dtype=wp.vec3, device=d))
             col.pin_arm = wp.zeros(1, dtype=float, device=d)
             col.pin_finger = wp.full(1, -1, dtype=wp.int32, device=d)
+            col.pin_free = wp.zeros(1, dtype=wp.int32, device=d)
             solver._col_version += 1
         return 0
     idx = np.asarray(pins.indices, np.int64).reshape(-1)
@@ -217,9 +218,10 @@ def set_pins(solver: MPMSolver, pins: Optional[ParticlePins], frame_dt: float = 
     fid = (np.full(n, -1, np.int32) if pins.finger_ids is None
            else np.asarray(pins.finger_ids, np.int32).reshape(-1))
     arm = np.ones(n) if pins.arms is None else np.asarray(pins.arms, np.float64).reshape(-1)
-    if not (len(target) == len(normal) == len(fid) == len(arm) == n):
+    free = np.zeros(n, np.int32) if pins.free is None else np.asarray(pins.free, bool).reshape(-1).astype(np.int32)
+    if not (len(target) == len(normal) == len(fid) == len(arm) == len(free) == n):
         raise ValueError(f"ParticlePins: {n} indices but {len(target)} targets, {len(normal)} normals, "
-                         f"{len(fid)} finger ids and {len(arm)} arms")
+                         f"{len(fid)} finger ids, {len(arm)} arms and {len(free)} free flags")
     if not ((arm >= 0) & (arm <= 1)).all():
         raise ValueError("ParticlePins: arms must lie in [0, 1] (0: the particle's centre, 1: its surface)")
     if idx.min() < 0 or idx.max() >= solver.n_particles or len(np.unique(idx)) != n:
@@ -239,6 +241,7 @@ def set_pins(solver: MPMSolver, pins: Optional[ParticlePins], frame_dt: float = 
     col.pin_n = wp.array(normal.astype(np.float32), dtype=wp.vec3, device=d)
     col.pin_arm = wp.array(arm.astype(np.float32), dtype=float, device=d)
     col.pin_finger = wp.array(fid, dtype=wp.int32, device=d)
+    col.pin_free = wp.array(free, dtype=wp.int32, device=d)
     grow_fingers(solver, int(fid.max()) + 1)
     solver._pin_speed = float(np.linalg.norm(velocity, axis=1).max())
     solver._col_version += 1

@@ -110,7 +110,9 @@ class ParticlePins:
     the particle's centre, for a particle that is a whole wall thinner than its spacing (one layer on the wall's
     mid-surface): such a wall has no through-thickness compliance the particle resolves, and a push at its
     fictitious surface half a spacing out crushes it against the wall's membrane stiffness (the hollow rubber
-    duck's pinned wall particles at 3 mm spacing: det F 1 -> 0.30 -> failure; pinned at their centres >= 0.49)."""
+    duck's pinned wall particles at 3 mm spacing: det F 1 -> 0.30 -> failure; pinned at their centres >= 0.49).
+    ``free`` (default none): a pin that does not hold its point back when it moves out along n faster than its path
+    (the table's hold, :mod:`tasks.physics.table_hold`: held from slipping and lifting, free to be pressed down)."""
 
     indices: np.ndarray
     targets: np.ndarray
@@ -118,6 +120,7 @@ class ParticlePins:
     finger_ids: Optional[np.ndarray] = None
     slip: bool = False
     arms: Optional[np.ndarray] = None  # (pin,) where along n the pin acts, in half spacings (default 1: the surface)
+    free: Optional[np.ndarray] = None  # (pin,) bool: the point may move out along n faster than its path (default no)
 
 
 BoundarySpec = Union[DirichletPoints, DirichletNodes, Sequence[Union[DirichletPoints, DirichletNodes]], None,

@@ -112,6 +112,7 @@ from .state import (
     assign_materials,
     grid_nbytes,
     place_grid,
+    seat_floor,
     state_nbytes,
 )
 from .thin_walls import (
@@ -583,7 +584,7 @@ class MPMSolver:
 
 
     def preload_gravity(self, frame_dt: float, max_frames: int, passes: int = 3, damping: float = 0.8,
-                        tolerance: float = 0.01) -> GravityPreload:
+                        tolerance: float = 0.01, pins: Optional[ParticlePins] = None) -> GravityPreload:
         """Gravity preload (geostatic prestress): make the body's given shape (a captured object standing on the
         table) its equilibrium under its weight, so that the run starts at rest instead of sagging and swaying
         from the first frame (the plush toy, given gravity at t = 0: its top swung 4 cm forward before the
@@ -617,8 +618,9 @@ class MPMSolver:
         the mass scale it has without a boundary ``load`` (the equilibrium under its weight does not depend on the
         inertia, which dynamic relaxation only uses to get there): every variant of a body, however its push bounds
         its scale afterwards (a force-driven push's quasi-static bound, resolved at the next frame), starts from the
-        same preloaded state, so one preload serves them all (:mod:`tasks.physics.mpm.preload`).  Raises
-        :class:`SimulationError` like :meth:`step_frame`."""
+        same preloaded state, so one preload serves them all (:mod:`tasks.physics.mpm.preload`).  ``pins``: held
+        in every frame of it (the table's hold, :mod:`tasks.physics.table_hold`).  Raises :class:`SimulationError`
+        like :meth:`step_frame`."""
         if not (max_frames >= 1 and passes >= 1 and 0.0 < damping < 1.0 and tolerance > 0.0):
             raise ValueError(f"preload_gravity: need max_frames >= 1, passes >= 1, damping in (0, 1) and tolerance "
                              f"> 0, got {max_frames}, {passes}, {damping}, {tolerance}")
@@ -636,7 +638,7 @@ class MPMSolver:
                 energy: list[float] = []  # the solids' kinetic energy at each frame's end (J)
                 crest = False
                 for _ in range(max_frames):
-                    self.step_frame(frame_dt, quasi_static=False)
+                    self.step_frame(frame_dt, quasi_static=False, pins=pins)
                     frames += 1
                     if mass is None:  # the mass scale is resolved by the first frame
                         mass = self.masses()[~fluid].astype(np.float64)
@@ -738,6 +740,7 @@ class MPMSolver:
             raise ValueError(f"set_contact_radii: need {self.n_particles} finite radii >= 0 (m), one per particle; "
                              f"got shape {r.shape}")
         self.reach.assign(r.astype(np.float32))
+        seat_floor(self)  # the table under the new contact surface (mpm.contact = surface)
 
     def masses(self) -> np.ndarray:
         """Particle masses (kg), including the material's current mass scale (the inertia)."""

@@ -107,6 +107,7 @@ def allocate_particles(solver: MPMSolver, x: np.ndarray, v: np.ndarray, vol: np.
     for name in ("x", "v", "C", "F", "q", "alpha", "vol", "mat_id", "normal", "reach", "x_carry", "F_carry",
                  "wall_offset"):
         setattr(solver.particles, name, getattr(solver, name))
+    seat_floor(solver)
     fibres = fibres if cfg.wall_fibres else None
     solver.n_fibres = 0 if fibres is None else len(fibres.rest)
     solver._fibre_arrays = [] if fibres is None else [  # first, second, rest (a middle layer moves with the grid)
@@ -114,6 +115,20 @@ def allocate_particles(solver: MPMSolver, x: np.ndarray, v: np.ndarray, vol: np.
     solver._fibres = None if fibres is None else wp.launch(
         k_wall_fibres, dim=solver.n_fibres, device=d, record_cmd=True,
         inputs=[solver.x, solver.vol, solver.mat_id, *solver._fibre_arrays])
+
+
+def seat_floor(solver: MPMSolver) -> None:
+    """Under ``mpm.contact = surface`` with the floor's height left to the solver: the table where the lowest
+    particle's contact surface is (its centre minus its contact reach, :meth:`MPMSolver.contact_radii`: half its
+    spacing, a thin wall's face), so the body rests on it.  :func:`place_grid` sized the domain with half the
+    spacing; a thin wall's face lies within that (the rubber ball's 0.6 mm against 1.0-1.5 mm: it hung 0.86 mm above
+    the table and dropped onto it in the gravity preload, which then left it there)."""
+    cfg = solver.cfg
+    if solver.floor_height is None or cfg.floor_height is not None or cfg.contact != "surface":
+        return
+    z = solver.x.numpy()[:, 2].astype(np.float64) - solver.reach.numpy().astype(np.float64)
+    solver.floor_height = float(z.min())
+    solver.floor_g = float((solver.floor_height - solver.lo[2]) / solver.dx)
 
 
 def allocate_grid(solver: MPMSolver) -> None:

@@ -116,7 +116,9 @@ def pin_velocity(col: Colliders, slot: int, x: wp.vec3, v: wp.vec3, C: wp.mat33,
     wall thinner than its spacing, whose centre is pinned) is driven along its prescribed path, which is at ``col.pin_y``
     now and moves at ``col.pin_v``: the point's velocity u = v + r C n becomes pin_v + (pin_y - x_s) / dt over the
     coming substep dt (the second term takes back what the grid's blend of the particle with its neighbours left of
-    the last one), all of it or, with ``col.pin_slip``, its normal component.  The change du enters the P2G like a
+    the last one), all of it or, with ``col.pin_slip``, its normal component; a pin with ``col.pin_free`` does not
+    hold the point back when it moves out along n faster than that (the table's hold, :mod:`tasks.physics.table_hold`:
+    its points are held from slipping and lifting but may be pressed down onto the table, which then acts on them).  The change du enters the P2G like a
     collider's: v + du, with the affine term 4/dx^2 m du (x_s - x)^T, so the impulse J = m du acts at the surface
     point, where the finger is, not as a body force at the centre.  J is added to the pin's finger reaction (N s)
     with its work J . v_new (J).  Unlike grid-node Dirichlet conditions, no node is held: the neighbours of a
@@ -128,6 +130,8 @@ def pin_velocity(col: Colliders, slot: int, x: wp.vec3, v: wp.vec3, C: wp.mat33,
     du = col.pin_v[slot] + (col.pin_y[slot] - xs) / dt - u
     if col.pin_slip != 0:
         du = wp.dot(du, n) * n
+    if col.pin_free[slot] != 0 and wp.dot(du, n) < 0.0:  # moving out along n faster than its path: not held back
+        du = du - wp.dot(du, n) * n
     new = v + du
     record_impulse(col, col.pin_finger[slot], mass, du, new)
     res = ContactResult()

@@ -181,6 +181,7 @@ class Colliders:
     pin_n: wp.array(dtype=wp.vec3)  # (pin,) outward unit normal of the surface at the particle
     pin_arm: wp.array(dtype=float)  # (pin,) where along n it acts, in half spacings: 1 its surface, 0 its centre
     pin_finger: wp.array(dtype=wp.int32)  # (pin,) finger id whose reaction receives its impulses (< 0: none)
+    pin_free: wp.array(dtype=wp.int32)  # (pin,) 1: its point may move out along n faster than its path (a hold)
 
 
 @wp.struct

@@ -161,6 +161,8 @@ def scatter_particle(r: G2PResult, p: int, mid: int, substep: int, ps: Particles
             v = pr.v
             mv = mass * v
             A = A + pr.A
+            if mats.par[mid, C_DAMPING] > 0.0:  # local damping damps the grid's change from the pinned velocity: from
+                ps.v[p] = v  # the unpinned one it pumped energy (a held block in the gravity preload blew up)
     if col.count > 0 and ((col.fields >> field) & 1) != 0:
         cr = contact_velocity(col, r.x, v, r.C, r.F, r.tau, vol, ps.reach[p], mass, sp.dt_p2g, gi.inv_dx, field)
         mv = mass * cr.v
