@@ -24,13 +24,18 @@ A bad input stops the run with one line naming the input (its config key) and th
 7. the paper metrics' weight files named in ``paper_metrics`` (absent ones are reported "not computed" by the
    step): the present files' digests are recorded in ``paper_metrics.weights_digest`` (cache key).
 
+A ``-m`` sweep runs 1-4 but the folders and environment for every job before job 0 (:func:`check_config`), each
+distinct input file read once.
+
 The stability suite (``python -m flows.studies.stability``) has its own config: :func:`preflight_stability` checks it
 the same way (its simulation groups and catalog, and the case names) before any case runs.
 """
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
+from typing import Any, Callable
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
@@ -184,13 +189,70 @@ def _check_values(cfg: DictConfig) -> None:
     check_settings(cfg)
 
 
-def check_config(cfg: DictConfig) -> WorkEstimate:
-    """The checks of the config alone, no file read: its ranges and settings, and its work for a squeeze of
-    ``signal.duration`` against ``limits`` - what a ``-m`` sweep checks of every job before the first one runs
-    (:class:`flows.hydra_checks.PreflightCallback`).  Returns the work estimate."""
+def _read_once(seen: dict | None, key: tuple, read: Callable[[], Any]) -> Any:
+    """``read()``; with ``seen`` (a sweep's files read so far, by ``key``) only the first time: each distinct file
+    of a sweep is read once, and its refusal names the first job that uses it."""
+    if seen is None:
+        return read()
+    if key not in seen:
+        seen[key] = read()
+    return seen[key]
+
+
+def _file_key(path: Any) -> str:
+    return os.path.abspath(os.path.expanduser(str(path))) if path else ""
+
+
+def check_recording(cfg: DictConfig, seen: dict | None = None) -> tuple[float, str]:
+    """2. The recording (``signal=csv``), read exactly as the squeeze_signals step reads it, and its reach; returns
+    the squeeze's span (s) and where it comes from (``signal.duration`` without a recording)."""
+    if cfg.signal.source != "csv":
+        return float(cfg.signal.duration), f"signal.duration {cfg.signal.duration:g} s"
+    from tasks.control.recording import SignalError, read_recording  # pandas only when a file is to be read
+
+    rate = cfg.control.smoothing.frame_rate
+    try:
+        rec = _read_once(seen, ("recording", _file_key(cfg.signal.path), float(rate)),
+                         lambda: read_recording(cfg.signal.path, frame_rate=rate))
+    except SignalError as exc:
+        raise SystemExit(f"input error: signal.path: {exc}") from None
+    span = float(rec["time"][-1] - rec["time"][0])
+    _check_reach(cfg, rec["fingertip_positions"], rec["time"])
+    return span, f"the recording's {span:g} s"
+
+
+def check_geometry_files(cfg: DictConfig, seen: dict | None = None, quiet: bool = False) -> None:
+    """3. The selected objects' geometry files (``kind: mesh`` or ``ply``), with the loader the step uses, and their
+    fit into ``geometry.size``; prints the fit's line unless ``quiet``."""
+    for key, obj in object_entries(cfg):
+        kind, path = obj.geometry.kind, obj.geometry.path
+        if kind not in ("mesh", "ply"):
+            continue
+        from tasks.control.gaussian_ply import GaussianPlyError
+        from tasks.control.object_config import ObjectModelError
+        from tasks.control.sources.base import fit_statement
+        from tasks.control.sources.by_kind import geometry_file_bounds
+
+        try:
+            lo, hi, what = _read_once(seen, ("geometry", kind, _file_key(path)),
+                                      lambda: geometry_file_bounds(kind, path))
+            fitted = fit_statement(what, lo, hi, list(obj.geometry.size))
+        except (ObjectModelError, GaussianPlyError) as exc:
+            raise SystemExit(f"input error: {key}.geometry.path: {exc}") from None
+        if fitted and not quiet:
+            print(f"{key}.geometry.path: {fitted}", flush=True)
+
+
+def check_config(cfg: DictConfig, seen: dict | None = None) -> WorkEstimate:
+    """What a ``-m`` sweep checks of every job before the first one runs (:class:`flows.hydra_checks.PreflightCallback`):
+    the config's ranges and settings, its input files (the recording, the geometry files: each distinct file once
+    across the jobs, ``seen`` holding what was read) and its work against ``limits``; the folders and environment
+    are the sweep's own.  Returns the work estimate."""
     _check_values(cfg)
-    est = estimate_work(cfg, float(cfg.signal.duration))
-    check_work(cfg, est, f"signal.duration {cfg.signal.duration:g} s")
+    span, span_from = check_recording(cfg, seen)
+    est = estimate_work(cfg, span)
+    check_work(cfg, est, span_from)
+    check_geometry_files(cfg, seen, quiet=True)  # each job prints its fit when it runs
     return est
 
 
@@ -203,34 +265,13 @@ def preflight(cfg: DictConfig, read_only_ok: bool = False) -> None:
     # 1. config ranges, and values the steps would refuse late (sessions, kinds, patterns, interiors, eta, CUDA, oracle)
     _check_values(cfg)
     # 2. the recording, read exactly as the squeeze_signals step reads it
-    span, span_from = float(cfg.signal.duration), f"signal.duration {cfg.signal.duration:g} s"
-    if cfg.signal.source == "csv":  # imported here: pandas (and Prefect, below) only when a file is to be read
-        from tasks.control.recording import SignalError, read_recording
-
-        try:
-            rec = read_recording(cfg.signal.path, frame_rate=cfg.control.smoothing.frame_rate)
-        except SignalError as exc:
-            raise SystemExit(f"input error: signal.path: {exc}") from None
-        span = float(rec["time"][-1] - rec["time"][0])
-        span_from = f"the recording's {span:g} s"
-        _check_reach(cfg, rec["fingertip_positions"], rec["time"])
+    span, span_from = check_recording(cfg)
     # 3. the work, before any geometry file is loaded; then the folders' free space for it, the caches, Prefect's API
     est = estimate_work(cfg, span)
     check_work(cfg, est, span_from)
     check_environment(cfg, est.total_bytes, read_only_ok)
     # 4. geometry files of the selected objects
-    for key, obj in object_entries(cfg):
-        if obj.geometry.kind in ("mesh", "ply"):
-            from tasks.control.gaussian_ply import GaussianPlyError
-            from tasks.control.object_config import ObjectModelError
-            from tasks.control.sources.by_kind import check_geometry_file
-
-            try:
-                fitted = check_geometry_file(obj.geometry.kind, obj.geometry.path, list(obj.geometry.size))
-            except (ObjectModelError, GaussianPlyError) as exc:
-                raise SystemExit(f"input error: {key}.geometry.path: {exc}") from None
-            if fitted:
-                print(f"{key}.geometry.path: {fitted}", flush=True)
+    check_geometry_files(cfg)
     # 5. the LLM judge's endpoint settings (its requests come last, after the whole simulation)
     if cfg.llm_judge.url:
         from tasks.evaluation.llm_judge import JudgeConfig, LLMJudgeError, check_judge_config
