@@ -11,6 +11,9 @@ naming the key or variable and the fix:
   run is then served from it when every step is cached there, refused otherwise
   (:func:`flows.pipeline.shared_cache_grid`), and writes nothing into it - Prefect's home, the caches below and new
   report media go under ``paths.reports`` (:func:`writable_root`);
+* ``PREFECT_HOME`` and ``PREFECT_RESULTS_LOCAL_STORAGE_PATH`` when the user set them (a main then leaves them as
+  they are, :data:`flows.USER_PREFECT_PATHS`): a folder this process can write into, and not inside a read-only
+  cache (:func:`check_prefect_paths`; Prefect would fail creating its home or database after the run started);
 * the artifacts' file system has room for the run's estimated artifacts, less what the artifacts folder already
   holds (:func:`check_free_space`; not for a read-only cache, which receives nothing);
 * Warp's kernel cache and matplotlib's cache: when their default folders under ``HOME`` cannot be written (a
@@ -72,13 +75,42 @@ def writable_root(artifacts: str | Path, reports: str | Path) -> Path:
 def check_folders(cfg: DictConfig, hydra_dirs: dict[str, str] | None = None, read_only_ok: bool = False) -> None:
     """``paths.artifacts``, ``paths.reports`` and ``hydra_dirs`` ({key: folder}) writable, or one line; with
     ``read_only_ok`` (a main that can be served from a read-only cache) an existing artifacts folder that cannot be
-    written passes (:func:`read_only_cache`)."""
+    written passes (:func:`read_only_cache`); then the Prefect paths the user set (:func:`check_prefect_paths`)."""
+    from flows import USER_PREFECT_PATHS
+
     for key, folder in (("paths.artifacts", cfg.paths.artifacts), ("paths.reports", cfg.paths.reports),
                         *(hydra_dirs or {}).items()):
         why = unwritable(folder)
         if why and not (read_only_ok and key == "paths.artifacts" and Path(folder).expanduser().is_dir()):
             raise SystemExit(f"config error: {key}={folder}: {why}: give a folder you can write to "
                              f"({key}=/path/to/folder)")
+    check_prefect_paths(cfg.paths.artifacts, cfg.paths.reports, USER_PREFECT_PATHS)
+
+
+def _unwritable_variable(var: str) -> str:
+    """The one line for an environment variable ``var`` naming a folder that cannot be written ("" when it can)."""
+    why = unwritable(os.environ[var])
+    return (f"environment error: {var}={os.environ[var]}: {why}: point {var} at a folder you can write to, or unset "
+            f"it") if why else ""
+
+
+def check_prefect_paths(artifacts: str | Path, reports: str | Path | None, user_set: frozenset[str]) -> None:
+    """The Prefect paths the user set (``user_set``, :data:`flows.USER_PREFECT_PATHS`: a main leaves them as they
+    are) are writable folders, or one line: inside a read-only artifacts cache (:func:`read_only_cache`), the line
+    says to unset the variable (the main then puts it under ``paths.reports``) or to point it there."""
+    why_cache = read_only_cache(artifacts) if reports is not None else ""
+    cache = Path(artifacts).expanduser().absolute()
+    for var in sorted(user_set):
+        value = Path(os.environ[var]).expanduser().absolute()
+        if why_cache and (value == cache or cache in value.parents):
+            under = Path(reports).expanduser().absolute() / ".prefect"  # type: ignore[arg-type]
+            under = under / "results" if var == "PREFECT_RESULTS_LOCAL_STORAGE_PATH" else under
+            raise SystemExit(f"environment error: {var}={os.environ[var]} is inside paths.artifacts={artifacts}, a "
+                             f"read-only cache ({why_cache}) that receives nothing: unset {var} (the run then puts "
+                             f"it under paths.reports) or point it under paths.reports ({var}={under})")
+        line = _unwritable_variable(var)
+        if line:
+            raise SystemExit(line)
 
 
 def check_free_space(cfg: DictConfig, need_bytes: float) -> None:
@@ -114,10 +146,9 @@ def redirect_caches(cfg: DictConfig) -> list[str]:
     lines = []
     for var, (default, what, sub) in defaults.items():
         if var in os.environ:
-            why = unwritable(os.environ[var])
-            if why:
-                raise SystemExit(f"environment error: {var}={os.environ[var]}: {why}: point {var} at a folder you "
-                                 f"can write to, or unset it")
+            line = _unwritable_variable(var)
+            if line:
+                raise SystemExit(line)
             continue
         why = unwritable(default)
         if why:
