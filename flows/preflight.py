@@ -15,8 +15,8 @@ A bad input stops the run with one line naming the input (its config key) and th
    step uses, and its fit into ``geometry.size`` is a plausible scale (a line states the factor when it is not 1);
 4. the run's work (:func:`estimate_work`: frames, the largest MPM grid, particle-substeps over objects x variants x
    seeds, bytes of the largest artifact, expected wall time) against ``limits``: a run beyond one is refused with
-   the estimate and the knob to change; then the folders, their free space for the estimated artifacts, Warp's and
-   matplotlib's caches and ``PREFECT_API_URL`` (:func:`flows.preflight_env.check_environment`);
+   the estimate and the knob to change; then the folders, their free space for the estimated artifacts and report,
+   Warp's and matplotlib's caches and ``PREFECT_API_URL`` (:func:`flows.preflight_env.check_environment`);
 5. the LLM judge's endpoint settings when ``llm_judge.url`` is set;
 6. the diffusion weights when a diffusion backend runs: every model present in ``generation.weights`` (a message
    naming each missing model, the folder expected and how to fetch it); their identity (configs + file digests)
@@ -50,6 +50,13 @@ _NEAR = 0.25
 # bytes per frame and particle / surface point / pixel of the two largest artifacts (mpm_rollout: float32
 # positions, J, von Mises, plastic strain; Gaussian positions, covariances, rotations; gbuffer: sRGB + 4 float32 maps)
 _ROLLOUT_BYTES_PER_PARTICLE, _ROLLOUT_BYTES_PER_POINT, _GBUFFER_BYTES_PER_PIXEL = 24, 52, 19
+# A report's bytes per scene (docs/reference/preflight-settings.md, "Free space"), measured on the report of
+# python -m flows.squeeze object=can (one scene, 91 frames, 384 x 384 video; 2026-12-06), the largest of the four
+# one-scene reports measured: 63,359 B of text and tables, 1,629,844 B of figures (PNG), 919,860 B of videos (MP4),
+# and index.html embedding them all (base64) in 3,445,823 B, i.e. 1.35x the media again
+_REPORT_TEXT_BYTES, _REPORT_IMAGE_BYTES = 63_359, 1_629_844
+_REPORT_VIDEO_BYTES_PER_FRAME_PIXEL = 919_860 / (91 * 384 * 384)  # videos scale with frames and pixels
+_REPORT_MEDIA_COPIES = (919_860 + 1_629_844 + 3_445_823) / (919_860 + 1_629_844)  # the files and index.html
 _PASSED: list = []  # the config last checked and its estimate (run() checks again what the main already checked)
 
 
@@ -58,7 +65,8 @@ class WorkEstimate:
     """A run's work, from the config alone: output frames of one squeeze, particle-substeps summed over the run's
     objects x variants x seeds (particles bounded by each object's box / spacing^3), the largest artifact's bytes,
     the largest MPM grid (nodes from the grid spacing and the object's box, :func:`flows.preflight_settings.grid_dims`),
-    the artifacts' bytes summed over the scenes and the expected wall time."""
+    the artifacts' bytes summed over the scenes, the report's bytes (:func:`report_bytes_per_scene` x scenes) and the
+    expected wall time."""
 
     frames: int
     particles: int  # of the largest object
@@ -75,6 +83,7 @@ class WorkEstimate:
     grid_of: str = ""  # the object of the largest grid
     total_bytes: float = 0.0  # rollouts and g-buffers of every scene
     wall_seconds: float = 0.0
+    report_bytes: float = 0.0  # the report's files under paths.reports (videos, figures, index.html, tables)
 
     @property
     def scenes(self) -> int:
@@ -98,6 +107,16 @@ def particle_bound(cfg: DictConfig, obj: DictConfig) -> int:
     """Particles an object can hold at most: its box over the particle spacing cubed (the object's share of a run's
     simulation work, known from the config alone)."""
     return int(math.prod(obj.geometry.size) / cfg.sampling.particle_spacing ** 3)
+
+
+def report_bytes_per_scene(cfg: DictConfig, frames: int) -> float:
+    """Bytes a run's report holds per scene (object x variant x seed) for ``frames`` output frames: text and tables,
+    the figures, the videos (scaled from the measured one by frames and ``render.video_width`` x ``video_height``),
+    the figures and videos again embedded in ``index.html``.  An upper bound from the largest one-scene report
+    measured: a report of several scenes shares its per-object figures between the variants."""
+    pixels = int(cfg.render.video_width) * int(cfg.render.video_height)
+    media = _REPORT_IMAGE_BYTES + _REPORT_VIDEO_BYTES_PER_FRAME_PIXEL * frames * pixels
+    return _REPORT_TEXT_BYTES + _REPORT_MEDIA_COPIES * media
 
 
 def estimate_work(cfg: DictConfig, span: float) -> WorkEstimate:
@@ -128,7 +147,8 @@ def estimate_work(cfg: DictConfig, span: float) -> WorkEstimate:
     return WorkEstimate(frames, particles_max, substeps, steps, largest[0], largest[1], objects=len(entries),
                         variants=n_variants, seeds=n_seeds, backends=len(selected_backends(cfg)), grid=grid[1],
                         grid_bytes=float(grid_bytes(cfg, grid[0])), grid_of=grid[2], total_bytes=total,
-                        wall_seconds=steps / PARTICLE_STEPS_PER_WALL_SECOND)
+                        wall_seconds=steps / PARTICLE_STEPS_PER_WALL_SECOND,
+                        report_bytes=len(entries) * n_variants * n_seeds * report_bytes_per_scene(cfg, frames))
 
 
 def check_work(cfg: DictConfig, est: WorkEstimate, span_from: str) -> None:
@@ -269,7 +289,7 @@ def preflight(cfg: DictConfig, read_only_ok: bool = False) -> None:
     # 3. the work, before any geometry file is loaded; then the folders' free space for it, the caches, Prefect's API
     est = estimate_work(cfg, span)
     check_work(cfg, est, span_from)
-    check_environment(cfg, est.total_bytes, read_only_ok)
+    check_environment(cfg, est, read_only_ok)
     # 4. geometry files of the selected objects
     check_geometry_files(cfg)
     # 5. the LLM judge's endpoint settings (its requests come last, after the whole simulation)
