@@ -109,7 +109,7 @@ def check_prefect_paths(artifacts: str | Path, reports: str | Path | None, user_
     for var in sorted(user_set):
         value = Path(os.environ[var]).expanduser().absolute()
         if why_cache and (value == cache or cache in value.parents):
-            under = Path(reports).expanduser().absolute() / ".prefect"  # type: ignore[arg-type]
+            under = Path(str(reports)).expanduser().absolute() / ".prefect"
             under = under / "results" if var == "PREFECT_RESULTS_LOCAL_STORAGE_PATH" else under
             raise SystemExit(f"environment error: {var}={os.environ[var]} is inside paths.artifacts={artifacts}, a "
                              f"read-only cache ({why_cache}) that receives nothing: unset {var} (the run then puts "
