@@ -6,9 +6,10 @@
   folders it writes (:func:`flows.preflight_env.check_folders`, Hydra's ``hydra.run.dir`` included; a read-only
   artifacts cache passes: these configs' mains can be served from one); before a
   ``-m`` sweep, those folders and then every job's config (composed as the job will be, then
-  :func:`flows.preflight.check_config`), so that a config error in job 1 stops the sweep before job 0 runs, naming
-  the job and its overrides; then the sweep's total expected wall time (its jobs one after another) against
-  ``limits.max_wall_hours``, which bounds each job too.
+  :func:`flows.preflight.check_config`: its ranges, settings, work and input files - the recording, the mesh or
+  splat files, each distinct file read once), so that a config error or a bad input file in job 1 stops the sweep
+  before job 0 runs, naming the job and its overrides; then the sweep's total expected wall time (its jobs one
+  after another) against ``limits.max_wall_hours``, which bounds each job too.
 """
 from __future__ import annotations
 
@@ -42,7 +43,8 @@ def job_overrides(overrides: list[str]) -> list[list[str]]:
 
 
 class PreflightCallback(Callback):
-    """Hydra callback: the folders before a run; the folders and every job's config before a sweep."""
+    """Hydra callback: the folders before a run; the folders and every job's config and input files before a
+    sweep."""
 
     def on_run_start(self, config: Any, **kwargs: Any) -> None:
         from flows.preflight_env import check_folders
@@ -61,10 +63,11 @@ class PreflightCallback(Callback):
         jobs = job_overrides(list(config.hydra.overrides.task))
         swept = {o for job in jobs for o in job if sum(o in j for j in jobs) < len(jobs)}  # those that differ
         wall = 0.0
+        seen: dict = {}  # the input files read so far: each distinct one is read once
         for n, overrides in enumerate(jobs):
             shown = " ".join(o for o in overrides if o in swept) or "no overrides"
             try:
-                wall += check_config(compose(config_name=name, overrides=overrides)).wall_seconds
+                wall += check_config(compose(config_name=name, overrides=overrides), seen).wall_seconds
             except SystemExit as exc:
                 if not isinstance(exc.code, str):
                     raise

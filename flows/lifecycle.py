@@ -62,8 +62,9 @@ def follow_artifacts(artifacts: str | Path, user_set: frozenset[str], reports: s
     the home.  Returns the home in effect.
 
     Only before Prefect is imported (it reads its settings once): afterwards the home in effect is kept."""
-    from flows.preflight_env import writable_root
+    from flows.preflight_env import check_prefect_paths, writable_root
 
+    check_prefect_paths(artifacts, reports, user_set)  # one line, before the home is made (Prefect would fail later)
     home = (writable_root(artifacts, reports) if reports is not None else Path(artifacts)).resolve() / ".prefect"
     if "prefect" not in sys.modules:
         wanted = {"PREFECT_HOME": home, "PREFECT_RESULTS_LOCAL_STORAGE_PATH": home / "results"}

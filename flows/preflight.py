@@ -15,8 +15,8 @@ A bad input stops the run with one line naming the input (its config key) and th
    step uses, and its fit into ``geometry.size`` is a plausible scale (a line states the factor when it is not 1);
 4. the run's work (:func:`estimate_work`: frames, the largest MPM grid, particle-substeps over objects x variants x
    seeds, bytes of the largest artifact, expected wall time) against ``limits``: a run beyond one is refused with
-   the estimate and the knob to change; then the folders, their free space for the estimated artifacts, Warp's and
-   matplotlib's caches and ``PREFECT_API_URL`` (:func:`flows.preflight_env.check_environment`);
+   the estimate and the knob to change; then the folders, their free space for the estimated artifacts and report,
+   Warp's and matplotlib's caches and ``PREFECT_API_URL`` (:func:`flows.preflight_env.check_environment`);
 5. the LLM judge's endpoint settings when ``llm_judge.url`` is set;
 6. the diffusion weights when a diffusion backend runs: every model present in ``generation.weights`` (a message
    naming each missing model, the folder expected and how to fetch it); their identity (configs + file digests)
@@ -24,13 +24,18 @@ A bad input stops the run with one line naming the input (its config key) and th
 7. the paper metrics' weight files named in ``paper_metrics`` (absent ones are reported "not computed" by the
    step): the present files' digests are recorded in ``paper_metrics.weights_digest`` (cache key).
 
+A ``-m`` sweep runs 1-4 but the folders and environment for every job before job 0 (:func:`check_config`), each
+distinct input file read once.
+
 The stability suite (``python -m flows.studies.stability``) has its own config: :func:`preflight_stability` checks it
 the same way (its simulation groups and catalog, and the case names) before any case runs.
 """
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass
+from typing import Any, Callable
 
 import numpy as np
 from omegaconf import DictConfig, OmegaConf
@@ -45,6 +50,13 @@ _NEAR = 0.25
 # bytes per frame and particle / surface point / pixel of the two largest artifacts (mpm_rollout: float32
 # positions, J, von Mises, plastic strain; Gaussian positions, covariances, rotations; gbuffer: sRGB + 4 float32 maps)
 _ROLLOUT_BYTES_PER_PARTICLE, _ROLLOUT_BYTES_PER_POINT, _GBUFFER_BYTES_PER_PIXEL = 24, 52, 19
+# A report's bytes per scene (docs/reference/preflight-settings.md, "Free space"), measured on the report of
+# python -m flows.squeeze object=can (one scene, 91 frames, 384 x 384 video; 2026-12-06), the largest of the four
+# one-scene reports measured: 63,359 B of text and tables, 1,629,844 B of figures (PNG), 919,860 B of videos (MP4),
+# and index.html embedding them all (base64) in 3,445,823 B, i.e. 1.35x the media again
+_REPORT_TEXT_BYTES, _REPORT_IMAGE_BYTES = 63_359, 1_629_844
+_REPORT_VIDEO_BYTES_PER_FRAME_PIXEL = 919_860 / (91 * 384 * 384)  # videos scale with frames and pixels
+_REPORT_MEDIA_COPIES = (919_860 + 1_629_844 + 3_445_823) / (919_860 + 1_629_844)  # the files and index.html
 _PASSED: list = []  # the config last checked and its estimate (run() checks again what the main already checked)
 
 
@@ -53,7 +65,8 @@ class WorkEstimate:
     """A run's work, from the config alone: output frames of one squeeze, particle-substeps summed over the run's
     objects x variants x seeds (particles bounded by each object's box / spacing^3), the largest artifact's bytes,
     the largest MPM grid (nodes from the grid spacing and the object's box, :func:`flows.preflight_settings.grid_dims`),
-    the artifacts' bytes summed over the scenes and the expected wall time."""
+    the artifacts' bytes summed over the scenes, the report's bytes (:func:`report_bytes_per_scene` x scenes) and the
+    expected wall time."""
 
     frames: int
     particles: int  # of the largest object
@@ -70,6 +83,7 @@ class WorkEstimate:
     grid_of: str = ""  # the object of the largest grid
     total_bytes: float = 0.0  # rollouts and g-buffers of every scene
     wall_seconds: float = 0.0
+    report_bytes: float = 0.0  # the report's files under paths.reports (videos, figures, index.html, tables)
 
     @property
     def scenes(self) -> int:
@@ -93,6 +107,16 @@ def particle_bound(cfg: DictConfig, obj: DictConfig) -> int:
     """Particles an object can hold at most: its box over the particle spacing cubed (the object's share of a run's
     simulation work, known from the config alone)."""
     return int(math.prod(obj.geometry.size) / cfg.sampling.particle_spacing ** 3)
+
+
+def report_bytes_per_scene(cfg: DictConfig, frames: int) -> float:
+    """Bytes a run's report holds per scene (object x variant x seed) for ``frames`` output frames: text and tables,
+    the figures, the videos (scaled from the measured one by frames and ``render.video_width`` x ``video_height``),
+    the figures and videos again embedded in ``index.html``.  An upper bound from the largest one-scene report
+    measured: a report of several scenes shares its per-object figures between the variants."""
+    pixels = int(cfg.render.video_width) * int(cfg.render.video_height)
+    media = _REPORT_IMAGE_BYTES + _REPORT_VIDEO_BYTES_PER_FRAME_PIXEL * frames * pixels
+    return _REPORT_TEXT_BYTES + _REPORT_MEDIA_COPIES * media
 
 
 def estimate_work(cfg: DictConfig, span: float) -> WorkEstimate:
@@ -123,7 +147,8 @@ def estimate_work(cfg: DictConfig, span: float) -> WorkEstimate:
     return WorkEstimate(frames, particles_max, substeps, steps, largest[0], largest[1], objects=len(entries),
                         variants=n_variants, seeds=n_seeds, backends=len(selected_backends(cfg)), grid=grid[1],
                         grid_bytes=float(grid_bytes(cfg, grid[0])), grid_of=grid[2], total_bytes=total,
-                        wall_seconds=steps / PARTICLE_STEPS_PER_WALL_SECOND)
+                        wall_seconds=steps / PARTICLE_STEPS_PER_WALL_SECOND,
+                        report_bytes=len(entries) * n_variants * n_seeds * report_bytes_per_scene(cfg, frames))
 
 
 def check_work(cfg: DictConfig, est: WorkEstimate, span_from: str) -> None:
@@ -184,13 +209,70 @@ def _check_values(cfg: DictConfig) -> None:
     check_settings(cfg)
 
 
-def check_config(cfg: DictConfig) -> WorkEstimate:
-    """The checks of the config alone, no file read: its ranges and settings, and its work for a squeeze of
-    ``signal.duration`` against ``limits`` - what a ``-m`` sweep checks of every job before the first one runs
-    (:class:`flows.hydra_checks.PreflightCallback`).  Returns the work estimate."""
+def _read_once(seen: dict | None, key: tuple, read: Callable[[], Any]) -> Any:
+    """``read()``; with ``seen`` (a sweep's files read so far, by ``key``) only the first time: each distinct file
+    of a sweep is read once, and its refusal names the first job that uses it."""
+    if seen is None:
+        return read()
+    if key not in seen:
+        seen[key] = read()
+    return seen[key]
+
+
+def _file_key(path: Any) -> str:
+    return os.path.abspath(os.path.expanduser(str(path))) if path else ""
+
+
+def check_recording(cfg: DictConfig, seen: dict | None = None) -> tuple[float, str]:
+    """2. The recording (``signal=csv``), read exactly as the squeeze_signals step reads it, and its reach; returns
+    the squeeze's span (s) and where it comes from (``signal.duration`` without a recording)."""
+    if cfg.signal.source != "csv":
+        return float(cfg.signal.duration), f"signal.duration {cfg.signal.duration:g} s"
+    from tasks.control.recording import SignalError, read_recording  # pandas only when a file is to be read
+
+    rate = cfg.control.smoothing.frame_rate
+    try:
+        rec = _read_once(seen, ("recording", _file_key(cfg.signal.path), float(rate)),
+                         lambda: read_recording(cfg.signal.path, frame_rate=rate))
+    except SignalError as exc:
+        raise SystemExit(f"input error: signal.path: {exc}") from None
+    span = float(rec["time"][-1] - rec["time"][0])
+    _check_reach(cfg, rec["fingertip_positions"], rec["time"])
+    return span, f"the recording's {span:g} s"
+
+
+def check_geometry_files(cfg: DictConfig, seen: dict | None = None, quiet: bool = False) -> None:
+    """3. The selected objects' geometry files (``kind: mesh`` or ``ply``), with the loader the step uses, and their
+    fit into ``geometry.size``; prints the fit's line unless ``quiet``."""
+    for key, obj in object_entries(cfg):
+        kind, path = obj.geometry.kind, obj.geometry.path
+        if kind not in ("mesh", "ply"):
+            continue
+        from tasks.control.gaussian_ply import GaussianPlyError
+        from tasks.control.object_config import ObjectModelError
+        from tasks.control.sources.base import fit_statement
+        from tasks.control.sources.by_kind import geometry_file_bounds
+
+        try:
+            lo, hi, what = _read_once(seen, ("geometry", kind, _file_key(path)),
+                                      lambda: geometry_file_bounds(kind, path))
+            fitted = fit_statement(what, lo, hi, list(obj.geometry.size))
+        except (ObjectModelError, GaussianPlyError) as exc:
+            raise SystemExit(f"input error: {key}.geometry.path: {exc}") from None
+        if fitted and not quiet:
+            print(f"{key}.geometry.path: {fitted}", flush=True)
+
+
+def check_config(cfg: DictConfig, seen: dict | None = None) -> WorkEstimate:
+    """What a ``-m`` sweep checks of every job before the first one runs (:class:`flows.hydra_checks.PreflightCallback`):
+    the config's ranges and settings, its input files (the recording, the geometry files: each distinct file once
+    across the jobs, ``seen`` holding what was read) and its work against ``limits``; the folders and environment
+    are the sweep's own.  Returns the work estimate."""
     _check_values(cfg)
-    est = estimate_work(cfg, float(cfg.signal.duration))
-    check_work(cfg, est, f"signal.duration {cfg.signal.duration:g} s")
+    span, span_from = check_recording(cfg, seen)
+    est = estimate_work(cfg, span)
+    check_work(cfg, est, span_from)
+    check_geometry_files(cfg, seen, quiet=True)  # each job prints its fit when it runs
     return est
 
 
@@ -203,34 +285,13 @@ def preflight(cfg: DictConfig, read_only_ok: bool = False) -> None:
     # 1. config ranges, and values the steps would refuse late (sessions, kinds, patterns, interiors, eta, CUDA, oracle)
     _check_values(cfg)
     # 2. the recording, read exactly as the squeeze_signals step reads it
-    span, span_from = float(cfg.signal.duration), f"signal.duration {cfg.signal.duration:g} s"
-    if cfg.signal.source == "csv":  # imported here: pandas (and Prefect, below) only when a file is to be read
-        from tasks.control.recording import SignalError, read_recording
-
-        try:
-            rec = read_recording(cfg.signal.path, frame_rate=cfg.control.smoothing.frame_rate)
-        except SignalError as exc:
-            raise SystemExit(f"input error: signal.path: {exc}") from None
-        span = float(rec["time"][-1] - rec["time"][0])
-        span_from = f"the recording's {span:g} s"
-        _check_reach(cfg, rec["fingertip_positions"], rec["time"])
+    span, span_from = check_recording(cfg)
     # 3. the work, before any geometry file is loaded; then the folders' free space for it, the caches, Prefect's API
     est = estimate_work(cfg, span)
     check_work(cfg, est, span_from)
-    check_environment(cfg, est.total_bytes, read_only_ok)
+    check_environment(cfg, est, read_only_ok)
     # 4. geometry files of the selected objects
-    for key, obj in object_entries(cfg):
-        if obj.geometry.kind in ("mesh", "ply"):
-            from tasks.control.gaussian_ply import GaussianPlyError
-            from tasks.control.object_config import ObjectModelError
-            from tasks.control.sources.by_kind import check_geometry_file
-
-            try:
-                fitted = check_geometry_file(obj.geometry.kind, obj.geometry.path, list(obj.geometry.size))
-            except (ObjectModelError, GaussianPlyError) as exc:
-                raise SystemExit(f"input error: {key}.geometry.path: {exc}") from None
-            if fitted:
-                print(f"{key}.geometry.path: {fitted}", flush=True)
+    check_geometry_files(cfg)
     # 5. the LLM judge's endpoint settings (its requests come last, after the whole simulation)
     if cfg.llm_judge.url:
         from tasks.evaluation.llm_judge import JudgeConfig, LLMJudgeError, check_judge_config

@@ -5,7 +5,7 @@ A file can be a perfectly readable 3DGS PLY and still render nothing: opacities 
 Inria layout stores ``logit(opacity)`` the other way round (all near 0 after the sigmoid: every frame is empty
 background), or log-scales written as standard deviations (each Gaussian metres wide: every frame is one solid
 colour).  :func:`check_splat_content` refuses such a file with one line naming it and the fix; it runs in the
-preflight (:func:`tasks.control.sources.by_kind.check_geometry_file`) and again where the object model reads the
+preflight (:func:`tasks.control.sources.by_kind.geometry_file_bounds`) and again where the object model reads the
 file (:class:`tasks.control.sources.ply.PlySource`), so the two can never disagree.
 """
 from __future__ import annotations

@@ -628,7 +628,12 @@ def test_self_intersecting_mesh_is_refused_with_the_file_and_the_fix(tmp_path):
 def test_a_user_file_keeps_its_size_or_states_the_rescale(tmp_path):
     """A mesh or splat is fitted into geometry.size: at the size given nothing is said, a rescale is one line with
     the factor, and a file of 1 km or 1 um is refused with the fix."""
-    from tasks.control.sources.by_kind import check_geometry_file
+    from tasks.control.sources.base import fit_statement
+    from tasks.control.sources.by_kind import geometry_file_bounds
+
+    def check_geometry_file(kind: str, path: str, size: list[float]) -> str | None:  # the preflight's two calls
+        lo, hi, what = geometry_file_bounds(kind, path)
+        return fit_statement(what, lo, hi, size)
 
     box = trimesh.creation.box(extents=[0.05, 0.04, 0.03])
     box.export(tmp_path / "box.stl")

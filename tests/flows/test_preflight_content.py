@@ -212,3 +212,45 @@ def test_the_quoting_hint_is_what_hydra_reads():
         parsed = parser.parse_overrides([hinted])[0]
         assert (list(parsed.sweep_string_iterator()) if parsed.is_sweep_override() else [parsed.value()]) == values
     check_override_quoting(["-cd", "/tmp/é", "object=can", "signal.path=/d/e.csv"])
+
+
+# ----------------------------------------------------------------------------------------------- sweeps
+@pytest.mark.parametrize("kind", ["ply", "recording"])
+def test_a_bad_input_file_of_job_1_stops_the_sweep_before_job_0_runs(tmp_path, kind):
+    """The sweep's pre-check reads every job's input files (flows.hydra_checks.PreflightCallback): job 0's file is
+    good, job 1's is refused with the single-run preflight's line, prefixed with the job, before job 0 runs."""
+    if kind == "ply":
+        good, bad = _splat(tmp_path / "good.ply"), _splat(tmp_path / "few7.ply", n=7)
+        overrides = [*_ply(Path(f"{good},{bad}"))]
+        key, why = "object.geometry.path", (f"PLY {bad} holds only 7 Gaussians: at least 8 are needed to make a "
+                                            f"surface; export the whole trained splat")
+    else:
+        from tests.flows.test_preflight import _recording
+
+        good, bad = _recording(tmp_path / "good.csv"), _csv(tmp_path / "semi.csv", sep=";")
+        overrides = ["object=can", "signal=csv", f"signal.path={good},{bad}"]
+        key, why = "signal.path", (f"recording {bad} separates its columns with semicolons (';'): save it as "
+                                   f"comma-separated text (e.g. pandas df.to_csv(path), or a spreadsheet's CSV export "
+                                   f"with field separator ',')")
+    out = subprocess.run([sys.executable, "-m", "flows.squeeze", "-m", *overrides,
+                          f"paths.artifacts={tmp_path / 'artifacts'}", f"paths.reports={tmp_path / 'reports'}",
+                          f"hydra.sweep.dir={tmp_path / 'sweep'}"], cwd=REPO, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 1 and out.stderr.strip().splitlines() == [
+        f"sweep job 1 ({key}={bad}): input error: {key}: {why}"], out.stderr
+    assert not (tmp_path / "sweep").exists() and not (tmp_path / "artifacts").exists()
+
+
+def test_a_sweep_reads_each_input_file_once(tmp_path, compose_cfg, capsys):
+    """Three jobs on one splat: the file is read by the first job's check and its bounds serve the others; each job
+    still gets its own fit into its geometry.size."""
+    from flows.preflight import check_config, check_geometry_files
+
+    path = _splat(tmp_path / "one.ply")
+    seen: dict = {}
+    for gamma in (1.5, 2.0, 2.5):
+        check_config(compose_cfg("squeeze", [*_ply(path), f"control.force.gamma={gamma}"]), seen)
+    assert list(seen) == [("geometry", "ply", str(path))] and seen[("geometry", "ply", str(path))][2] == f"PLY {path}"
+    assert capsys.readouterr().out == ""  # the sweep's check prints no fit: each job prints its own when it runs
+    check_geometry_files(compose_cfg("squeeze", [*_ply(path), "object.geometry.size=[0.1,0.1,0.1]"]), seen)
+    assert capsys.readouterr().out.startswith(f"object.geometry.path: PLY {path} spans ")

@@ -141,18 +141,44 @@ def test_folders_a_file_or_an_unwritable_place_are_one_line(tmp_path, compose_cf
     assert not (tmp_path / "new").exists()  # checked, not created
 
 
-def test_no_room_for_the_artifacts_is_one_line(tmp_path, compose_cfg):
+def test_no_room_for_the_artifacts_or_the_report_is_one_line(tmp_path, compose_cfg):
+    """The run's estimate with more artifacts, or a larger report, than any disk holds: one line naming the folder;
+    the report counts into the artifacts' need when both folders are on one file system (here both under /tmp)."""
+    from dataclasses import replace
+
+    from flows.preflight import estimate_work
     from flows.preflight_env import check_free_space
 
-    cfg = compose_cfg("squeeze", [f"paths.artifacts={tmp_path / 'a'}"])
+    cfg = compose_cfg("squeeze", [f"paths.artifacts={tmp_path / 'a'}", f"paths.reports={tmp_path / 'r'}"])
+    est = estimate_work(cfg, 3.0)
     with pytest.raises(SystemExit) as exc:
-        check_free_space(cfg, 2.0**70)
+        check_free_space(cfg, replace(est, total_bytes=2.0**70))
     assert str(exc.value).startswith(f"config error: paths.artifacts={tmp_path / 'a'}: the run's artifacts need up to "
-                                     "1.07e+09 TiB (rollouts and g-buffers of the work estimate) and its file system "
-                                     "has ")
+                                     "1.07e+09 TiB (rollouts and g-buffers of the work estimate, and the report's "
+                                     "5.78 MiB on the same file system) and its file system has ")
     assert str(exc.value).endswith(" free: free some space or give a folder on a larger disk "
                                    "(paths.artifacts=/path/to/folder)")
-    check_free_space(cfg, 1.0)
+    with pytest.raises(SystemExit) as exc:
+        check_free_space(cfg, replace(est, report_bytes=2.0**70))
+    assert str(exc.value).startswith(f"config error: paths.reports={tmp_path / 'r'}: the run's report needs up to "
+                                     "1.07e+09 TiB (the videos and figures of 1 scene, also embedded in index.html) "
+                                     "and its file system has ")
+    assert str(exc.value).endswith(" free: free some space or give a folder on a larger disk "
+                                   "(paths.reports=/path/to/folder)")
+    check_free_space(cfg, est)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "r").exists()  # checked, not created
+
+
+def test_the_report_is_estimated_from_the_measured_one(compose_cfg):
+    """One scene of 91 frames at 384 x 384 is the measured report (can, 6,058,886 bytes); the default grid's 16
+    scenes sixteen of it; videos of four times the pixels four times the videos (919,860 bytes, embedded again)."""
+    from flows.preflight import estimate_work
+
+    assert estimate_work(compose_cfg("squeeze", ["object=can"]), 3.0).report_bytes == pytest.approx(6_058_886)
+    assert estimate_work(compose_cfg("evaluate", []), 3.0).report_bytes == pytest.approx(16 * 6_058_886)
+    large = estimate_work(compose_cfg("squeeze", ["render.video_width=768", "render.video_height=768"]), 3.0)
+    assert large.report_bytes == pytest.approx(6_058_886 + 3 * 919_860 * (919_860 + 1_629_844 + 3_445_823) /
+                                               (919_860 + 1_629_844))
 
 
 def test_a_read_only_home_puts_the_caches_under_the_artifacts(tmp_path, compose_cfg, monkeypatch):

@@ -236,3 +236,35 @@ def test_a_study_refuses_an_unwritable_artifacts_folder_in_one_line_before_prefe
         "config error: paths.artifacts=/sys/kernel: /sys/kernel is not writable (Permission denied): give a folder "
         "you can write to (paths.artifacts=/path/to/folder)")
     assert "Traceback" not in out.stderr + out.stdout
+
+
+def test_a_user_set_prefect_home_inside_a_read_only_cache_is_one_line_before_anything(tmp_path, monkeypatch):
+    """PREFECT_HOME (or PREFECT_RESULTS_LOCAL_STORAGE_PATH) set by the user is left as it is by the mains: inside a
+    read-only cache Prefect would fail making its home or database.  The real main refuses it before Hydra makes
+    its folder; the same line for the cache records' variable, and an unwritable one anywhere else."""
+    reports = tmp_path / "r"
+    out = subprocess.run([sys.executable, "-m", "flows.squeeze", "paths.artifacts=/sys/kernel", f"paths.reports={reports}",
+                          "object=tomato"], cwd=REPO, capture_output=True, text=True, timeout=300,
+                         env=user_env(PREFECT_HOME="/sys/kernel/.prefect"))
+    assert out.returncode == 1 and out.stderr.strip().splitlines() == [
+        f"environment error: PREFECT_HOME=/sys/kernel/.prefect is inside paths.artifacts=/sys/kernel, a read-only "
+        f"cache (/sys/kernel is not writable (Permission denied)) that receives nothing: unset PREFECT_HOME (the run "
+        f"then puts it under paths.reports) or point it under paths.reports (PREFECT_HOME={reports / '.prefect'})"]
+    assert not reports.exists() and "Traceback" not in out.stdout
+    from flows.preflight_env import check_prefect_paths
+
+    results = "PREFECT_RESULTS_LOCAL_STORAGE_PATH"
+    monkeypatch.setenv(results, "/sys/kernel/results")
+    with pytest.raises(SystemExit) as exc:
+        check_prefect_paths("/sys/kernel", reports, frozenset({results}))
+    assert str(exc.value) == (
+        f"environment error: {results}=/sys/kernel/results is inside paths.artifacts=/sys/kernel, a read-only cache "
+        f"(/sys/kernel is not writable (Permission denied)) that receives nothing: unset {results} (the run then puts "
+        f"it under paths.reports) or point it under paths.reports ({results}={reports / '.prefect' / 'results'})")
+    with pytest.raises(SystemExit) as exc:  # a writable artifacts folder, the variable somewhere unwritable
+        check_prefect_paths(tmp_path / "a", reports, frozenset({results}))
+    assert str(exc.value) == (f"environment error: {results}=/sys/kernel/results: /sys/kernel is not writable "
+                              f"(Permission denied): point {results} at a folder you can write to, or unset it")
+    monkeypatch.setenv(results, str(reports / ".prefect" / "results"))  # the fix the line gives passes
+    check_prefect_paths("/sys/kernel", reports, frozenset({results}))
+    assert not reports.exists()  # checked, not created

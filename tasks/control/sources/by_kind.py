@@ -1,4 +1,5 @@
-"""The geometry source of an object config's ``geometry.kind``, and the check of a user's geometry file."""
+"""The geometry source of an object config's ``geometry.kind``, and the check of a user's geometry file (its fit into
+``geometry.size``: :func:`tasks.control.sources.base.fit_statement`)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -9,13 +10,13 @@ import numpy as np
 from tasks.control.gaussian_ply import read_gaussian_ply
 from tasks.control.geometry import SHAPE_KINDS, make_shape
 from tasks.control.object_config import ObjectModelError, config_value
-from tasks.control.sources.base import GeometrySource, SampledSource, fit_statement
+from tasks.control.sources.base import GeometrySource, SampledSource
 from tasks.control.sources.mesh import MeshSource, load_checked_mesh
 from tasks.control.sources.ply import PlySource
 from tasks.control.sources.procedural import ProceduralSource
 from tasks.control.splat_content import check_splat_content
 
-__all__ = ["open_source", "check_geometry_file"]
+__all__ = ["open_source", "geometry_file_bounds"]
 
 
 def open_source(kind: str, geom: Any, size: np.ndarray, spacing: float, surface_points: int, wall_thickness: float,
@@ -34,21 +35,20 @@ def open_source(kind: str, geom: Any, size: np.ndarray, spacing: float, surface_
     return src
 
 
-def check_geometry_file(kind: str, path: str | None, size: Any = None) -> str | None:
-    """Check a user geometry file before anything runs: a closed, non-flat, consistently wound mesh (``kind: mesh``)
-    or a readable 3DGS PLY (``kind: ply``) whose content makes a visible object (:func:`check_splat_content`), and,
-    with ``size`` (m), its fit into ``geometry.size`` (:func:`fit_statement`: the line stating the rescale, or
-    None).  Raises :class:`ObjectModelError` or :class:`GaussianPlyError` (one line, file and fix)."""
+def geometry_file_bounds(kind: str, path: str | None) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """Read and check a user geometry file: a closed, non-flat, consistently wound mesh (``kind: mesh``) or a
+    readable 3DGS PLY (``kind: ply``) whose content makes a visible object (:func:`check_splat_content`).  Returns
+    the bounds of its points (file units) and what it is ("mesh <file>" or "PLY <file>"), None for a procedural
+    kind.  Raises :class:`ObjectModelError` or :class:`GaussianPlyError` (one line, file and fix)."""
     if kind == "mesh":
         mesh = load_checked_mesh(path)
-        lo, hi, what = mesh.bounds[0], mesh.bounds[1], f"mesh {Path(str(path)).expanduser()}"
-    elif kind == "ply":
+        return mesh.bounds[0], mesh.bounds[1], f"mesh {Path(str(path)).expanduser()}"
+    if kind == "ply":
         if not path:
             raise ObjectModelError("object.geometry.path is required for geometry.kind 'ply': set it to a 3DGS .ply")
         p = Path(str(path)).expanduser()
         g = read_gaussian_ply(p)
         check_splat_content(p, g["means"], g["scales"], g["opacities"])
-        lo, hi, what = g["means"].min(0), g["means"].max(0), f"PLY {p}"
-    else:
-        return None
-    return None if size is None else fit_statement(what, lo, hi, size)
+        return g["means"].min(0), g["means"].max(0), f"PLY {p}"
+    return None
+
