@@ -748,10 +748,14 @@ class Duck(_Fitted):
 
 
 class Plush(_Fitted):
-    """Sitting teddy bear (canonical 150 x 110 x 209 mm, facing -y, z up): body, head, ears, muzzle, arms and
-    legs (capsules), smooth-min blended."""
+    """Sitting teddy bear (canonical 150 x 116 x 184 mm, facing -y, z up): body, head, ears, muzzle, arms and
+    legs (capsules), smooth-min blended.  It sits as a teddy bear does: its seat (the body cut flat at ``SEAT_Z``)
+    and the backs of its outstretched legs rest on one plane, under its centre of mass.  (Before 2026-12-06 its legs
+    sloped down to its feet, 20 mm below its seat: it stood on its two feet with its centre of mass 45 mm behind
+    them, held up only by the grid-node table's halo; docs/limits/table-contact.md.)"""
 
     kind = "plush"
+    SEAT_Z = -0.072  # m, canonical: the plane the seat and the backs of the legs rest on
     HEAD_C = np.array([0.0, 0.0, 0.058])
     HEAD_R = 0.042
 
@@ -760,12 +764,12 @@ class Plush(_Fitted):
         P = _cols(q)
         M = (np.abs(P[0]), P[1], P[2])  # mirror-symmetric parts (ears, arms, legs) use |x|
         return {
-            "body": sd_ellipsoid(P, (0.0, 0.0, -0.020), (0.048, 0.042, 0.058)),
+            "body": smax(sd_ellipsoid(P, (0.0, 0.0, -0.020), (0.048, 0.042, 0.058)), -(P[2] - cls.SEAT_Z), 0.006),
             "head": sd_sphere(P, cls.HEAD_C, cls.HEAD_R),
             "ears": sd_ellipsoid(M, (0.034, 0.004, 0.094), (0.017, 0.009, 0.017)),
             "muzzle": sd_ellipsoid(P, (0.0, -0.036, 0.046), (0.018, 0.014, 0.013)),
             "arms": sd_capsule(M, (0.038, -0.005, 0.012), (0.060, -0.024, -0.030), 0.015),
-            "legs": sd_capsule(M, (0.024, -0.010, -0.060), (0.032, -0.048, -0.078), 0.020),
+            "legs": sd_capsule(M, (0.026, -0.012, cls.SEAT_Z + 0.018), (0.032, -0.056, cls.SEAT_Z + 0.018), 0.018),
         }
 
     @classmethod

@@ -593,7 +593,8 @@ class MPMSolver:
         1. settles the body by dynamic relaxation (Cundall's local damping ``damping`` on every material, as FLAC's
            static solutions and LS-DYNA's dynamic-relaxation preload do; gravity, floor and walls only) until its
            crest, or until the fastest solid particle moves at most ``tolerance`` grid cells per ``frame_dt`` s
-           after its motion peaked, or for ``max_frames`` frames.  The crest: the solids' kinetic energy peaked in
+           after its motion peaked, or for ``max_frames`` frames (``pins``' particles are held: not counted in
+           either measure).  The crest: the solids' kinetic energy peaked in
            the last frame while the body had moved at least ``PRELOAD_CREST_CELLS`` grid cells (less is a local
            motion, e.g. a skin dropping onto its stuffing in the first frames).  Under local damping a settling
            mode accelerates with (1 - damping) of its net force and brakes with (1 + damping) of it, so its speed
@@ -626,6 +627,12 @@ class MPMSolver:
                              f"> 0, got {max_frames}, {passes}, {damping}, {tolerance}")
         x0 = self.positions()
         fluid = np.array([m.model == "fluid" for m in self.materials])[self._mid_host]  # no shape to hold: it settles
+        # whose motion tells rest and crest: the solids less the pinned particles (the table's hold), whose stored
+        # velocity is the pin's correction of the last substep (the grid's pull on them over dt: 0.5 m/s on a held
+        # plush toy standing still, which then never came to rest), not a motion: the pins say where they are
+        moving = ~fluid
+        if pins is not None:
+            moving[np.asarray(pins.indices)] = False
         zero_v, zero_c = np.zeros((self.n_particles, 3)), np.zeros((self.n_particles, 3, 3))
         frames, moved, rest = 0, [], False
         start, last, omega = self.F.numpy().astype(np.float64), None, 1.0
@@ -641,8 +648,8 @@ class MPMSolver:
                     self.step_frame(frame_dt, quasi_static=False, pins=pins)
                     frames += 1
                     if mass is None:  # the mass scale is resolved by the first frame
-                        mass = self.masses()[~fluid].astype(np.float64)
-                    v = self.velocities()[~fluid]
+                        mass = self.masses()[moving].astype(np.float64)
+                    v = self.velocities()[moving]
                     speed = float(np.linalg.norm(v, axis=1).max(initial=0.0))
                     energy.append(0.5 * float(mass @ (v.astype(np.float64) ** 2).sum(axis=1)))
                     rest = speed * frame_dt <= tolerance * self.dx and speed < peak
