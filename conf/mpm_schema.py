@@ -50,11 +50,12 @@ class MPMConfig:
             slip while touching).  ``Collider`` s passed to ``step_frame`` act at
             the surface in both modes; ``DirichletPoints``/``DirichletNodes`` always act on grid nodes.  A sphere
             pressed on the table reads 2.1-5.8x Hertz at 1-4 mm on grid nodes, 1.23-1.44x at the surface
-            (docs/limits/table-contact.md); the pipeline's table stays ``grid`` (``conf/mpm/default.yaml``): the
-            flip to ``surface``, re-measured on Table 2 (2026-12-06), toppled the plush toy and crushed the
-            force-driven ball and duck (docs/limits/table-contact.md, "The flip").
+            (docs/limits/table-contact.md).  This class's default stays ``grid`` (the scripting API's, as
+            before); the pipeline's table is ``surface`` with ``table_hold: footprint`` since 2026-12-06
+            (``conf/mpm/default.yaml``; alone, without the hold, it toppled the plush toy and let the force-driven
+            ball and duck roll: docs/limits/table-contact.md, "The flip").
         table_hold: what holds the body on a ``contact: surface`` table besides its contact
-            (:mod:`tasks.physics.table_hold`).  ``none`` (default): the table pushes the particles touching it and,
+            (:mod:`tasks.physics.table_hold`).  ``none`` (this class's default; the pipeline's is ``footprint``): the table pushes the particles touching it and,
             sticky, keeps them from slipping, but never pulls: a body pushed sideways at its top can tip over its
             edge or roll (flipped to the surface table on 2026-12-06, the plush toy toppled and the force-driven ball
             rolled away).  ``footprint``: the particles within one particle spacing of the table in the body's given
@@ -62,9 +63,11 @@ class MPMConfig:
             their lowest surface points, finger -1, that may still be pressed onto the table: no support is added,
             the Hertz table case reads +2 to +7 %; their work is credited to the energy guard and is zero at rest),
             as a hand pressing the object onto the table holds it; the rest of the body meets the table where it
-            touches it.  Needs ``contact: surface`` (the grid-node table already glues ~1.5 cells of the body to it).
-            The force-driven ball, duck and clay then stay upright; the plush toy, resting on its feet only, is
-            not held by it (its preload does not come to rest): docs/limits/table-contact.md, "The hold".
+            touches it.  Needs ``contact: surface`` (the grid-node table already glues ~1.5 cells of the body to it);
+            with no table (``floor: false``) there is nothing to hold against and the hold is left out (a note says so).
+            The force-driven ball, duck and clay then stay upright, and the plush toy, seated on its seat and
+            legs, settles in 12 damped frames and sways < 2 deg under the squeeze: docs/limits/table-contact.md,
+            "The hold" and "The flip, with the hold".
         fingers: how the squeeze's fingers drive the material (``variant.boundary=dirichlet`` in
             :mod:`tasks.physics.mpm_rollout`; the force-driven ablation is unaffected).  ``particles`` (default):
             every surface point the eq. 3 field constrains is driven to its target on the particles it is embedded in
@@ -308,10 +311,10 @@ def validate_mpm_config(cfg: MPMConfig) -> MPMConfig:
         bad("contact", f"'{cfg.contact}' is not one of {', '.join(CONTACT_MODES)}")
     if cfg.table_hold not in TABLE_HOLD_MODES:
         bad("table_hold", f"'{cfg.table_hold}' is not one of {', '.join(TABLE_HOLD_MODES)}")
-    if cfg.table_hold != "none" and not (cfg.floor and cfg.contact == "surface"):
-        bad("table_hold", f"'{cfg.table_hold}' holds the body on the surface table: needs mpm.floor=true and "
-                          f"mpm.contact=surface (got floor={cfg.floor}, contact={cfg.contact}; the grid-node table "
-                          "already glues ~1.5 cells of the body to it)")
+    if cfg.table_hold != "none" and cfg.floor and cfg.contact != "surface":
+        bad("table_hold", f"'{cfg.table_hold}' holds the body on the surface table: needs mpm.contact=surface "
+                          f"(got contact={cfg.contact}; the grid-node table already glues ~1.5 cells of the body to "
+                          "it): set mpm.table_hold=none with it")
     if cfg.fingers not in FINGER_MODES:
         bad("fingers", f"'{cfg.fingers}' is not one of {', '.join(FINGER_MODES)}")
     if cfg.thin_walls not in WALL_MODES:

@@ -283,8 +283,10 @@ def build_scene(obj: Mapping[str, np.ndarray], obj_attrs: Mapping[str, Any], fie
         notes.append("particle fingers pin the wall's particles at their centres: a wall thinner than the "
                      f"{1e3 * spacing:.3g} mm spacing (ParticlePins arms 0)")
     # 5. the table's hold on the body as it rests in its given shape (mpm.table_hold), from the preload on
-    hold = table_hold(solver, cfg.table_hold)
-    if cfg.table_hold != "none":
+    hold = table_hold(solver, cfg.table_hold if cfg.floor else "none")
+    if cfg.table_hold != "none" and not cfg.floor:
+        notes.append(f"no table (mpm.floor=false): the table's hold (mpm.table_hold={cfg.table_hold}) is left out")
+    elif cfg.table_hold != "none":
         notes.append(f"table hold (mpm.table_hold={cfg.table_hold}): "
                      f"{0 if hold is None else len(hold.indices)} particles within one spacing of the table held "
                      "where they rest (no slip, no lift), in the gravity preload and the rollout")

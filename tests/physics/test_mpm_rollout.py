@@ -372,7 +372,10 @@ def test_clay_squeeze_is_quasi_static_and_within_the_energy_guard(clay):
     start-up sag under the suddenly applied weight, before any finger touched.  The check covers only the frames
     the fingers load the clay (past the contact onset), where the contact's KE/IE stays far below 0.1, and the
     gravity preload (``simulation.gravity_preload_frames``) removed the start-up sag itself (its KE/IE 0.75 ->
-    0.03); the energy guard (on, 0.25) measures no unexplained growth."""
+    0.03 on the grid-node table); the energy guard (on, 0.25) measures no unexplained growth.  On the surface table
+    (the default since 2026-12-06) the stiff clay, whose weight stores only ~2e-5 J, chatters on its contact before
+    the fingers arrive: KE/IE 0.37 at most with the preload (1.37 without), the fastest particle 0.8 mm/s, in the
+    mass-scaled model (docs/limits/table-contact.md)."""
     r = clay["rollout"]
     qs, guard = r.attrs["quasi_static"], r.attrs["energy_guard"]
     checked = np.isfinite(r["ke_ie_contact"])
@@ -381,7 +384,10 @@ def test_clay_squeeze_is_quasi_static_and_within_the_energy_guard(clay):
     # the volume ratio is to the given shape: 1 at the start, though the preloaded clay is compressed by its weight
     assert np.abs(r["particle_J"][0] - 1.0).max() < 1e-6
     assert any(n.startswith("gravity preload") for n in r.attrs["notes"])
-    assert r["ke_ie_ratio"][~checked].max() < 0.1  # no start-up sag: the given shape carries the clay's weight
+    # no start-up sag: the given shape carries the clay's weight; what is left is the contact's sub-mm/s chatter
+    assert r["ke_ie_ratio"][~checked].max() < 0.5
+    touched = np.flatnonzero(np.abs(r["reaction_force"][:]).sum(axis=(1, 2)) > 0)[0]  # the fingers' first frame
+    assert touched > 5 and r["max_speed"][:touched].max() < 1.5e-3
     assert qs["frames_checked"] == checked.sum() > 20 and qs["contacts_over_limit"] == 0 < qs["contacts_checked"]
     assert qs["max_ke_ie_in_contact"] < 0.05
     # the contact judged last is the one open when the run ended, its ratio the running measure's last value

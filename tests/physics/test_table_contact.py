@@ -30,13 +30,14 @@ def test_a_sphere_pressed_onto_the_surface_table_reads_hertz(dx):
 
 
 def test_the_grid_node_table_holds_a_halo_and_reads_several_times_hertz():
-    """The same sphere on the grid-node table (``mpm.contact=grid``, the default before issue 50: the floor
-    overwrites the velocity of the nodes at or below it, at the lowest particle's centre, so it holds the material
-    within ~1.5 cells) on the default grid: measured 5.8 / 4.3 / 3.3 / 2.1 x Hertz at 1 / 2 / 3 / 4 mm; asserted
-    above 2x at every depth.  The pipeline's table is still this one (conf/mpm/default.yaml): the flip to the surface
-    table was re-measured on Table 2 and not kept (docs/limits/table-contact.md, "The flip")."""
+    """The same sphere on the grid-node table (``mpm.contact=grid``, the pipeline's default until 2026-12-06: the
+    floor overwrites the velocity of the nodes at or below it, at the lowest particle's centre, so it holds the
+    material within ~1.5 cells) on the default grid: measured 5.8 / 4.3 / 3.3 / 2.1 x Hertz at 1 / 2 / 3 / 4 mm;
+    asserted above 2x at every depth.  The pipeline's table is now the surface one with the footprint hold
+    (conf/mpm/default.yaml; docs/limits/table-contact.md, "The flip, with the hold")."""
     from flows.pipeline import evaluate_config
 
     r = table_hertz_case("grid", 0.008)
     assert (r["force_ratio"] > 2.0).all(), r["force_ratio"]
-    assert evaluate_config([]).mpm.contact == "grid"
+    mpm = evaluate_config([]).mpm
+    assert (mpm.contact, mpm.table_hold) == ("surface", "footprint")
