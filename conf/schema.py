@@ -384,7 +384,7 @@ class GridConfig:
 class LimitsConfig:
     """Bounds on a run's work, checked against the estimate of :func:`flows.preflight.estimate_work` before the
     flow starts (a run beyond one is refused with the estimate and this knob).  The defaults pass the default grid
-    (91 frames, 1.6e9 particle-substeps, a 130 MB artifact at most, a 41x37x40 grid of 8 MB, ~7 min) with a wide
+    (91 frames, 1.6e9 particle-substeps, a 130 MB artifact at most, a 41x37x38 grid of 7 MB, ~7 min) with a wide
     margin; ``grid.seeds=[0,...,20]`` (21 grids, ~2.3 h) passes too."""
 
     max_frames: int = 9000  # output frames of one squeeze (5 min at 30 Hz)

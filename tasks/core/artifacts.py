@@ -206,7 +206,7 @@ def write_artifact(
     root = Path(root).resolve() if root is not None else final.parent
     rel = final.relative_to(root).as_posix()
     final.parent.mkdir(parents=True, exist_ok=True)
-    tmp = _scratch_name(final, "tmp")
+    tmp = scratch_name(final, "tmp")
     attrs = dict(attrs or {})
     digest = content_digest(arrays, attrs)
     try:
@@ -339,7 +339,7 @@ _SCRATCH = re.compile(r"^\..+\.(?P<kind>tmp|trash)-(?:(?P<host>[^-]+)-(?P<pid>\d
                       r"[0-9a-f]{12}$")
 
 
-def _scratch_name(final: Path, kind: str) -> Path:
+def scratch_name(final: Path, kind: str) -> Path:
     """``.<name>.<kind>-<host>-<pid>-<start>-<id>`` next to ``final``: whose it is (the process and when it
     started), so a later run can tell it stale."""
     pid = os.getpid()
@@ -350,7 +350,7 @@ def _scratch_name(final: Path, kind: str) -> Path:
 
 def _move_away(final: Path) -> None:
     """Remove the group at ``final``: renamed first (one atomic step that readers see), then deleted."""
-    trash = _scratch_name(final, "trash")
+    trash = scratch_name(final, "trash")
     try:
         os.replace(final, trash)
     except FileNotFoundError:  # another run moved it away first
@@ -492,26 +492,42 @@ def read_artifact(ref: ArtifactRef, names: Sequence[str] | None = None) -> Artif
 
 
 def remove_stale_temporaries(root: str | Path) -> tuple[int, int]:
-    """Remove the temporary and trash folders that killed runs left under the artifacts folder ``root``: those
-    named for a process of this host that is no longer alive, and those of format 1 (no owner in the name).
-    A live process's (a concurrent run) and another host's are kept.  Returns (folders removed, bytes freed)."""
+    """Remove the temporary and trash folders that killed runs left under the artifacts folder ``root``, and the
+    temporary files of the steps' cache records (``.prefect/results``, :mod:`tasks.core.records`): those named
+    for a process of this host that is no longer alive, and folders of format 1 (no owner in the name).  A live
+    process's (a concurrent run) and another host's are kept.  Returns (folders and files removed, bytes freed)."""
     count = freed = 0
-    for dirpath, dirnames, _ in os.walk(root):
+    for dirpath, dirnames, filenames in os.walk(root):
         descend = []
         for d in dirnames:
             m = _SCRATCH.match(d)
             if m is None:
-                if not d.endswith(".zarr") and d != ".prefect":  # no need to look inside groups or Prefect's home
+                if not d.endswith(".zarr"):  # no need to look inside groups
                     descend.append(d)
                 continue
-            if m["pid"] is None or (m["host"] == _HOST and not _owner_alive(int(m["pid"]), m["started"])):
+            if _stale(m):
                 path = Path(dirpath) / d
                 size = directory_size(path)
                 shutil.rmtree(path, ignore_errors=True)
                 if not path.exists():
                     count, freed = count + 1, freed + size
+        for f in filenames:
+            m = _SCRATCH.match(f)
+            if m is not None and m["pid"] is not None and _stale(m):  # a record's temporary names its owner
+                path = Path(dirpath) / f
+                try:
+                    size = path.stat().st_size
+                    path.unlink()
+                except FileNotFoundError:  # its writer renamed it (not stale after all) or another run removed it
+                    continue
+                count, freed = count + 1, freed + size
         dirnames[:] = descend
     return count, freed
+
+
+def _stale(m: re.Match) -> bool:
+    """Whether the scratch name matched by ``m`` is of format 1 (no owner) or of a dead process of this host."""
+    return m["pid"] is None or (m["host"] == _HOST and not _owner_alive(int(m["pid"]), m["started"]))
 
 
 def _owner_alive(pid: int, started_ms: str | None) -> bool:

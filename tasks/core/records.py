@@ -13,11 +13,12 @@ the old record or the new one, never a part of either (0 partial reads in the sa
 from __future__ import annotations
 
 import os
-import uuid
 from pathlib import Path
 
 from prefect._internal.compatibility.async_dispatch import async_dispatch
 from prefect.filesystems import LocalFileSystem
+
+from tasks.core.artifacts import scratch_name
 
 
 def write_replacing(storage: LocalFileSystem, path: str, content: bytes) -> str:
@@ -27,7 +28,7 @@ def write_replacing(storage: LocalFileSystem, path: str, content: bytes) -> str:
     target.parent.mkdir(parents=True, exist_ok=True)
     if target.exists() and not target.is_file():
         raise ValueError(f"Path {target} already exists and is not a file.")
-    tmp = target.with_name(f".{target.name}.tmp-{os.getpid()}-{uuid.uuid4().hex[:8]}")
+    tmp = scratch_name(target, "tmp")  # named for this process: a run killed mid-write leaves it to the next start
     try:
         with open(tmp, "wb") as f:
             f.write(content)

@@ -14,12 +14,12 @@ from tasks.core.artifacts import (
     ArtifactError,
     ArtifactOutdated,
     ArtifactRef,
-    _scratch_name,
     chunk_shape,
     content_digest,
     read_artifact,
     read_group_attrs,
     remove_stale_temporaries,
+    scratch_name,
     verify_artifact,
     write_artifact,
 )
@@ -280,10 +280,10 @@ def test_stale_temporaries_of_dead_processes_are_removed_and_live_ones_kept(tmp_
 
     step = tmp_path / "obj" / "step"
     step.mkdir(parents=True)
-    mine = _scratch_name(step / "k.zarr", "tmp")
+    mine = scratch_name(step / "k.zarr", "tmp")
     assert mine.name.startswith(".k.zarr.tmp-") and f"-{os.getpid()}-" in mine.name
     dead = mine.with_name(mine.name.replace(f"-{os.getpid()}-", f"-{_dead_pid()}-"))
-    trash = _scratch_name(step / "j.zarr", "trash")
+    trash = scratch_name(step / "j.zarr", "trash")
     dead_trash = trash.with_name(trash.name.replace(f"-{os.getpid()}-", f"-{_dead_pid()}-"))
     legacy = step / ".old.zarr.tmp-0123456789ab"  # format 1: no owner in the name
     other_host = step / f".k.zarr.tmp-otherhost-{_dead_pid()}-0123456789ab"
@@ -296,6 +296,29 @@ def test_stale_temporaries_of_dead_processes_are_removed_and_live_ones_kept(tmp_
     assert remove_stale_temporaries(tmp_path / "not-there") == (0, 0)
 
 
+def test_a_cache_record_cut_by_a_kill_leaves_a_temporary_the_next_start_removes(tmp_path):
+    """A step's cache record is written under a temporary name and renamed (tasks.core.records); a run killed
+    between the two leaves the temporary file in ``.prefect/results``, named for its dead process: the next
+    start removes it, and keeps a live writer's and the records themselves."""
+    import os
+
+    from prefect.filesystems import LocalFileSystem
+
+    from tasks.core.records import write_replacing
+
+    results = tmp_path / ".prefect" / "results"
+    storage = LocalFileSystem(basepath=str(results))
+    write_replacing(storage, "abc123", b"record")
+    assert [p.name for p in results.iterdir()] == ["abc123"]  # the temporary was renamed over the record
+    mine = scratch_name(results / "def456", "tmp")
+    dead = mine.with_name(mine.name.replace(f"-{os.getpid()}-", f"-{_dead_pid()}-"))
+    for f in (mine, dead):
+        f.write_bytes(b"1" * 700)
+    assert remove_stale_temporaries(tmp_path) == (1, 700)
+    assert sorted(p.name for p in results.iterdir()) == sorted(["abc123", mine.name])
+    assert (results / "abc123").read_bytes() == b"record"
+
+
 def test_a_temporary_whose_pid_was_reused_is_removed(tmp_path):
     """The name records the process's start time with its pid: a folder named for a live pid whose process
     started at another time (the pid was reused after its writer died) is stale; the live writer's is kept."""
@@ -305,7 +328,7 @@ def test_a_temporary_whose_pid_was_reused_is_removed(tmp_path):
 
     step = tmp_path / "obj" / "step"
     step.mkdir(parents=True)
-    mine = _scratch_name(step / "k.zarr", "tmp")
+    mine = scratch_name(step / "k.zarr", "tmp")
     started = round(1000 * process_started(os.getpid()))
     assert f"-{os.getpid()}-{started}-" in mine.name
     reused = mine.with_name(mine.name.replace(f"-{started}-", f"-{started - 3_600_000}-"))  # an hour earlier

@@ -109,12 +109,12 @@ def test_sigkill_mid_run_resumes_only_unfinished_steps(prefect_server, tmp_path,
     before = {(obj, step) for obj, step, _ in artifact_digests(killed)}
     assert 0 < len(before) < len(objects) * (len(STEPS) + 1), "kill did not land mid-run"
     # a temporary the killed process was writing (named for it: this host, its pid) is removed at the next start
-    from tasks.core.artifacts import _scratch_name
+    from tasks.core.artifacts import scratch_name
 
     # (the grid runs its largest object first: take the object model of one that got as far as its signals)
     started = next((killed / "artifacts").glob("*/signal_smoothing/*.zarr")).parents[1]
     [model] = (started / "object_model").glob("*.zarr")
-    stale = _scratch_name(model, "tmp")
+    stale = scratch_name(model, "tmp")
     stale = stale.with_name(stale.name.replace(f"-{os.getpid()}-", f"-{proc.pid}-"))
     (stale / "points" / "c").mkdir(parents=True)
     (stale / "points" / "c" / "0").write_bytes(b"x" * 1_000_000)
