@@ -32,6 +32,7 @@ def make_task_runner(runner: DictConfig):
             raise SystemExit("runner=dask needs the dask extra: pip install -e '.[dask]'") from exc
         if runner.address:
             return DaskTaskRunner(address=runner.address)
+        keep_glibc_malloc_thresholds()
         return DaskTaskRunner(
             cluster_kwargs={
                 "n_workers": dask_workers(runner),
@@ -41,6 +42,27 @@ def make_task_runner(runner: DictConfig):
             }
         )
     raise SystemExit(f"runner.kind={kind!r} is unknown: use sequential, threads or dask")
+
+
+MALLOC_TRIM_KEY = "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_"
+
+
+def keep_glibc_malloc_thresholds() -> None:
+    """Spawn our local Dask workers without Dask's default ``MALLOC_TRIM_THRESHOLD_=65536`` (bytes).
+
+    Setting that variable turns off glibc's dynamic mmap threshold, so every NumPy temporary of 128 KiB or more
+    is mmap'ed and unmapped again: page faults and system CPU in every step. Dask's documented way to unset a
+    pre-spawn variable is a ``None`` config value. A value the user chose (in the shell's environment or in a
+    Dask config other than the built-in default) is left as it is.
+    """
+    import dask
+    import distributed  # noqa: F401  (loads distributed.yaml, the built-in default)
+
+    if "MALLOC_TRIM_THRESHOLD_" in os.environ:
+        return
+    default = dask.config.get(MALLOC_TRIM_KEY, default=None, config=dask.config.merge(*dask.config.defaults))
+    if dask.config.get(MALLOC_TRIM_KEY, default=None) == default:
+        dask.config.set({MALLOC_TRIM_KEY: None})
 
 
 def dask_workers(runner: DictConfig) -> int:

@@ -73,3 +73,24 @@ def test_multirun_sweep_reuses_cache_across_jobs_and_aggregates(prefect_server, 
         own = pd.read_csv(sweep / str(job) / "metrics.csv")
         assert summary.loc[summary.job == job, "bdc_t"].item() == own["bdc_t"].item()
     assert "control.force.gamma" in (sweep / "sweep_summary.md").read_text()
+
+
+def test_local_dask_workers_keep_glibcs_dynamic_malloc_thresholds(monkeypatch):
+    """A real worker process of the local cluster starts without Dask's MALLOC_TRIM_THRESHOLD_; a user's value stays."""
+    import dask
+    from distributed import Client, LocalCluster
+
+    from flows.runtime import MALLOC_TRIM_KEY, keep_glibc_malloc_thresholds
+
+    def worker_value(**env):
+        with dask.config.set({MALLOC_TRIM_KEY: dask.config.get(MALLOC_TRIM_KEY)}):
+            for key, value in env.items():
+                monkeypatch.setenv(key, value)
+            keep_glibc_malloc_thresholds()
+            with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster:
+                with Client(cluster) as client:
+                    return client.submit(os.environ.get, "MALLOC_TRIM_THRESHOLD_", "unset", pure=False).result()
+
+    monkeypatch.delenv("MALLOC_TRIM_THRESHOLD_", raising=False)
+    assert worker_value() == "unset"
+    assert worker_value(MALLOC_TRIM_THRESHOLD_="1048576") == "1048576"
