@@ -2,7 +2,7 @@
 the normals from the smoothed depth (one-sided differences, cross product) and the shading's per-pixel geometry and
 colour (refraction offsets, view and half vectors, Fresnel, sky, Beer-Lambert body, specular).
 
-One thread per pixel; the float64 arithmetic is that of the numpy formulation it replaced, operation for operation
+One thread per pixel row; the float64 arithmetic is that of the numpy formulation it replaced, operation for operation
 and in its order (Warp's CPU code contracts no multiply-add; numpy sums a 3-vector's products left to right), and
 numpy's clip is copied with its NaN and signed-zero rules.  What a Warp kernel cannot reproduce bit for bit stays
 in numpy between the kernels: the exponentials (numpy's AVX-512 ``exp``), the powers (``np.power``, SVML on AVX-512)
@@ -60,18 +60,12 @@ def _one_sided(p: wp.vec3d, fwd: wp.vec3d, ok_f: bool, bwd: wp.vec3d, ok_b: bool
     return backward
 
 
-@wp.kernel
-def _normals(depth: wp.array2d(dtype=_f64), covered: wp.array2d(dtype=wp.uint8), fx: _f64, fy: _f64, cx: _f64,
-             cy: _f64, normal: wp.array3d(dtype=_f64)):
-    """normal[y, x] = -unit(ddx x ddy) where covered, else (0, 0, -1); depth read where covered only."""
-    y, x = wp.tid()
+@wp.func
+def _normal_at(depth: wp.array2d(dtype=_f64), covered: wp.array2d(dtype=wp.uint8), y: int, x: int, fx: _f64,
+               fy: _f64, cx: _f64, cy: _f64) -> wp.vec3d:
+    """-unit(ddx x ddy) at covered pixel (y, x)."""
     height, width = depth.shape[0], depth.shape[1]
-    zero, one = _f64(0.0), _f64(1.0)
-    if covered[y, x] == wp.uint8(0):
-        normal[y, x, 0] = zero
-        normal[y, x, 1] = zero
-        normal[y, x, 2] = -one
-        return
+    zero = _f64(0.0)
     p = _position(depth, y, x, fx, fy, cx, cy)
     z = p[2]
     ok_r, ok_l, ok_d, ok_u = False, False, False, False
@@ -99,9 +93,21 @@ def _normals(depth: wp.array2d(dtype=_f64), covered: wp.array2d(dtype=wp.uint8),
     c1 = ddx[2] * ddy[0] - ddx[0] * ddy[2]
     c2 = ddx[0] * ddy[1] - ddx[1] * ddy[0]
     norm = wp.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
-    normal[y, x, 0] = -(c0 / norm)
-    normal[y, x, 1] = -(c1 / norm)
-    normal[y, x, 2] = -(c2 / norm)
+    return wp.vec3d(-(c0 / norm), -(c1 / norm), -(c2 / norm))
+
+
+@wp.kernel
+def _normals(depth: wp.array2d(dtype=_f64), covered: wp.array2d(dtype=wp.uint8), fx: _f64, fy: _f64, cx: _f64,
+             cy: _f64, normal: wp.array3d(dtype=_f64)):
+    """Row y: normal[y, x] = -unit(ddx x ddy) where covered, else (0, 0, -1); depth read where covered only."""
+    y = wp.tid()
+    for x in range(depth.shape[1]):
+        n = wp.vec3d(_f64(0.0), _f64(0.0), _f64(-1.0))
+        if covered[y, x] != wp.uint8(0):
+            n = _normal_at(depth, covered, y, x, fx, fy, cx, cy)
+        normal[y, x, 0] = n[0]
+        normal[y, x, 1] = n[1]
+        normal[y, x, 2] = n[2]
 
 
 @wp.func
@@ -121,20 +127,21 @@ def _shading_geometry(normal: wp.array3d(dtype=_f64), shift_m: wp.array2d(dtype=
                       map_x: wp.array2d(dtype=wp.float32), map_y: wp.array2d(dtype=wp.float32),
                       n_dot_v: wp.array2d(dtype=_f64), grazing: wp.array2d(dtype=_f64),
                       n_dot_h: wp.array2d(dtype=_f64)):
-    """Per pixel: the refraction's remap coordinates, clip(n.v, 0, 1), 1 - that (Schlick's base) and
+    """Row y, per pixel: the refraction's remap coordinates, clip(n.v, 0, 1), 1 - that (Schlick's base) and
     clip(n.h, 0, inf) (Blinn-Phong's base), h = unit(v + l)."""
-    y, x = wp.tid()
+    y = wp.tid()
     zero, one = _f64(0.0), _f64(1.0)
-    n0, n1, n2 = normal[y, x, 0], normal[y, x, 1], normal[y, x, 2]
-    map_x[y, x] = wp.float32(_f64(x) - fx * n0 * shift_m[y, x] / z[y, x])
-    map_y[y, x] = wp.float32(_f64(y) - fy * n1 * shift_m[y, x] / z[y, x])
-    v = _view(y, x, fx, fy, cx, cy)
-    ndv = _clip(n0 * v[0] + n1 * v[1] + n2 * v[2], zero, one)
-    n_dot_v[y, x] = ndv
-    grazing[y, x] = one - ndv
-    h0, h1, h2 = v[0] + light[0], v[1] + light[1], v[2] + light[2]
-    norm = wp.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
-    n_dot_h[y, x] = _clip(n0 * (h0 / norm) + n1 * (h1 / norm) + n2 * (h2 / norm), zero, _f64(wp.inf))
+    for x in range(n_dot_v.shape[1]):
+        n0, n1, n2 = normal[y, x, 0], normal[y, x, 1], normal[y, x, 2]
+        map_x[y, x] = wp.float32(_f64(x) - fx * n0 * shift_m[y, x] / z[y, x])
+        map_y[y, x] = wp.float32(_f64(y) - fy * n1 * shift_m[y, x] / z[y, x])
+        v = _view(y, x, fx, fy, cx, cy)
+        ndv = _clip(n0 * v[0] + n1 * v[1] + n2 * v[2], zero, one)
+        n_dot_v[y, x] = ndv
+        grazing[y, x] = one - ndv
+        h0, h1, h2 = v[0] + light[0], v[1] + light[1], v[2] + light[2]
+        norm = wp.sqrt(h0 * h0 + h1 * h1 + h2 * h2)
+        n_dot_h[y, x] = _clip(n0 * (h0 / norm) + n1 * (h1 / norm) + n2 * (h2 / norm), zero, _f64(wp.inf))
 
 
 @wp.kernel
@@ -144,22 +151,23 @@ def _liquid_colour(normal: wp.array3d(dtype=_f64), refracted: wp.array3d(dtype=w
                    fresnel_power: wp.array2d(dtype=_f64), fade: wp.array2d(dtype=_f64),
                    specular_power: wp.array2d(dtype=_f64), optics: wp.array(dtype=_f64),
                    fx: _f64, fy: _f64, cx: _f64, cy: _f64, rgb: wp.array3d(dtype=wp.float32)):
-    """Per pixel and channel: (1 - F) body + F sky + specular, clipped to [0, 1].  optics = (ambient, 1 - ambient,
+    """Row y, per pixel and channel: (1 - F) body + F sky + specular, clipped to [0, 1].  optics = (ambient, 1 - ambient,
     f0, 1 - f0, specular, body colour (3), sky horizon (3), sky zenith - horizon (3))."""
-    y, x = wp.tid()
+    y = wp.tid()
     zero, one = _f64(0.0), _f64(1.0)
     ambient, diffuse, f0, schlick, specular = optics[0], optics[1], optics[2], optics[3], optics[4]
-    ndl = _clip(n_dot_l[y, x], zero, _f64(wp.inf))
-    beta = turbid[y, x]
-    fresnel = fade[y, x] * (f0 + schlick * fresnel_power[y, x])
-    reflected_y = _f64(2.0) * n_dot_v[y, x] * normal[y, x, 1] - _view(y, x, fx, fy, cx, cy)[1]
-    up = _clip(-reflected_y, zero, one)
-    shine = fade[y, x] * specular * specular_power[y, x]
-    for c in range(3):
-        lit_body = optics[5 + c] * (ambient + diffuse * ndl)
-        body = (one - beta) * transmittance[y, x, c] * _f64(refracted[y, x, c]) + beta * lit_body
-        sky = optics[8 + c] + optics[11 + c] * up
-        rgb[y, x, c] = wp.float32(_clip((one - fresnel) * body + fresnel * sky + shine, zero, one))
+    for x in range(n_dot_v.shape[1]):
+        ndl = _clip(n_dot_l[y, x], zero, _f64(wp.inf))
+        beta = turbid[y, x]
+        fresnel = fade[y, x] * (f0 + schlick * fresnel_power[y, x])
+        reflected_y = _f64(2.0) * n_dot_v[y, x] * normal[y, x, 1] - _view(y, x, fx, fy, cx, cy)[1]
+        up = _clip(-reflected_y, zero, one)
+        shine = fade[y, x] * specular * specular_power[y, x]
+        for c in range(3):
+            lit_body = optics[5 + c] * (ambient + diffuse * ndl)
+            body = (one - beta) * transmittance[y, x, c] * _f64(refracted[y, x, c]) + beta * lit_body
+            sky = optics[8 + c] + optics[11 + c] * up
+            rgb[y, x, c] = wp.float32(_clip((one - fresnel) * body + fresnel * sky + shine, zero, one))
 
 
 def _cpu(a: np.ndarray, dtype=_f64) -> wp.array:
@@ -177,7 +185,7 @@ def normals_pixels(depth: np.ndarray, covered: np.ndarray, fx: float, fy: float,
     wp.init()   # no-op once Warp is up
     inputs = [_cpu(np.ascontiguousarray(depth, np.float64)),
               _cpu(np.ascontiguousarray(covered, bool).view(np.uint8), wp.uint8), *map(float, (fx, fy, cx, cy))]
-    wp.launch(_normals, dim=(height, width), inputs=[*inputs, _cpu(normal)], device="cpu")
+    wp.launch(_normals, dim=height, inputs=[*inputs, _cpu(normal)], device="cpu")
     return normal
 
 
@@ -195,7 +203,7 @@ def shading_geometry(normal: np.ndarray, shift_m: np.ndarray, z: np.ndarray, lig
     inputs = [_cpu(np.ascontiguousarray(normal, np.float64)), _cpu(np.ascontiguousarray(shift_m, np.float64)),
               _cpu(np.ascontiguousarray(z, np.float64)), wp.vec3d(*map(float, light)), *map(float, (fx, fy, cx, cy))]
     outputs = [_cpu(map_x, wp.float32), _cpu(map_y, wp.float32), _cpu(n_dot_v), _cpu(grazing), _cpu(n_dot_h)]
-    wp.launch(_shading_geometry, dim=(height, width), inputs=inputs + outputs, device="cpu")
+    wp.launch(_shading_geometry, dim=height, inputs=inputs + outputs, device="cpu")
     return map_x, map_y, n_dot_v, grazing, n_dot_h
 
 
@@ -217,5 +225,5 @@ def liquid_colour(normal: np.ndarray, refracted: np.ndarray, transmittance: np.n
                                                             fresnel_power, fade, specular_power, optics)]
     inputs = [_cpu(arrays[0]), _cpu(np.ascontiguousarray(refracted, np.float32), wp.float32),
               *map(_cpu, arrays[1:]), *map(float, (fx, fy, cx, cy))]
-    wp.launch(_liquid_colour, dim=(height, width), inputs=[*inputs, _cpu(rgb, wp.float32)], device="cpu")
+    wp.launch(_liquid_colour, dim=height, inputs=[*inputs, _cpu(rgb, wp.float32)], device="cpu")
     return rgb
