@@ -97,12 +97,13 @@ def _draw_capsules(capsule: wp.array2d(dtype=_f64), box: wp.array2d(dtype=wp.int
 
 @wp.kernel
 def _shade_skin(normal: wp.array3d(dtype=_f64), view: wp.array3d(dtype=_f64), coverage: wp.array2d(dtype=_f64),
-                colour: wp.vec3d, light: wp.vec3d, rgb: wp.array3d(dtype=wp.float32)):
-    """Row y: rgb[y, x] = clip(colour (0.38 + 0.62 max(n.l, 0)) + 0.12 max(n.h, 0)^24, 0, 1), h = unit(l - v), where
-    coverage[y, x] > 0 (else left as it is); normal, view (3, y, x) unit, camera coordinates."""
-    y = wp.tid()
+                colour: wp.vec3d, light: wp.vec3d, y0: int, x0: int, x1: int, rgb: wp.array3d(dtype=wp.float32)):
+    """Row y = y0 + thread, columns [x0, x1): rgb[y, x] = clip(colour (0.38 + 0.62 max(n.l, 0)) + 0.12 max(n.h, 0)^24,
+    0, 1), h = unit(l - v), where coverage[y, x] > 0 (else left as it is); normal, view (3, y, x) unit, camera
+    coordinates."""
+    y = y0 + wp.tid()
     zero, one = _f64(0.0), _f64(1.0)
-    for x in range(coverage.shape[1]):
+    for x in range(x0, x1):
         if coverage[y, x] > zero:
             n0, n1, n2 = normal[0, y, x], normal[1, y, x], normal[2, y, x]
             n_l = wp.max(n0 * light[0] + n1 * light[1] + n2 * light[2], zero)
@@ -151,13 +152,16 @@ def shade_skin_pixels(normal: np.ndarray, view: np.ndarray, coverage: np.ndarray
     normal, view (3, y, x) unit, camera coordinates; colour (3,) linear RGB; light (3,) unit, towards the light."""
     height, width = coverage.shape
     rgb = np.zeros((height, width, 3), np.float32)
-    if coverage.size == 0:
+    drawn = coverage > 0
+    rows, cols = np.flatnonzero(drawn.any(axis=1)), np.flatnonzero(drawn.any(axis=0))
+    if len(rows) == 0:
         return rgb
     wp.init()
     inputs = [wp.array(np.ascontiguousarray(a, np.float64), dtype=_f64, device="cpu", copy=False)
               for a in (normal, view, coverage)]
     vectors = [wp.vec3d(*map(float, v)) for v in (colour, light)]
-    wp.launch(_shade_skin, dim=height, inputs=[*inputs, *vectors, wp.array(rgb, dtype=wp.float32,
-                                                                                    device="cpu", copy=False)],
+    box = [int(rows[0]), int(cols[0]), int(cols[-1]) + 1]  # only the rows and columns with coverage
+    wp.launch(_shade_skin, dim=int(rows[-1]) + 1 - box[0],
+              inputs=[*inputs, *vectors, *box, wp.array(rgb, dtype=wp.float32, device="cpu", copy=False)],
               device="cpu")
     return rgb
