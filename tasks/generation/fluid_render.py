@@ -31,6 +31,7 @@ from tasks.generation.impostors import (
     splat_ellipsoid_impostors,
     splat_sphere_impostors,
 )
+from tasks.generation.liquid_kernels import liquid_colour, normals_pixels, shading_geometry
 
 
 @dataclass(frozen=True)
@@ -86,38 +87,15 @@ def smooth_depth(depth: np.ndarray, covered: np.ndarray, sigma_depth_m: float, s
     return np.where(covered, smoothed, np.inf).astype(np.float32)
 
 
-def _one_sided(pos: np.ndarray, covered: np.ndarray, axis: int, step: np.ndarray) -> np.ndarray:
-    """d(position)/d(pixel) along ``axis`` (1 = x, 0 = y): of the forward and backward differences whose neighbour is
-    covered, the one with the smaller depth change (van der Laan et al. 2009); ``step`` where neither."""
-    forward, backward = np.zeros_like(pos), np.zeros_like(pos)
-    ok_f, ok_b = np.zeros_like(covered), np.zeros_like(covered)
-    lo = (slice(None), slice(0, -1)) if axis == 1 else (slice(0, -1), slice(None))  # a pixel ...
-    hi = (slice(None), slice(1, None)) if axis == 1 else (slice(1, None), slice(None))  # ... and its next neighbour
-    forward[lo] = pos[hi] - pos[lo]
-    ok_f[lo] = covered[hi]
-    backward[hi] = pos[hi] - pos[lo]
-    ok_b[hi] = covered[lo]
-    cost_f = np.where(ok_f, np.abs(forward[..., 2]), np.inf)
-    cost_b = np.where(ok_b, np.abs(backward[..., 2]), np.inf)
-    chosen = np.where((cost_f <= cost_b)[..., None], forward, backward)
-    return np.where((ok_f | ok_b)[..., None], chosen, step)
-
-
 def normals_from_depth(depth: np.ndarray, covered: np.ndarray, K: np.ndarray) -> np.ndarray:
     """Unit surface normals (y, x, xyz) in camera coordinates from a (y, x) depth map in metres, facing the camera
-    (n_z < 0), via the cross product of one-sided position differences; (0, 0, -1) outside ``covered``."""
-    height, width = depth.shape
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    z = np.where(covered, depth, 1.0)
-    x = (np.arange(width) + 0.5 - cx) / fx * z
-    y = (np.arange(height)[:, None] + 0.5 - cy) / fy * z
-    pos = np.stack([x, y, z], axis=-1)
-    step_x = np.stack([z / fx, np.zeros_like(z), np.zeros_like(z)], axis=-1)  # a flat pixel footprint
-    step_y = np.stack([np.zeros_like(z), z / fy, np.zeros_like(z)], axis=-1)
-    ddx = _one_sided(pos, covered, 1, step_x)
-    ddy = _one_sided(pos, covered, 0, step_y)
-    normal = -_unit(np.cross(ddx, ddy))  # x right, y down: cross(ddx, ddy) points away from the camera
-    return np.where(covered[..., None], normal, np.array([0.0, 0.0, -1.0]))
+    (n_z < 0), via the cross product of one-sided position differences; (0, 0, -1) outside ``covered``.
+
+    Per pixel, along x and y, of the forward and backward differences of the view-space positions whose neighbour is
+    covered, the one with the smaller depth change (van der Laan et al. 2009); a flat pixel footprint (z / f) where
+    neither; normal = -unit(ddx x ddy) (x right, y down: ddx x ddy points away from the camera).  A Warp kernel
+    (:mod:`tasks.generation.liquid_kernels`), float64, bit-identical to the numpy formulation it replaced."""
+    return normals_pixels(depth, covered, K[0, 0], K[1, 1], K[0, 2], K[1, 2])
 
 
 def shade_liquid(background_rgb: np.ndarray, depth: np.ndarray, thickness: np.ndarray, normal: np.ndarray,
@@ -133,8 +111,10 @@ def shade_liquid(background_rgb: np.ndarray, depth: np.ndarray, thickness: np.nd
               + F sky(reflect(-v, n)) + fade specular max(n.h, 0)^shininess
     where B is the background displaced by offset = -(1 - 1/ior) n_xy (t + gap) f / z pixels (gap: distance to the
     surface behind, capped).  Returns (y, x, 3) float32, clipped to [0, 1]; meaningful where depth is finite.
+
+    The per-pixel geometry and colour are Warp kernels (:mod:`tasks.generation.liquid_kernels`); the remap, the
+    exponentials, the powers and n.l stay in numpy and OpenCV: bit-identical to the numpy formulation it replaced.
     """
-    height, width = depth.shape
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     shaded = np.isfinite(depth)
     z = np.where(shaded, depth, 1.0)
@@ -142,35 +122,22 @@ def shade_liquid(background_rgb: np.ndarray, depth: np.ndarray, thickness: np.nd
     # 1. refraction: the background displaced along the normal by the path through and behind the liquid
     gap = np.clip(np.where(np.isfinite(surface_depth), surface_depth - z, np.inf), 0.0, appearance.max_refraction_gap_m)
     shift_m = (1.0 - 1.0 / appearance.ior) * (thickness + gap)
-    map_x = (np.arange(width, dtype=np.float32) - fx * normal[..., 0] * shift_m / z).astype(np.float32)
-    map_y = (np.arange(height, dtype=np.float32)[:, None] - fy * normal[..., 1] * shift_m / z).astype(np.float32)
+    light = _unit(np.asarray(appearance.light_direction, np.float64))
+    map_x, map_y, n_dot_v, grazing, n_dot_h = shading_geometry(normal, shift_m, z, light, fx, fy, cx, cy)
     refracted = cv2.remap(background_rgb.astype(np.float32), map_x, map_y, cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_REFLECT)
     # 2. body: Beer-Lambert transmission of the refracted background plus the turbid body colour, diffusely lit
     sigma = np.asarray(appearance.absorption_per_m)
     transmittance = np.exp(-sigma * t)
     turbid = appearance.turbidity * (1.0 - np.exp(-sigma.mean() * t))
-    light = _unit(np.asarray(appearance.light_direction, np.float64))
-    n_dot_l = np.clip(normal @ light, 0.0, None)[..., None]
-    lit_body = np.asarray(appearance.body_colour) * (appearance.ambient + (1.0 - appearance.ambient) * n_dot_l)
-    body = (1.0 - turbid) * transmittance * refracted + turbid * lit_body
     # 3. surface: Schlick Fresnel reflection of a sky gradient and Blinn-Phong specular, faded by thickness
-    view = -_unit(np.stack([(np.arange(width) + 0.5 - cx) / fx * np.ones((height, 1)),
-                            (np.arange(height)[:, None] + 0.5 - cy) / fy * np.ones((1, width)),
-                            np.ones((height, width))], axis=-1))
-    n_dot_v = np.clip(np.sum(normal * view, axis=-1), 0.0, 1.0)[..., None]
     fade = 1.0 - np.exp(-t / fade_thickness_m)
     f0 = ((appearance.ior - 1.0) / (appearance.ior + 1.0)) ** 2
-    fresnel = fade * (f0 + (1.0 - f0) * (1.0 - n_dot_v) ** 5)
-    reflected = 2.0 * n_dot_v * normal - view
-    up = np.clip(-reflected[..., 1:2], 0.0, 1.0)  # camera y points down
     horizon, zenith = np.asarray(appearance.sky_horizon), np.asarray(appearance.sky_zenith)
-    sky = horizon + (zenith - horizon) * up
-    half = _unit(view + light)
-    specular = fade * appearance.specular * np.clip(np.sum(normal * half, axis=-1), 0.0, None)[..., None] ** \
-        appearance.shininess
-    rgb = (1.0 - fresnel) * body + fresnel * sky + specular
-    return np.clip(rgb, 0.0, 1.0).astype(np.float32)
+    optics = np.concatenate([[appearance.ambient, 1.0 - appearance.ambient, f0, 1.0 - f0, appearance.specular],
+                             np.asarray(appearance.body_colour), horizon, zenith - horizon])
+    return liquid_colour(normal, refracted, transmittance, turbid[..., 0], normal @ light, n_dot_v, grazing ** 5,
+                         fade[..., 0], n_dot_h ** appearance.shininess, optics, fx, fy, cx, cy)
 
 
 def render_liquid(positions: np.ndarray, radii: np.ndarray | float, viewmat: np.ndarray, K: np.ndarray,

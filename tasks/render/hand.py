@@ -34,7 +34,7 @@ import numpy as np
 
 from conf.hand import FINGERS, N_FINGERS
 
-from .hand_kernels import CAPSULE_FIELDS, capsule_scalars, draw_capsules
+from .hand_kernels import CAPSULE_FIELDS, capsule_scalars, draw_capsules, shade_skin_pixels
 
 # m, capsule radii per finger (thumb .. pinky), proximal and distal phalanx
 FINGER_RADII = np.array([[0.0100, 0.0090], [0.0085, 0.0075], [0.0088, 0.0078], [0.0083, 0.0073], [0.0075, 0.0065]])
@@ -220,13 +220,14 @@ def _pixel_rays(K: np.ndarray, x0: int, x1: int, y0: int, y1: int) -> np.ndarray
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
-def shade_skin(normal: np.ndarray, colour: np.ndarray, view: np.ndarray) -> np.ndarray:
-    """Lambert + ambient + a soft Blinn-Phong sheen, camera coordinates (light from the upper left, camera side)."""
-    light = _unit(np.array([-0.4, -0.7, -0.6]))
-    n_l = np.clip(normal @ light, 0.0, None)[..., None]
-    half = _unit(light - view)
-    spec = 0.12 * np.clip(np.sum(normal * half, axis=-1), 0.0, None)[..., None] ** 24
-    return np.clip(np.asarray(colour) * (0.38 + 0.62 * n_l) + spec, 0.0, 1.0)
+def shade_skin(normal: np.ndarray, colour: np.ndarray, view: np.ndarray, coverage: np.ndarray) -> np.ndarray:
+    """Lambert + ambient + a soft Blinn-Phong sheen, camera coordinates (light from the upper left, camera side):
+    rgb = clip(colour (0.38 + 0.62 max(n.l, 0)) + 0.12 max(n.h, 0)^24, 0, 1), h = unit(l - v), at every pixel where
+    ``coverage`` (y, x) > 0, zero elsewhere; normal, view (3, y, x) unit.  Returns (y, x, 3) float32.
+
+    A Warp kernel (:func:`tasks.render.hand_kernels.shade_skin_pixels`); equal to the former numpy expression within
+    float64 round-off (numpy's n.l is a BLAS product with fused multiply-adds, its power SVML's), float32 out."""
+    return shade_skin_pixels(normal, view, coverage, colour, _unit(np.array([-0.4, -0.7, -0.6])))
 
 
 _RAYS: dict[tuple, np.ndarray] = {}
@@ -264,11 +265,7 @@ def render_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: i
         boxes.append((x0, x1, y0, y1))
     depth, normal, coverage = draw_capsules(np.array(drawn_capsules, np.float64).reshape(-1, CAPSULE_FIELDS),
                                             np.array(boxes, np.int32).reshape(-1, 4), rays, focal)
-    rx, ry, rz = rays
-    rgb = np.zeros((height, width, 3), np.float32)
-    drawn = coverage > 0
-    view = np.stack([rx[drawn], ry[drawn], rz[drawn]], -1)
-    rgb[drawn] = shade_skin(np.stack([n[drawn] for n in normal], -1), np.asarray(colour, np.float64), view)
+    rgb = shade_skin(normal, np.asarray(colour, np.float64), rays, coverage)
     return HandLayer(rgb, depth.astype(np.float32), coverage.astype(np.float32))
 
 

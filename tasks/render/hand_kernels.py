@@ -95,6 +95,26 @@ def _draw_capsules(capsule: wp.array2d(dtype=_f64), box: wp.array2d(dtype=wp.int
                 coverage[y, x] = wp.max(coverage[y, x], c)
 
 
+@wp.kernel
+def _shade_skin(normal: wp.array3d(dtype=_f64), view: wp.array3d(dtype=_f64), coverage: wp.array2d(dtype=_f64),
+                colour: wp.vec3d, light: wp.vec3d, y0: int, x0: int, x1: int, rgb: wp.array3d(dtype=wp.float32)):
+    """Row y = y0 + thread, columns [x0, x1): rgb[y, x] = clip(colour (0.38 + 0.62 max(n.l, 0)) + 0.12 max(n.h, 0)^24,
+    0, 1), h = unit(l - v), where coverage[y, x] > 0 (else left as it is); normal, view (3, y, x) unit, camera
+    coordinates."""
+    y = y0 + wp.tid()
+    zero, one = _f64(0.0), _f64(1.0)
+    for x in range(x0, x1):
+        if coverage[y, x] > zero:
+            n0, n1, n2 = normal[0, y, x], normal[1, y, x], normal[2, y, x]
+            n_l = wp.max(n0 * light[0] + n1 * light[1] + n2 * light[2], zero)
+            h0, h1, h2 = light[0] - view[0, y, x], light[1] - view[1, y, x], light[2] - view[2, y, x]
+            norm = wp.max(wp.sqrt(h0 * h0 + h1 * h1 + h2 * h2), _f64(1e-12))
+            n_h = wp.max(n0 * (h0 / norm) + n1 * (h1 / norm) + n2 * (h2 / norm), zero)
+            spec = _f64(0.12) * wp.pow(n_h, _f64(24.0))
+            for c in range(3):
+                rgb[y, x, c] = wp.float32(wp.clamp(colour[c] * (_f64(0.38) + _f64(0.62) * n_l) + spec, zero, one))
+
+
 def capsule_scalars(a: np.ndarray, b: np.ndarray, r: float) -> list[float]:
     """The kernel's CAPSULE_FIELDS scalars of capsule a-b (3,) m, radius r m, camera coordinates (numpy's dot
     products, so the kernel starts from the numbers the numpy formulation used)."""
@@ -120,7 +140,28 @@ def draw_capsules(capsules: np.ndarray, boxes: np.ndarray, rays: np.ndarray, foc
     wp.init()   # no-op once Warp is up
     inputs = [wp.array(np.ascontiguousarray(capsules, np.float64), dtype=_f64, device="cpu"),
               wp.array(np.ascontiguousarray(boxes, np.int32), dtype=wp.int32, device="cpu"),
-              wp.array(np.ascontiguousarray(rays, np.float64), dtype=_f64, device="cpu"), focal]
+              wp.array(np.ascontiguousarray(rays, np.float64), dtype=_f64, device="cpu", copy=False), focal]
     outputs = [wp.array(x, dtype=_f64, device="cpu", copy=False) for x in (depth, normal, coverage)]
     wp.launch(_draw_capsules, dim=len(capsules), inputs=inputs + outputs, device="cpu")
     return depth, normal, coverage
+
+
+def shade_skin_pixels(normal: np.ndarray, view: np.ndarray, coverage: np.ndarray, colour: np.ndarray,
+                      light: np.ndarray) -> np.ndarray:
+    """(y, x, 3) float32 linear RGB of the skin where ``coverage`` (y, x) > 0, zero elsewhere (``_shade_skin``):
+    normal, view (3, y, x) unit, camera coordinates; colour (3,) linear RGB; light (3,) unit, towards the light."""
+    height, width = coverage.shape
+    rgb = np.zeros((height, width, 3), np.float32)
+    drawn = coverage > 0
+    rows, cols = np.flatnonzero(drawn.any(axis=1)), np.flatnonzero(drawn.any(axis=0))
+    if len(rows) == 0:
+        return rgb
+    wp.init()
+    inputs = [wp.array(np.ascontiguousarray(a, np.float64), dtype=_f64, device="cpu", copy=False)
+              for a in (normal, view, coverage)]
+    vectors = [wp.vec3d(*map(float, v)) for v in (colour, light)]
+    box = [int(rows[0]), int(cols[0]), int(cols[-1]) + 1]  # only the rows and columns with coverage
+    wp.launch(_shade_skin, dim=int(rows[-1]) + 1 - box[0],
+              inputs=[*inputs, *vectors, *box, wp.array(rgb, dtype=wp.float32, device="cpu", copy=False)],
+              device="cpu")
+    return rgb

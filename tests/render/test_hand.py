@@ -5,7 +5,15 @@ from __future__ import annotations
 import numpy as np
 
 from tasks.render.cameras import look_at
-from tasks.render.hand import Capsules, HandLayer, composite_hand, finger_chain, hand_sequence, render_hand
+from tasks.render.hand import (
+    Capsules,
+    HandLayer,
+    composite_hand,
+    finger_chain,
+    hand_sequence,
+    render_hand,
+    shade_skin,
+)
 
 W = H = 64
 FOCAL = 64.0
@@ -102,3 +110,49 @@ def test_the_drawn_fingertips_follow_the_recording_frame_by_frame():
     hands = hand_sequence(signals, np.arange(n))
     for f, caps in enumerate(hands):
         np.testing.assert_allclose(caps.b[2:15:3], tips[f], atol=1e-9)  # distal phalanges end at the tips
+
+
+def _shade_skin_reference(normal, colour, view):
+    """The numpy ``shade_skin`` before the kernel (issue 51): normal, view (n, 3)."""
+    def unit(v):
+        return v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12)
+    light = unit(np.array([-0.4, -0.7, -0.6]))
+    n_l = np.clip(normal @ light, 0.0, None)[..., None]
+    half = unit(light - view)
+    spec = 0.12 * np.clip(np.sum(normal * half, axis=-1), 0.0, None)[..., None] ** 24
+    return np.clip(np.asarray(colour) * (0.38 + 0.62 * n_l) + spec, 0.0, 1.0)
+
+
+def test_the_skin_shading_kernel_equals_the_numpy_formulation_within_round_off():
+    rng = np.random.default_rng(5)
+    normal = rng.normal(size=(3, 48, 40))
+    normal /= np.linalg.norm(normal, axis=0)
+    normal[2] = -np.abs(normal[2])  # facing the camera, lit and unlit sides
+    view = np.stack(np.broadcast_arrays((np.arange(40) + 0.5 - 20) / 50.0, ((np.arange(48) + 0.5 - 24) / 50.0)[:, None],
+                                        np.ones((1, 1))))
+    view /= np.linalg.norm(view, axis=0)
+    coverage = np.where(rng.uniform(0, 1, (48, 40)) < 0.6, rng.uniform(0.01, 1.0, (48, 40)), 0.0)
+    colour = np.array([0.8, 0.55, 0.45])
+    rgb = shade_skin(normal, colour, view, coverage)
+    drawn = coverage > 0
+    expected = _shade_skin_reference(np.moveaxis(normal, 0, -1)[drawn], colour, np.moveaxis(view, 0, -1)[drawn])
+    assert rgb.dtype == np.float32 and rgb.shape == (48, 40, 3)
+    assert np.array_equal(rgb[~drawn], np.zeros(((~drawn).sum(), 3), np.float32))
+    # numpy's n.l is a BLAS product (fused multiply-adds), its power SVML's: float64 round-off, then float32
+    assert np.abs(rgb[drawn] - expected).max() <= 1.2e-7
+    assert (rgb[drawn] == expected.astype(np.float32)).mean() > 0.999
+    assert expected[..., 0].max() - expected[..., 0].min() > 0.3  # lit and unlit sides, sheen
+
+
+def test_a_sphere_seen_at_its_centre_has_the_closed_form_skin_shade():
+    k = np.array([[FOCAL, 0.0, 32.5], [0.0, FOCAL, 32.5], [0.0, 0.0, 1.0]])  # pixel (32, 32) on the optical axis
+    viewmat = np.eye(4)  # camera = world: x right, y down, z forward
+    centre, r, skin = np.array([0.0, 0.0, 0.5]), 0.05, np.array([0.7, 0.5, 0.4])
+    layer = render_hand(Capsules(centre[None], centre[None], np.array([r])), viewmat, k, W, H, skin)
+    assert layer.depth[32, 32] == np.float32(0.5 - r) and layer.coverage[32, 32] == 1.0
+    # there the normal is (0, 0, -1) and the view direction (0, 0, 1): n.l = -l_z, n.h = -h_z, h = unit(l - v)
+    light = np.array([-0.4, -0.7, -0.6]) / np.linalg.norm([-0.4, -0.7, -0.6])
+    half = (light - [0.0, 0.0, 1.0]) / np.linalg.norm(light - [0.0, 0.0, 1.0])
+    expected = skin * (0.38 + 0.62 * -light[2]) + 0.12 * (-half[2]) ** 24
+    np.testing.assert_allclose(layer.rgb[32, 32], expected, atol=1e-7)
+    assert (layer.rgb[32, 32] > layer.rgb[32 + 4, 32 + 4]).all()  # lit from the upper left
