@@ -160,19 +160,33 @@ def decode_video(path: str | os.PathLike) -> tuple[np.ndarray, float]:
         return np.stack(frames), float(stream.average_rate)
 
 
-def _text_box(text: str, height: int, width: int, align_left: bool = False) -> np.ndarray:
-    """(height, width, 3) uint8 label: ``text`` in white on dark grey, scaled to fit, vertically centred."""
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def _text_box(text: str, height: int, width: int, align_left: bool = False, scale: float | None = None) -> np.ndarray:
+    """(height, width, 3) uint8 label: ``text`` in white on dark grey, vertically centred; at OpenCV font ``scale``
+    (default: sized to ``height``), shrunk to fit ``width``."""
     box = np.full((height, width, 3), _LABEL_BACKGROUND, np.uint8)
-    font = cv2.FONT_HERSHEY_SIMPLEX
-    scale = 0.6 * height / 24.0
-    (text_w, text_h), _ = cv2.getTextSize(text, font, scale, 1)
+    scale = 0.6 * height / 24.0 if scale is None else scale
+    (text_w, text_h), _ = cv2.getTextSize(text, _FONT, scale, 1)
     if text_w > width - 6:
         scale *= (width - 6) / text_w
-        (text_w, text_h), _ = cv2.getTextSize(text, font, scale, 1)
+        (text_w, text_h), _ = cv2.getTextSize(text, _FONT, scale, 1)
     x = 3 if align_left else max((width - text_w) // 2, 0)
     y = (height + text_h) // 2
-    cv2.putText(box, text, (x, y), font, scale, _LABEL_TEXT, 1, cv2.LINE_AA)
+    cv2.putText(box, text, (x, y), _FONT, scale, _LABEL_TEXT, 1, cv2.LINE_AA)
     return box
+
+
+def _row_label_scale(labels: Sequence[str], width: int, label_px: int) -> float:
+    """One font scale for every row label of a sheet: the column labels' size, up to twice it, at which the
+    longest label still fits ``width`` (a short label is not drawn larger than the rest)."""
+    scale = 2 * 0.6 * label_px / 24.0
+    for label in labels:
+        text_w = cv2.getTextSize(label, _FONT, scale, 1)[0][0]
+        if text_w > width - 6:
+            scale *= (width - 6) / text_w
+    return scale
 
 
 def contact_sheet(images: np.ndarray, row_labels: Sequence[str], column_labels: Sequence[str],
@@ -192,7 +206,8 @@ def contact_sheet(images: np.ndarray, row_labels: Sequence[str], column_labels: 
                          "grid: give one label per row and per column")
     header = np.concatenate([_text_box("", label_px, row_label_px)]
                             + [_text_box(label, label_px, width) for label in column_labels], axis=1)
-    body = [np.concatenate([_text_box(label, height, row_label_px, align_left=True), *images[r]], axis=1)
+    scale = _row_label_scale(row_labels, row_label_px, label_px)
+    body = [np.concatenate([_text_box(label, height, row_label_px, align_left=True, scale=scale), *images[r]], axis=1)
             for r, label in enumerate(row_labels)]
     return np.concatenate([header, *body], axis=0)
 

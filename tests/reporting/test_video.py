@@ -87,6 +87,22 @@ def test_bad_video_inputs_are_value_errors(tmp_path):
         encode_video(_smooth_clip()[0], tmp_path / "clip.webp")
 
 
+def test_contact_sheet_row_labels_share_one_size():
+    """A short row label ("can") is drawn no larger than a long one ("cream sauce"): one size for the column, the
+    longest label fitting its margin, at most twice the column labels' size."""
+    images = np.zeros((3, 1, 192, 192, 3), np.uint8)
+    sheet = contact_sheet(images, ["can", "rubber_duck", "cream sauce"], ["peak"], label_px=20, row_label_px=96)
+
+    def text_rows(r):  # the rows of row label r's cell that hold text
+        cell = sheet[20 + 192 * r:20 + 192 * (r + 1), :96]
+        return np.flatnonzero((cell > 128).any(axis=(1, 2)))
+
+    heights = [len(text_rows(r)) for r in range(3)]
+    assert all(h > 0 for h in heights)
+    assert max(heights) <= 2 * 20  # at most twice the column labels' 20 px band ("can" alone: 3x that before)
+    assert abs(heights[2] - heights[0]) <= 1  # "cream sauce" and "can": lower case without ascenders alike
+
+
 def test_contact_sheet_layout_and_labels():
     images = np.zeros((2, 3, 40, 50, 3), np.uint8)
     images[1, 2] = 200
