@@ -34,7 +34,7 @@ import numpy as np
 
 from conf.hand import FINGERS, N_FINGERS
 
-from .hand_kernels import CAPSULE_FIELDS, capsule_scalars, draw_capsules, shade_skin_pixels
+from .hand_kernels import CAPSULE_FIELDS, capsule_scalars, composite_hand_pixels, draw_capsules, shade_skin_pixels
 
 # m, capsule radii per finger (thumb .. pinky), proximal and distal phalanx
 FINGER_RADII = np.array([[0.0100, 0.0090], [0.0085, 0.0075], [0.0088, 0.0078], [0.0083, 0.0073], [0.0075, 0.0065]])
@@ -276,17 +276,8 @@ def composite_hand(scene_rgb: np.ndarray, scene_alpha: np.ndarray, scene_depth: 
     scene_rgb: the frame composited over ``background`` (3,); scene_alpha (y, x): its opacity; scene_depth (y, x) m:
     depth of what the frame shows (+inf or 0 where nothing).  Where the hand is nearer (or nothing is drawn):
     ``cov hand + (1 - cov) scene``; where it is behind: it replaces the background only,
-    ``scene + (1 - alpha) cov (hand - background)``."""
-    drawn = hand.coverage > 0
-    if not drawn.any():
-        return scene_rgb.astype(np.float32)
-    out = scene_rgb.astype(np.float32).copy()
-    cov = hand.coverage[drawn][:, None]
-    seen = scene_depth[drawn]
-    seen = np.where((seen > 0) & np.isfinite(seen), seen, np.inf)
-    front = (hand.depth[drawn] <= seen)[:, None]
-    rgb, hand_rgb = out[drawn], hand.rgb[drawn]
-    over = cov * hand_rgb + (1.0 - cov) * rgb
-    under = rgb + (1.0 - scene_alpha[drawn][:, None]) * cov * (hand_rgb - np.asarray(background, np.float32))
-    out[drawn] = np.where(front, over, under)
-    return out
+    ``scene + (1 - alpha) cov (hand - background)``.
+
+    A Warp kernel over the rows and columns the hand covers (:func:`tasks.render.hand_kernels.composite_hand_pixels`),
+    in float32: bit-identical to the former numpy expression on the display step's float32 inputs."""
+    return composite_hand_pixels(scene_rgb, scene_alpha, scene_depth, background, *hand)

@@ -6,6 +6,8 @@ One thread per capsule walks its box row by row; Warp runs a CPU launch's thread
 so the z-buffer sees the capsules in list order (a tie keeps the first), and the float64 arithmetic is that of the
 numpy formulation it replaced, operation for operation (Warp's CPU code contracts no multiply-add): depth, normals
 and coverage were bit-identical to it on every view of the orange, tomato, can and clay videos (920 layers).
+The skin's shading and the hand's depth compositing into the frame (:func:`tasks.render.hand.composite_hand`) are
+kernels too, one thread per row of the rows and columns the hand covers.
 Units: metres, pixels; camera coordinates (x right, y down, z forward).
 """
 from __future__ import annotations
@@ -115,6 +117,32 @@ def _shade_skin(normal: wp.array3d(dtype=_f64), view: wp.array3d(dtype=_f64), co
                 rgb[y, x, c] = wp.float32(wp.clamp(colour[c] * (_f64(0.38) + _f64(0.62) * n_l) + spec, zero, one))
 
 
+@wp.kernel
+def _composite_hand(hand_rgb: wp.array3d(dtype=wp.float32), hand_depth: wp.array2d(dtype=wp.float32),
+                    hand_coverage: wp.array2d(dtype=wp.float32), scene_alpha: wp.array2d(dtype=wp.float32),
+                    scene_depth: wp.array2d(dtype=wp.float32), background: wp.vec3f, y0: int, x0: int, x1: int,
+                    rgb: wp.array3d(dtype=wp.float32)):
+    """Row y = y0 + thread, columns [x0, x1), where hand_coverage[y, x] = c > 0 (else rgb is left as it is): the
+    scene depth s (+inf unless finite and > 0); the hand in front (hand_depth <= s): rgb = c hand + (1 - c) rgb;
+    behind: rgb = rgb + ((1 - alpha) c) (hand - background); float32, numpy's operations in numpy's order."""
+    y = y0 + wp.tid()
+    zero, one = wp.float32(0.0), wp.float32(1.0)
+    for x in range(x0, x1):
+        c = hand_coverage[y, x]
+        if c > zero:
+            seen = scene_depth[y, x]
+            if not (seen > zero and wp.isfinite(seen)):
+                seen = wp.float32(wp.inf)
+            if hand_depth[y, x] <= seen:
+                rest = one - c
+                for k in range(3):
+                    rgb[y, x, k] = c * hand_rgb[y, x, k] + rest * rgb[y, x, k]
+            else:
+                share = (one - scene_alpha[y, x]) * c
+                for k in range(3):
+                    rgb[y, x, k] = rgb[y, x, k] + share * (hand_rgb[y, x, k] - background[k])
+
+
 def capsule_scalars(a: np.ndarray, b: np.ndarray, r: float) -> list[float]:
     """The kernel's CAPSULE_FIELDS scalars of capsule a-b (3,) m, radius r m, camera coordinates (numpy's dot
     products, so the kernel starts from the numbers the numpy formulation used)."""
@@ -165,3 +193,24 @@ def shade_skin_pixels(normal: np.ndarray, view: np.ndarray, coverage: np.ndarray
               inputs=[*inputs, *vectors, *box, wp.array(rgb, dtype=wp.float32, device="cpu", copy=False)],
               device="cpu")
     return rgb
+
+
+def composite_hand_pixels(scene_rgb: np.ndarray, scene_alpha: np.ndarray, scene_depth: np.ndarray,
+                          background: np.ndarray, hand_rgb: np.ndarray, hand_depth: np.ndarray,
+                          hand_coverage: np.ndarray) -> np.ndarray:
+    """(y, x, 3) float32: ``scene_rgb`` with the hand layer (rgb (y, x, 3), depth (y, x) m, coverage (y, x)) put in by
+    depth (``_composite_hand``) over the rows and columns with coverage; every input as float32, as the display
+    step's are (bit-identical to the numpy expression on float32 inputs)."""
+    out = np.array(scene_rgb, dtype=np.float32, order="C")
+    drawn = hand_coverage > 0
+    rows, cols = np.flatnonzero(drawn.any(axis=1)), np.flatnonzero(drawn.any(axis=0))
+    if len(rows) == 0:
+        return out
+    wp.init()
+    layers = [wp.array(np.ascontiguousarray(a, np.float32), dtype=wp.float32, device="cpu", copy=False)
+              for a in (hand_rgb, hand_depth, hand_coverage, scene_alpha, scene_depth)]
+    box = [int(rows[0]), int(cols[0]), int(cols[-1]) + 1]
+    wp.launch(_composite_hand, dim=int(rows[-1]) + 1 - box[0],
+              inputs=[*layers, wp.vec3f(*map(float, np.asarray(background, np.float32))), *box,
+                      wp.array(out, dtype=wp.float32, device="cpu", copy=False)], device="cpu")
+    return out
