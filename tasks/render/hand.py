@@ -21,6 +21,7 @@ across capsules, with an anti-aliased silhouette from the distance between the p
 colour with a soft Blinn-Phong sheen.  :func:`composite_hand` puts the hand into a rendered frame by depth: a finger
 in front of the object occludes it, a finger behind it is hidden (the object's semi-transparent rim lets it show
 through as much as the object's alpha allows).
+:func:`draw_hand` does both for the display step in one kernel pass, without the hand layer.
 
 Units: metres, pixels, linear RGB in [0, 1].  Cameras as in :mod:`tasks.render.cameras` (OpenCV: x right, y down,
 z forward; pixel (x, y) covers [x, x + 1) x [y, y + 1)).
@@ -34,7 +35,14 @@ import numpy as np
 
 from conf.hand import FINGERS, N_FINGERS
 
-from .hand_kernels import CAPSULE_FIELDS, capsule_scalars, composite_hand_pixels, draw_capsules, shade_skin_pixels
+from .hand_kernels import (
+    CAPSULE_FIELDS,
+    capsule_scalars,
+    composite_hand_pixels,
+    draw_capsules,
+    shade_and_composite_pixels,
+    shade_skin_pixels,
+)
 
 # m, capsule radii per finger (thumb .. pinky), proximal and distal phalanx
 FINGER_RADII = np.array([[0.0100, 0.0090], [0.0085, 0.0075], [0.0088, 0.0078], [0.0083, 0.0073], [0.0075, 0.0065]])
@@ -220,6 +228,9 @@ def _pixel_rays(K: np.ndarray, x0: int, x1: int, y0: int, y1: int) -> np.ndarray
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
+SKIN_LIGHT = _unit(np.array([-0.4, -0.7, -0.6]))  # unit, camera coordinates, towards the light: upper left
+
+
 def shade_skin(normal: np.ndarray, colour: np.ndarray, view: np.ndarray, coverage: np.ndarray) -> np.ndarray:
     """Lambert + ambient + a soft Blinn-Phong sheen, camera coordinates (light from the upper left, camera side):
     rgb = clip(colour (0.38 + 0.62 max(n.l, 0)) + 0.12 max(n.h, 0)^24, 0, 1), h = unit(l - v), at every pixel where
@@ -227,17 +238,16 @@ def shade_skin(normal: np.ndarray, colour: np.ndarray, view: np.ndarray, coverag
 
     A Warp kernel (:func:`tasks.render.hand_kernels.shade_skin_pixels`); equal to the former numpy expression within
     float64 round-off (numpy's n.l is a BLAS product with fused multiply-adds, its power SVML's), float32 out."""
-    return shade_skin_pixels(normal, view, coverage, colour, _unit(np.array([-0.4, -0.7, -0.6])))
+    return shade_skin_pixels(normal, view, coverage, colour, SKIN_LIGHT)
 
 
 _RAYS: dict[tuple, np.ndarray] = {}
 
 
-def render_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
-                colour: np.ndarray) -> HandLayer:
-    """The hand's capsules in one camera (module doc): world-to-camera ``viewmat`` (4, 4), intrinsics ``K`` (3, 3) px,
-    ``colour`` (3,) linear RGB.  Each capsule is intersected over its projected bounding box only, z-buffered across
-    capsules, in a Warp kernel (:mod:`tasks.render.hand_kernels`: Quilez's ray-capsule intersection per pixel)."""
+def _rasterise(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: int, height: int
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Front depth (y, x) m, unit normal (3, y, x), coverage (y, x) (:func:`tasks.render.hand_kernels.draw_capsules`)
+    and the pixel rays (3, y, x) of the hand's capsules in one camera (:func:`render_hand`)."""
     viewmat, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
     focal = float(K[0, 0])
     key = (K.tobytes(), width, height)
@@ -265,8 +275,29 @@ def render_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: i
         boxes.append((x0, x1, y0, y1))
     depth, normal, coverage = draw_capsules(np.array(drawn_capsules, np.float64).reshape(-1, CAPSULE_FIELDS),
                                             np.array(boxes, np.int32).reshape(-1, 4), rays, focal)
+    return depth, normal, coverage, rays
+
+
+def render_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
+                colour: np.ndarray) -> HandLayer:
+    """The hand's capsules in one camera (module doc): world-to-camera ``viewmat`` (4, 4), intrinsics ``K`` (3, 3) px,
+    ``colour`` (3,) linear RGB.  Each capsule is intersected over its projected bounding box only, z-buffered across
+    capsules, in a Warp kernel (:mod:`tasks.render.hand_kernels`: Quilez's ray-capsule intersection per pixel)."""
+    depth, normal, coverage, rays = _rasterise(capsules, viewmat, K, width, height)
     rgb = shade_skin(normal, np.asarray(colour, np.float64), rays, coverage)
     return HandLayer(rgb, depth.astype(np.float32), coverage.astype(np.float32))
+
+
+def draw_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, colour: np.ndarray, scene_rgb: np.ndarray,
+              scene_alpha: np.ndarray, scene_depth: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """``composite_hand(scene_rgb, scene_alpha, scene_depth, background, render_hand(capsules, viewmat, K, width,
+    height, colour))`` (the frame's size) without the hand layer: the skin's shading and the depth compositing in one
+    kernel pass over the rows and columns the hand covers
+    (:func:`tasks.render.hand_kernels.shade_and_composite_pixels`), the same numbers."""
+    height, width = scene_rgb.shape[:2]
+    depth, normal, coverage, rays = _rasterise(capsules, viewmat, K, width, height)
+    return shade_and_composite_pixels(normal, rays, coverage, depth, np.asarray(colour, np.float64), SKIN_LIGHT,
+                                      scene_rgb, scene_alpha, scene_depth, background)
 
 
 def composite_hand(scene_rgb: np.ndarray, scene_alpha: np.ndarray, scene_depth: np.ndarray,

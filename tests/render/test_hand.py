@@ -9,6 +9,7 @@ from tasks.render.hand import (
     Capsules,
     HandLayer,
     composite_hand,
+    draw_hand,
     finger_chain,
     hand_sequence,
     render_hand,
@@ -140,6 +141,32 @@ def test_compositing_at_full_and_no_coverage_in_front_of_and_behind_the_scene():
     np.testing.assert_array_equal(out[3:, 1:4], 0.25)  # behind the opaque object: hidden
     np.testing.assert_array_equal(out[3:, 4:], np.float32(0.25) + np.float32(0.5) * np.float32(-0.25))  # 0.125
     np.testing.assert_array_equal(out[:, 0], 0.25)  # no coverage
+
+
+
+def test_the_fused_skin_and_compositing_pass_equals_the_layer_then_the_compositing_bit_for_bit():
+    """``draw_hand`` (one kernel pass from the capsules' float64 buffers) = ``composite_hand`` of ``render_hand``'s
+    float32 layer, on random capsules in front of, through and behind a random scene (half of it empty)."""
+    rng = np.random.default_rng(11)
+    n = 12
+    a = rng.uniform([-0.12, -0.1, -0.12], [0.12, 0.1, 0.12], (n, 3))
+    caps = Capsules(a, a + rng.normal(0, 0.05, (n, 3)), rng.uniform(0.008, 0.02, n))
+    skin, background = np.array([0.8, 0.55, 0.45]), np.array([0.9, 0.95, 1.0], np.float32)
+    scene = rng.uniform(0, 1, (H, W, 3)).astype(np.float32)
+    alpha = rng.uniform(0, 1, (H, W)).astype(np.float32)
+    depth = rng.uniform(0.42, 0.58, (H, W)).astype(np.float32)  # the capsules' fronts lie between 0.38 and 0.62 m
+    depth[:, : W // 2] = np.where(rng.uniform(0, 1, (H, W // 2)) < 0.5, np.inf, 0.0)
+    layer = render_hand(caps, CAMERA, K, W, H, skin)
+    expected = composite_hand(scene, alpha, depth, background, layer)
+    out = draw_hand(caps, CAMERA, K, skin, scene, alpha, depth, background)
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(out, expected)
+    covered = layer.coverage > 0
+    front = layer.depth <= np.where((depth > 0) & np.isfinite(depth), depth, np.inf)
+    assert (covered & front).sum() > 200 and (covered & ~front).sum() > 50
+    assert ((layer.coverage > 0) & (layer.coverage < 1)).sum() > 50  # the anti-aliased rim
+    nothing = Capsules(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+    np.testing.assert_array_equal(draw_hand(nothing, CAMERA, K, skin, scene, alpha, depth, background), scene)
 
 
 def test_a_finger_chain_ends_at_the_recorded_tip_with_its_bone_lengths_and_bends_more_when_closer():
