@@ -245,9 +245,10 @@ _RAYS: dict[tuple, np.ndarray] = {}
 
 
 def _rasterise(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: int, height: int
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Front depth (y, x) m, unit normal (3, y, x), coverage (y, x) (:func:`tasks.render.hand_kernels.draw_capsules`)
-    and the pixel rays (3, y, x) of the hand's capsules in one camera (:func:`render_hand`)."""
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int], np.ndarray]:
+    """Front depth (h, w) m, unit normal (3, h, w), coverage (h, w) over the union of the capsules' screen boxes and
+    its origin (y, x) px (:func:`tasks.render.hand_kernels.draw_capsules`), and the pixel rays (3, y, x) of the
+    whole image, for the hand's capsules in one camera (:func:`render_hand`)."""
     viewmat, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
     focal = float(K[0, 0])
     key = (K.tobytes(), width, height)
@@ -258,24 +259,21 @@ def _rasterise(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: in
     rays = _RAYS[key]
     a_cam = capsules.a @ viewmat[:3, :3].T + viewmat[:3, 3]
     b_cam = capsules.b @ viewmat[:3, :3].T + viewmat[:3, 3]
-    drawn_capsules, boxes = [], []
-    for a, b, r in zip(a_cam, b_cam, np.asarray(capsules.radius, np.float64)):
-        near = min(a[2], b[2]) - r
-        if near <= 1e-3:  # behind or through the camera: not drawn
-            continue
-        ends = np.stack([a, b])
-        uv = ends[:, :2] / ends[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
-        pad = r * focal / near + 2
-        x0, y0 = np.floor(uv.min(axis=0) - pad).astype(int)
-        x1, y1 = np.ceil(uv.max(axis=0) + pad).astype(int) + 1
-        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
-        if x0 >= x1 or y0 >= y1:
-            continue
-        drawn_capsules.append(capsule_scalars(a, b, float(r)))
-        boxes.append((x0, x1, y0, y1))
-    depth, normal, coverage = draw_capsules(np.array(drawn_capsules, np.float64).reshape(-1, CAPSULE_FIELDS),
-                                            np.array(boxes, np.int32).reshape(-1, 4), rays, focal)
-    return depth, normal, coverage, rays
+    radius = np.asarray(capsules.radius, np.float64)
+    near = np.minimum(a_cam[:, 2], b_cam[:, 2]) - radius
+    ahead = np.flatnonzero(near > 1e-3)  # behind or through the camera: not drawn
+    # screen boxes: the ends' pixels +- the radius at the nearest depth + 2 px, clipped to the image
+    uv_a, uv_b = ((ends[ahead, :2] / ends[ahead, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]) for ends in (a_cam, b_cam))
+    pad = (radius[ahead] * focal / near[ahead] + 2)[:, None]
+    lo = np.maximum(np.floor(np.minimum(uv_a, uv_b) - pad).astype(int), 0)
+    hi = np.minimum(np.ceil(np.maximum(uv_a, uv_b) + pad).astype(int) + 1, [width, height])
+    seen = (lo < hi).all(axis=1)
+    drawn = ahead[seen]
+    scalars = [capsule_scalars(a_cam[n], b_cam[n], float(radius[n])) for n in drawn]
+    boxes = np.column_stack([lo[seen, 0], hi[seen, 0], lo[seen, 1], hi[seen, 1]])
+    depth, normal, coverage, origin = draw_capsules(np.array(scalars, np.float64).reshape(-1, CAPSULE_FIELDS), boxes,
+                                                    rays, focal)
+    return depth, normal, coverage, origin, rays
 
 
 def render_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
@@ -283,7 +281,11 @@ def render_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: i
     """The hand's capsules in one camera (module doc): world-to-camera ``viewmat`` (4, 4), intrinsics ``K`` (3, 3) px,
     ``colour`` (3,) linear RGB.  Each capsule is intersected over its projected bounding box only, z-buffered across
     capsules, in a Warp kernel (:mod:`tasks.render.hand_kernels`: Quilez's ray-capsule intersection per pixel)."""
-    depth, normal, coverage, rays = _rasterise(capsules, viewmat, K, width, height)
+    local_depth, local_normal, local_coverage, (oy, ox), rays = _rasterise(capsules, viewmat, K, width, height)
+    depth, coverage, normal = np.full((height, width), np.inf), np.zeros((height, width)), np.zeros((3, height, width))
+    normal[2] = -1.0
+    box = np.s_[oy:oy + local_depth.shape[0], ox:ox + local_depth.shape[1]]
+    depth[box], coverage[box], normal[(slice(None), *box)] = local_depth, local_coverage, local_normal
     rgb = shade_skin(normal, np.asarray(colour, np.float64), rays, coverage)
     return HandLayer(rgb, depth.astype(np.float32), coverage.astype(np.float32))
 
@@ -295,9 +297,9 @@ def draw_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, colour: np
     kernel pass over the rows and columns the hand covers
     (:func:`tasks.render.hand_kernels.shade_and_composite_pixels`), the same numbers."""
     height, width = scene_rgb.shape[:2]
-    depth, normal, coverage, rays = _rasterise(capsules, viewmat, K, width, height)
-    return shade_and_composite_pixels(normal, rays, coverage, depth, np.asarray(colour, np.float64), SKIN_LIGHT,
-                                      scene_rgb, scene_alpha, scene_depth, background)
+    depth, normal, coverage, origin, rays = _rasterise(capsules, viewmat, K, width, height)
+    return shade_and_composite_pixels(normal, rays, coverage, depth, origin, np.asarray(colour, np.float64),
+                                      SKIN_LIGHT, scene_rgb, scene_alpha, scene_depth, background)
 
 
 def composite_hand(scene_rgb: np.ndarray, scene_alpha: np.ndarray, scene_depth: np.ndarray,

@@ -25,10 +25,11 @@ CAPSULE_FIELDS = 16
 
 @wp.kernel
 def _draw_capsules(capsule: wp.array2d(dtype=_f64), box: wp.array2d(dtype=wp.int32), rays: wp.array3d(dtype=_f64),
-                   focal: _f64, depth: wp.array2d(dtype=_f64), normal: wp.array3d(dtype=_f64),
+                   focal: _f64, oy: int, ox: int, depth: wp.array2d(dtype=_f64), normal: wp.array3d(dtype=_f64),
                    coverage: wp.array2d(dtype=_f64)):
     """Capsule n: capsule[n] = the CAPSULE_FIELDS scalars; box[n] = (x0, x1, y0, y1) px, clipped (x1, y1 exclusive);
-    rays (3, y, x): unit ray directions through the pixel centres; focal: fx px."""
+    rays (3, y, x): unit ray directions through the pixel centres; focal: fx px; depth, normal, coverage: buffers
+    whose element [y - oy, x - ox] is pixel (y, x)."""
     n = wp.tid()
     a0, a1, a2 = capsule[n, 0], capsule[n, 1], capsule[n, 2]
     ba0, ba1, ba2 = capsule[n, 3], capsule[n, 4], capsule[n, 5]
@@ -89,23 +90,23 @@ def _draw_capsules(capsule: wp.array2d(dtype=_f64), box: wp.array2d(dtype=wp.int
                     d = t * rz
                 else:
                     nx, ny, nz = zero, zero, -one
-                if d < depth[y, x]:
-                    depth[y, x] = d
-                    normal[0, y, x] = nx
-                    normal[1, y, x] = ny
-                    normal[2, y, x] = nz
-                coverage[y, x] = wp.max(coverage[y, x], c)
+                i, j = y - oy, x - ox
+                if d < depth[i, j]:
+                    depth[i, j] = d
+                    normal[0, i, j] = nx
+                    normal[1, i, j] = ny
+                    normal[2, i, j] = nz
+                coverage[i, j] = wp.max(coverage[i, j], c)
 
 
 @wp.func
-def _skin(normal: wp.array3d(dtype=_f64), view: wp.array3d(dtype=_f64), y: int, x: int, colour: wp.vec3d,
-          light: wp.vec3d) -> wp.vec3f:
-    """clip(colour (0.38 + 0.62 max(n.l, 0)) + 0.12 max(n.h, 0)^24, 0, 1) at pixel (y, x), h = unit(l - v), as
-    float32; normal, view (3, y, x) unit, camera coordinates."""
+def _skin(normal: wp.vec3d, view: wp.vec3d, colour: wp.vec3d, light: wp.vec3d) -> wp.vec3f:
+    """clip(colour (0.38 + 0.62 max(n.l, 0)) + 0.12 max(n.h, 0)^24, 0, 1), h = unit(l - v), as float32; normal n,
+    view v unit, camera coordinates."""
     zero, one = _f64(0.0), _f64(1.0)
-    n0, n1, n2 = normal[0, y, x], normal[1, y, x], normal[2, y, x]
+    n0, n1, n2 = normal[0], normal[1], normal[2]
     n_l = wp.max(n0 * light[0] + n1 * light[1] + n2 * light[2], zero)
-    h0, h1, h2 = light[0] - view[0, y, x], light[1] - view[1, y, x], light[2] - view[2, y, x]
+    h0, h1, h2 = light[0] - view[0], light[1] - view[1], light[2] - view[2]
     norm = wp.max(wp.sqrt(h0 * h0 + h1 * h1 + h2 * h2), _f64(1e-12))
     n_h = wp.max(n0 * (h0 / norm) + n1 * (h1 / norm) + n2 * (h2 / norm), zero)
     spec = _f64(0.12) * wp.pow(n_h, _f64(24.0))
@@ -143,7 +144,8 @@ def _shade_skin(normal: wp.array3d(dtype=_f64), view: wp.array3d(dtype=_f64), co
     y = y0 + wp.tid()
     for x in range(x0, x1):
         if coverage[y, x] > _f64(0.0):
-            shade = _skin(normal, view, y, x, colour, light)
+            shade = _skin(wp.vec3d(normal[0, y, x], normal[1, y, x], normal[2, y, x]),
+                          wp.vec3d(view[0, y, x], view[1, y, x], view[2, y, x]), colour, light)
             for c in range(3):
                 rgb[y, x, c] = shade[c]
 
@@ -167,16 +169,21 @@ def _composite_hand(hand_rgb: wp.array3d(dtype=wp.float32), hand_depth: wp.array
 def _shade_and_composite(normal: wp.array3d(dtype=_f64), view: wp.array3d(dtype=_f64),
                          coverage: wp.array2d(dtype=_f64), depth: wp.array2d(dtype=_f64), colour: wp.vec3d,
                          light: wp.vec3d, scene_alpha: wp.array2d(dtype=wp.float32),
-                         scene_depth: wp.array2d(dtype=wp.float32), background: wp.vec3f, y0: int, x0: int, x1: int,
-                         rgb: wp.array3d(dtype=wp.float32)):
-    """``_shade_skin`` and ``_composite_hand`` in one pass, straight from ``_draw_capsules``' float64 buffers: where
-    the coverage as float32 is > 0, the skin's shade put into rgb by the depth as float32 (what the hand layer holds)."""
+                         scene_depth: wp.array2d(dtype=wp.float32), background: wp.vec3f, oy: int, ox: int, y0: int,
+                         x0: int, x1: int, rgb: wp.array3d(dtype=wp.float32)):
+    """``_shade_skin`` and ``_composite_hand`` in one pass, straight from ``_draw_capsules``' float64 buffers (normal,
+    coverage, depth: element [y - oy, x - ox] is pixel (y, x)): where the coverage as float32 is > 0, the skin's shade
+    put into rgb by the depth as float32 (what the hand layer holds).  Row y = y0 + thread, columns [x0, x1)."""
     y = y0 + wp.tid()
+    i = y - oy
     for x in range(x0, x1):
-        c = wp.float32(coverage[y, x])
+        j = x - ox
+        c = wp.float32(coverage[i, j])
         if c > wp.float32(0.0):
-            _composite(rgb, y, x, c, wp.float32(depth[y, x]), scene_depth[y, x], scene_alpha[y, x],
-                       _skin(normal, view, y, x, colour, light), background)
+            shade = _skin(wp.vec3d(normal[0, i, j], normal[1, i, j], normal[2, i, j]),
+                          wp.vec3d(view[0, y, x], view[1, y, x], view[2, y, x]), colour, light)
+            _composite(rgb, y, x, c, wp.float32(depth[i, j]), scene_depth[y, x], scene_alpha[y, x], shade,
+                       background)
 
 
 def capsule_scalars(a: np.ndarray, b: np.ndarray, r: float) -> list[float]:
@@ -189,25 +196,29 @@ def capsule_scalars(a: np.ndarray, b: np.ndarray, r: float) -> list[float]:
 
 
 def draw_capsules(capsules: np.ndarray, boxes: np.ndarray, rays: np.ndarray, focal: float
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Front depth (y, x) m (+inf where nothing; on the anti-aliased fringe outside the silhouette the depth of the
-    axis point nearest the ray, less r), unit normal (3, y, x) (camera coordinates; (0, 0, -1) where nothing and on
-    the fringe) and coverage (y, x) in [0, 1] of capsules (n, CAPSULE_FIELDS) (:func:`capsule_scalars`) over their
-    screen boxes (n, 4) int (x0, x1, y0, y1) px; rays (3, y, x) unit pixel-centre directions; focal: fx px."""
-    height, width = rays.shape[1:]
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]:
+    """Front depth (h, w) m (+inf where nothing; on the anti-aliased fringe outside the silhouette the depth of the
+    axis point nearest the ray, less r), unit normal (3, h, w) (camera coordinates; (0, 0, -1) where nothing and on
+    the fringe) and coverage (h, w) in [0, 1] of capsules (n, CAPSULE_FIELDS) (:func:`capsule_scalars`) over their
+    screen boxes (n, 4) int (x0, x1, y0, y1) px, and the origin (y, x) px of these buffers: they span the union of
+    the boxes only (pixel (y, x) is element [y - origin y, x - origin x]; (0, 0) buffers at (0, 0) for no capsule);
+    rays (3, y, x) unit pixel-centre directions of the whole image; focal: fx px."""
+    boxes = np.ascontiguousarray(boxes, np.int32).reshape(-1, 4)
+    if len(capsules) == 0:
+        return np.zeros((0, 0)), np.zeros((3, 0, 0)), np.zeros((0, 0)), (0, 0)
+    ox, oy = int(boxes[:, 0].min()), int(boxes[:, 2].min())
+    height, width = int(boxes[:, 3].max()) - oy, int(boxes[:, 1].max()) - ox
     depth = np.full((height, width), np.inf)
     coverage = np.zeros((height, width))
     normal = np.zeros((3, height, width))
     normal[2] = -1.0
-    if len(capsules) == 0:
-        return depth, normal, coverage
     wp.init()   # no-op once Warp is up
     inputs = [wp.array(np.ascontiguousarray(capsules, np.float64), dtype=_f64, device="cpu"),
-              wp.array(np.ascontiguousarray(boxes, np.int32), dtype=wp.int32, device="cpu"),
-              wp.array(np.ascontiguousarray(rays, np.float64), dtype=_f64, device="cpu", copy=False), focal]
+              wp.array(boxes, dtype=wp.int32, device="cpu"),
+              wp.array(np.ascontiguousarray(rays, np.float64), dtype=_f64, device="cpu", copy=False), focal, oy, ox]
     outputs = [wp.array(x, dtype=_f64, device="cpu", copy=False) for x in (depth, normal, coverage)]
     wp.launch(_draw_capsules, dim=len(capsules), inputs=inputs + outputs, device="cpu")
-    return depth, normal, coverage
+    return depth, normal, coverage, (oy, ox)
 
 
 def _covered(coverage: np.ndarray) -> tuple[int, int, int, int] | None:
@@ -260,19 +271,23 @@ def composite_hand_pixels(scene_rgb: np.ndarray, scene_alpha: np.ndarray, scene_
 
 
 def shade_and_composite_pixels(normal: np.ndarray, view: np.ndarray, coverage: np.ndarray, depth: np.ndarray,
-                               colour: np.ndarray, light: np.ndarray, scene_rgb: np.ndarray, scene_alpha: np.ndarray,
-                               scene_depth: np.ndarray, background: np.ndarray) -> np.ndarray:
+                               origin: tuple[int, int], colour: np.ndarray, light: np.ndarray, scene_rgb: np.ndarray,
+                               scene_alpha: np.ndarray, scene_depth: np.ndarray, background: np.ndarray) -> np.ndarray:
     """(y, x, 3) float32: ``scene_rgb`` with the skin (:func:`shade_skin_pixels` of normal, view, coverage) put in by
     depth (:func:`composite_hand_pixels` with the coverage and depth as float32), in one pass
-    (``_shade_and_composite``): the same numbers as the two functions one after the other, without the hand layer."""
+    (``_shade_and_composite``): the same numbers as the two functions one after the other, without the hand layer.
+    normal (3, h, w), coverage, depth (h, w): :func:`draw_capsules`' buffers at ``origin`` (y, x) px; view (3, y, x)
+    and the scene's arrays: the whole image."""
     out = np.array(scene_rgb, dtype=np.float32, order="C")
     launch = _covered(coverage)
     if launch is None:
         return out
     wp.init()
-    wp.launch(_shade_and_composite, dim=launch[0],
+    rows, y0, x0, x1 = launch
+    oy, ox = origin
+    wp.launch(_shade_and_composite, dim=rows,
               inputs=[*(_cpu(a, _f64) for a in (normal, view, coverage, depth)), wp.vec3d(*map(float, colour)),
                       wp.vec3d(*map(float, light)), *(_cpu(a, wp.float32) for a in (scene_alpha, scene_depth)),
-                      wp.vec3f(*map(float, np.asarray(background, np.float32))), *launch[1:], _cpu(out, wp.float32)],
-              device="cpu")
+                      wp.vec3f(*map(float, np.asarray(background, np.float32))), oy, ox, oy + y0, ox + x0, ox + x1,
+                      _cpu(out, wp.float32)], device="cpu")
     return out
