@@ -312,5 +312,6 @@ def composite_hand(scene_rgb: np.ndarray, scene_alpha: np.ndarray, scene_depth: 
     ``scene + (1 - alpha) cov (hand - background)``.
 
     A Warp kernel over the rows and columns the hand covers (:func:`tasks.render.hand_kernels.composite_hand_pixels`),
-    in float32: bit-identical to the former numpy expression on the display step's float32 inputs."""
+    in float32 (other inputs are cast to float32 first): bit-identical to the former numpy expression on the display
+    step's float32 inputs."""
     return composite_hand_pixels(scene_rgb, scene_alpha, scene_depth, background, *hand)
