@@ -43,7 +43,7 @@ from tasks.generation.physics_effect import (
 from tasks.render.cameras import distance_for_object, look_at, orbit_rig
 from tasks.render.colour import srgb_uint8_to_linear, to_srgb_uint8
 from tasks.render.device import torch_device
-from tasks.render.hand import composite_hand, hand_sequence, render_hand
+from tasks.render.hand import draw_hand, hand_sequence
 from tasks.render.scene import drawn_covariances, frame_scene, released_appearance, rollout_particle_volumes
 from tasks.render.splat import rasterization
 
@@ -207,8 +207,7 @@ def display_video(inputs: Mapping[str, Any], params: Mapping[str, Any], clock: S
             _lap(clock, "released material" + where)
             # 3. the hand
             if hands is not None:
-                layer = render_hand(hands[f], viewmats[v], Ks[v], width, height, skin)
-                image = composite_hand(image, a, z, background, layer)
+                image = draw_hand(hands[f], viewmats[v], Ks[v], skin, image, a, z, background)
             _lap(clock, "hand" + where)
             out[v, f] = to_srgb_uint8(image)
             _lap(clock, "encode")

@@ -21,6 +21,7 @@ across capsules, with an anti-aliased silhouette from the distance between the p
 colour with a soft Blinn-Phong sheen.  :func:`composite_hand` puts the hand into a rendered frame by depth: a finger
 in front of the object occludes it, a finger behind it is hidden (the object's semi-transparent rim lets it show
 through as much as the object's alpha allows).
+:func:`draw_hand` does both for the display step in one kernel pass, without the hand layer.
 
 Units: metres, pixels, linear RGB in [0, 1].  Cameras as in :mod:`tasks.render.cameras` (OpenCV: x right, y down,
 z forward; pixel (x, y) covers [x, x + 1) x [y, y + 1)).
@@ -34,7 +35,14 @@ import numpy as np
 
 from conf.hand import FINGERS, N_FINGERS
 
-from .hand_kernels import CAPSULE_FIELDS, capsule_scalars, draw_capsules, shade_skin_pixels
+from .hand_kernels import (
+    CAPSULE_FIELDS,
+    capsule_scalars,
+    composite_hand_pixels,
+    draw_capsules,
+    shade_and_composite_pixels,
+    shade_skin_pixels,
+)
 
 # m, capsule radii per finger (thumb .. pinky), proximal and distal phalanx
 FINGER_RADII = np.array([[0.0100, 0.0090], [0.0085, 0.0075], [0.0088, 0.0078], [0.0083, 0.0073], [0.0075, 0.0065]])
@@ -220,6 +228,9 @@ def _pixel_rays(K: np.ndarray, x0: int, x1: int, y0: int, y1: int) -> np.ndarray
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
+SKIN_LIGHT = _unit(np.array([-0.4, -0.7, -0.6]))  # unit, camera coordinates, towards the light: upper left
+
+
 def shade_skin(normal: np.ndarray, colour: np.ndarray, view: np.ndarray, coverage: np.ndarray) -> np.ndarray:
     """Lambert + ambient + a soft Blinn-Phong sheen, camera coordinates (light from the upper left, camera side):
     rgb = clip(colour (0.38 + 0.62 max(n.l, 0)) + 0.12 max(n.h, 0)^24, 0, 1), h = unit(l - v), at every pixel where
@@ -227,17 +238,17 @@ def shade_skin(normal: np.ndarray, colour: np.ndarray, view: np.ndarray, coverag
 
     A Warp kernel (:func:`tasks.render.hand_kernels.shade_skin_pixels`); equal to the former numpy expression within
     float64 round-off (numpy's n.l is a BLAS product with fused multiply-adds, its power SVML's), float32 out."""
-    return shade_skin_pixels(normal, view, coverage, colour, _unit(np.array([-0.4, -0.7, -0.6])))
+    return shade_skin_pixels(normal, view, coverage, colour, SKIN_LIGHT)
 
 
 _RAYS: dict[tuple, np.ndarray] = {}
 
 
-def render_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
-                colour: np.ndarray) -> HandLayer:
-    """The hand's capsules in one camera (module doc): world-to-camera ``viewmat`` (4, 4), intrinsics ``K`` (3, 3) px,
-    ``colour`` (3,) linear RGB.  Each capsule is intersected over its projected bounding box only, z-buffered across
-    capsules, in a Warp kernel (:mod:`tasks.render.hand_kernels`: Quilez's ray-capsule intersection per pixel)."""
+def _rasterise(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: int, height: int
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int], np.ndarray]:
+    """Front depth (h, w) m, unit normal (3, h, w), coverage (h, w) over the union of the capsules' screen boxes and
+    its origin (y, x) px (:func:`tasks.render.hand_kernels.draw_capsules`), and the pixel rays (3, y, x) of the
+    whole image, for the hand's capsules in one camera (:func:`render_hand`)."""
     viewmat, K = np.asarray(viewmat, np.float64), np.asarray(K, np.float64)
     focal = float(K[0, 0])
     key = (K.tobytes(), width, height)
@@ -248,25 +259,47 @@ def render_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: i
     rays = _RAYS[key]
     a_cam = capsules.a @ viewmat[:3, :3].T + viewmat[:3, 3]
     b_cam = capsules.b @ viewmat[:3, :3].T + viewmat[:3, 3]
-    drawn_capsules, boxes = [], []
-    for a, b, r in zip(a_cam, b_cam, np.asarray(capsules.radius, np.float64)):
-        near = min(a[2], b[2]) - r
-        if near <= 1e-3:  # behind or through the camera: not drawn
-            continue
-        ends = np.stack([a, b])
-        uv = ends[:, :2] / ends[:, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]
-        pad = r * focal / near + 2
-        x0, y0 = np.floor(uv.min(axis=0) - pad).astype(int)
-        x1, y1 = np.ceil(uv.max(axis=0) + pad).astype(int) + 1
-        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
-        if x0 >= x1 or y0 >= y1:
-            continue
-        drawn_capsules.append(capsule_scalars(a, b, float(r)))
-        boxes.append((x0, x1, y0, y1))
-    depth, normal, coverage = draw_capsules(np.array(drawn_capsules, np.float64).reshape(-1, CAPSULE_FIELDS),
-                                            np.array(boxes, np.int32).reshape(-1, 4), rays, focal)
+    radius = np.asarray(capsules.radius, np.float64)
+    near = np.minimum(a_cam[:, 2], b_cam[:, 2]) - radius
+    ahead = np.flatnonzero(near > 1e-3)  # behind or through the camera: not drawn
+    # screen boxes: the ends' pixels +- the radius at the nearest depth + 2 px, clipped to the image
+    uv_a, uv_b = ((ends[ahead, :2] / ends[ahead, 2:] * [K[0, 0], K[1, 1]] + K[:2, 2]) for ends in (a_cam, b_cam))
+    pad = (radius[ahead] * focal / near[ahead] + 2)[:, None]
+    lo = np.maximum(np.floor(np.minimum(uv_a, uv_b) - pad).astype(int), 0)
+    hi = np.minimum(np.ceil(np.maximum(uv_a, uv_b) + pad).astype(int) + 1, [width, height])
+    seen = (lo < hi).all(axis=1)
+    drawn = ahead[seen]
+    scalars = [capsule_scalars(a_cam[n], b_cam[n], float(radius[n])) for n in drawn]
+    boxes = np.column_stack([lo[seen, 0], hi[seen, 0], lo[seen, 1], hi[seen, 1]])
+    depth, normal, coverage, origin = draw_capsules(np.array(scalars, np.float64).reshape(-1, CAPSULE_FIELDS), boxes,
+                                                    rays, focal)
+    return depth, normal, coverage, origin, rays
+
+
+def render_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, width: int, height: int,
+                colour: np.ndarray) -> HandLayer:
+    """The hand's capsules in one camera (module doc): world-to-camera ``viewmat`` (4, 4), intrinsics ``K`` (3, 3) px,
+    ``colour`` (3,) linear RGB.  Each capsule is intersected over its projected bounding box only, z-buffered across
+    capsules, in a Warp kernel (:mod:`tasks.render.hand_kernels`: Quilez's ray-capsule intersection per pixel)."""
+    local_depth, local_normal, local_coverage, (oy, ox), rays = _rasterise(capsules, viewmat, K, width, height)
+    depth, coverage, normal = np.full((height, width), np.inf), np.zeros((height, width)), np.zeros((3, height, width))
+    normal[2] = -1.0
+    box = np.s_[oy:oy + local_depth.shape[0], ox:ox + local_depth.shape[1]]
+    depth[box], coverage[box], normal[(slice(None), *box)] = local_depth, local_coverage, local_normal
     rgb = shade_skin(normal, np.asarray(colour, np.float64), rays, coverage)
     return HandLayer(rgb, depth.astype(np.float32), coverage.astype(np.float32))
+
+
+def draw_hand(capsules: Capsules, viewmat: np.ndarray, K: np.ndarray, colour: np.ndarray, scene_rgb: np.ndarray,
+              scene_alpha: np.ndarray, scene_depth: np.ndarray, background: np.ndarray) -> np.ndarray:
+    """``composite_hand(scene_rgb, scene_alpha, scene_depth, background, render_hand(capsules, viewmat, K, width,
+    height, colour))`` (the frame's size) without the hand layer: the skin's shading and the depth compositing in one
+    kernel pass over the rows and columns the hand covers
+    (:func:`tasks.render.hand_kernels.shade_and_composite_pixels`), the same numbers."""
+    height, width = scene_rgb.shape[:2]
+    depth, normal, coverage, origin, rays = _rasterise(capsules, viewmat, K, width, height)
+    return shade_and_composite_pixels(normal, rays, coverage, depth, origin, np.asarray(colour, np.float64),
+                                      SKIN_LIGHT, scene_rgb, scene_alpha, scene_depth, background)
 
 
 def composite_hand(scene_rgb: np.ndarray, scene_alpha: np.ndarray, scene_depth: np.ndarray,
@@ -276,17 +309,9 @@ def composite_hand(scene_rgb: np.ndarray, scene_alpha: np.ndarray, scene_depth: 
     scene_rgb: the frame composited over ``background`` (3,); scene_alpha (y, x): its opacity; scene_depth (y, x) m:
     depth of what the frame shows (+inf or 0 where nothing).  Where the hand is nearer (or nothing is drawn):
     ``cov hand + (1 - cov) scene``; where it is behind: it replaces the background only,
-    ``scene + (1 - alpha) cov (hand - background)``."""
-    drawn = hand.coverage > 0
-    if not drawn.any():
-        return scene_rgb.astype(np.float32)
-    out = scene_rgb.astype(np.float32).copy()
-    cov = hand.coverage[drawn][:, None]
-    seen = scene_depth[drawn]
-    seen = np.where((seen > 0) & np.isfinite(seen), seen, np.inf)
-    front = (hand.depth[drawn] <= seen)[:, None]
-    rgb, hand_rgb = out[drawn], hand.rgb[drawn]
-    over = cov * hand_rgb + (1.0 - cov) * rgb
-    under = rgb + (1.0 - scene_alpha[drawn][:, None]) * cov * (hand_rgb - np.asarray(background, np.float32))
-    out[drawn] = np.where(front, over, under)
-    return out
+    ``scene + (1 - alpha) cov (hand - background)``.
+
+    A Warp kernel over the rows and columns the hand covers (:func:`tasks.render.hand_kernels.composite_hand_pixels`),
+    in float32 (other inputs are cast to float32 first): bit-identical to the former numpy expression on the display
+    step's float32 inputs."""
+    return composite_hand_pixels(scene_rgb, scene_alpha, scene_depth, background, *hand)

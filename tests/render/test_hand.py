@@ -9,6 +9,7 @@ from tasks.render.hand import (
     Capsules,
     HandLayer,
     composite_hand,
+    draw_hand,
     finger_chain,
     hand_sequence,
     render_hand,
@@ -76,6 +77,96 @@ def test_a_finger_in_front_occludes_and_behind_is_hidden():
     # where nothing is drawn (depth inf) the hand is in front
     np.testing.assert_array_equal(composite_hand(scene, alpha * 0, np.full((4, 4), np.inf), background, behind),
                                   hand_rgb)
+
+
+
+def _composite_hand_reference(scene_rgb, scene_alpha, scene_depth, background, hand):
+    """The numpy ``composite_hand`` before the kernel (issue 51)."""
+    drawn = hand.coverage > 0
+    out = scene_rgb.astype(np.float32).copy()
+    cov = hand.coverage[drawn][:, None]
+    seen = scene_depth[drawn]
+    seen = np.where((seen > 0) & np.isfinite(seen), seen, np.inf)
+    front = (hand.depth[drawn] <= seen)[:, None]
+    rgb, hand_rgb = out[drawn], hand.rgb[drawn]
+    over = cov * hand_rgb + (1.0 - cov) * rgb
+    under = rgb + (1.0 - scene_alpha[drawn][:, None]) * cov * (hand_rgb - np.asarray(background, np.float32))
+    out[drawn] = np.where(front, over, under)
+    return out
+
+
+def test_the_compositing_kernel_equals_the_numpy_formulation_bit_for_bit():
+    rng = np.random.default_rng(7)
+    h, w = 48, 40
+    scene = rng.uniform(0, 1, (h, w, 3)).astype(np.float32)
+    alpha = rng.uniform(0, 1, (h, w)).astype(np.float32)
+    depth = rng.uniform(0.3, 0.7, (h, w)).astype(np.float32)
+    depth[rng.uniform(0, 1, (h, w)) < 0.1] = np.inf  # nothing drawn there: 0 or +inf
+    depth[rng.uniform(0, 1, (h, w)) < 0.1] = 0.0
+    hand_depth = rng.uniform(0.3, 0.7, (h, w)).astype(np.float32)
+    ties = rng.uniform(0, 1, (h, w)) < 0.1
+    hand_depth[ties] = depth[ties]  # a tie puts the hand in front
+    coverage = np.where(rng.uniform(0, 1, (h, w)) < 0.5, rng.uniform(0, 1, (h, w)), 0.0).astype(np.float32)
+    coverage[:5] = 0.0  # rows and columns without the hand
+    coverage[:, -3:] = 0.0
+    coverage[rng.uniform(0, 1, (h, w)) < 0.05] = 1.0
+    layer = HandLayer(rng.uniform(0, 1, (h, w, 3)).astype(np.float32), hand_depth, coverage)
+    background = np.array([0.9, 0.95, 1.0], np.float32)
+    out = composite_hand(scene, alpha, depth, background, layer)
+    expected = _composite_hand_reference(scene, alpha, depth, background, layer)
+    assert out.dtype == np.float32 and out.shape == scene.shape
+    np.testing.assert_array_equal(out, expected)
+    front = (hand_depth <= np.where((depth > 0) & np.isfinite(depth), depth, np.inf)) & (coverage > 0)
+    assert 100 < front.sum() < (coverage > 0).sum() - 100 and (front & ties).sum() > 10
+    np.testing.assert_array_equal(out[coverage == 0], scene[coverage == 0])  # no coverage: the scene untouched
+    # an empty hand layer leaves the frame as it is
+    empty = HandLayer(layer.rgb, hand_depth, np.zeros((h, w), np.float32))
+    np.testing.assert_array_equal(composite_hand(scene, alpha, depth, background, empty), scene)
+
+
+def test_compositing_at_full_and_no_coverage_in_front_of_and_behind_the_scene():
+    """Closed forms: coverage 1 in front = the hand; behind an opaque scene = the scene; behind a scene of opacity
+    a = scene + (1 - a)(hand - background); coverage 0 = the scene, whatever the depths."""
+    scene = np.full((6, 8, 3), 0.25, np.float32)
+    alpha = np.full((6, 8), 1.0, np.float32)
+    alpha[:, 4:] = 0.5
+    depth = np.full((6, 8), 0.5, np.float32)
+    hand_rgb = np.full((6, 8, 3), 0.75, np.float32)
+    hand_depth = np.where(np.arange(6)[:, None] < 3, 0.25, 1.0).astype(np.float32) * np.ones((1, 8), np.float32)
+    coverage = np.ones((6, 8), np.float32)
+    coverage[:, 0] = 0.0
+    background = np.array([1.0, 1.0, 1.0], np.float32)
+    out = composite_hand(scene, alpha, depth, background, HandLayer(hand_rgb, hand_depth, coverage))
+    np.testing.assert_array_equal(out[:3, 1:], 0.75)  # in front: the hand
+    np.testing.assert_array_equal(out[3:, 1:4], 0.25)  # behind the opaque object: hidden
+    np.testing.assert_array_equal(out[3:, 4:], np.float32(0.25) + np.float32(0.5) * np.float32(-0.25))  # 0.125
+    np.testing.assert_array_equal(out[:, 0], 0.25)  # no coverage
+
+
+
+def test_the_fused_skin_and_compositing_pass_equals_the_layer_then_the_compositing_bit_for_bit():
+    """``draw_hand`` (one kernel pass from the capsules' float64 buffers) = ``composite_hand`` of ``render_hand``'s
+    float32 layer, on random capsules in front of, through and behind a random scene (half of it empty)."""
+    rng = np.random.default_rng(11)
+    n = 12
+    a = rng.uniform([-0.12, -0.1, -0.12], [0.12, 0.1, 0.12], (n, 3))
+    caps = Capsules(a, a + rng.normal(0, 0.05, (n, 3)), rng.uniform(0.008, 0.02, n))
+    skin, background = np.array([0.8, 0.55, 0.45]), np.array([0.9, 0.95, 1.0], np.float32)
+    scene = rng.uniform(0, 1, (H, W, 3)).astype(np.float32)
+    alpha = rng.uniform(0, 1, (H, W)).astype(np.float32)
+    depth = rng.uniform(0.42, 0.58, (H, W)).astype(np.float32)  # the capsules' fronts lie between 0.38 and 0.62 m
+    depth[:, : W // 2] = np.where(rng.uniform(0, 1, (H, W // 2)) < 0.5, np.inf, 0.0)
+    layer = render_hand(caps, CAMERA, K, W, H, skin)
+    expected = composite_hand(scene, alpha, depth, background, layer)
+    out = draw_hand(caps, CAMERA, K, skin, scene, alpha, depth, background)
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(out, expected)
+    covered = layer.coverage > 0
+    front = layer.depth <= np.where((depth > 0) & np.isfinite(depth), depth, np.inf)
+    assert (covered & front).sum() > 200 and (covered & ~front).sum() > 50
+    assert ((layer.coverage > 0) & (layer.coverage < 1)).sum() > 50  # the anti-aliased rim
+    nothing = Capsules(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+    np.testing.assert_array_equal(draw_hand(nothing, CAMERA, K, skin, scene, alpha, depth, background), scene)
 
 
 def test_a_finger_chain_ends_at_the_recorded_tip_with_its_bone_lengths_and_bends_more_when_closer():
