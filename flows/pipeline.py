@@ -34,6 +34,7 @@ is computed, when a step is not cached there (:func:`shared_cache_grid`).
 """
 from __future__ import annotations
 
+import contextlib
 import time
 from datetime import datetime
 from functools import partial
@@ -176,7 +177,8 @@ def variant_key(variant: str, backend: str | None = None) -> str:
 
 def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], backends: list[str] | None = None,
                   per_variant: tuple[StepTask, ...] = PER_VARIANT, scope: str | None = None,
-                  call: Callable[..., Any] = StepTask.submit) -> dict[tuple[str, str], Any]:
+                  call: Callable[..., Any] = StepTask.submit,
+                  priorities: tuple[int, int] | None = None) -> dict[tuple[str, str], Any]:
     """Submit one object's steps: the per-object chain once, the per-variant chain for each variant, and the
     per-backend chain for each variant and backend.
 
@@ -184,14 +186,29 @@ def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], 
     steps and ``variant/backend`` for per-backend ones.  ``per_variant`` may be a leading part of
     :data:`PER_VARIANT` (e.g. the deformation chain alone, with ``backends=[]``); ``scope`` names the run's
     artifacts and labels (default: the object's name).  ``call(step, root=, scope=, params=, inputs=, label=)``
-    makes each step's result from its inputs' (default :meth:`StepTask.submit`: a future)."""
+    makes each step's result from its inputs' (default :meth:`StepTask.submit`: a future).  ``priorities``
+    (set-up, rest): the Dask priorities of the per-object steps and of every other step (higher runs first)."""
     scope = scope or obj.name
     kw = dict(root=cfg.paths.artifacts, scope=scope)
     shared: dict[str, Any] = {}
-    for step in PER_OBJECT:
-        shared[step.name] = call(step, params=step_params(step, cfg, obj),
-                                 inputs={n: shared[n] for n in step.spec.inputs}, label=scope, **kw)
+    with _priority(priorities, 0):
+        for step in PER_OBJECT:
+            shared[step.name] = call(step, params=step_params(step, cfg, obj),
+                                     inputs={n: shared[n] for n in step.spec.inputs}, label=scope, **kw)
     out: dict[tuple[str, str], Any] = {(name, ""): fut for name, fut in shared.items()}
+    with _priority(priorities, 1):
+        _submit_variants(cfg, obj, variants, backends, per_variant, call, shared, out, kw)
+    return out
+
+
+def _priority(priorities: tuple[int, int] | None, which: int) -> contextlib.AbstractContextManager:
+    return contextlib.nullcontext() if priorities is None else dask.annotate(priority=priorities[which])
+
+
+def _submit_variants(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], backends: list[str] | None,
+                     per_variant: tuple[StepTask, ...], call: Callable[..., Any], shared: dict[str, Any],
+                     out: dict[tuple[str, str], Any], kw: dict) -> None:
+    scope = kw["scope"]
     for variant in variants:
         available = dict(shared)
         for step in variant_chain(variant, per_variant):
@@ -206,7 +223,6 @@ def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], 
                     step, params=step_params(step, cfg_b, obj, variant), inputs={n: chain[n] for n in step.spec.inputs},
                     label=f"{scope}[{variant_key(variant.name, backend)}]", **kw)
                 out[(step.name, variant_key(variant.name, backend))] = chain[step.name]
-    return out
 
 
 def nest(steps: dict[tuple[str, str], Any]) -> dict[str, Any]:
@@ -349,6 +365,19 @@ def shared_cache_object(cfg: DictConfig, obj: DictConfig, variant: DictConfig, w
         raise _not_in_shared_cache(cfg, why, first) from None
 
 
+def object_priorities(cfg: DictConfig, objects: list[DictConfig]) -> list[tuple[DictConfig, tuple[int, int]]]:
+    """Each object with the Dask priorities (set-up, rest) of its steps, largest object first (a Dask cluster runs
+    its ready steps by priority, higher first; other runners ignore it; the report media run at 0).
+
+    Every object's set-up steps (cheap, up to its gravity preload) outrank every object's other steps: otherwise each
+    small step of a late object waits for a whole rollout of an earlier one, and a freed worker finds no rollout
+    ready.  Then the largest object (:func:`particle_bound`) first: the longest simulations start at once instead of
+    last."""
+    by_work = sorted(objects, key=lambda o: particle_bound(cfg, o), reverse=True)
+    n = len(by_work)
+    return [(obj, (2 * n - rank, n - rank)) for rank, obj in enumerate(by_work)]
+
+
 @flow(name="virsqueezer", log_prints=True, validate_parameters=False, persist_result=False)
 def virsqueezer_flow(config: dict, flow_label: str = "evaluate", report_dir: str | None = None) -> dict:
     """Run the selected objects x seeds x variants through the method steps, then write the run report to
@@ -359,15 +388,12 @@ def virsqueezer_flow(config: dict, flow_label: str = "evaluate", report_dir: str
     cfg = OmegaConf.create(config)
     t0 = time.perf_counter()
     futures, media = {}, []
-    # Largest object first (a Dask cluster runs its ready steps by priority, higher first; other runners ignore it):
-    # the longest simulations start at once instead of last, and the report media wait for a free worker.
     objects = selected_objects(cfg)
-    by_work = sorted(objects, key=lambda o: particle_bound(cfg, o), reverse=True)
-    for rank, obj in enumerate(by_work):
+    for obj, priorities in object_priorities(cfg, objects):
         for seed in selected_seeds(cfg):
             scope = seed_scope(obj.name, seed)
-            with dask.annotate(priority=len(by_work) - rank):
-                futures[scope] = submit_object(with_seed(cfg, seed), obj, selected_variants(cfg), scope=scope)
+            futures[scope] = submit_object(with_seed(cfg, seed), obj, selected_variants(cfg), scope=scope,
+                                           priorities=priorities)
             with dask.annotate(priority=0):
                 media += submit_scene_media(cfg, scope, futures[scope])
     futures = {seed_scope(o.name, s): futures[seed_scope(o.name, s)] for o in objects for s in selected_seeds(cfg)}
