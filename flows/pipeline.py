@@ -39,7 +39,7 @@ import time
 from datetime import datetime
 from functools import partial
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, NamedTuple
 
 import dask
 from omegaconf import DictConfig, OmegaConf
@@ -178,7 +178,7 @@ def variant_key(variant: str, backend: str | None = None) -> str:
 def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], backends: list[str] | None = None,
                   per_variant: tuple[StepTask, ...] = PER_VARIANT, scope: str | None = None,
                   call: Callable[..., Any] = StepTask.submit,
-                  priorities: tuple[int, int] | None = None) -> dict[tuple[str, str], Any]:
+                  priorities: StepPriorities | None = None) -> dict[tuple[str, str], Any]:
     """Submit one object's steps: the per-object chain once, the per-variant chain for each variant, and the
     per-backend chain for each variant and backend.
 
@@ -186,23 +186,23 @@ def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], 
     steps and ``variant/backend`` for per-backend ones.  ``per_variant`` may be a leading part of
     :data:`PER_VARIANT` (e.g. the deformation chain alone, with ``backends=[]``); ``scope`` names the run's
     artifacts and labels (default: the object's name).  ``call(step, root=, scope=, params=, inputs=, label=)``
-    makes each step's result from its inputs' (default :meth:`StepTask.submit`: a future).  ``priorities``
-    (set-up, rest): the Dask priorities of the per-object steps and of every other step (higher runs first)."""
+    makes each step's result from its inputs' (default :meth:`StepTask.submit`: a future).  ``priorities``:
+    the Dask priorities of the per-object steps (``set_up``) and of every other step (``steps``), higher first."""
     scope = scope or obj.name
     kw = dict(root=cfg.paths.artifacts, scope=scope)
     shared: dict[str, Any] = {}
-    with _priority(priorities, 0):
+    with _priority(priorities, "set_up"):
         for step in PER_OBJECT:
             shared[step.name] = call(step, params=step_params(step, cfg, obj),
                                      inputs={n: shared[n] for n in step.spec.inputs}, label=scope, **kw)
     out: dict[tuple[str, str], Any] = {(name, ""): fut for name, fut in shared.items()}
-    with _priority(priorities, 1):
+    with _priority(priorities, "steps"):
         _submit_variants(cfg, obj, variants, backends, per_variant, call, shared, out, kw)
     return out
 
 
-def _priority(priorities: tuple[int, int] | None, which: int) -> contextlib.AbstractContextManager:
-    return contextlib.nullcontext() if priorities is None else dask.annotate(priority=priorities[which])
+def _priority(priorities: StepPriorities | None, which: str) -> contextlib.AbstractContextManager:
+    return contextlib.nullcontext() if priorities is None else dask.annotate(priority=getattr(priorities, which))
 
 
 def _submit_variants(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], backends: list[str] | None,
@@ -365,17 +365,27 @@ def shared_cache_object(cfg: DictConfig, obj: DictConfig, variant: DictConfig, w
         raise _not_in_shared_cache(cfg, why, first) from None
 
 
-def object_priorities(cfg: DictConfig, objects: list[DictConfig]) -> list[tuple[DictConfig, tuple[int, int]]]:
-    """Each object with the Dask priorities (set-up, rest) of its steps, largest object first (a Dask cluster runs
-    its ready steps by priority, higher first; other runners ignore it; the report media run at 0).
+class StepPriorities(NamedTuple):
+    """Dask priorities of one object's steps (higher runs first): its set-up steps, its other steps, its report
+    media."""
+    set_up: int
+    steps: int
+    media: int
+
+
+def object_priorities(cfg: DictConfig, objects: list[DictConfig]) -> list[tuple[DictConfig, StepPriorities]]:
+    """Each object with the Dask priorities of its steps, largest object first (a Dask cluster runs its ready steps
+    by priority, higher first; other runners ignore it).
 
     Every object's set-up steps (cheap, up to its gravity preload) outrank every object's other steps: otherwise each
     small step of a late object waits for a whole rollout of an earlier one, and a freed worker finds no rollout
     ready.  Then the largest object (:func:`particle_bound`) first: the longest simulations start at once instead of
-    last."""
+    last.  An object's report media come after its own steps and before the next object's: made while the grid
+    runs, not all at its end."""
     by_work = sorted(objects, key=lambda o: particle_bound(cfg, o), reverse=True)
     n = len(by_work)
-    return [(obj, (2 * n - rank, n - rank)) for rank, obj in enumerate(by_work)]
+    return [(obj, StepPriorities(set_up=4 * n - rank, steps=2 * (n - rank), media=2 * (n - rank) - 1))
+            for rank, obj in enumerate(by_work)]
 
 
 @flow(name="virsqueezer", log_prints=True, validate_parameters=False, persist_result=False)
@@ -394,7 +404,7 @@ def virsqueezer_flow(config: dict, flow_label: str = "evaluate", report_dir: str
             scope = seed_scope(obj.name, seed)
             futures[scope] = submit_object(with_seed(cfg, seed), obj, selected_variants(cfg), scope=scope,
                                            priorities=priorities)
-            with dask.annotate(priority=0):
+            with dask.annotate(priority=priorities.media):
                 media += submit_scene_media(cfg, scope, futures[scope])
     futures = {seed_scope(o.name, s): futures[seed_scope(o.name, s)] for o in objects for s in selected_seeds(cfg)}
     table = RunTable(total=sum(len(f) for f in futures.values()))

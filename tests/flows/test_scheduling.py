@@ -24,14 +24,17 @@ def test_every_objects_set_up_outranks_every_rollout_and_larger_objects_go_first
     set_up = {k: p for k, p in seen.items() if k[1] in set_up_names}
     rest = {k: p for k, p in seen.items() if k[1] not in set_up_names}
     assert len(set_up) == 8 * len(PER_OBJECT) and "mpm_rollout" in {k[1] for k in rest}
-    assert min(set_up.values()) > max(rest.values()) > 0  # the report media run at priority 0
+    assert min(set_up.values()) > max(rest.values())
     bounds = [particle_bound(cfg, obj) for obj, _ in ranked]
     assert bounds == sorted(bounds, reverse=True)
     by_object = {obj.name: {p for k, p in rest.items() if k[0] == obj.name} for obj, _ in ranked}
     assert all(len(p) == 1 for p in by_object.values())  # one priority per object for all its variants' steps
     order = [by_object[obj.name].pop() for obj, _ in ranked]
-    assert order == sorted(order, reverse=True) and len(set(order)) == 8
+    assert order == [p.steps for _, p in ranked] and order == sorted(order, reverse=True) and len(set(order)) == 8
     assert ranked[0][0].name == "plush_toy"  # the largest simulation starts first
+    # an object's report media: after its own steps, before the next object's, above nothing of the set-up
+    media = [p.media for _, p in ranked]
+    assert all(order[i] > media[i] > (order[i + 1] if i + 1 < 8 else 0) for i in range(8))
 
 
 def test_without_priorities_submit_object_leaves_the_annotations_alone(compose_cfg):
