@@ -54,8 +54,10 @@ def make_task_runner(runner: DictConfig):
 #   never that empty, so the last objects' set-up ran one small step per finished rollout (measured: tomato's nine
 #   set-up steps spread over 28 s, each worker idle for up to 60 % of a 10-s window).
 # * Expected seconds of the long steps on the default grid (before the first of a kind finishes Dask assumes
-#   0.5 s): the workers' queues are then balanced by duration, and a rollout queued behind another on a busy worker
-#   is moved to the worker that frees first, so the rollouts start largest object first as their priorities say.
+#   0.5 s): the workers' queues are balanced by duration rather than count (without them, the measured rollouts
+#   started out of priority order; with them, largest object first).
+# Neither changes the CPU work: the main job keeps both cores busy either way (docs/results/benchmarks.md,
+# "Scheduling the grid").
 LOCAL_SCHEDULER_CONFIG = {
     "distributed.scheduler.worker-saturation": float("inf"),
     "distributed.scheduler.default-task-durations": {
