@@ -13,6 +13,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from tasks.render.warp_numpy import numpy_view
+
 wp.set_module_options({"enable_backward": False})
 
 _f64 = wp.float64
@@ -60,10 +62,8 @@ def splat_ellipsoid_pixels(quadric: np.ndarray, box: np.ndarray, fx: float, fy: 
     if len(quadric) == 0:
         return depth, thickness
     wp.init()   # no-op once Warp is up
-    arrays = [wp.array(np.ascontiguousarray(quadric, np.float64), dtype=_f64, device="cpu"),
-              wp.array(np.ascontiguousarray(box, np.int32), dtype=wp.int32, device="cpu"),
-              wp.array(np.array([fx, fy, cx, cy, near_m], np.float64), dtype=_f64, device="cpu"),
-              wp.array(np.ascontiguousarray(surface_depth, np.float64), dtype=_f64, device="cpu")]
-    outputs = [wp.array(a, dtype=_f64, device="cpu", copy=False) for a in (depth, thickness)]
+    arrays = [numpy_view(quadric), numpy_view(box, wp.int32), numpy_view(np.array([fx, fy, cx, cy, near_m])),
+              numpy_view(surface_depth)]
+    outputs = [numpy_view(a, output=True) for a in (depth, thickness)]
     wp.launch(_splat_ellipsoids, dim=len(quadric), inputs=arrays + outputs, device="cpu")
     return depth, thickness

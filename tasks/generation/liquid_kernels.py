@@ -15,6 +15,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from tasks.render.warp_numpy import numpy_view
+
 wp.set_module_options({"enable_backward": False})
 
 _f64 = wp.float64
@@ -170,10 +172,6 @@ def _liquid_colour(normal: wp.array3d(dtype=_f64), refracted: wp.array3d(dtype=w
             rgb[y, x, c] = wp.float32(_clip((one - fresnel) * body + fresnel * sky + shine, zero, one))
 
 
-def _cpu(a: np.ndarray, dtype=_f64) -> wp.array:
-    return wp.array(a, dtype=dtype, device="cpu", copy=False)
-
-
 def normals_pixels(depth: np.ndarray, covered: np.ndarray, fx: float, fy: float, cx: float, cy: float
                    ) -> np.ndarray:
     """Unit normals (y, x, 3) float64 of :func:`tasks.generation.fluid_render.normals_from_depth`: depth (y, x) m
@@ -183,9 +181,9 @@ def normals_pixels(depth: np.ndarray, covered: np.ndarray, fx: float, fy: float,
     if depth.size == 0:
         return normal
     wp.init()   # no-op once Warp is up
-    inputs = [_cpu(np.ascontiguousarray(depth, np.float64)),
-              _cpu(np.ascontiguousarray(covered, bool).view(np.uint8), wp.uint8), *map(float, (fx, fy, cx, cy))]
-    wp.launch(_normals, dim=height, inputs=[*inputs, _cpu(normal)], device="cpu")
+    inputs = [numpy_view(depth), numpy_view(np.ascontiguousarray(covered, bool).view(np.uint8), wp.uint8),
+              *map(float, (fx, fy, cx, cy))]
+    wp.launch(_normals, dim=height, inputs=[*inputs, numpy_view(normal, output=True)], device="cpu")
     return normal
 
 
@@ -200,9 +198,9 @@ def shading_geometry(normal: np.ndarray, shift_m: np.ndarray, z: np.ndarray, lig
     if z.size == 0:
         return map_x, map_y, n_dot_v, grazing, n_dot_h
     wp.init()
-    inputs = [_cpu(np.ascontiguousarray(normal, np.float64)), _cpu(np.ascontiguousarray(shift_m, np.float64)),
-              _cpu(np.ascontiguousarray(z, np.float64)), wp.vec3d(*map(float, light)), *map(float, (fx, fy, cx, cy))]
-    outputs = [_cpu(map_x, wp.float32), _cpu(map_y, wp.float32), _cpu(n_dot_v), _cpu(grazing), _cpu(n_dot_h)]
+    inputs = [*map(numpy_view, (normal, shift_m, z)), wp.vec3d(*map(float, light)), *map(float, (fx, fy, cx, cy))]
+    outputs = [*(numpy_view(m, wp.float32, output=True) for m in (map_x, map_y)),
+               *(numpy_view(m, output=True) for m in (n_dot_v, grazing, n_dot_h))]
     wp.launch(_shading_geometry, dim=height, inputs=inputs + outputs, device="cpu")
     return map_x, map_y, n_dot_v, grazing, n_dot_h
 
@@ -221,9 +219,8 @@ def liquid_colour(normal: np.ndarray, refracted: np.ndarray, transmittance: np.n
     if n_dot_v.size == 0:
         return rgb
     wp.init()
-    arrays = [np.ascontiguousarray(a, np.float64) for a in (normal, transmittance, turbid, n_dot_l, n_dot_v,
-                                                            fresnel_power, fade, specular_power, optics)]
-    inputs = [_cpu(arrays[0]), _cpu(np.ascontiguousarray(refracted, np.float32), wp.float32),
-              *map(_cpu, arrays[1:]), *map(float, (fx, fy, cx, cy))]
-    wp.launch(_liquid_colour, dim=height, inputs=[*inputs, _cpu(rgb, wp.float32)], device="cpu")
+    inputs = [numpy_view(normal), numpy_view(refracted, wp.float32),
+              *map(numpy_view, (transmittance, turbid, n_dot_l, n_dot_v, fresnel_power, fade, specular_power, optics)),
+              *map(float, (fx, fy, cx, cy))]
+    wp.launch(_liquid_colour, dim=height, inputs=[*inputs, numpy_view(rgb, wp.float32, output=True)], device="cpu")
     return rgb

@@ -15,6 +15,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from tasks.render.warp_numpy import numpy_view
+
 wp.set_module_options({"enable_backward": False})
 
 _f64 = wp.float64
@@ -213,10 +215,8 @@ def draw_capsules(capsules: np.ndarray, boxes: np.ndarray, rays: np.ndarray, foc
     normal = np.zeros((3, height, width))
     normal[2] = -1.0
     wp.init()   # no-op once Warp is up
-    inputs = [wp.array(np.ascontiguousarray(capsules, np.float64), dtype=_f64, device="cpu"),
-              wp.array(boxes, dtype=wp.int32, device="cpu"),
-              wp.array(np.ascontiguousarray(rays, np.float64), dtype=_f64, device="cpu", copy=False), focal, oy, ox]
-    outputs = [wp.array(x, dtype=_f64, device="cpu", copy=False) for x in (depth, normal, coverage)]
+    inputs = [numpy_view(capsules), numpy_view(boxes, wp.int32), numpy_view(rays), focal, oy, ox]
+    outputs = [numpy_view(x, output=True) for x in (depth, normal, coverage)]
     wp.launch(_draw_capsules, dim=len(capsules), inputs=inputs + outputs, device="cpu")
     return depth, normal, coverage, (oy, ox)
 
@@ -231,12 +231,6 @@ def _covered(coverage: np.ndarray) -> tuple[int, int, int, int] | None:
     return int(rows[-1]) + 1 - int(rows[0]), int(rows[0]), int(cols[0]), int(cols[-1]) + 1
 
 
-def _cpu(a: np.ndarray, dtype: type) -> wp.array:
-    """A Warp CPU view of ``a`` as a C-contiguous array of ``dtype`` (float64 or float32; a copy only if needed)."""
-    return wp.array(np.ascontiguousarray(a, np.float64 if dtype is _f64 else np.float32), dtype=dtype, device="cpu",
-                    copy=False)
-
-
 def shade_skin_pixels(normal: np.ndarray, view: np.ndarray, coverage: np.ndarray, colour: np.ndarray,
                       light: np.ndarray) -> np.ndarray:
     """(y, x, 3) float32 linear RGB of the skin where ``coverage`` (y, x) > 0, zero elsewhere (``_shade_skin``):
@@ -247,8 +241,9 @@ def shade_skin_pixels(normal: np.ndarray, view: np.ndarray, coverage: np.ndarray
         return rgb
     wp.init()
     wp.launch(_shade_skin, dim=launch[0],
-              inputs=[*(_cpu(a, _f64) for a in (normal, view, coverage)), wp.vec3d(*map(float, colour)),
-                      wp.vec3d(*map(float, light)), *launch[1:], _cpu(rgb, wp.float32)], device="cpu")
+              inputs=[*(numpy_view(a, _f64) for a in (normal, view, coverage)), wp.vec3d(*map(float, colour)),
+                      wp.vec3d(*map(float, light)), *launch[1:], numpy_view(rgb, wp.float32, output=True)],
+              device="cpu")
     return rgb
 
 
@@ -264,8 +259,10 @@ def composite_hand_pixels(scene_rgb: np.ndarray, scene_alpha: np.ndarray, scene_
         return out
     wp.init()
     wp.launch(_composite_hand, dim=launch[0],
-              inputs=[*(_cpu(a, wp.float32) for a in (hand_rgb, hand_depth, hand_coverage, scene_alpha, scene_depth)),
-                      wp.vec3f(*map(float, np.asarray(background, np.float32))), *launch[1:], _cpu(out, wp.float32)],
+              inputs=[*(numpy_view(a, wp.float32) for a in (hand_rgb, hand_depth, hand_coverage, scene_alpha,
+                                                             scene_depth)),
+                      wp.vec3f(*map(float, np.asarray(background, np.float32))), *launch[1:],
+                      numpy_view(out, wp.float32, output=True)],
               device="cpu")
     return out
 
@@ -286,8 +283,8 @@ def shade_and_composite_pixels(normal: np.ndarray, view: np.ndarray, coverage: n
     rows, y0, x0, x1 = launch
     oy, ox = origin
     wp.launch(_shade_and_composite, dim=rows,
-              inputs=[*(_cpu(a, _f64) for a in (normal, view, coverage, depth)), wp.vec3d(*map(float, colour)),
-                      wp.vec3d(*map(float, light)), *(_cpu(a, wp.float32) for a in (scene_alpha, scene_depth)),
+              inputs=[*(numpy_view(a, _f64) for a in (normal, view, coverage, depth)), wp.vec3d(*map(float, colour)),
+                      wp.vec3d(*map(float, light)), *(numpy_view(a, wp.float32) for a in (scene_alpha, scene_depth)),
                       wp.vec3f(*map(float, np.asarray(background, np.float32))), oy, ox, oy + y0, ox + x0, ox + x1,
-                      _cpu(out, wp.float32)], device="cpu")
+                      numpy_view(out, wp.float32, output=True)], device="cpu")
     return out
