@@ -197,32 +197,26 @@ def submit_object(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], 
                                      inputs={n: shared[n] for n in step.spec.inputs}, label=scope, **kw)
     out: dict[tuple[str, str], Any] = {(name, ""): fut for name, fut in shared.items()}
     with _priority(priorities, "steps"):
-        _submit_variants(cfg, obj, variants, backends, per_variant, call, shared, out, kw)
+        for variant in variants:
+            available = dict(shared)
+            for step in variant_chain(variant, per_variant):
+                available[step.name] = call(
+                    step, params=step_params(step, cfg, obj, variant),
+                    inputs={n: available[n] for n in step.spec.inputs}, label=f"{scope}[{variant.name}]", **kw)
+                out[(step.name, variant.name)] = available[step.name]
+            for backend in (backends if backends is not None else selected_backends(cfg)):
+                cfg_b, chain = backend_config(cfg, backend), dict(available)
+                for step in filter(lambda s: wanted(s, cfg), PER_BACKEND):
+                    chain[step.name] = call(
+                        step, params=step_params(step, cfg_b, obj, variant),
+                        inputs={n: chain[n] for n in step.spec.inputs},
+                        label=f"{scope}[{variant_key(variant.name, backend)}]", **kw)
+                    out[(step.name, variant_key(variant.name, backend))] = chain[step.name]
     return out
 
 
 def _priority(priorities: StepPriorities | None, which: str) -> contextlib.AbstractContextManager:
     return contextlib.nullcontext() if priorities is None else dask.annotate(priority=getattr(priorities, which))
-
-
-def _submit_variants(cfg: DictConfig, obj: DictConfig, variants: list[DictConfig], backends: list[str] | None,
-                     per_variant: tuple[StepTask, ...], call: Callable[..., Any], shared: dict[str, Any],
-                     out: dict[tuple[str, str], Any], kw: dict) -> None:
-    scope = kw["scope"]
-    for variant in variants:
-        available = dict(shared)
-        for step in variant_chain(variant, per_variant):
-            available[step.name] = call(
-                step, params=step_params(step, cfg, obj, variant), inputs={n: available[n] for n in step.spec.inputs},
-                label=f"{scope}[{variant.name}]", **kw)
-            out[(step.name, variant.name)] = available[step.name]
-        for backend in (backends if backends is not None else selected_backends(cfg)):
-            cfg_b, chain = backend_config(cfg, backend), dict(available)
-            for step in filter(lambda s: wanted(s, cfg), PER_BACKEND):
-                chain[step.name] = call(
-                    step, params=step_params(step, cfg_b, obj, variant), inputs={n: chain[n] for n in step.spec.inputs},
-                    label=f"{scope}[{variant_key(variant.name, backend)}]", **kw)
-                out[(step.name, variant_key(variant.name, backend))] = chain[step.name]
 
 
 def nest(steps: dict[tuple[str, str], Any]) -> dict[str, Any]:
