@@ -1,4 +1,9 @@
 """Browser videos: encode/decode round trips (frame count, size, PSNR), WebP fallback, labelled grids."""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -52,6 +57,22 @@ def test_mp4_is_tagged_h264_yuv420p_with_faststart(tmp_path):
         assert stream.codec_context.color_trc == 13  # sRGB transfer
     head = written.read_bytes()[:4096]
     assert head.find(b"moov") < head.find(b"mdat") or b"mdat" not in head  # index before the data
+
+
+def test_an_mp4_s_bytes_do_not_depend_on_what_the_heap_held(tmp_path):
+    """Two processes whose freed and fresh heap memory hold different bytes (glibc's MALLOC_PERTURB_) encode the same
+    clip to the same bytes, so a report video made again is the cached one (libx264's AVX-512 functions read
+    uninitialised memory: on an AVX-512 CPU, without the cap in tasks.reporting.video, the three files differ)."""
+    if not encoder_available("libx264"):
+        pytest.skip("libx264 is not in this libav")
+    np.save(tmp_path / "clip.npy", _smooth_clip(frames=12, height=200, width=330))
+    script = ("import sys, numpy as np; from tasks.reporting.video import encode_video; "
+              "encode_video(np.load(sys.argv[1]), sys.argv[2], fps=24)")
+    for perturb in (0, 1, 85):
+        env = {**os.environ, "MALLOC_PERTURB_": str(perturb)}
+        subprocess.run([sys.executable, "-c", script, str(tmp_path / "clip.npy"), str(tmp_path / f"{perturb}.mp4")],
+                       env=env, check=True, cwd=Path(__file__).resolve().parents[2])
+    assert (tmp_path / "0.mp4").read_bytes() == (tmp_path / "1.mp4").read_bytes() == (tmp_path / "85.mp4").read_bytes()
 
 
 def test_missing_encoder_falls_back_to_animated_webp(tmp_path):
