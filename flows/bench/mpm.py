@@ -21,6 +21,9 @@ Solvers measured (each in a fresh subprocess, runs interleaved, best of ``repeat
     Taichi's 3x3 SVD for the rotation (what Taichi MPM codes use), plus taichi-quat-1t: the peer with the same
     warm-started quaternion polar iteration as ours, to separate the algorithmic from the implementation gain
     (``python -m tasks.verification.taichi_peer``).
+Beside them it prints the substep's physical floor on one core (:mod:`tasks.verification.mpm_floor`: hand-counted
+flops and the compulsory bytes per particle-substep and per active grid node, against this core's fp32 matmul rate and
+copy bandwidth measured in the same run) and the one-thread run's ratio to it.
 Results go to ``<out>/benchmark.json`` and ``benchmark.md`` (``out=reports/benchmark``).  Config:
 ``conf/study/bench_mpm.yaml`` (keys: :class:`conf.study.schema.MPMBenchConfig`).
 """
@@ -52,6 +55,39 @@ def _subprocess_json(cmd: list[str], timeout: float) -> dict:
         if line.startswith("{"):
             return json.loads(line)
     raise RuntimeError(f"benchmark subprocess failed ({' '.join(cmd)}):\n{out.stdout[-2000:]}\n{out.stderr[-4000:]}")
+
+
+def _physical_floor(scene: dict, one_thread: dict | None) -> dict | None:
+    """The one-core floor of the scene's substep (:mod:`tasks.verification.mpm_floor`) at this core's rates measured
+    now, and the one-thread run's ratio to it; printed.  None without a CPU run of our solver."""
+    if not one_thread or one_thread.get("device") != "cpu":
+        return None
+    import torch
+
+    from tasks.core.machine_rates import machine_rates
+    from tasks.verification.mpm_floor import active_nodes, compulsory_particle_bytes, substep_floor
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        rates = machine_rates()
+    finally:
+        torch.set_num_threads(threads)
+    n = one_thread["n_particles"]
+    floor = substep_floor(n, compulsory_particle_bytes(one_thread["state_bytes"], n),
+                          active_nodes(scene["positions"], scene["dx"]), rates)
+    floor["ratio"] = floor["throughput"] / one_thread["throughput"]
+    floor["rates"] = rates
+    floor["text"] = (
+        f"physical floor, one core ({rates['flops'] / 1e9:.0f} GFLOP/s fp32 matmul, {rates['bandwidth'] / 1e9:.1f} GB/s "
+        f"copy, measured now; tasks/verification/mpm_floor.py): {floor['flop_per_particle_substep']:.0f} flop and "
+        f"{floor['bytes_per_particle_substep']:.0f} bytes per particle-substep with the {floor['active_nodes']:,} grid "
+        f"nodes the particles reach at the start -> {1e9 * floor['seconds'] / n:.1f} ns per particle-substep "
+        f"({floor['bound']}-bound), {floor['throughput']:.3g} particle-substeps/s; "
+        f"{one_thread['solver']}-{one_thread['device']} on one thread: {1e9 / one_thread['throughput']:.1f} ns, "
+        f"{floor['ratio']:.1f}x the floor")
+    print(floor["text"], flush=True)
+    return floor
 
 
 @hydra.main(version_base="1.3", config_path="../../conf", config_name="study/bench_mpm")
@@ -125,6 +161,7 @@ def main(cfg: DictConfig) -> dict:
         print(f"after {ref['total_substeps']} substeps (the last run of each solver): centre-of-mass difference "
               f"warp-cpu vs taichi-svd {dcom:.3g} m; max particle position difference vs taichi-svd (m): "
               + ", ".join(f"{k} {v:.3g}" for k, v in pos_diff.items()) + f" (dx = {scene['dx']:.3g} m)")
+    floor = _physical_floor(scene, results.get("warp-cpu-1-thread") or results.get("warp-cpu"))
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     report = dict(
@@ -138,7 +175,7 @@ def main(cfg: DictConfig) -> dict:
                                    if ref and "warp-cpu" in results else None),
         speedup_vs_taichi_1thread=(results["warp-cpu"]["throughput"] / results["taichi-svd-1-thread"]["throughput"]
                                    if "taichi-svd-1-thread" in results and "warp-cpu" in results else None),
-        timestamp=time.strftime("%Y-%m-%dT%H:%M:%S"),
+        physical_floor=floor, timestamp=time.strftime("%Y-%m-%dT%H:%M:%S"),
     )
     (out / "benchmark.json").write_text(json.dumps(report, indent=2))
     t1 = results.get("taichi-svd-1-thread")
@@ -179,6 +216,8 @@ def main(cfg: DictConfig) -> dict:
         lines += ["", f"Same-scene check after {ref['total_substeps']} substeps: centre-of-mass difference warp-cpu vs "
                   f"taichi-svd {dcom:.3g} m; max particle position difference vs taichi-svd: "
                   + ", ".join(f"{k} {v:.3g} m" for k, v in pos_diff.items()) + f" (dx = {scene['dx']:.3g} m)."]
+    if floor:
+        lines += ["", floor["text"] + "."]
     (out / "benchmark.md").write_text("\n".join(lines) + "\n")
     print(f"wrote {out / 'benchmark.json'} and {out / 'benchmark.md'}")
     return report

@@ -45,13 +45,13 @@ floor 0.6-0.86 ms) the code before read 4.2-4.9 / 10.3-12.5 ms, 5.6-8.5x its flo
 import ctypes
 import math
 import os
-import time
 
 import numpy as np
 import torch
 
 from conf.render_schema import RenderConfig
 from conf.schema import SamplingConfig
+from tasks.core.machine_rates import best_cpu_time, machine_rates
 
 from . import splat_warp
 from .splat import rasterization
@@ -114,22 +114,6 @@ def work_counts(scene: list[torch.Tensor], viewmats: torch.Tensor, Ks: torch.Ten
             "contributing_pairs": int((weight > 0).sum())}
 
 
-def machine_rates() -> dict:
-    """This core's fp32 matmul rate (flop/s), vectorised exp rate (1/s: the faster of torch and numpy on 16k
-    cache-resident floats, 64 calls a run) and copy bandwidth (bytes/s, 64 MB), best of 3; every output is
-    preallocated (a fresh 64 MB copy's page faults halved the bandwidth read and made it swing with the load)."""
-    a, b, c = torch.rand(1024, 1024), torch.rand(1024, 1024), torch.empty(1024, 1024)
-    x, y = torch.rand(1 << 14), torch.empty(1 << 14)
-    xn, yn = x.numpy(), y.numpy()
-    big = np.random.default_rng(0).random(1 << 24, dtype=np.float32)
-    copy = np.empty_like(big)
-    flops = 2 * 1024**3 / _best_cpu_time(lambda: torch.mm(a, b, out=c), 3)
-    exp_calls = (lambda: [torch.exp(x, out=y) for _ in range(64)], lambda: [np.exp(xn, out=yn) for _ in range(64)])
-    exps = max(64 * len(x) / _best_cpu_time(call, 3) for call in exp_calls)
-    bandwidth = 2 * big.nbytes / _best_cpu_time(lambda: np.copyto(copy, big), 3)
-    return {"flops": flops, "exps": exps, "bandwidth": bandwidth}
-
-
 def floor_seconds(counts: dict, rates: dict, exp_free: bool = False) -> tuple[float, float]:
     """The physical floor (s) of one forward and one forward+backward frame (model in the module docstring);
     exp_free: the recurrence's floor (RECURRENCE_FLOP per kept pair, 2 exps per box row, each pass)."""
@@ -189,7 +173,7 @@ def time_against_floor(scene: list[torch.Tensor], viewmats: torch.Tensor, Ks: to
             out[key].append(value)
         for name, frame in zip(("forward", "forward_backward"), frames):
             walls = []
-            out[f"{name}_s"].append(_best_cpu_time(frame, FRAMES_PER_REPEAT, walls))
+            out[f"{name}_s"].append(best_cpu_time(frame, FRAMES_PER_REPEAT, walls))
             out[f"{name}_wall_s"].append(float(np.median(walls)))
     return out
 
@@ -283,17 +267,6 @@ def resolution_summary(rows: list[dict]) -> None:
                              f"({seconds / same[0][f'median_{name}_s']:.1f}x)")
             cells.append(f"{row['resolution']} px: " + ", ".join(parts))
         print(f"  {backend:>11} N={n:<6} " + "; ".join(cells), flush=True)
-
-
-def _best_cpu_time(fn, repeats: int, walls: list | None = None) -> float:
-    best = math.inf
-    for _ in range(repeats):
-        wall, cpu = time.perf_counter(), time.thread_time()
-        fn()
-        best = min(best, time.thread_time() - cpu)
-        if walls is not None:
-            walls.append(time.perf_counter() - wall)
-    return best
 
 
 def _status_bytes(field: str) -> float:

@@ -88,6 +88,7 @@ class Profile:
     grid_nodes: int = 0  # nodes of the solver's grid
     grid_dims: tuple[int, ...] = ()
     particles: int = 0
+    state_bytes: dict = field(default_factory=dict)  # the solver's per-particle state arrays, bytes each
     substeps: int = 0  # substeps of the squeeze (the preload's not counted)
 
     def category(self, kind: str, name: str) -> str:
@@ -170,6 +171,7 @@ def profiled() -> Iterator[Profile]:
         prof.grid_dims = tuple(int(d) for d in solver.dims)
         prof.grid_nodes = int(np.prod(prof.grid_dims))
         prof.particles = int(solver.n_particles)
+        prof.state_bytes = solver.state_nbytes()
         if section == SQUEEZE:
             prof.substeps += int(solver.last_stats.substeps)
             grids = [solver.grid_a] + ([solver._field2[id(solver.grid_a)]] if solver.two_fields else [])
@@ -271,6 +273,7 @@ def summary(prof: Profile) -> dict:
     return dict(particles=prof.particles, grid_dims=list(prof.grid_dims), grid_nodes=prof.grid_nodes,
                 box_nodes=box, box_share=box / prof.grid_nodes if prof.grid_nodes else 0.0,
                 mass_nodes=mass, mass_share=mass / prof.grid_nodes if prof.grid_nodes else 0.0,
+                state_bytes=prof.state_bytes,
                 substeps=prof.substeps, squeeze_seconds=squeeze, preload_seconds=prof.section_seconds(PRELOAD),
                 total_seconds=prof.total,
                 throughput=prof.particles * prof.substeps / squeeze / 1e6 if squeeze else 0.0)
