@@ -41,9 +41,12 @@ def test_a_tiny_grid_spacing_is_refused_naming_mpm_dx(compose_cfg):
 
 
 def test_twenty_one_seeds_are_estimated_and_the_wall_limit_names_its_knob(compose_cfg):
-    from flows.preflight import work_estimate
+    """The estimate itself (not the whole preflight, whose free-space check would make the answer depend on this
+    disk: 21 seeds need ~54 GiB), then the wall limit, which the preflight checks before any folder."""
+    from flows.preflight import check_recording, estimate_work
 
-    est = work_estimate(compose_cfg("evaluate", [SEEDS_0_20]))
+    cfg = compose_cfg("evaluate", [SEEDS_0_20])
+    est = estimate_work(cfg, check_recording(cfg)[0])
     assert est.line() == (
         "work estimate: 336 scenes (8 objects x 2 variants x 21 seeds) x 1 effect backend, 91 frames each; largest "
         "grid 41x37x38 = 57,646 nodes (7.26 MiB, catalog.plush_toy); about 3.16e+10 particle-substeps, 51.8 GiB of "
