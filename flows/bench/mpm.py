@@ -62,17 +62,10 @@ def _physical_floor(scene: dict, one_thread: dict | None) -> dict | None:
     now, and the one-thread run's ratio to it; printed.  None without a CPU run of our solver."""
     if not one_thread or one_thread.get("device") != "cpu":
         return None
-    import torch
-
-    from tasks.core.machine_rates import machine_rates
+    from tasks.core.machine_rates import one_core_rates
     from tasks.verification.mpm_floor import active_nodes, compulsory_particle_bytes, substep_floor
 
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        rates = machine_rates()
-    finally:
-        torch.set_num_threads(threads)
+    rates = one_core_rates()
     n = one_thread["n_particles"]
     floor = substep_floor(n, compulsory_particle_bytes(one_thread["state_bytes"], n),
                           active_nodes(scene["positions"], scene["dx"]), rates)

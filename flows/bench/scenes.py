@@ -11,8 +11,8 @@ phases, split into the gravity preload and the squeeze), then ``repeats`` times 
 the squeeze's throughput = particles x substeps / its seconds, the preload's substeps not counted).  With
 ``reference`` the MPM benchmark's one-thread run (``flows.bench.mpm``'s falling cube, 64^3 grid) is timed in the
 same sitting for the ratio.  Each scene's squeeze is also set against its floor on one core
-(:func:`transfer_floor`: the compulsory bytes of its particle state and the fixed-corotated flop count, a lower bound
-for scenes with plastic or membrane particles).  Config: ``conf/study/bench_scenes.yaml`` (keys:
+(:func:`tasks.verification.mpm_floor.scene_floor`: the compulsory bytes of its particle state and the fixed-corotated
+flop count, a lower bound for scenes with plastic or membrane particles).  Config: ``conf/study/bench_scenes.yaml`` (keys:
 :class:`conf.study.schema.ScenesBenchConfig`).  Writes ``<out>/scenes.json`` and ``scenes.md``.
 """
 from __future__ import annotations
@@ -51,40 +51,6 @@ def reference_throughput() -> float:
                           "1", "--substeps", "100", "--repeats", "3"], capture_output=True, text=True, env=env,
                          timeout=1800, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])["throughput_cpu"] / 1e6
-
-
-def one_core_rates() -> dict:
-    """This core's fp32 matmul rate and copy bandwidth (``tasks.core.machine_rates``) with torch on one thread."""
-    import torch
-
-    from tasks.core.machine_rates import machine_rates
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        return machine_rates()
-    finally:
-        torch.set_num_threads(threads)
-
-
-def transfer_floor(s: dict, rates: dict) -> dict:
-    """The squeeze's floor per particle-substep on one core (:mod:`tasks.verification.mpm_floor`) from the scene's
-    state bytes and nodes with mass, charging every particle the fixed-corotated count (the transfers and the
-    simplest stress; a scene's plastic returns and membranes do more, so this is a lower bound), and the profiled
-    squeeze's ratio to it (CPU seconds: the plain run's median, else the profiled run's)."""
-    from tasks.verification.mpm_floor import compulsory_particle_bytes, substep_floor
-
-    n = s["particles"]
-    floor = substep_floor(n, compulsory_particle_bytes(s["state_bytes"], n), int(round(s["mass_nodes"])), rates)
-    seconds = s.get("plain_squeeze_cpu_seconds", s["squeeze_seconds"])   # the plain run's when there is one
-    measured = seconds / (n * s["substeps"]) if s["substeps"] else float("nan")
-    floor["ratio"] = measured / (floor["seconds"] / n)
-    floor["text"] = (f"Floor on one core (fixed-corotated flop count, a lower bound; {rates['flops'] / 1e9:.0f} "
-                     f"GFLOP/s, {rates['bandwidth'] / 1e9:.1f} GB/s): {floor['bytes_per_particle_substep']:.0f} bytes "
-                     f"and {floor['flop_per_particle_substep']:.0f} flop per particle-substep -> "
-                     f"{1e9 * floor['seconds'] / n:.1f} ns ({floor['bound']}-bound); the squeeze "
-                     f"{1e9 * measured:.0f} ns = {floor['ratio']:.1f}x")
-    return floor
 
 
 def rollout_inputs(obj: str, root: str, overrides: list[str]) -> tuple[dict, Any]:
@@ -128,6 +94,9 @@ def main(cfg: DictConfig) -> dict:
     lines = [f"# Rollout profile ({time.strftime('%Y-%m-%d %H:%M')}, {machine}, load {os.getloadavg()[0]:.1f})", "",
              f"Full variant, default config, first {a['frames'] or 'all'} output frames"
              + (f", overrides {' '.join(a['overrides'])}" if a["overrides"] else "") + "."]
+    from tasks.core.machine_rates import one_core_rates
+    from tasks.verification.mpm_floor import scene_floor
+
     report: dict = {"machine": machine, "frames": a["frames"], "scenes": {}, "rates": one_core_rates()}
     for obj in a["objects"]:
         inputs, _ = rollout_inputs(obj, a["artifacts"], list(a["overrides"]))
@@ -148,7 +117,7 @@ def main(cfg: DictConfig) -> dict:
             s["plain_squeeze_seconds"] = statistics.median(w - pw for w, _, pw, _ in plain)
             s["plain_squeeze_cpu_seconds"] = statistics.median(c - pc for _, c, _, pc in plain)
             s["plain_throughput"] = s["particles"] * s["substeps"] / s["plain_squeeze_cpu_seconds"] / 1e6
-        s["floor"] = transfer_floor(s, report["rates"])
+        s["floor"] = scene_floor(s, report["rates"])
         report["scenes"][obj] = {**s, "phases": phase_rows(prof), "kernels": kernel_rows(prof)}
         lines += ["", f"## {obj}", "",
                   f"{s['particles']:,} particles, grid {'x'.join(map(str, s['grid_dims']))} = {s['grid_nodes']:,} "

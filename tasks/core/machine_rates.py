@@ -37,3 +37,13 @@ def machine_rates() -> dict:
     exps = max(64 * len(x) / best_cpu_time(call, 3) for call in exp_calls)
     bandwidth = 2 * big.nbytes / best_cpu_time(lambda: np.copyto(copy, big), 3)
     return {"flops": flops, "exps": exps, "bandwidth": bandwidth}
+
+
+def one_core_rates() -> dict:
+    """:func:`machine_rates` with torch on one thread (its matmul rate then is one core's), torch's threads restored."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return machine_rates()
+    finally:
+        torch.set_num_threads(threads)

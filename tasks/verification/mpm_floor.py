@@ -9,6 +9,7 @@ per active grid node (a node some particle's 3 x 3 x 3 stencil reaches) the grid
 two vec4 buffers move GRID_NODE_BYTES.  The floor is the larger of the flop time at this core's measured fp32
 matmul rate and the byte time at its measured copy bandwidth (``tasks.core.machine_rates``), particle and grid work
 added: it assumes perfect SIMD use, perfect prefetching and no atomics, so real codes sit above it.
+:func:`scene_floor` sets a real rollout's squeeze against it (``python -m flows.bench.scenes``).
 
 Hand count of PARTICLE_FLOP_FIXED_COROTATED (quadratic B-splines, APIC/MLS, one quaternion Newton step for the
 polar rotation, compensated position and F_E updates; a multiply-add counts 2):
@@ -58,3 +59,22 @@ def substep_floor(n_particles: int, particle_bytes: float, n_active_nodes: int, 
             "bound": "memory" if byte_s >= flop_s else "compute",
             "flop_per_particle_substep": flop / n_particles, "bytes_per_particle_substep": moved / n_particles,
             "throughput": n_particles / seconds, "active_nodes": n_active_nodes}
+
+
+def scene_floor(s: dict, rates: dict) -> dict:
+    """A profiled rollout's squeeze (``s``: ``tasks.verification.rollout_profile.summary``, what
+    ``flows.bench.scenes`` prints per scene) against its floor on one core: the scene's state bytes and nodes with
+    mass, every particle charged the fixed-corotated count (the transfers and the simplest stress; plastic returns and
+    membranes do more, so this is a lower bound), and the squeeze's ratio to it (CPU seconds: the plain run's median,
+    else the profiled run's)."""
+    n = s["particles"]
+    floor = substep_floor(n, compulsory_particle_bytes(s["state_bytes"], n), int(round(s["mass_nodes"])), rates)
+    seconds = s.get("plain_squeeze_cpu_seconds", s["squeeze_seconds"])   # the plain run's when there is one
+    measured = seconds / (n * s["substeps"]) if s["substeps"] else float("nan")
+    floor["ratio"] = measured / (floor["seconds"] / n)
+    floor["text"] = (f"Floor on one core (fixed-corotated flop count, a lower bound; {rates['flops'] / 1e9:.0f} "
+                     f"GFLOP/s, {rates['bandwidth'] / 1e9:.1f} GB/s): {floor['bytes_per_particle_substep']:.0f} bytes "
+                     f"and {floor['flop_per_particle_substep']:.0f} flop per particle-substep -> "
+                     f"{1e9 * floor['seconds'] / n:.1f} ns ({floor['bound']}-bound); the squeeze "
+                     f"{1e9 * measured:.0f} ns = {floor['ratio']:.1f}x")
+    return floor

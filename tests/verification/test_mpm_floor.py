@@ -16,6 +16,7 @@ from tasks.verification.mpm_floor import (
     PARTICLE_FLOP_FIXED_COROTATED,
     active_nodes,
     compulsory_particle_bytes,
+    scene_floor,
     substep_floor,
 )
 
@@ -70,3 +71,20 @@ def test_the_benchmark_prints_the_floor_and_our_solver_sits_above_it(tmp_path):
     assert floor["bytes_per_particle_substep"] > compulsory_particle_bytes(measured["state_bytes"],
                                                                            measured["n_particles"])
     assert "physical floor, one core" in (tmp_path / "benchmark.md").read_text()
+
+
+def test_a_scene_s_squeeze_is_set_against_its_floor_from_its_state_and_its_nodes_with_mass():
+    """``scene_floor`` (what ``flows.bench.scenes`` prints per scene) on a profile summary: the plain run's CPU seconds
+    when there is one."""
+    n, substeps = 1000, 100
+    summary = {"particles": n, "substeps": substeps, "mass_nodes": 499.6, "squeeze_seconds": 0.009,
+               "state_bytes": {"x": 12 * n, "vol": 4 * n, "mat_id": 4 * n}}   # 20 read, 12 written per particle
+    rates = {"flops": 1e11, "bandwidth": 1e9}
+    floor = scene_floor(summary, rates)
+    per_substep = max((n * PARTICLE_FLOP_FIXED_COROTATED + 500 * GRID_NODE_FLOP) / 1e11,
+                      (n * 32 + 500 * GRID_NODE_BYTES) / 1e9)   # memory: 64,000 bytes -> 64 us
+    assert floor["seconds"] == pytest.approx(per_substep) == pytest.approx(6.4e-5)
+    assert floor["ratio"] == pytest.approx(90.0 / 64.0)   # 0.009 s / 1e5 particle-substeps = 90 ns against 64 ns
+    summary["plain_squeeze_cpu_seconds"] = 0.0064   # the plain run's seconds win: 64 ns, the floor itself
+    assert scene_floor(summary, rates)["ratio"] == pytest.approx(1.0)
+    assert "64.0 ns (memory-bound); the squeeze 64 ns = 1.0x" in scene_floor(summary, rates)["text"]
