@@ -70,7 +70,9 @@ def rollout_inputs(obj: str, root: str, overrides: list[str]) -> tuple[dict, Any
 
 @hydra.main(version_base="1.3", config_path="../../conf", config_name="study/bench_scenes")
 def main(cfg: DictConfig) -> dict:
+    from tasks.core.machine_rates import one_core_rates
     from tasks.core.tables import markdown_table
+    from tasks.verification.mpm_floor import scene_floor
     from tasks.verification.rollout_profile import (
         kernel_rows,
         phase_rows,
@@ -94,9 +96,6 @@ def main(cfg: DictConfig) -> dict:
     lines = [f"# Rollout profile ({time.strftime('%Y-%m-%d %H:%M')}, {machine}, load {os.getloadavg()[0]:.1f})", "",
              f"Full variant, default config, first {a['frames'] or 'all'} output frames"
              + (f", overrides {' '.join(a['overrides'])}" if a["overrides"] else "") + "."]
-    from tasks.core.machine_rates import one_core_rates
-    from tasks.verification.mpm_floor import scene_floor
-
     report: dict = {"machine": machine, "frames": a["frames"], "scenes": {}, "rates": one_core_rates()}
     for obj in a["objects"]:
         inputs, _ = rollout_inputs(obj, a["artifacts"], list(a["overrides"]))

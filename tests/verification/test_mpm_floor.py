@@ -64,9 +64,9 @@ def test_the_benchmark_prints_the_floor_and_our_solver_sits_above_it(tmp_path):
                          text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-3000:]
     line = next(x for x in out.stdout.splitlines() if x.startswith("physical floor, one core"))
-    floor = json.loads((tmp_path / "benchmark.json").read_text())["physical_floor"]
+    report = json.loads((tmp_path / "benchmark.json").read_text())
+    floor, measured = report["physical_floor"], report["results"]["warp-cpu"]
     assert f"{floor['ratio']:.1f}x the floor" in line
-    measured = json.loads((tmp_path / "benchmark.json").read_text())["results"]["warp-cpu"]
     assert floor["throughput"] > measured["throughput"] and floor["ratio"] > 1.0
     assert floor["bytes_per_particle_substep"] > compulsory_particle_bytes(measured["state_bytes"],
                                                                            measured["n_particles"])
